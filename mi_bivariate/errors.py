@@ -1,0 +1,31 @@
+"""User-facing errors.
+
+Every problem with a user's input is raised as :class:`InputError` whose message
+is one line: the file (or argument) and what is wrong with it, and where it
+helps, what to do. The CLI prints that line alone; library users can catch
+the class.
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Optional, Union
+
+PathLike = Union[str, os.PathLike]
+
+
+class InputError(ValueError):
+    """Bad input: a file, an image, a probe or a parameter the toolkit cannot use."""
+
+    def __init__(self, source: Optional[PathLike], problem: str, hint: Optional[str] = None):
+        self.source = None if source is None else os.fspath(source)
+        self.problem = problem
+        self.hint = hint
+        msg = problem if self.source is None else f"{self.source}: {problem}"
+        if hint:
+            msg = f"{msg} ({hint})"
+        super().__init__(msg)
+
+
+class InputWarning(UserWarning):
+    """Input that is usable but suspicious (LDR images, dropped pixels, weak lighting)."""

@@ -1,0 +1,45 @@
+"""Mitsuba variant selection and plugin registration.
+
+The toolkit runs on ``llvm_ad_rgb`` by default and on ``cuda_ad_rgb`` where a
+GPU exists (same code). ``MI_BIVARIATE_VARIANT`` overrides the default. Python
+BSDF plugins are registered per variant, so every switch goes through
+:func:`ensure_variant`.
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Optional
+
+DEFAULT_VARIANT = "llvm_ad_rgb"
+SUPPORTED_VARIANTS = ("llvm_ad_rgb", "cuda_ad_rgb", "scalar_rgb")
+
+
+def ensure_variant(variant: Optional[str] = None) -> str:
+    """Select a Mitsuba variant (if needed) and register the plugins for it.
+
+    Args:
+        variant: a variant name; ``None`` keeps an already selected supported
+            variant, else uses ``$MI_BIVARIATE_VARIANT`` or ``llvm_ad_rgb``.
+
+    Returns:
+        The active variant name.
+    """
+    import mitsuba as mi
+
+    current = mi.variant()
+    if variant is None:
+        if current in SUPPORTED_VARIANTS:
+            variant = current
+        else:
+            variant = os.environ.get("MI_BIVARIATE_VARIANT", DEFAULT_VARIANT)
+    if variant not in SUPPORTED_VARIANTS:
+        raise ValueError(f"unsupported Mitsuba variant {variant!r}; use one of {SUPPORTED_VARIANTS}")
+    if variant not in mi.variants():
+        raise RuntimeError(f"Mitsuba variant {variant!r} is not available in this build ({mi.variants()})")
+    if current != variant:
+        mi.set_variant(variant)
+    from mi_bivariate.plugins import register
+
+    register()
+    return variant
