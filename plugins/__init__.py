@@ -1,5 +1,44 @@
-"""Mitsuba BSDF plugins of mi_bivariate (placeholder until the plugins land)."""
+"""Mitsuba BSDF plugins of mi_bivariate: ``bivariate`` and ``merl``.
+
+Python BSDF classes derive from the active variant's ``mi.BSDF``, and Mitsuba
+keeps a plugin registry per variant, so :func:`register` builds the classes
+for the current variant and registers them once per variant. Call it (or
+:func:`mi_bivariate.variants.ensure_variant`, which does) after every
+``mi.set_variant``.
+"""
+
+from __future__ import annotations
+
+from typing import Dict, Tuple
+
+PLUGIN_NAMES: Tuple[str, ...] = ("bivariate", "merl")
+
+# variant -> {plugin name: class}
+_CLASSES: Dict[str, Dict[str, type]] = {}
+
+
+def plugin_classes() -> Dict[str, type]:
+    """The plugin classes of the active variant (built on first use)."""
+    import mitsuba as mi
+
+    variant = mi.variant()
+    if variant is None:
+        raise RuntimeError("set a Mitsuba variant (mi_bivariate.variants.ensure_variant()) before using the plugins")
+    if variant not in _CLASSES:
+        from .bivariate import make_bivariate_bsdf
+        from .merl import make_merl_bsdf
+
+        _CLASSES[variant] = {"bivariate": make_bivariate_bsdf(), "merl": make_merl_bsdf()}
+    return _CLASSES[variant]
 
 
 def register() -> None:
-    pass
+    """Register the ``bivariate`` and ``merl`` BSDFs with the active variant (idempotent)."""
+    import mitsuba as mi
+
+    variant = mi.variant()
+    first = variant not in _CLASSES
+    classes = plugin_classes()
+    if first:
+        for name, cls in classes.items():
+            mi.register_bsdf(name, lambda props, cls=cls: cls(props))

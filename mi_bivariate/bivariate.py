@@ -1,0 +1,348 @@
+"""The bivariate BRDF f(theta_h, theta_d): a table on the paper's st grid.
+
+The domain is sampled uniformly in ``s = 2 theta_d / pi`` and
+``t = sqrt(2 theta_h / pi)`` (denser near the specular peak), with nodes at
+``s_j = j / (n_s - 1)``, ``t_i = i / (n_t - 1)`` and bilinear interpolation
+between them. The table is RGB in 1/sr, layout ``[theta_h (t) index,
+theta_d (s) index, channel]``, shape ``(n_t, n_s, 3)``, 32 x 32 by default.
+
+A full isotropic BRDF is projected onto this domain by the paper's Eq. 1:
+``f_bar(theta_h, theta_d)`` is the mean of ``f(theta_h, theta_d, phi_d)`` over
+the valid phi_d (both directions above the horizon, sample not missing);
+:func:`reduction_error` is Eq. 1's relative RMS error of that projection.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import zipfile
+from pathlib import Path
+from typing import Any, Optional, Union
+
+import numpy as np
+
+from mi_bivariate.atomic import atomic_path
+from mi_bivariate.coordinates import grid_nodes, half_diff_from_st, st_from_half_diff
+from mi_bivariate.errors import InputError
+from mi_bivariate.merl import MERL_SHAPE, MERLBRDF, above_horizon, node_angles
+
+PathLike = Union[str, os.PathLike]
+
+FORMAT = "mi_bivariate.BivariateBRDF"
+FORMAT_VERSION = 1
+UNITS = "1/sr"
+LAYOUT = "[theta_h (t) index, theta_d (s) index, channel RGB]"
+ST_MAP = "s = 2 theta_d / pi, t = sqrt(2 theta_h / pi); nodes at i / (n - 1)"
+# Generic BRDFs are evaluated no further out than MERL's last nodes (s, t = 89/90):
+# at theta = pi/2 no configuration is above the horizon, and models with a
+# 1 / (cos_i cos_o) factor diverge there.
+_ST_MAX = (MERL_SHAPE[0] - 1) / MERL_SHAPE[0]
+
+
+def _validate_table(table: Any, source: str) -> np.ndarray:
+    try:
+        table = np.asarray(table, dtype=np.float32)
+    except (TypeError, ValueError):
+        raise InputError(source, "bivariate BRDF table is not a numeric array") from None
+    if table.ndim != 3 or table.shape[2] != 3 or table.shape[0] < 2 or table.shape[1] < 2:
+        raise InputError(source, f"bivariate BRDF table must have shape (n_t >= 2, n_s >= 2, 3), got {table.shape}")
+    if not np.all(np.isfinite(table)):
+        raise InputError(source, "bivariate BRDF table has non-finite values")
+    if np.any(table < 0.0):
+        raise InputError(source, f"bivariate BRDF table has negative values (min {table.min():g} 1/sr)")
+    return np.ascontiguousarray(table)
+
+
+class BivariateBRDF:
+    """A bivariate BRDF table on the st grid.
+
+    Args:
+        table: ``(n_t, n_s, 3)`` (float32 after conversion), 1/sr,
+            ``[theta_h (t) index, theta_d (s) index, channel]``.
+        provenance: JSON-serialisable description of where the table came
+            from (saved with it).
+        source: names the input in error messages.
+
+    Raises:
+        InputError: wrong shape, non-finite or negative values.
+    """
+
+    def __init__(self, table: Any, provenance: Optional[dict] = None, source: str = "bivariate table"):
+        self.table = _validate_table(table, source)
+        self.provenance = dict(provenance or {})
+
+    def __repr__(self) -> str:
+        return f"BivariateBRDF(n_t={self.n_t}, n_s={self.n_s}, provenance={self.provenance!r})"
+
+    @property
+    def n_t(self) -> int:
+        return self.table.shape[0]
+
+    @property
+    def n_s(self) -> int:
+        return self.table.shape[1]
+
+    @property
+    def s_nodes(self) -> np.ndarray:
+        """``(n_s,)`` float64 s coordinates of the table columns."""
+        return grid_nodes(self.n_s)
+
+    @property
+    def t_nodes(self) -> np.ndarray:
+        """``(n_t,)`` float64 t coordinates of the table rows."""
+        return grid_nodes(self.n_t)
+
+    def node_angles(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(theta_h (n_t,), theta_d (n_s,))`` float64 radians of the nodes."""
+        theta_h, _ = half_diff_from_st(0.0, self.t_nodes)
+        _, theta_d = half_diff_from_st(self.s_nodes, 0.0)
+        return np.asarray(theta_h), np.asarray(theta_d)
+
+    # ----------------------------------------------------------- evaluation
+
+    def eval_st(self, s, t) -> np.ndarray:
+        """Bilinear lookup at st coordinates (broadcast, clamped to [0, 1]) -> ``(..., 3)`` float64."""
+        s, t = np.broadcast_arrays(np.asarray(s, np.float64), np.asarray(t, np.float64))
+        u = np.clip(s, 0.0, 1.0) * (self.n_s - 1)
+        v = np.clip(t, 0.0, 1.0) * (self.n_t - 1)
+        j0 = np.minimum(np.floor(u).astype(np.int64), self.n_s - 2)
+        i0 = np.minimum(np.floor(v).astype(np.int64), self.n_t - 2)
+        ws = (u - j0)[..., None]
+        wt = (v - i0)[..., None]
+        f = self.table.astype(np.float64, copy=False)
+        return ((1.0 - wt) * ((1.0 - ws) * f[i0, j0] + ws * f[i0, j0 + 1])
+                + wt * ((1.0 - ws) * f[i0 + 1, j0] + ws * f[i0 + 1, j0 + 1]))
+
+    def eval(self, theta_h, theta_d) -> np.ndarray:
+        """Bilinear (in st) lookup at half/difference angles (radians, broadcast) -> ``(..., 3)`` 1/sr."""
+        s, t = st_from_half_diff(np.asarray(theta_h, np.float64), np.asarray(theta_d, np.float64))
+        return self.eval_st(s, t)
+
+    # ------------------------------------------------------------ reduction
+
+    @classmethod
+    def reduce(cls, brdf: Any, n_t: int = 32, n_s: int = 32, n_phi: int = 180,
+               provenance: Optional[dict] = None) -> "BivariateBRDF":
+        """Project an isotropic BRDF onto the st grid by Eq. 1 (mean over the valid phi_d).
+
+        A :class:`MERLBRDF` is averaged over its own phi_d samples at its own
+        (theta_h, theta_d) nodes (valid = both directions above the horizon and
+        all channels finite); that ``(90, 90)`` map, uniform in st at
+        ``t = i / 90, s = j / 90``, is interpolated bilinearly onto the st nodes
+        (clamped beyond the last MERL node, 89 / 90). With ``n_t = n_s = 91``
+        the nodes coincide with MERL's and the reduction is exact there.
+
+        Any other object with ``eval(theta_h, theta_d, phi_d) -> (..., 3)`` is
+        evaluated at the st nodes themselves, at ``phi_d = k pi / n_phi``,
+        keeping the configurations above the horizon with finite values. Like
+        MERL data, it is sampled no further out than s, t = 89/90: nodes beyond
+        (the last row and column) take the value there, so both paths agree.
+
+        Nodes without any valid sample take the value of the nearest node that has one.
+        """
+        t_nodes, s_nodes = grid_nodes(n_t), grid_nodes(n_s)
+        if isinstance(brdf, MERLBRDF):
+            f_bar = phi_d_average(brdf)
+            f_bar = _fill_nearest(f_bar, source=brdf.name)
+            table = _resample_merl_map(f_bar, t_nodes, s_nodes)
+            method = "Eq. 1: MERL phi_d average at MERL nodes, bilinear in st onto the grid"
+        else:
+            theta_h, _ = half_diff_from_st(0.0, np.minimum(t_nodes, _ST_MAX))
+            _, theta_d = half_diff_from_st(np.minimum(s_nodes, _ST_MAX), 0.0)
+            phi_d = np.arange(n_phi) * (math.pi / n_phi)
+            th, td, pd = np.broadcast_arrays(theta_h[:, None, None], theta_d[None, :, None], phi_d[None, None, :])
+            value = np.asarray(brdf.eval(th, td, pd), np.float64)
+            if value.shape != th.shape + (3,):
+                raise ValueError(f"{brdf!r}.eval returned shape {value.shape}, expected {th.shape + (3,)}")
+            valid = above_horizon(th, td, pd)[..., None] & np.isfinite(value)
+            count = valid.sum(axis=2)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                table = np.where(valid, value, 0.0).sum(axis=2) / count
+            table = _fill_nearest(table, source=getattr(brdf, "name", repr(brdf)))
+            method = f"Eq. 1: phi_d average of {n_phi} samples at the st nodes"
+        prov = {"source": getattr(brdf, "name", type(brdf).__name__), "reduction": method}
+        prov.update(provenance or {})
+        return cls(np.maximum(table, 0.0), provenance=prov, source=prov["source"])
+
+    # ------------------------------------------------------------------ I/O
+
+    @classmethod
+    def from_array(cls, table: Any, provenance: Optional[dict] = None, source: str = "array") -> "BivariateBRDF":
+        """From an ``(n_t, n_s, 3)`` array (1/sr); InputError naming ``source`` if it is not one."""
+        return cls(table, provenance=provenance, source=source)
+
+    @classmethod
+    def from_bitmap(cls, bitmap: Any, provenance: Optional[dict] = None, source: str = "bitmap") -> "BivariateBRDF":
+        """From an ``mi.Bitmap`` (RGB, H = n_t, W = n_s), e.g. one made by :meth:`to_bitmap`."""
+        try:
+            array = np.array(bitmap, copy=True)
+        except Exception:
+            raise InputError(source, f"cannot read a bitmap from {type(bitmap).__name__}") from None
+        if array.ndim == 2 or (array.ndim == 3 and array.shape[2] != 3):
+            channels = 1 if array.ndim == 2 else array.shape[2]
+            raise InputError(source, f"bivariate BRDF bitmap must be RGB (3 channels), got {channels}")
+        return cls(array, provenance=provenance, source=source)
+
+    def to_bitmap(self):
+        """``mi.Bitmap`` RGB float32, H = n_t, W = n_s: the form the ``bivariate`` plugin takes."""
+        import mitsuba as mi
+
+        from mi_bivariate.variants import ensure_variant
+
+        ensure_variant()
+        return mi.Bitmap(np.ascontiguousarray(self.table, np.float32))
+
+    def metadata(self) -> dict:
+        """The JSON metadata saved alongside the table."""
+        return {"format": FORMAT, "version": FORMAT_VERSION, "units": UNITS, "layout": LAYOUT,
+                "st_map": ST_MAP, "n_t": self.n_t, "n_s": self.n_s, "provenance": self.provenance}
+
+    def save(self, path: PathLike) -> None:
+        """Write ``.npz`` (atomic) with keys ``table``, ``s_nodes``, ``t_nodes``, ``meta`` (JSON string)."""
+        meta = json.dumps(self.metadata(), default=str)
+        with atomic_path(path) as tmp:
+            with open(tmp, "wb") as f:
+                np.savez_compressed(f, table=self.table, s_nodes=self.s_nodes, t_nodes=self.t_nodes,
+                                    meta=np.array(meta))
+
+    @classmethod
+    def load(cls, path: PathLike) -> "BivariateBRDF":
+        """Read a table written by :meth:`save`.
+
+        Raises:
+            InputError: missing, corrupt or foreign file; inconsistent nodes or units.
+        """
+        path = Path(path)
+        if not path.is_file():
+            raise InputError(path, "bivariate BRDF file not found")
+        try:
+            with np.load(path, allow_pickle=False) as npz:
+                missing = [k for k in ("table", "s_nodes", "t_nodes", "meta") if k not in npz.files]
+                if missing:
+                    raise InputError(path, f"not a bivariate BRDF file: missing {', '.join(missing)}",
+                                     "write it with BivariateBRDF.save")
+                table, s_nodes, t_nodes = npz["table"], npz["s_nodes"], npz["t_nodes"]
+                meta_text = str(npz["meta"])
+        except InputError:
+            raise
+        except (zipfile.BadZipFile, ValueError, OSError, EOFError, KeyError) as e:
+            raise InputError(path, f"not a readable .npz file ({type(e).__name__})") from None
+        try:
+            meta = json.loads(meta_text)
+        except json.JSONDecodeError:
+            raise InputError(path, "bivariate BRDF metadata is not JSON") from None
+        if not isinstance(meta, dict) or meta.get("units") != UNITS:
+            units = meta.get("units") if isinstance(meta, dict) else None
+            raise InputError(path, f"bivariate BRDF units must be {UNITS!r}, got {units!r}")
+        biv = cls(table, provenance=meta.get("provenance"), source=os.fspath(path))
+        for name, nodes, n in (("s_nodes", s_nodes, biv.n_s), ("t_nodes", t_nodes, biv.n_t)):
+            if np.shape(nodes) != (n,) or not np.allclose(nodes, grid_nodes(n), atol=1e-9):
+                raise InputError(path, f"{name} are not the uniform st nodes i/(n-1) of a {n}-node axis")
+        return biv
+
+    def save_exr(self, path: PathLike) -> None:
+        """Write the table as an RGB float32 EXR image (rows = theta_h (t), columns = theta_d (s)), atomic."""
+        bitmap = self.to_bitmap()
+        with atomic_path(path, suffix=".exr") as tmp:
+            bitmap.write(str(tmp))
+
+    def to_merl(self, name: Optional[str] = None) -> MERLBRDF:
+        """A MERL table whose every cell (valid or not) holds the bivariate value at its (theta_h, theta_d)."""
+        theta_h, theta_d, _ = node_angles()
+        f = self.eval(theta_h[:, None], theta_d[None, :])
+        table = np.broadcast_to(f[:, :, None, :], MERL_SHAPE + (3,)).copy()
+        return MERLBRDF(table, name=name or str(self.provenance.get("source", "bivariate")))
+
+    def write_merl(self, path: PathLike) -> None:
+        """Write :meth:`to_merl` as a MERL ``.binary`` file (atomic) for any MERL renderer."""
+        self.to_merl().write(path)
+
+
+def phi_d_average(merl: MERLBRDF) -> np.ndarray:
+    """Eq. 1's ``f_bar`` on the MERL (theta_h, theta_d) nodes: ``(90, 90, 3)`` float64.
+
+    The mean over the valid phi_d (both directions above the horizon and all
+    channels finite); NaN where no phi_d is valid.
+    """
+    valid = merl.valid_mask()
+    values = np.where(valid[..., None], merl.table, 0.0).astype(np.float64)
+    count = valid.sum(axis=2)[..., None]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(count > 0, values.sum(axis=2) / np.maximum(count, 1), np.nan)
+
+
+def _fill_nearest(values: np.ndarray, source: str) -> np.ndarray:
+    """Fill NaN cells of a ``(n_t, n_s, 3)`` map with the nearest finite cell's value."""
+    missing = np.any(~np.isfinite(values), axis=-1)
+    if not missing.any():
+        return values
+    if missing.all():
+        raise InputError(source, "BRDF has no valid sample to reduce")
+    from scipy.ndimage import distance_transform_edt
+
+    _, (ii, jj) = distance_transform_edt(missing, return_indices=True)
+    return values[ii, jj]
+
+
+def _resample_merl_map(f_bar: np.ndarray, t_nodes: np.ndarray, s_nodes: np.ndarray) -> np.ndarray:
+    """Bilinear resampling of a ``(90, 90, 3)`` map with nodes at ``t = i/90, s = j/90`` onto st nodes."""
+    n_h, n_d = MERL_SHAPE[:2]
+
+    def axis(nodes: np.ndarray, n: int):
+        u = np.clip(nodes * n, 0.0, n - 1)
+        i0 = np.minimum(np.floor(u).astype(np.int64), n - 2)
+        return i0, (u - i0)
+
+    i0, wt = axis(t_nodes, n_h)
+    j0, ws = axis(s_nodes, n_d)
+    wt, ws = wt[:, None, None], ws[None, :, None]
+    f00, f01 = f_bar[i0][:, j0], f_bar[i0][:, j0 + 1]
+    f10, f11 = f_bar[i0 + 1][:, j0], f_bar[i0 + 1][:, j0 + 1]
+    return (1.0 - wt) * ((1.0 - ws) * f00 + ws * f01) + wt * ((1.0 - ws) * f10 + ws * f11)
+
+
+def _relative_errors(merl: MERLBRDF, biv: Optional[BivariateBRDF]):
+    """Squared relative errors and the cells that count, ``(90, 90, 180, 3)`` each."""
+    f = np.asarray(merl.table, np.float64)
+    if biv is None:
+        f_bar = phi_d_average(merl)
+    else:
+        theta_h, theta_d, _ = node_angles()
+        f_bar = biv.eval(theta_h[:, None], theta_d[None, :])
+    cells = merl.valid_mask()[..., None] & (f > 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rel2 = np.where(cells, ((f - f_bar[:, :, None, :]) / np.where(cells, f, 1.0)) ** 2, 0.0)
+    return rel2, cells
+
+
+def reduction_error_per_channel(merl: MERLBRDF, biv: Optional[BivariateBRDF] = None) -> np.ndarray:
+    """Eq. 1 relative RMS error per channel, ``(3,)`` float64; see :func:`reduction_error`."""
+    rel2, cells = _relative_errors(merl, biv)
+    count = cells.sum(axis=(0, 1, 2))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.sqrt(rel2.sum(axis=(0, 1, 2)) / count)
+
+
+def reduction_error(merl: MERLBRDF, biv: Optional[BivariateBRDF] = None) -> float:
+    """Eq. 1: relative RMS error of a bivariate BRDF against a 3D MERL table.
+
+    ``E = sqrt(mean over cells of ((f - f_bar) / f)^2)``, where
+
+    - the cells are the MERL nodes ``(theta_h_i, theta_d_j, phi_d_k)`` and
+      channels c with both directions above the horizon, all three channels
+      finite (not missing), and ``f_c > 0`` (the relative error is undefined
+      at 0); the mean pools all channels (the paper's sum, normalised by the
+      number of cells so that it is an RMS);
+    - ``f_bar`` is ``biv`` evaluated (bilinear in st) at the node's
+      (theta_h, theta_d), so a coarse grid's interpolation error counts; with
+      ``biv=None`` it is the exact phi_d average at the MERL nodes (the
+      paper's Fig. 3 number: the bivariate projection alone).
+
+    Returns:
+        The pooled error (0.1 = 10%); NaN if no cell counts.
+    """
+    rel2, cells = _relative_errors(merl, biv)
+    count = int(cells.sum())
+    return float(np.sqrt(rel2.sum() / count)) if count else float("nan")

@@ -1,0 +1,395 @@
+"""From images of a known shape to observations: normals, views and pixel values.
+
+Each observation is one pixel: the world normal ``n`` it sees, the world
+direction ``v`` towards the camera, and its linear RGB value ``I(v, n)``; it
+becomes one row of the lighting matrix (Eq. 5).
+
+Normal selection follows the paper (Sect. 4): ``n_normals`` normals spread
+uniformly (in solid angle) over the visible hemisphere, of which those more
+than ``max_view_angle_deg`` from the view are discarded (low signal to noise
+near the silhouette). The spread comes from a spherical Fibonacci lattice
+about the view axis: ``cos theta_k = 1 - (k + 1/2) / n`` is stratified in
+``cos theta`` (uniform in solid angle) and the azimuths follow the golden
+angle, with a seeded azimuthal rotation. Each lattice normal is mapped to its
+nearest pixel (exactly, for a sphere; by nearest pixel normal, for a normal
+map), duplicates are merged, and the pixel's own (centre) normal is used.
+
+Every lattice normal that does not become an observation is counted in
+``Observations.dropped`` under the first reason that applies, in this order:
+
+==================  =========================================================
+``view_angle``      further than ``max_view_angle_deg`` from the view
+``outside_image``   its pixel lies outside the image
+``silhouette``      its pixel is not entirely inside the sphere's silhouette
+                    (a mixed sphere/background pixel), or has no valid normal
+``outside_mask``    its pixel is outside the user's mask
+``duplicate``       its pixel was already chosen by an earlier lattice normal
+``nonfinite``       NaN or Inf in any channel
+``negative``        a negative channel
+``saturated``       a channel at or above ``saturation``
+==================  =========================================================
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass, field, replace
+from typing import Dict, Optional, Sequence, Tuple
+
+import numpy as np
+
+from mi_bivariate.errors import InputError, InputWarning
+from mi_bivariate.geometry import SphereGeometry
+
+DROP_REASONS: Tuple[str, ...] = ("view_angle", "outside_image", "silhouette", "outside_mask",
+                                 "duplicate", "nonfinite", "negative", "saturated")
+
+#: Fewer usable observations than this gives an :class:`InputWarning`.
+MIN_OBSERVATIONS = 256
+
+#: Warn when more than this fraction of in-sphere samples has bad values.
+BAD_VALUE_WARN_FRACTION = 0.05
+
+_GOLDEN = (1.0 + math.sqrt(5.0)) / 2.0
+
+
+@dataclass
+class Observations:
+    """Pixels of one or more images as constraints on the BRDF (rows of Eq. 5).
+
+    Attributes:
+        normals: ``(M, 3) float64`` unit world normals.
+        views: ``(M, 3) float64`` unit world directions towards the camera.
+        values: ``(M, 3) float32`` linear RGB pixel values.
+        probe_index: ``(M,) int32`` which probe (of the list given to
+            :func:`mi_bivariate.lighting.lighting_matrix`) lit each row.
+        dropped: lattice normals that did not become rows, per reason
+            (:data:`DROP_REASONS`).
+        pixels: ``(M, 2) int32`` (row, column) of each observation in its image.
+        image_index: ``(M,) int32`` which image each row came from (after
+            :func:`stack`).
+    """
+
+    normals: np.ndarray
+    views: np.ndarray
+    values: np.ndarray
+    probe_index: np.ndarray
+    dropped: Dict[str, int] = field(default_factory=lambda: {k: 0 for k in DROP_REASONS})
+    pixels: Optional[np.ndarray] = None
+    image_index: Optional[np.ndarray] = None
+
+    def __post_init__(self) -> None:
+        m = len(self.normals)
+        if self.pixels is None:
+            self.pixels = np.full((m, 2), -1, dtype=np.int32)
+        if self.image_index is None:
+            self.image_index = np.zeros(m, dtype=np.int32)
+        for name in ("views", "values", "probe_index", "pixels", "image_index"):
+            if len(getattr(self, name)) != m:
+                raise ValueError(f"Observations.{name} has {len(getattr(self, name))} rows, normals have {m}")
+
+    def __len__(self) -> int:
+        return len(self.normals)
+
+    @property
+    def view_angles(self) -> np.ndarray:
+        """Angle between normal and view per row, ``(M,) float64`` radians."""
+        cos = np.clip(np.sum(self.normals * self.views, axis=1), -1.0, 1.0)
+        return np.arccos(cos)
+
+    def subset(self, rows: np.ndarray) -> "Observations":
+        """The observations at ``rows`` (index or boolean mask); ``dropped`` is kept."""
+        return Observations(self.normals[rows], self.views[rows], self.values[rows],
+                            self.probe_index[rows], dict(self.dropped), self.pixels[rows],
+                            self.image_index[rows])
+
+    def with_probe_index(self, index: int) -> "Observations":
+        """A copy with every row lit by probe ``index``."""
+        return replace(self, probe_index=np.full(len(self), int(index), dtype=np.int32),
+                       dropped=dict(self.dropped))
+
+
+def hemisphere_lattice(n: int, seed: int = 0) -> np.ndarray:
+    """Spherical Fibonacci lattice on the upper (+z) hemisphere, ``(n, 3) float64``.
+
+    Uniform in solid angle: ``z_k = 1 - (k + 1/2) / n``, golden-angle azimuths,
+    rotated about z by a seeded random angle.
+    """
+    k = np.arange(n, dtype=np.float64)
+    z = 1.0 - (k + 0.5) / n
+    r = np.sqrt(np.clip(1.0 - z * z, 0.0, None))
+    offset = np.random.default_rng(seed).random()
+    phi = 2.0 * np.pi * np.mod(k / _GOLDEN + offset, 1.0)
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=-1)
+
+
+def _frame_about(axis: np.ndarray) -> np.ndarray:
+    """A ``(3, 3)`` rotation whose third column is the unit vector ``axis``."""
+    z = axis / np.linalg.norm(axis)
+    helper = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = np.cross(helper, z)
+    x /= np.linalg.norm(x)
+    return np.stack([x, np.cross(z, x), z], axis=1)
+
+
+def _check_image(image: np.ndarray, source: str) -> np.ndarray:
+    image = np.asarray(image)
+    if image.ndim != 3 or image.shape[2] != 3:
+        raise InputError(source, f"expected an (H, W, 3) RGB image, got shape {image.shape}")
+    if image.shape[0] < 1 or image.shape[1] < 1:
+        raise InputError(source, f"empty image of shape {image.shape}")
+    if not np.issubdtype(image.dtype, np.number):
+        raise InputError(source, f"image has non-numeric dtype {image.dtype}")
+    return image.astype(np.float32, copy=False)
+
+
+def _check_mask(mask: Optional[np.ndarray], shape: Tuple[int, int], source: str) -> Optional[np.ndarray]:
+    if mask is None:
+        return None
+    mask = np.asarray(mask)
+    if mask.shape != shape:
+        raise InputError(source, f"mask has shape {mask.shape} but the image is {shape[0]}x{shape[1]}",
+                         "pass an (H, W) boolean mask of the image's size")
+    return mask.astype(bool)
+
+
+def _check_rotation(matrix: np.ndarray, source: str) -> np.ndarray:
+    matrix = np.asarray(matrix, dtype=np.float64)
+    if matrix.shape != (3, 3) or not np.all(np.isfinite(matrix)) \
+            or not np.allclose(matrix @ matrix.T, np.eye(3), atol=1e-6) or np.linalg.det(matrix) < 0:
+        raise InputError(source, "camera_to_world is not a (3, 3) rotation matrix")
+    return matrix
+
+
+def _plateau_warning(values: np.ndarray, source: str) -> None:
+    """Warn when many pixels sit exactly at the image maximum (a clipped image)."""
+    finite = values[np.all(np.isfinite(values), axis=1)]
+    if len(finite) == 0:
+        return
+    peak = float(finite.max())
+    if peak <= 0.0:
+        return
+    at_peak = int(np.count_nonzero(np.any(finite == peak, axis=1)))
+    if at_peak >= max(16, int(0.002 * len(finite))):
+        warnings.warn(f"{source}: {at_peak} sphere pixels sit exactly at the maximum value {peak:g}; "
+                      f"the image looks clipped (pass saturation={peak:g} to drop them)",
+                      InputWarning, stacklevel=4)
+
+
+def _finish(image: np.ndarray, rows: np.ndarray, cols: np.ndarray, normals: np.ndarray,
+            views: np.ndarray, dropped: Dict[str, int], saturation: Optional[float],
+            source: str, probe_index: int) -> Observations:
+    """Deduplicate pixels, check their values and build :class:`Observations`.
+
+    ``rows, cols, normals, views`` are per lattice normal that survived the
+    geometric checks, in lattice order.
+    """
+    flat = rows.astype(np.int64) * image.shape[1] + cols
+    _, first = np.unique(flat, return_index=True)
+    first.sort()  # keep lattice order: deterministic and spatially interleaved
+    dropped["duplicate"] += len(flat) - len(first)
+    rows, cols, normals, views = rows[first], cols[first], normals[first], views[first]
+
+    values = image[rows, cols]
+    keep = np.ones(len(values), dtype=bool)
+    bad = ~np.all(np.isfinite(values), axis=1)
+    dropped["nonfinite"] += int(np.count_nonzero(bad))
+    keep &= ~bad
+    with np.errstate(invalid="ignore"):
+        bad = keep & np.any(values < 0.0, axis=1)
+        dropped["negative"] += int(np.count_nonzero(bad))
+        keep &= ~bad
+        if saturation is not None:
+            bad = keep & np.any(values >= saturation, axis=1)
+            dropped["saturated"] += int(np.count_nonzero(bad))
+            keep &= ~bad
+
+    n_ok = int(np.count_nonzero(keep))
+    if n_ok == 0:
+        raise InputError(source, "no usable pixel on the object",
+                         f"dropped: {', '.join(f'{k} {v}' for k, v in dropped.items() if v)}")
+    if not np.any(values[keep] > 0.0):
+        raise InputError(source, "the image is black on the object (no positive pixel value)",
+                         "check the exposure, the sphere position and the mask")
+    n_bad = len(values) - n_ok
+    if len(values) and n_bad > BAD_VALUE_WARN_FRACTION * len(values):
+        parts = ", ".join(f"{k} {dropped[k]}" for k in ("nonfinite", "negative", "saturated") if dropped[k])
+        warnings.warn(f"{source}: {n_bad} of {len(values)} sampled sphere pixels have unusable values "
+                      f"({parts}) and were dropped", InputWarning, stacklevel=3)
+    if n_ok < MIN_OBSERVATIONS:
+        warnings.warn(f"{source}: only {n_ok} usable observations (fewer than {MIN_OBSERVATIONS}); "
+                      "the recovered BRDF will be poorly constrained", InputWarning, stacklevel=3)
+    return Observations(normals=normals[keep], views=views[keep], values=values[keep].astype(np.float32),
+                        probe_index=np.full(n_ok, probe_index, dtype=np.int32), dropped=dropped,
+                        pixels=np.stack([rows[keep], cols[keep]], axis=1).astype(np.int32),
+                        image_index=np.zeros(n_ok, dtype=np.int32))
+
+
+def observations_from_sphere(image: np.ndarray, geometry: SphereGeometry, n_normals: int = 8000,
+                             max_view_angle_deg: float = 80.0, saturation: Optional[float] = None,
+                             mask: Optional[np.ndarray] = None, seed: int = 0, probe_index: int = 0,
+                             source: str = "image") -> Observations:
+    """Observations from an orthographic image of a sphere of known position.
+
+    Args:
+        image: ``(H, W, 3)`` linear RGB.
+        geometry: the sphere (centre and radius in pixels, camera pose).
+        n_normals: lattice normals over the visible hemisphere (before drops).
+        max_view_angle_deg: drop normals further than this from the view.
+        saturation: drop pixels with any channel ``>=`` this (``None``: keep
+            all, but warn when the image looks clipped).
+        mask: optional ``(H, W) bool``, True where pixels may be used.
+        seed: seeds the lattice's azimuthal rotation.
+        probe_index: probe lighting this image (see :func:`stack`).
+        source: name of the image in messages.
+    """
+    image = _check_image(image, source)
+    height, width = image.shape[:2]
+    mask = _check_mask(mask, (height, width), source)
+    rot = _check_rotation(geometry.camera_to_world, source)
+    cx, cy, radius = float(geometry.cx), float(geometry.cy), float(geometry.radius)
+    if not all(math.isfinite(v) for v in (cx, cy, radius)) or radius <= 0.0:
+        raise InputError(source, f"invalid sphere: centre ({cx:g}, {cy:g}), radius {radius:g} px")
+    if cx + radius <= 0 or cy + radius <= 0 or cx - radius >= width or cy - radius >= height:
+        raise InputError(source, f"the sphere (centre ({cx:g}, {cy:g}), radius {radius:g} px) "
+                                 f"lies outside the {width}x{height} image")
+    if cx - radius < 0 or cy - radius < 0 or cx + radius > width or cy + radius > height:
+        warnings.warn(f"{source}: the sphere extends beyond the {width}x{height} image; "
+                      "its cut-off part is not observed", InputWarning, stacklevel=2)
+    if n_normals < 1:
+        raise InputError(source, f"n_normals must be positive, got {n_normals}")
+
+    dropped = {k: 0 for k in DROP_REASONS}
+    lattice = hemisphere_lattice(int(n_normals), seed)  # camera frame, z towards the viewer
+    ok = lattice[:, 2] >= math.cos(math.radians(max_view_angle_deg))
+    dropped["view_angle"] = int(np.count_nonzero(~ok))
+    lattice = lattice[ok]
+
+    # Orthographic projection: image x = cx + r n_x, image y = cy - r n_y.
+    cols = np.floor(cx + radius * lattice[:, 0]).astype(np.int64)
+    rows = np.floor(cy - radius * lattice[:, 1]).astype(np.int64)
+    ok = (cols >= 0) & (cols < width) & (rows >= 0) & (rows < height)
+    dropped["outside_image"] = int(np.count_nonzero(~ok))
+    cols, rows = cols[ok], rows[ok]
+
+    # The pixel's own normal, at its centre; the whole pixel (centre + half
+    # diagonal) must lie inside the silhouette, else it mixes in background.
+    x = (cols + 0.5 - cx) / radius
+    y = -(rows + 0.5 - cy) / radius
+    rho = np.sqrt(x * x + y * y)
+    ok = rho + math.sqrt(0.5) / radius < 1.0
+    dropped["silhouette"] = int(np.count_nonzero(~ok))
+    cols, rows, x, y = cols[ok], rows[ok], x[ok], y[ok]
+    if mask is not None:
+        ok = mask[rows, cols]
+        dropped["outside_mask"] = int(np.count_nonzero(~ok))
+        cols, rows, x, y = cols[ok], rows[ok], x[ok], y[ok]
+
+    n_cam = np.stack([x, y, np.sqrt(np.clip(1.0 - x * x - y * y, 0.0, None))], axis=-1)
+    normals = n_cam @ rot.T
+    view = rot[:, 2]
+    views = np.broadcast_to(view, normals.shape).copy()
+
+    if saturation is None:
+        _, sphere_mask = geometry.normals(width, height)
+        _plateau_warning(image[sphere_mask], source)
+    return _finish(image, rows, cols, normals, views, dropped, saturation, source, probe_index)
+
+
+def observations_from_normal_map(image: np.ndarray, normals: np.ndarray, mask: np.ndarray,
+                                 view: np.ndarray, n_normals: int = 8000,
+                                 max_view_angle_deg: float = 80.0, saturation: Optional[float] = None,
+                                 seed: int = 0, probe_index: int = 0,
+                                 source: str = "image") -> Observations:
+    """Observations from an image with a per-pixel normal map (e.g. render AOVs).
+
+    The lattice is laid about the (mean) view direction and each lattice
+    normal takes the pixel whose normal is nearest to it, so the selection
+    is uniform over the normals the object shows.
+
+    Args:
+        image: ``(H, W, 3)`` linear RGB.
+        normals: ``(H, W, 3)`` world normals (need not be exactly unit).
+        mask: ``(H, W) bool``, True on the object.
+        view: ``(3,)`` world direction towards an orthographic camera, or
+            ``(H, W, 3)`` per-pixel directions towards the camera.
+        n_normals, max_view_angle_deg, saturation, seed, probe_index, source:
+            as in :func:`observations_from_sphere`.
+    """
+    from scipy.spatial import cKDTree
+
+    image = _check_image(image, source)
+    height, width = image.shape[:2]
+    normals = np.asarray(normals, dtype=np.float64)
+    if normals.shape != (height, width, 3):
+        raise InputError(source, f"normal map has shape {normals.shape} but the image is {height}x{width}x3")
+    mask = _check_mask(mask, (height, width), source)
+    view = np.asarray(view, dtype=np.float64)
+    if view.shape not in ((3,), (height, width, 3)):
+        raise InputError(source, f"view must be (3,) or ({height}, {width}, 3), got {view.shape}")
+    if n_normals < 1:
+        raise InputError(source, f"n_normals must be positive, got {n_normals}")
+
+    length = np.linalg.norm(normals, axis=-1)
+    usable = mask & np.all(np.isfinite(normals), axis=-1) & (length > 0.5)
+    if view.ndim == 3:
+        view_len = np.linalg.norm(view, axis=-1)
+        usable &= np.all(np.isfinite(view), axis=-1) & (view_len > 0.5)
+    if not np.any(usable):
+        raise InputError(source, "the mask selects no pixel with a valid normal")
+    prow, pcol = np.nonzero(usable)
+    pnormal = normals[prow, pcol] / length[prow, pcol, None]
+    if view.ndim == 3:
+        pview = view[prow, pcol] / view_len[prow, pcol, None]
+        axis = pview.mean(axis=0)
+    else:
+        if not np.all(np.isfinite(view)) or np.linalg.norm(view) == 0.0:
+            raise InputError(source, f"invalid view direction {view}")
+        axis = view
+        pview = np.broadcast_to(view / np.linalg.norm(view), pnormal.shape)
+
+    dropped = {k: 0 for k in DROP_REASONS}
+    cos_max = math.cos(math.radians(max_view_angle_deg))
+    lattice = hemisphere_lattice(int(n_normals), seed)
+    ok = lattice[:, 2] >= cos_max
+    lattice = lattice[ok] @ _frame_about(axis).T
+    _, nearest = cKDTree(pnormal).query(lattice)
+    # The chosen pixel's own normal must also face its own view closely enough.
+    own = np.sum(pnormal[nearest] * pview[nearest], axis=1) >= cos_max
+    dropped["view_angle"] = int(np.count_nonzero(~ok)) + int(np.count_nonzero(~own))
+    nearest = nearest[own]
+    return _finish(image, prow[nearest], pcol[nearest], pnormal[nearest], np.array(pview[nearest]),
+                   dropped, saturation, source, probe_index)
+
+
+def stack(observations: Sequence[Observations],
+          probe_index: Optional[Sequence[int]] = None) -> Observations:
+    """Stack observations of several images (views or probes) into one system.
+
+    Args:
+        observations: per image.
+        probe_index: optional probe per image; by default each part keeps
+            its own ``probe_index``.
+
+    Returns:
+        All rows; ``image_index`` is the position in ``observations`` and
+        ``dropped`` the summed counts.
+    """
+    parts = list(observations)
+    if not parts:
+        raise InputError(None, "no observations to stack")
+    if probe_index is not None:
+        if len(probe_index) != len(parts):
+            raise InputError(None, f"{len(probe_index)} probe indices for {len(parts)} observation sets")
+        parts = [p.with_probe_index(k) for p, k in zip(parts, probe_index)]
+    dropped = {k: sum(p.dropped.get(k, 0) for p in parts) for k in DROP_REASONS}
+    return Observations(
+        normals=np.concatenate([p.normals for p in parts]),
+        views=np.concatenate([p.views for p in parts]),
+        values=np.concatenate([p.values for p in parts]).astype(np.float32),
+        probe_index=np.concatenate([p.probe_index for p in parts]).astype(np.int32),
+        dropped=dropped,
+        pixels=np.concatenate([p.pixels for p in parts]).astype(np.int32),
+        image_index=np.concatenate([np.full(len(p), k, dtype=np.int32) for k, p in enumerate(parts)]),
+    )

@@ -1,0 +1,116 @@
+"""Reading and writing the toolkit's images (linear HDR, float32 RGB).
+
+Readers validate what they load and raise :class:`InputError` naming the file;
+writers are atomic. 8-bit formats load with an :class:`InputWarning`: they are
+not radiometric, so a BRDF recovered from them is only qualitative.
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+from pathlib import Path
+from typing import Union
+
+import numpy as np
+
+from mi_bivariate.atomic import atomic_path
+from mi_bivariate.errors import InputError, InputWarning
+
+PathLike = Union[str, os.PathLike]
+HDR_SUFFIXES = (".exr", ".hdr", ".pfm")
+LDR_SUFFIXES = (".png", ".jpg", ".jpeg")
+
+
+def load_image(path: PathLike, allow_ldr: bool = True) -> np.ndarray:
+    """Load a linear RGB image as ``(H, W, 3) float32``.
+
+    Grey images are expanded to RGB; an alpha channel is dropped. Values are
+    not validated for NaN/Inf/negatives here: :mod:`mi_bivariate.capture`
+    counts and drops such pixels, and probes reject them.
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in HDR_SUFFIXES + LDR_SUFFIXES:
+        raise InputError(path, f"unknown image extension {path.suffix!r}",
+                         f"use one of {', '.join(HDR_SUFFIXES + LDR_SUFFIXES)}")
+    if not path.is_file():
+        raise InputError(path, "no such file")
+    import mitsuba as mi
+
+    try:
+        bitmap = mi.Bitmap(str(path))
+    except Exception as exc:  # Mitsuba raises RuntimeError with a long C++ message
+        first = str(exc).strip().splitlines()[-1] if str(exc).strip() else type(exc).__name__
+        raise InputError(path, f"cannot be read as an image ({first[:160]})") from None
+    if suffix in LDR_SUFFIXES:
+        if not allow_ldr:
+            raise InputError(path, "8-bit image: not radiometric", "use a linear HDR image (.exr, .hdr, .pfm)")
+        warnings.warn(f"{path}: 8-bit image is not radiometric; it is linearised from sRGB, "
+                      "and the recovered BRDF is only qualitative", InputWarning, stacklevel=2)
+        bitmap = bitmap.convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.Float32, srgb_gamma=False)
+    data = np.array(bitmap, dtype=np.float32, copy=True)
+    if data.ndim == 2:
+        data = data[..., None]
+    channels = data.shape[2]
+    if channels in (1, 2):  # Y or YA
+        data = np.repeat(data[..., :1], 3, axis=2)
+    elif channels in (3, 4):
+        data = data[..., :3]
+    else:
+        raise InputError(path, f"has {channels} channels", "expected grey, RGB or RGBA")
+    if data.size == 0:
+        raise InputError(path, "is empty")
+    return np.ascontiguousarray(data)
+
+
+def load_mask(path: PathLike, shape: tuple) -> np.ndarray:
+    """Load a mask image as ``(H, W) bool`` (non-zero = usable), checking it matches ``shape``."""
+    data = load_image(path, allow_ldr=True) if Path(path).suffix.lower() in HDR_SUFFIXES else _load_ldr_quiet(path)
+    if data.shape[:2] != tuple(shape[:2]):
+        raise InputError(path, f"mask is {data.shape[1]}x{data.shape[0]} but the image is {shape[1]}x{shape[0]}")
+    return np.any(data > 0, axis=2)
+
+
+def _load_ldr_quiet(path: PathLike) -> np.ndarray:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", InputWarning)
+        return load_image(path)
+
+
+def write_exr(path: PathLike, image: np.ndarray) -> Path:
+    """Write a float32 RGB (or single-channel) EXR atomically."""
+    import mitsuba as mi
+
+    image = np.ascontiguousarray(image, dtype=np.float32)
+    path = Path(path)
+    with atomic_path(path, suffix=".exr") as tmp:
+        mi.Bitmap(image).write(str(tmp))
+    return path
+
+
+def tonemap(image: np.ndarray, exposure: float | None = None) -> np.ndarray:
+    """Linear RGB -> sRGB-encoded ``(H, W, 3) uint8`` preview.
+
+    ``exposure`` scales the image first; by default the 99th percentile of the
+    finite, positive pixels maps to 1.
+    """
+    img = np.nan_to_num(np.asarray(image, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+    img = np.clip(img, 0.0, None)
+    if exposure is None:
+        positive = img[img > 0]
+        exposure = 1.0 / np.percentile(positive, 99.0) if positive.size else 1.0
+    x = np.clip(img * exposure, 0.0, 1.0)
+    srgb = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+    return (srgb * 255.0 + 0.5).astype(np.uint8)
+
+
+def write_png(path: PathLike, image: np.ndarray, exposure: float | None = None) -> Path:
+    """Write a tonemapped sRGB PNG preview of a linear image atomically."""
+    import mitsuba as mi
+
+    path = Path(path)
+    rgb = tonemap(image, exposure) if image.dtype != np.uint8 else image
+    with atomic_path(path, suffix=".png") as tmp:
+        mi.Bitmap(np.ascontiguousarray(rgb), pixel_format=mi.Bitmap.PixelFormat.RGB).write(str(tmp))
+    return path

@@ -1,0 +1,272 @@
+"""MERL ``.binary`` isotropic BRDF tables: read, write, evaluate.
+
+File layout (Matusik et al. 2003, as read by MERL's reference ``BRDFRead``):
+an int32 header ``90 90 180``, then ``3 * 90 * 90 * 180`` float64 values,
+channel-major (R, G, B), each channel indexed ``[theta_h][theta_d][phi_d]``.
+Stored values times :data:`MERL_SCALE` give the BRDF in 1/sr; negative values
+mark missing samples.
+
+In memory a :class:`MERLBRDF` holds ``table``, ``(90, 90, 180, 3)`` in 1/sr,
+layout ``[theta_h][theta_d][phi_d][channel]``, NaN where a sample is missing.
+Node positions (all radians)::
+
+    theta_h_i = (i / 90)^2 * pi / 2     (t = i / 90: uniform in the paper's t)
+    theta_d_j = j / 90 * pi / 2         (s = j / 90)
+    phi_d_k   = k / 180 * pi            (phi_d folded into [0, pi))
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+from typing import Callable, Tuple, Union
+
+import numpy as np
+
+from mi_bivariate.atomic import atomic_path
+from mi_bivariate.coordinates import fold_phi_d
+from mi_bivariate.errors import InputError
+
+PathLike = Union[str, os.PathLike]
+
+MERL_SHAPE: Tuple[int, int, int] = (90, 90, 180)
+MERL_SCALE: Tuple[float, float, float] = (1.0 / 1500.0, 1.15 / 1500.0, 1.66 / 1500.0)
+
+_HEADER_BYTES = 3 * 4
+_N_VALUES = 3 * MERL_SHAPE[0] * MERL_SHAPE[1] * MERL_SHAPE[2]
+MERL_FILE_BYTES = _HEADER_BYTES + 8 * _N_VALUES
+# Raw value written for a missing sample (any negative value means missing).
+_MISSING_RAW = -1.0
+# Index slack so that a lookup exactly at a node angle never floors to the
+# node below through a last-bit rounding error.
+_INDEX_EPS = 1e-9
+
+
+def node_angles() -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """MERL node angles: ``theta_h (90,)``, ``theta_d (90,)``, ``phi_d (180,)`` float64, radians."""
+    n_h, n_d, n_p = MERL_SHAPE
+    theta_h = (np.arange(n_h) / n_h) ** 2 * (0.5 * math.pi)
+    theta_d = np.arange(n_d) / n_d * (0.5 * math.pi)
+    phi_d = np.arange(n_p) / n_p * math.pi
+    return theta_h, theta_d, phi_d
+
+
+def above_horizon(theta_h, theta_d, phi_d) -> np.ndarray:
+    """True where both wi and wo of a Rusinkiewicz configuration lie strictly above the horizon.
+
+    Angles broadcast against each other (radians); phi_h is irrelevant (isotropy).
+    With phi_h = 0, ``wi.z = cos td cos th - sin td sin th cos pd`` and ``wo.z``
+    is the same with ``+`` (wo is wi mirrored about h).
+    """
+    theta_h, theta_d, phi_d = (np.asarray(a, np.float64) for a in (theta_h, theta_d, phi_d))
+    along = np.cos(theta_d) * np.cos(theta_h)
+    across = np.sin(theta_d) * np.sin(theta_h) * np.cos(phi_d)
+    return (along - across > 0.0) & (along + across > 0.0)
+
+
+def _geometric_mask() -> np.ndarray:
+    theta_h, theta_d, phi_d = node_angles()
+    return above_horizon(theta_h[:, None, None], theta_d[None, :, None], phi_d[None, None, :])
+
+
+_GEOMETRIC_MASK: np.ndarray | None = None
+
+
+def geometric_mask() -> np.ndarray:
+    """``(90, 90, 180) bool``: MERL nodes whose wi and wo are both above the horizon (cached)."""
+    global _GEOMETRIC_MASK
+    if _GEOMETRIC_MASK is None:
+        _GEOMETRIC_MASK = _geometric_mask()
+        _GEOMETRIC_MASK.setflags(write=False)
+    return _GEOMETRIC_MASK
+
+
+def _continuous_index(theta_h, theta_d, phi_d) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Fractional node coordinates (node i sits at index i) of Rusinkiewicz angles."""
+    n_h, n_d, n_p = MERL_SHAPE
+    theta_h = np.asarray(theta_h, np.float64)
+    theta_d = np.asarray(theta_d, np.float64)
+    phi_d = np.asarray(phi_d, np.float64)
+    u_h = np.sqrt(np.maximum(theta_h, 0.0) / (0.5 * math.pi)) * n_h
+    u_d = np.maximum(theta_d, 0.0) / (0.5 * math.pi) * n_d
+    u_p = fold_phi_d(phi_d) / math.pi * n_p
+    return u_h, u_d, u_p
+
+
+def merl_indices(theta_h, theta_d, phi_d) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """MERL's own floor indexing (reference ``BRDFRead``), clamped to the table.
+
+    Returns:
+        ``(i_h, i_d, i_p)`` int64 arrays broadcast to the angles' common shape.
+    """
+    n_h, n_d, n_p = MERL_SHAPE
+    u_h, u_d, u_p = np.broadcast_arrays(*_continuous_index(theta_h, theta_d, phi_d))
+    i_h = np.clip(np.floor(u_h + _INDEX_EPS), 0, n_h - 1).astype(np.int64)
+    i_d = np.clip(np.floor(u_d + _INDEX_EPS), 0, n_d - 1).astype(np.int64)
+    i_p = np.floor(u_p + _INDEX_EPS).astype(np.int64) % n_p
+    return i_h, i_d, i_p
+
+
+class MERLBRDF:
+    """An isotropic BRDF tabulated on the MERL grid.
+
+    Attributes:
+        table: ``(90, 90, 180, 3)`` float (float64 when read from a file), 1/sr,
+            ``[theta_h][theta_d][phi_d][channel]``, NaN = missing sample.
+        name: a label (file stem, material name, analytic spec).
+    """
+
+    def __init__(self, table: np.ndarray, name: str = "merl"):
+        table = np.asarray(table)
+        if table.shape != MERL_SHAPE + (3,):
+            raise InputError(name, f"a MERL table must have shape {MERL_SHAPE + (3,)}, got {table.shape}")
+        if not np.issubdtype(table.dtype, np.floating):
+            table = table.astype(np.float64)
+        self.table = table
+        self.name = name
+
+    def __repr__(self) -> str:
+        return f"MERLBRDF(name={self.name!r}, dtype={self.table.dtype}, valid={self.valid_mask().mean():.3f})"
+
+    # ------------------------------------------------------------------ I/O
+
+    @classmethod
+    def read(cls, path: PathLike, name: str | None = None) -> "MERLBRDF":
+        """Read a MERL ``.binary`` file (validates header and size).
+
+        Raises:
+            InputError: the file is missing, truncated or not a MERL table.
+        """
+        path = Path(path)
+        try:
+            size = path.stat().st_size
+        except OSError as e:
+            raise InputError(path, f"cannot read MERL file ({e.strerror or e})") from None
+        if size < _HEADER_BYTES:
+            raise InputError(path, f"not a MERL .binary file: {size} bytes, too short for its header")
+        header = np.fromfile(path, dtype="<i4", count=3)
+        if tuple(int(v) for v in header) != MERL_SHAPE:
+            raise InputError(path, f"not a MERL .binary file: header {tuple(int(v) for v in header)}, "
+                                   f"expected {MERL_SHAPE}")
+        if size != MERL_FILE_BYTES:
+            what = "truncated" if size < MERL_FILE_BYTES else "has trailing data"
+            raise InputError(path, f"MERL file {what}: {size} bytes, expected {MERL_FILE_BYTES}")
+        raw = np.fromfile(path, dtype="<f8", offset=_HEADER_BYTES, count=_N_VALUES)
+        raw = raw.reshape((3,) + MERL_SHAPE)
+        table = np.empty(MERL_SHAPE + (3,), np.float64)
+        for c in range(3):
+            channel = raw[c] * MERL_SCALE[c]
+            channel[raw[c] < 0.0] = np.nan
+            table[..., c] = channel
+        if not np.all(np.isfinite(table) | np.isnan(table)):
+            raise InputError(path, "MERL file holds infinite values")
+        return cls(table, name=name or path.stem)
+
+    def write(self, path: PathLike) -> None:
+        """Write a MERL ``.binary`` file atomically; missing (NaN) samples are written as -1."""
+        table = np.asarray(self.table, np.float64)
+        if np.any(table < 0.0):
+            raise ValueError(f"{self.name}: MERL table has negative values; they would read back as missing")
+        raw = np.empty((3,) + MERL_SHAPE, np.float64)
+        for c in range(3):
+            channel = table[..., c] / MERL_SCALE[c]
+            raw[c] = np.where(np.isnan(channel), _MISSING_RAW, channel)
+        with atomic_path(path) as tmp:
+            with open(tmp, "wb") as f:
+                np.asarray(MERL_SHAPE, "<i4").tofile(f)
+                raw.astype("<f8", copy=False).tofile(f)
+
+    @classmethod
+    def from_function(cls, fn: Callable, name: str, dtype=np.float64, chunk: int = 1 << 18) -> "MERLBRDF":
+        """Tabulate ``fn(theta_h, theta_d, phi_d) -> (..., 3)`` (1/sr) on the MERL nodes.
+
+        ``fn`` is called on flat arrays of the geometrically valid nodes only;
+        configurations whose wi or wo falls below the horizon are stored as
+        missing (NaN), like real MERL data. Negative values are clamped to 0.
+
+        Args:
+            fn: vectorised isotropic BRDF in Rusinkiewicz angles (radians).
+            name: label of the result.
+            dtype: table precision.
+            chunk: nodes per call of ``fn`` (bounds its memory use).
+        """
+        theta_h, theta_d, phi_d = node_angles()
+        i_h, i_d, i_p = np.nonzero(geometric_mask())
+        values = np.empty((i_h.shape[0], 3), dtype)
+        for start in range(0, i_h.shape[0], chunk):
+            rows = slice(start, start + chunk)
+            th, td, pd = theta_h[i_h[rows]], theta_d[i_d[rows]], phi_d[i_p[rows]]
+            value = np.asarray(fn(th, td, pd), np.float64)
+            if value.shape != th.shape + (3,):
+                raise ValueError(f"{name}: BRDF function returned shape {value.shape}, expected {th.shape + (3,)}")
+            values[rows] = np.maximum(value, 0.0)  # keeps NaN
+        table = np.full(MERL_SHAPE + (3,), np.nan, dtype)
+        table[i_h, i_d, i_p] = values
+        return cls(table, name=name)
+
+    # ----------------------------------------------------------- evaluation
+
+    node_angles = staticmethod(node_angles)
+
+    def valid_mask(self) -> np.ndarray:
+        """``(90, 90, 180) bool``: finite in all channels and geometrically valid."""
+        return np.all(np.isfinite(self.table), axis=-1) & geometric_mask()
+
+    def eval(self, theta_h, theta_d, phi_d, interpolation: str = "nearest") -> np.ndarray:
+        """Look the table up at arbitrary Rusinkiewicz angles (radians).
+
+        Args:
+            interpolation: ``"nearest"`` (MERL's floor indexing) or ``"linear"``
+                (trilinear between nodes; phi_d periodic with period pi, theta
+                axes clamped). Linear weights are renormalised over the finite
+                neighbours, so a lookup next to a missing sample stays finite;
+                it is NaN only where all its neighbours are missing.
+
+        Returns:
+            ``(..., 3)`` float64, 1/sr (NaN where missing).
+        """
+        if interpolation == "nearest":
+            i_h, i_d, i_p = merl_indices(theta_h, theta_d, phi_d)
+            return np.asarray(self.table[i_h, i_d, i_p], np.float64)
+        if interpolation != "linear":
+            raise ValueError(f"interpolation must be 'nearest' or 'linear', got {interpolation!r}")
+        return self._eval_linear(theta_h, theta_d, phi_d)
+
+    def _eval_linear(self, theta_h, theta_d, phi_d) -> np.ndarray:
+        n_h, n_d, n_p = MERL_SHAPE
+        u_h, u_d, u_p = np.broadcast_arrays(*_continuous_index(theta_h, theta_d, phi_d))
+        u_h = np.clip(u_h, 0.0, n_h - 1)
+        u_d = np.clip(u_d, 0.0, n_d - 1)
+        h0 = np.minimum(np.floor(u_h).astype(np.int64), n_h - 2)
+        d0 = np.minimum(np.floor(u_d).astype(np.int64), n_d - 2)
+        p0 = np.floor(u_p).astype(np.int64) % n_p
+        wh, wd, wp = u_h - h0, u_d - d0, u_p - np.floor(u_p)
+        acc = np.zeros(u_h.shape + (3,))
+        wsum = np.zeros(u_h.shape + (3,))
+        for dh in (0, 1):
+            w_h = wh if dh else 1.0 - wh
+            for dd in (0, 1):
+                w_d = wd if dd else 1.0 - wd
+                for dp in (0, 1):
+                    w = (w_h * w_d * (wp if dp else 1.0 - wp))[..., None]
+                    v = np.asarray(self.table[h0 + dh, d0 + dd, (p0 + dp) % n_p], np.float64)
+                    ok = np.isfinite(v) & (w > 0.0)
+                    acc += np.where(ok, w * np.where(ok, v, 0.0), 0.0)
+                    wsum += np.where(ok, w, 0.0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(wsum > 0.0, acc / wsum, np.nan)
+
+    def to_bitmap(self):
+        """The table as ``mi.Bitmap`` RGB float32, H = 90 * 90, W = 180 (for the ``merl`` plugin).
+
+        Missing samples become 0 (a renderer sees no light where MERL has no data).
+        """
+        import mitsuba as mi
+
+        from mi_bivariate.variants import ensure_variant
+
+        ensure_variant()
+        img = np.nan_to_num(self.table, nan=0.0).astype(np.float32).reshape(MERL_SHAPE[0] * MERL_SHAPE[1],
+                                                                             MERL_SHAPE[2], 3)
+        return mi.Bitmap(np.ascontiguousarray(img))

@@ -1,0 +1,172 @@
+"""MERL-NBRDF: neural fits (Sztrajman et al. 2021) of 23 MERL materials, evaluated in numpy.
+
+The shared file ``merl_nbrdf/merl_nbrdf_dev.npz`` (see the shared data README)
+holds, per material, a 6-21-21-3 MLP. For Rusinkiewicz angles the input row is
+``x = (sin th, 0, cos th, sin td cos pd, sin td sin pd, cos td)`` (the half
+vector and the difference vector) and the BRDF, in 1/sr, is
+``exp(relu(relu(x W1 + b1) W2 + b2) W3 + b3) - 1`` clamped at 0.
+
+These tables approximate the measurements; name results "MERL-NBRDF <material>".
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+from pathlib import Path
+from typing import Dict, Optional, Tuple, Union
+
+import numpy as np
+
+from mi_bivariate.errors import InputError
+from mi_bivariate.merl import MERL_SHAPE, MERLBRDF, geometric_mask, node_angles
+
+PathLike = Union[str, os.PathLike]
+
+NBRDF_MATERIALS: Tuple[str, ...] = (
+    "alum-bronze", "black-fabric", "blue-acrylic", "brass", "colonial-maple-223",
+    "color-changing-paint1", "dark-specular-fabric", "gold-metallic-paint3", "green-acrylic",
+    "green-fabric", "hematite", "natural-209", "pearl-paint", "pink-jasper", "purple-paint",
+    "red-phenolic", "silver-metallic-paint2", "specular-green-phenolic", "specular-white-phenolic",
+    "tungsten-carbide", "white-acrylic", "white-paint", "yellow-matte-plastic",
+)
+NBRDF_FILE = Path("merl_nbrdf") / "merl_nbrdf_dev.npz"
+_LAYERS = ("W1", "b1", "W2", "b2", "W3", "b3")
+_SHAPES = {"W1": (6, 21), "b1": (21,), "W2": (21, 21), "b2": (21,), "W3": (21, 3), "b3": (3,)}
+# Rows per MLP pass: bounds the (chunk, 21) float32 hidden activations to a few MB.
+_CHUNK = 1 << 17
+
+
+def data_dir(explicit: Optional[PathLike] = None) -> Path:
+    """The shared data folder: ``explicit`` if given, else ``$MI_BIVARIATE_DATA``.
+
+    Raises:
+        InputError: neither is set, or the folder does not exist.
+    """
+    value = explicit if explicit is not None else os.environ.get("MI_BIVARIATE_DATA")
+    if not value:
+        raise InputError("MI_BIVARIATE_DATA", "the shared data folder is not set",
+                         "set MI_BIVARIATE_DATA to the folder holding merl_nbrdf/ and probes/, "
+                         "or pass --data-dir")
+    path = Path(value)
+    if not path.is_dir():
+        raise InputError(path, "shared data folder does not exist",
+                         "set MI_BIVARIATE_DATA to the folder holding merl_nbrdf/ and probes/")
+    return path
+
+
+# The public functions take a ``data_dir`` argument that shadows :func:`data_dir`.
+_resolve_data_dir = data_dir
+
+
+def _check_name(name: str) -> None:
+    if name not in NBRDF_MATERIALS:
+        raise InputError(name, "unknown MERL-NBRDF material", f"valid: {', '.join(NBRDF_MATERIALS)}")
+
+
+class NBRDF:
+    """One MERL-NBRDF material: the MLP weights (float32) and their evaluation."""
+
+    def __init__(self, name: str, weights: Dict[str, np.ndarray]):
+        self.name = name
+        self.weights = {k: np.asarray(weights[k], np.float32) for k in _LAYERS}
+
+    def __repr__(self) -> str:
+        return f"NBRDF({self.name!r})"
+
+    def eval_inputs(self, x: np.ndarray) -> np.ndarray:
+        """Evaluate the MLP on input rows ``(N, 6)`` -> ``(N, 3)`` float32, 1/sr, >= 0."""
+        w = self.weights
+        out = np.empty((x.shape[0], 3), np.float32)
+        for start in range(0, x.shape[0], _CHUNK):
+            rows = x[start:start + _CHUNK]
+            hidden = np.maximum(rows @ w["W1"] + w["b1"], 0.0)
+            hidden = np.maximum(hidden @ w["W2"] + w["b2"], 0.0)
+            out[start:start + _CHUNK] = np.maximum(np.expm1(hidden @ w["W3"] + w["b3"]), 0.0)
+        return out
+
+    def eval(self, theta_h, theta_d, phi_d) -> np.ndarray:
+        """BRDF at Rusinkiewicz angles (radians, broadcast) -> ``(..., 3)`` float64, 1/sr.
+
+        The network is defined for any angles; horizon validity is the caller's concern.
+        """
+        theta_h, theta_d, phi_d = np.broadcast_arrays(*(np.asarray(a, np.float64) for a in (theta_h, theta_d, phi_d)))
+        x = _inputs(theta_h.reshape(-1), theta_d.reshape(-1), phi_d.reshape(-1))
+        return self.eval_inputs(x).astype(np.float64).reshape(theta_h.shape + (3,))
+
+
+def _inputs(theta_h: np.ndarray, theta_d: np.ndarray, phi_d: np.ndarray) -> np.ndarray:
+    """Network input rows ``(N, 6)`` float32 from flat angle arrays."""
+    sin_d = np.sin(theta_d)
+    x = np.empty((theta_h.shape[0], 6), np.float32)
+    x[:, 0] = np.sin(theta_h)
+    x[:, 1] = 0.0
+    x[:, 2] = np.cos(theta_h)
+    x[:, 3] = sin_d * np.cos(phi_d)
+    x[:, 4] = sin_d * np.sin(phi_d)
+    x[:, 5] = np.cos(theta_d)
+    return x
+
+
+@functools.lru_cache(maxsize=4)
+def _load_npz(path: Path) -> Dict[str, np.ndarray]:
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            return {k: npz[k] for k in npz.files}
+    except FileNotFoundError:
+        raise InputError(path, "MERL-NBRDF weights not found",
+                         "MI_BIVARIATE_DATA must point at the shared data folder") from None
+    except Exception as e:  # zipfile/pickle/format errors of a foreign file
+        raise InputError(path, f"not a MERL-NBRDF weights file ({type(e).__name__}: {e})") from None
+
+
+def load_nbrdf(name: str, data_dir: Optional[PathLike] = None) -> NBRDF:
+    """Load one material's weights from ``<data_dir>/merl_nbrdf/merl_nbrdf_dev.npz``.
+
+    Raises:
+        InputError: unknown material (lists the valid ones), missing data, malformed file.
+    """
+    _check_name(name)
+    path = _resolve_data_dir(data_dir) / NBRDF_FILE
+    arrays = _load_npz(path)
+    weights = {}
+    for layer in _LAYERS:
+        key = f"{name}/{layer}"
+        if key not in arrays:
+            raise InputError(path, f"missing array {key!r}")
+        if arrays[key].shape != _SHAPES[layer]:
+            raise InputError(path, f"{key} has shape {arrays[key].shape}, expected {_SHAPES[layer]}")
+        weights[layer] = arrays[key]
+    return NBRDF(name, weights)
+
+
+def tabulate(nbrdf: NBRDF, dtype=np.float32) -> MERLBRDF:
+    """Evaluate an NBRDF on the MERL nodes; below-horizon nodes are missing (NaN), as in MERL."""
+    theta_h, theta_d, phi_d = node_angles()
+    mask = geometric_mask()
+    i_h, i_d, i_p = np.nonzero(mask)
+    # Sines and cosines per axis, gathered: ~10x cheaper than per sample.
+    sin_d = np.sin(theta_d)
+    x = np.empty((i_h.shape[0], 6), np.float32)
+    x[:, 0] = np.sin(theta_h)[i_h]
+    x[:, 1] = 0.0
+    x[:, 2] = np.cos(theta_h)[i_h]
+    x[:, 3] = sin_d[i_d] * np.cos(phi_d)[i_p]
+    x[:, 4] = sin_d[i_d] * np.sin(phi_d)[i_p]
+    x[:, 5] = np.cos(theta_d)[i_d]
+    table = np.full(MERL_SHAPE + (3,), np.nan, dtype)
+    table[i_h, i_d, i_p] = nbrdf.eval_inputs(x)
+    return MERLBRDF(table, name=f"MERL-NBRDF {nbrdf.name}")
+
+
+@functools.lru_cache(maxsize=8)
+def _nbrdf_merl_cached(name: str, path: Path) -> MERLBRDF:
+    merl = tabulate(load_nbrdf(name, path))
+    merl.table.setflags(write=False)  # shared by every caller of the cache
+    return merl
+
+
+def nbrdf_merl(name: str, data_dir: Optional[PathLike] = None) -> MERLBRDF:
+    """MERL-NBRDF material ``name`` tabulated on the MERL grid (float32, read-only, cached in-process)."""
+    _check_name(name)
+    return _nbrdf_merl_cached(name, _resolve_data_dir(data_dir).resolve())

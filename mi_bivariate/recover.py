@@ -1,0 +1,206 @@
+"""Passive reflectometry end to end: images of a known sphere under known probes -> BRDF.
+
+This is the library's front door (``mi_bivariate.recover``). It chains the
+pipeline stages in the paper's order:
+
+observations (:mod:`capture`) -> lighting matrix L (:mod:`lighting`, Eqs. 3-5)
+-> adequacy of the environment (:mod:`adequacy`, Sect. 3.1) -> constrained,
+regularised solve (:mod:`solve`, Eq. 6 with the learnt :mod:`prior`)
+-> :class:`~mi_bivariate.bivariate.BivariateBRDF`.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Dict, List, Optional, Sequence, Tuple, Union
+
+import numpy as np
+
+from mi_bivariate import adequacy, capture, lighting, prior as prior_mod, solve as solve_mod
+from mi_bivariate.bivariate import BivariateBRDF
+from mi_bivariate.errors import InputError
+from mi_bivariate.geometry import SphereGeometry
+from mi_bivariate.images import load_image, load_mask
+from mi_bivariate.probes import Probe
+
+PathLike = Union[str, os.PathLike]
+
+
+@dataclass
+class Recovery:
+    """A recovered BRDF and everything needed to judge it.
+
+    Attributes:
+        brdf: the recovered bivariate BRDF (1/sr).
+        observations: the stacked observations (M rows).
+        lighting_matrix: ``(M, n_t * n_s, 3) float32``, Eq. 5's L.
+        solution: the solver's report (residuals, winning prior per channel).
+        adequacy: rank/condition/coverage of L and its warnings.
+        predicted: ``(M, 3)`` model prediction ``L @ f`` at the observations.
+        images, geometries, probes: the inputs, kept for reports.
+        timings: seconds per stage.
+    """
+
+    brdf: BivariateBRDF
+    observations: capture.Observations
+    lighting_matrix: np.ndarray
+    solution: solve_mod.SolveResult
+    adequacy: adequacy.AdequacyReport
+    predicted: np.ndarray
+    images: List[np.ndarray] = field(default_factory=list)
+    geometries: List[SphereGeometry] = field(default_factory=list)
+    probes: List[Probe] = field(default_factory=list)
+    timings: Dict[str, float] = field(default_factory=dict)
+
+    def relative_residual(self) -> float:
+        """``||I - L f|| / ||I||`` over all rows and channels."""
+        values = self.observations.values
+        return float(np.linalg.norm(values - self.predicted) / max(np.linalg.norm(values), 1e-30))
+
+    def summary(self) -> str:
+        obs = self.observations
+        dropped = ", ".join(f"{k}: {v}" for k, v in obs.dropped.items() if v) or "none"
+        winners = "/".join(self.solution.winner)
+        stages = ", ".join(f"{k} {v:.2f} s" for k, v in self.timings.items())
+        return "\n".join([
+            f"observations: {len(obs.values)} normals (dropped pixels: {dropped})",
+            f"lighting matrix: {self.lighting_matrix.shape[0]} x {self.lighting_matrix.shape[1]} x 3",
+            f"adequacy: {self.adequacy.summary()}",
+            f"solve: alpha {self.solution.alpha:g}, prior pair per channel (R/G/B) {winners}, "
+            f"relative residual {self.relative_residual():.4f}",
+            f"timings: {stages}",
+        ])
+
+
+def _as_list(value, n: int, name: str) -> list:
+    if isinstance(value, (list, tuple)):
+        if len(value) != n:
+            raise InputError(None, f"{len(value)} {name} given for {n} images")
+        return list(value)
+    return [value] * n
+
+
+def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
+            probe: Union[Probe, Sequence[Probe]],
+            geometry: Union[SphereGeometry, Sequence[SphereGeometry]],
+            *,
+            masks: Optional[Union[np.ndarray, Sequence[Optional[np.ndarray]]]] = None,
+            n_normals: int = 8000,
+            n_dirs: int = 32000,
+            grid: Tuple[int, int] = (32, 32),
+            alpha: Optional[float] = None,
+            prior: Optional[prior_mod.Prior] = None,
+            max_view_angle_deg: float = 80.0,
+            saturation: Optional[float] = None,
+            seed: int = 0,
+            keep_inputs: bool = True) -> Recovery:
+    """Recover a bivariate BRDF from HDR images of a sphere under known probes.
+
+    Args:
+        images: one ``(H, W, 3)`` linear image or a list of them (other views
+            or other probes; all rows stack into one system).
+        probe: the probe lighting each image (one for all, or one per image),
+            in Mitsuba's envmap frame (y up).
+        geometry: the sphere in each image (pixels; see :mod:`geometry`).
+        masks: optional ``(H, W) bool`` usable-pixel masks.
+        n_normals: normals M per image (uniform over the visible hemisphere).
+        n_dirs: light directions K per normal.
+        grid: st grid ``(n_t, n_s)``.
+        alpha: regularisation weight (default: :data:`solve.DEFAULT_ALPHA`).
+        prior: smoothness prior (default: the packaged one, resampled to ``grid``).
+        max_view_angle_deg: drop normals further than this from the view.
+        saturation: drop pixels with any channel at or above this value.
+        seed: seeds normal selection and light directions.
+    """
+    if isinstance(images, np.ndarray) and images.ndim == 3:
+        images = [images]
+    images = list(images)
+    if not images:
+        raise InputError(None, "no images given")
+    n = len(images)
+    probe_list = _as_list(probe, n, "probes")
+    geometries = _as_list(geometry, n, "geometries")
+    mask_list = _as_list(masks, n, "masks")
+    n_t, n_s = (int(g) for g in grid)
+    if n_t < 2 or n_s < 2:
+        raise InputError(None, f"grid {n_t}x{n_s} is too small", "each st axis needs at least 2 nodes")
+
+    timings: Dict[str, float] = {}
+    t0 = time.perf_counter()
+    parts = []
+    for k, (image, geo, mask) in enumerate(zip(images, geometries, mask_list)):
+        obs = capture.observations_from_sphere(image, geo, n_normals=n_normals,
+                                               max_view_angle_deg=max_view_angle_deg,
+                                               saturation=saturation, mask=mask, seed=seed + k)
+        parts.append(obs.with_probe_index(k))
+    observations = capture.stack(parts)
+    timings["observations"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    L = lighting.lighting_matrix(observations, probe_list, n_t=n_t, n_s=n_s, n_dirs=n_dirs, seed=seed)
+    timings["lighting matrix"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    report = adequacy.analyse(L, n_t=n_t, n_s=n_s, warn=True)
+    timings["adequacy"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    if prior is None:
+        prior = prior_mod.default_prior()
+    if prior.shape != (n_t, n_s):
+        prior = prior.resampled(n_t, n_s)
+    solution = solve_mod.solve(L, observations.values, prior, alpha=alpha)
+    timings["solve"] = time.perf_counter() - t0
+
+    table = solution.table
+    predicted = np.einsum("mnc,nc->mc", L, table.reshape(n_t * n_s, 3), optimize=True)
+    brdf = BivariateBRDF(table, provenance={
+        "method": "passive reflectometry (Romeiro et al. 2008), mi_bivariate.recover",
+        "images": n, "normals": int(len(observations.values)), "light_directions": int(n_dirs),
+        "alpha": float(solution.alpha), "prior_winner": list(solution.winner), "seed": int(seed),
+        "probes": [getattr(p, "source", "?") for p in probe_list],
+    })
+    return Recovery(brdf=brdf, observations=observations, lighting_matrix=L, solution=solution,
+                    adequacy=report, predicted=predicted,
+                    images=images if keep_inputs else [], geometries=geometries,
+                    probes=probe_list, timings=timings)
+
+
+def recover_from_files(image_paths: Sequence[PathLike], probe: Union[Probe, Sequence[Probe]],
+                       geometry: Union[SphereGeometry, Sequence[SphereGeometry]],
+                       mask: Optional[PathLike] = None, **kwargs) -> Recovery:
+    """:func:`recover` on image files (EXR/HDR/PFM); ``mask`` applies to every image."""
+    images = [load_image(p) for p in image_paths]
+    masks = None
+    if mask is not None:
+        masks = [load_mask(mask, img.shape) for img in images]
+    return recover(images, probe, geometry, masks=masks, **kwargs)
+
+
+def write_outputs(result: Recovery, out: PathLike, merl: bool = False, report: bool = True) -> List[Path]:
+    """Write the table (``.npz``), its EXR view, optionally a MERL ``.binary`` and a PNG report.
+
+    Every file is written atomically; returns the paths written.
+    """
+    out = Path(out)
+    if out.suffix != ".npz":
+        out = out.with_suffix(".npz")
+    written = [out]
+    result.brdf.save(out)
+    exr = out.with_suffix(".exr")
+    result.brdf.save_exr(exr)
+    written.append(exr)
+    if merl:
+        binary = out.with_suffix(".binary")
+        result.brdf.to_merl().write(binary)
+        written.append(binary)
+    if report:
+        from mi_bivariate import report as report_mod
+
+        png = out.with_name(out.stem + "_report.png")
+        report_mod.write_recovery_report(result, png)
+        written.append(png)
+    return written

@@ -1,0 +1,211 @@
+"""MERL .binary I/O and lookups, and the MERL-NBRDF materials."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from mi_bivariate.coordinates import dirs_from_half_diff
+from mi_bivariate.errors import InputError
+from mi_bivariate.merl import MERL_FILE_BYTES, MERL_SCALE, MERL_SHAPE, MERLBRDF, geometric_mask, node_angles
+
+
+def reference_index(theta_h: float, theta_d: float, phi_d: float) -> tuple:
+    """MERL's reference BRDFRead indexing, transcribed scalar by scalar."""
+    if theta_h <= 0.0:
+        i_h = 0
+    else:
+        i_h = int(math.sqrt(theta_h / (math.pi / 2.0) * 90.0 * 90.0))
+        i_h = min(max(i_h, 0), 89)
+    i_d = min(max(int(theta_d / (math.pi / 2.0) * 90.0), 0), 89)
+    if phi_d < 0.0:
+        phi_d += math.pi
+    i_p = min(max(int(phi_d / math.pi * 360 / 2), 0), 179)
+    return i_h, i_d, i_p
+
+
+@pytest.fixture(scope="module")
+def raw_file(tmp_path_factory):
+    """A MERL file written by hand (header, channel-major float64) with some missing samples."""
+    rng = np.random.default_rng(0)
+    raw = rng.uniform(0.0, 3000.0, (3,) + MERL_SHAPE)
+    raw[rng.random(raw.shape) < 0.01] = -1.0
+    path = tmp_path_factory.mktemp("merl") / "handmade.binary"
+    with open(path, "wb") as f:
+        np.array(MERL_SHAPE, np.int32).tofile(f)
+        raw.tofile(f)
+    return path, raw
+
+
+def test_read_layout_and_scales(raw_file):
+    path, raw = raw_file
+    merl = MERLBRDF.read(path)
+    assert merl.table.shape == (90, 90, 180, 3) and merl.name == "handmade"
+    for c in range(3):
+        expected = np.where(raw[c] < 0.0, np.nan, raw[c] * MERL_SCALE[c])
+        np.testing.assert_array_equal(merl.table[..., c], expected)
+
+
+def test_write_read_round_trip(raw_file, tmp_path):
+    merl = MERLBRDF.read(raw_file[0])
+    out = tmp_path / "copy.binary"
+    merl.write(out)
+    assert out.stat().st_size == MERL_FILE_BYTES
+    np.testing.assert_array_equal(np.fromfile(out, np.int32, count=3), MERL_SHAPE)
+    back = MERLBRDF.read(out)
+    np.testing.assert_array_equal(np.isnan(back.table), np.isnan(merl.table))
+    np.testing.assert_allclose(back.table, merl.table, rtol=1e-15, equal_nan=True)
+    # Missing samples are stored as negative raw values.
+    raw = np.fromfile(out, "<f8", offset=12).reshape((3,) + MERL_SHAPE)
+    assert np.all(raw[np.moveaxis(np.isnan(merl.table), -1, 0)] < 0.0)
+
+
+def test_write_is_atomic(tmp_path):
+    table = np.ones(MERL_SHAPE + (3,))
+    table[0, 0, 0, 0] = -0.5
+    with pytest.raises(ValueError):
+        MERLBRDF(table).write(tmp_path / "bad.binary")
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("case", ["truncated", "trailing", "foreign", "tiny", "missing"])
+def test_bad_files_raise_input_error(raw_file, tmp_path, case):
+    data = raw_file[0].read_bytes()
+    path = tmp_path / f"{case}.binary"
+    if case == "truncated":
+        path.write_bytes(data[: len(data) // 2])
+    elif case == "trailing":
+        path.write_bytes(data + b"\0" * 8)
+    elif case == "foreign":
+        path.write_bytes(b"\x89PNG\r\n\x1a\n" + data[8:])
+    elif case == "tiny":
+        path.write_bytes(b"ab")
+    with pytest.raises(InputError) as info:
+        MERLBRDF.read(path)
+    message = str(info.value)
+    assert str(path) in message and "\n" not in message
+
+
+def test_nearest_matches_reference_indexing(raw_file):
+    merl = MERLBRDF.read(raw_file[0])
+    rng = np.random.default_rng(1)
+    theta_h = rng.uniform(-0.01, 0.5 * math.pi + 0.01, 300)
+    theta_d = rng.uniform(-0.01, 0.5 * math.pi + 0.01, 300)
+    phi_d = rng.uniform(-math.pi, math.pi, 300)
+    got = merl.eval(theta_h, theta_d, phi_d)
+    idx = np.array([reference_index(*a) for a in zip(theta_h, theta_d, phi_d)])
+    expected = merl.table[idx[:, 0], idx[:, 1], idx[:, 2]]
+    np.testing.assert_array_equal(got, expected)
+
+
+def test_lookups_at_nodes_return_nodes(raw_file):
+    merl = MERLBRDF.read(raw_file[0])
+    theta_h, theta_d, phi_d = node_angles()
+    ii = np.array([0, 1, 2, 17, 45, 88, 89])
+    kk = np.array([0, 1, 90, 179, 100, 3, 45])
+    th, td, pd = theta_h[ii][:, None], theta_d[ii][None, :], phi_d[kk][:, None]
+    expected = merl.table[ii[:, None], ii[None, :], kk[:, None]]
+    np.testing.assert_array_equal(merl.eval(th, td, pd), expected)
+    finite = np.all(np.isfinite(expected), axis=-1)
+    np.testing.assert_allclose(merl.eval(th, td, pd, "linear")[finite], expected[finite], rtol=1e-12)
+    # phi_d and phi_d - pi address the same sample (reciprocity fold).
+    np.testing.assert_array_equal(merl.eval(th, td, pd - math.pi), expected)
+
+
+def test_linear_is_trilinear():
+    # A function linear in the node indices (t, s, phi_d index) is reproduced exactly.
+    i, j, k = np.meshgrid(np.arange(90), np.arange(90), np.arange(180), indexing="ij")
+    table = np.stack([1.0 + i + 2.0 * j + 0.5 * k, 2.0 + 0.1 * i, 3.0 + 0.0 * k], axis=-1)
+    merl = MERLBRDF(table)
+    rng = np.random.default_rng(2)
+    u_h, u_d = rng.uniform(0.0, 89.0, (2, 500))
+    u_p = rng.uniform(0.0, 179.0, 500)
+    theta_h = (u_h / 90.0) ** 2 * (0.5 * math.pi)
+    theta_d = u_d / 90.0 * (0.5 * math.pi)
+    phi_d = u_p / 180.0 * math.pi
+    expected = np.stack([1.0 + u_h + 2.0 * u_d + 0.5 * u_p, 2.0 + 0.1 * u_h, np.full(500, 3.0)], axis=-1)
+    np.testing.assert_allclose(merl.eval(theta_h, theta_d, phi_d, "linear"), expected, rtol=1e-10)
+    # phi_d wraps with period pi: halfway between node 179 and node 0 (= pi).
+    half = merl.eval(0.0, 0.0, 179.5 / 180.0 * math.pi, "linear")
+    np.testing.assert_allclose(half[0], 1.0 + 0.5 * 0.5 * 179.0, rtol=1e-12)
+    # Theta axes clamp beyond the last node.
+    np.testing.assert_allclose(merl.eval(0.5 * math.pi, 0.5 * math.pi, 0.0, "linear"), table[89, 89, 0])
+    # A missing neighbour is left out of the weights, not propagated.
+    table[10, 10, 10] = np.nan
+    merl = MERLBRDF(table)
+    value = merl.eval(theta_h=(10.5 / 90) ** 2 * 0.5 * math.pi, theta_d=10.5 / 90 * 0.5 * math.pi,
+                      phi_d=10.5 / 180 * math.pi, interpolation="linear")
+    assert np.all(np.isfinite(value))
+
+
+def test_geometric_mask_and_from_function():
+    theta_h, theta_d, phi_d = node_angles()
+    th, td, pd = np.meshgrid(theta_h, theta_d, phi_d, indexing="ij")
+    wi, wo = dirs_from_half_diff(th, np.zeros_like(th), td, pd)
+    expected = (wi[..., 2] > 0.0) & (wo[..., 2] > 0.0)
+    np.testing.assert_array_equal(geometric_mask(), expected)
+    assert 0.6 < expected.mean() < 0.9
+
+    merl = MERLBRDF.from_function(lambda a, b, c: np.stack([a, b, c], axis=-1), name="angles")
+    np.testing.assert_array_equal(merl.valid_mask(), expected)
+    np.testing.assert_array_equal(merl.table[expected], np.stack([th, td, pd], axis=-1)[expected])
+    assert np.all(np.isnan(merl.table[~expected]))
+
+
+def test_wrong_table_shape():
+    with pytest.raises(InputError, match="mytable"):
+        MERLBRDF(np.zeros((90, 90, 90, 3)), name="mytable")
+
+
+# ----------------------------------------------------------------- MERL-NBRDF
+
+
+def test_nbrdf_names_and_errors(monkeypatch, tmp_path):
+    from mi_bivariate import nbrdf
+
+    assert len(nbrdf.NBRDF_MATERIALS) == 23 and len(set(nbrdf.NBRDF_MATERIALS)) == 23
+    with pytest.raises(InputError, match="alum-bronze"):
+        nbrdf.load_nbrdf("not-a-material", data_dir=tmp_path)
+    monkeypatch.delenv("MI_BIVARIATE_DATA", raising=False)
+    with pytest.raises(InputError, match="MI_BIVARIATE_DATA"):
+        nbrdf.data_dir()
+    with pytest.raises(InputError, match="merl_nbrdf_dev.npz"):
+        nbrdf.load_nbrdf("brass", data_dir=tmp_path)
+    assert nbrdf.data_dir(tmp_path) == tmp_path
+
+
+def test_nbrdf_matches_direct_formula(data_dir):
+    from mi_bivariate import nbrdf
+
+    npz = np.load(data_dir / "merl_nbrdf" / "merl_nbrdf_dev.npz")
+    w = {k: npz[f"brass/{k}"].astype(np.float64) for k in ("W1", "b1", "W2", "b2", "W3", "b3")}
+    rng = np.random.default_rng(3)
+    th, td = rng.uniform(0.0, 0.5 * math.pi, (2, 200))
+    pd = rng.uniform(0.0, math.pi, 200)
+    x = np.stack([np.sin(th), 0 * th, np.cos(th), np.sin(td) * np.cos(pd), np.sin(td) * np.sin(pd), np.cos(td)], 1)
+    relu = lambda v: np.maximum(v, 0.0)  # noqa: E731
+    expected = np.maximum(np.exp(relu(relu(x @ w["W1"] + w["b1"]) @ w["W2"] + w["b2"]) @ w["W3"] + w["b3"]) - 1, 0)
+    got = nbrdf.load_nbrdf("brass", data_dir).eval(th, td, pd)
+    np.testing.assert_allclose(got, expected, rtol=2e-4, atol=1e-6)
+
+    merl = nbrdf.nbrdf_merl("brass", data_dir)
+    assert nbrdf.nbrdf_merl("brass", data_dir) is merl  # cached
+    theta_h, theta_d, phi_d = node_angles()
+    node = (40, 30, 77)
+    np.testing.assert_allclose(merl.table[node], nbrdf.load_nbrdf("brass", data_dir).eval(
+        theta_h[node[0]], theta_d[node[1]], phi_d[node[2]]), rtol=1e-6)
+
+
+def test_all_nbrdf_materials_tabulate(data_dir):
+    from mi_bivariate import nbrdf
+
+    mask = geometric_mask()
+    for name in nbrdf.NBRDF_MATERIALS:
+        merl = nbrdf.tabulate(nbrdf.load_nbrdf(name, data_dir))
+        valid = merl.table[mask]
+        assert np.all(np.isfinite(valid)) and valid.min() >= 0.0, name
+        assert valid.max() > 0.0, name
+        assert np.all(np.isnan(merl.table[~mask])), name
+        np.testing.assert_array_equal(merl.valid_mask(), mask)

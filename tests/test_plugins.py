@@ -1,0 +1,340 @@
+"""The ``bivariate`` and ``merl`` BSDF plugins: lookups, sampling, renders, gradients."""
+
+from __future__ import annotations
+
+import math
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+from mitsuba.chi2 import BSDFAdapter, ChiSquareTest, SphericalDomain
+
+from mi_bivariate.analytic import BivariateLobe, CookTorranceGGX, Lambertian, to_merl
+from mi_bivariate.bivariate import BivariateBRDF
+from mi_bivariate.coordinates import half_diff_from_dirs, st_from_dirs
+from mi_bivariate.merl import MERLBRDF
+from mi_bivariate.probes import Probe
+from mi_bivariate.render import bsdf_dict, make_camera, sphere_scene_dict
+from mi_bivariate.variants import ensure_variant
+
+RHO = np.array([0.2, 0.5, 0.8])
+
+
+def lobe_table(width: float, diffuse: float, specular: float, n: int = 32) -> BivariateBRDF:
+    """A bivariate lobe (analytic closed form) sampled on an n x n st grid."""
+    lobe = BivariateLobe(diffuse=diffuse, specular=specular, width=width)
+    theta_h = 0.5 * math.pi * np.linspace(0.0, 1.0, n) ** 2
+    theta_d = 0.5 * math.pi * np.linspace(0.0, 1.0, n)
+    return BivariateBRDF(lobe.eval_half_diff(theta_h[:, None], theta_d[None, :]))
+
+
+def lambertian_table(n: int = 8) -> BivariateBRDF:
+    return BivariateBRDF(np.broadcast_to(RHO / math.pi, (n, n, 3)))
+
+
+def merl_dict(merl: MERLBRDF, interpolation: str = "linear", **extra) -> dict:
+    return {**bsdf_dict(merl, interpolation=interpolation), **extra}
+
+
+def random_pairs(n: int, seed: int, min_cos: float = 0.0):
+    """``n`` random direction pairs on the upper hemisphere, ``(n, 3) float64`` each."""
+    rng = np.random.default_rng(seed)
+
+    def hemisphere():
+        v = rng.normal(size=(4 * n, 3))
+        v /= np.linalg.norm(v, axis=1, keepdims=True)
+        v[:, 2] = np.abs(v[:, 2])
+        return v[v[:, 2] > min_cos][:n]
+
+    return hemisphere(), hemisphere()
+
+
+def plugin_eval(bsdf, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
+    """``bsdf.eval`` (includes cos theta_o) at local direction pairs -> ``(n, 3)``."""
+    si = dr.zeros(mi.SurfaceInteraction3f, len(wi))
+    si.wi = mi.Vector3f(*(mi.Float(wi[:, k].astype(np.float32)) for k in range(3)))
+    wo_dr = mi.Vector3f(*(mi.Float(wo[:, k].astype(np.float32)) for k in range(3)))
+    return np.array(bsdf.eval(mi.BSDFContext(), si, wo_dr), np.float64).T  # (3, n) -> (n, 3)
+
+
+# ------------------------------------------------------------------ set-up
+
+def test_register_is_idempotent_per_variant():
+    from mi_bivariate.plugins import plugin_classes, register
+
+    classes = plugin_classes()
+    register()
+    register()
+    assert plugin_classes() is classes
+    assert ensure_variant() == "llvm_ad_rgb"
+    bsdf = mi.load_dict(bsdf_dict(lambertian_table()))
+    assert "BivariateBSDF" in str(bsdf)
+    flags = bsdf.flags()
+    assert mi.has_flag(flags, mi.BSDFFlags.GlossyReflection) and mi.has_flag(flags, mi.BSDFFlags.FrontSide)
+    assert not mi.has_flag(flags, mi.BSDFFlags.BackSide)
+
+
+@pytest.mark.parametrize("props, message", [
+    ({"type": "bivariate"}, "needs a 'filename'"),
+    ({"type": "bivariate", "table": "nope"}, "must be a mitsuba.Bitmap"),
+    ({"type": "bivariate", "filename": "/no/such/file.npz"}, "not found"),
+    ({"type": "merl", "filename": "/no/such/file.binary"}, "cannot read MERL file"),
+    ({"type": "bivariate", "sampling": "magic"}, "sampling must be"),
+])
+def test_bad_properties_raise_readable_errors(props, message):
+    with pytest.raises(RuntimeError, match=message):
+        mi.load_dict(props)
+
+
+def test_bad_tables_raise_readable_errors():
+    bad = np.full((4, 4, 3), 0.1, np.float32)
+    bad[1, 2, 0] = np.nan
+    with pytest.raises(RuntimeError, match="NaN"):
+        mi.load_dict({"type": "bivariate", "table": mi.Bitmap(bad)})
+    with pytest.raises(RuntimeError, match="8100 x 180"):
+        mi.load_dict({"type": "merl", "table": mi.Bitmap(np.ones((90, 180, 3), np.float32))})
+    with pytest.raises(RuntimeError, match="interpolation"):
+        mi.load_dict({**bsdf_dict(Lambertian(0.5)), "interpolation": "cubic"})
+
+
+# ------------------------------------------------------------ evaluation
+
+def test_bivariate_eval_matches_closed_form():
+    # A table bilinear in (s, t) is reproduced exactly by bilinear interpolation.
+    n_t, n_s = 9, 5
+    t, s = np.meshgrid(np.linspace(0, 1, n_t), np.linspace(0, 1, n_s), indexing="ij")
+    coeff = np.array([[0.3, 0.1, 0.05], [0.2, 0.4, 0.1], [0.05, 0.0, 0.3]])  # f = c0 + c1 t + c2 s t
+    table = coeff[0] + coeff[1] * t[..., None] + coeff[2] * (s * t)[..., None]
+    bsdf = mi.load_dict({"type": "bivariate", "table": mi.Bitmap(table.astype(np.float32))})
+    wi, wo = random_pairs(2000, seed=1)
+    s_ref, t_ref = st_from_dirs(wo, wi)
+    expected = coeff[0] + coeff[1] * t_ref[:, None] + coeff[2] * (s_ref * t_ref)[:, None]
+    got = plugin_eval(bsdf, wi, wo) / wo[:, 2:3]
+    np.testing.assert_allclose(got, expected, rtol=2e-4, atol=1e-5)
+
+    # Known angles: mirror configuration at normal incidence -> node (0, 0).
+    n = np.array([[0.0, 0.0, 1.0]])
+    np.testing.assert_allclose(plugin_eval(bsdf, n, n)[0], table[0, 0], rtol=1e-6)
+    # One-sided: zero when either direction is below the horizon.
+    below = np.array([[0.3, 0.0, -0.95]])
+    assert np.all(plugin_eval(bsdf, n, below / np.linalg.norm(below)) == 0.0)
+    assert np.all(plugin_eval(bsdf, below / np.linalg.norm(below), n) == 0.0)
+
+
+def test_bivariate_eval_matches_numpy_table_lookup():
+    biv = lobe_table(width=0.15, diffuse=0.3, specular=4.0)
+    bsdf = mi.load_dict(bsdf_dict(biv))
+    wi, wo = random_pairs(4000, seed=2)
+    theta_h, _, theta_d, _ = half_diff_from_dirs(wo, wi)
+    expected = biv.eval(theta_h, theta_d)
+    got = plugin_eval(bsdf, wi, wo) / wo[:, 2:3]
+    np.testing.assert_allclose(got, expected, rtol=1e-3, atol=1e-4)
+
+
+@pytest.fixture(scope="module")
+def ggx_merl() -> MERLBRDF:
+    return to_merl(CookTorranceGGX(albedo_diffuse=0.2, specular=1.0, alpha=0.2, ior=1.5), dtype=np.float32)
+
+
+@pytest.mark.parametrize("interpolation", ["nearest", "linear"])
+def test_merl_eval_matches_merl_module(ggx_merl, interpolation):
+    # Away from the horizon every lookup's nodes are measured, so the plugin
+    # (float32, Dr.Jit) must agree with MERLBRDF.eval (float64, numpy).
+    bsdf = mi.load_dict(merl_dict(ggx_merl, interpolation))
+    wi, wo = random_pairs(4000, seed=3, min_cos=0.35)
+    theta_h, _, theta_d, phi_d = half_diff_from_dirs(wo, wi)
+    expected = ggx_merl.eval(theta_h, theta_d, phi_d, interpolation=interpolation)
+    ok = np.all(np.isfinite(expected), axis=1)
+    got = plugin_eval(bsdf, wi, wo) / wo[:, 2:3]
+    close = np.all(np.isclose(got, expected, rtol=2e-3, atol=1e-5), axis=1)
+    # Nearest lookups may floor to the neighbouring node when an angle is within
+    # float32 rounding of a node boundary: allow a handful of those.
+    allowed = 0.002 if interpolation == "nearest" else 0.0
+    assert ok.mean() > 0.99
+    assert np.mean(~close[ok]) <= allowed
+
+
+# ---------------------------------------------------------- sampling (chi2)
+
+@pytest.fixture(scope="module")
+def chi2_tables() -> dict:
+    diffuse_ish = lobe_table(width=0.5, diffuse=0.6, specular=0.3)
+    glossy = lobe_table(width=0.05, diffuse=0.05, specular=20.0)
+    # alpha 0.05 samples correctly too (a fine pdf integral agrees), but the chi2
+    # reference quadrature at the pole then needs ires=24 (twice the time).
+    glossy_merl = to_merl(CookTorranceGGX(albedo_diffuse=0.05, specular=1.0, alpha=0.08, ior=1.5), dtype=np.float32)
+    return {
+        ("bivariate", "diffuse"): bsdf_dict(diffuse_ish),
+        ("bivariate", "glossy"): bsdf_dict(glossy),
+        ("merl", "diffuse"): merl_dict(diffuse_ish.to_merl(), "linear"),
+        ("merl", "glossy"): merl_dict(glossy_merl, "nearest"),
+    }
+
+
+@pytest.mark.parametrize("plugin", ["bivariate", "merl"])
+@pytest.mark.parametrize("material", ["diffuse", "glossy"])
+@pytest.mark.parametrize("theta_deg", [0.0, 45.0, 75.0])
+def test_sample_agrees_with_pdf(chi2_tables, plugin, material, theta_deg):
+    props = chi2_tables[(plugin, material)]
+    theta = math.radians(theta_deg)
+    wi = [math.sin(theta), 0.0, math.cos(theta)]
+    sample_func, pdf_func = BSDFAdapter(plugin, props, wi=wi)
+    # ires=12: the chi2 reference integrates the pdf per cell with the trapezoid
+    # rule, which needs fine steps for the sharp lobe near the pole.
+    chi2 = ChiSquareTest(domain=SphericalDomain(), sample_func=sample_func, pdf_func=pdf_func,
+                         sample_dim=3, sample_count=1_000_000, res=101, ires=12, seed=7)
+    assert chi2.run(significance_level=0.01, test_count=12, quiet=True), chi2.messages
+
+
+def test_pdf_integrates_to_reflected_mass():
+    # Independent of chi2: integrate the pdf on a fine (cos theta, phi) grid.
+    bsdf = mi.load_dict(bsdf_dict(lobe_table(width=0.05, diffuse=0.05, specular=20.0)))
+    n = 1000
+    c = (np.arange(n) + 0.5) / n
+    p = (np.arange(2 * n) + 0.5) / (2 * n) * 2 * math.pi
+    cc, pp = np.meshgrid(c, p, indexing="ij")
+    ss = np.sqrt(1 - cc * cc)
+    wo = np.stack([ss * np.cos(pp), ss * np.sin(pp), cc], -1).reshape(-1, 3)
+    si = dr.zeros(mi.SurfaceInteraction3f, len(wo))
+    si.wi = mi.Vector3f(0.0, 0.0, 1.0)
+    pdf = np.array(bsdf.pdf(mi.BSDFContext(), si, mi.Vector3f(*(mi.Float(wo[:, k]) for k in range(3)))))
+    assert abs(pdf.sum() * (1.0 / n) * (math.pi / n) - 1.0) < 5e-3
+
+
+# ---------------------------------------------------------------- renders
+
+def synthetic_probe() -> Probe:
+    """Smooth sky-like gradient plus a small bright patch (a sun), 32 x 64."""
+    h, w = 32, 64
+    y, x = np.mgrid[0:h, 0:w]
+    data = np.stack([0.3 + 0.7 * (1 - y / h), 0.4 + 0.3 * x / w, 0.5 + 0.0 * x], -1)
+    data[6:9, 20:23] = 40.0
+    return Probe(data.astype(np.float32), source="synthetic")
+
+
+def render(bsdf: dict, probe: Probe, seed: int = 0, spp: int = 64, res: int = 32) -> np.ndarray:
+    cam = make_camera("orthographic", res)
+    scene = mi.load_dict(sphere_scene_dict(bsdf, probe, cam, normals=False))
+    return np.array(mi.render(scene, spp=spp, seed=seed), np.float64)[..., :3]
+
+
+def disc(res: int = 32) -> np.ndarray:
+    from mi_bivariate.render import coverage_mask
+
+    return coverage_mask(make_camera("orthographic", res))
+
+
+def assert_same_to_noise(a, b, mask, seeds_a, seeds_b, slack=1.3):
+    """Two renderers agree when their difference is no larger than their noise.
+
+    ``a``/``b`` are callables seed -> image; the noise of each is estimated
+    from two seeds of itself.
+    """
+    a0, a1 = a(seeds_a[0])[mask], a(seeds_a[1])[mask]
+    b0, b1 = b(seeds_b[0])[mask], b(seeds_b[1])[mask]
+    noise2 = 0.5 * (np.mean((a0 - a1) ** 2) + np.mean((b0 - b1) ** 2))
+    cross2 = 0.5 * (np.mean((a0 - b1) ** 2) + np.mean((a1 - b0) ** 2))
+    assert cross2 < slack * noise2, (cross2, noise2)
+    ratio = (a0.sum(0) + a1.sum(0)) / (b0.sum(0) + b1.sum(0))
+    np.testing.assert_allclose(ratio, 1.0, atol=0.01)
+
+
+@pytest.mark.parametrize("plugin", ["bivariate", "merl"])
+def test_furnace(plugin):
+    table = lambertian_table()
+    bsdf = bsdf_dict(table) if plugin == "bivariate" else merl_dict(table.to_merl(), "nearest")
+    img = render(bsdf, Probe.constant(1.0, 16))
+    m = disc()
+    np.testing.assert_allclose(img[m].mean(0), RHO, rtol=3e-3)
+    assert np.abs(img[m] / RHO - 1).max() < 0.2
+
+
+def test_bivariate_matches_builtin_diffuse():
+    probe = synthetic_probe()
+    ours = bsdf_dict(lambertian_table())
+    builtin = {"type": "diffuse", "reflectance": {"type": "rgb", "value": RHO.tolist()}}
+    assert_same_to_noise(lambda s: render(ours, probe, s), lambda s: render(builtin, probe, s), disc(),
+                         (0, 1), (2, 3))
+
+
+def test_merl_plugin_agrees_with_bivariate_plugin():
+    biv = lobe_table(width=0.2, diffuse=0.3, specular=2.0)
+    probe = synthetic_probe()
+    a = bsdf_dict(biv)
+    b = merl_dict(biv.to_merl(), "linear")
+    assert_same_to_noise(lambda s: render(a, probe, s), lambda s: render(b, probe, s), disc(), (0, 1), (2, 3))
+
+
+def test_filename_properties(tmp_path):
+    biv = lobe_table(width=0.2, diffuse=0.3, specular=2.0, n=8)
+    biv.save(tmp_path / "t.npz")
+    biv.write_merl(tmp_path / "t.binary")
+    wi, wo = random_pairs(500, seed=4, min_cos=0.3)
+    from_file = mi.load_dict({"type": "bivariate", "filename": str(tmp_path / "t.npz")})
+    from_bitmap = mi.load_dict(bsdf_dict(biv))
+    np.testing.assert_array_equal(plugin_eval(from_file, wi, wo), plugin_eval(from_bitmap, wi, wo))
+    merl = mi.load_dict({"type": "merl", "filename": str(tmp_path / "t.binary"), "interpolation": "linear"})
+    np.testing.assert_allclose(plugin_eval(merl, wi, wo), plugin_eval(from_bitmap, wi, wo), rtol=0.02, atol=1e-4)
+
+
+# ------------------------------------------------------ parameters and AD
+
+def sphere_scene(bsdf: dict, res: int = 16) -> mi.Scene:
+    return mi.load_dict(sphere_scene_dict(bsdf, synthetic_probe(), make_camera("orthographic", res), normals=False))
+
+
+@pytest.mark.parametrize("plugin", ["bivariate", "merl"])
+def test_parameter_update_changes_render(plugin):
+    biv = lobe_table(width=0.3, diffuse=0.3, specular=1.0, n=8)
+    bsdf = bsdf_dict(biv) if plugin == "bivariate" else merl_dict(biv.to_merl(), "nearest")
+    scene = sphere_scene(bsdf)
+    params = mi.traverse(scene)
+    key = "sphere.bsdf.table"
+    assert key in params and not (params.flags(key) & mi.ParamFlags.NonDifferentiable)
+    before = np.array(mi.render(scene, spp=8, seed=3))
+    params[key] = params[key] * 2.0
+    params.update()
+    doubled = np.array(mi.render(scene, spp=8, seed=3))
+    # Uniform scaling leaves the sampling densities unchanged: exactly twice the image.
+    np.testing.assert_allclose(doubled, 2.0 * before, rtol=1e-4, atol=1e-6)
+    table = np.array(params[key])
+    table[..., 0] = 0.0  # no red
+    params[key] = mi.TensorXf(table)
+    params.update()
+    red_free = np.array(mi.render(scene, spp=8, seed=3))
+    assert np.all(red_free[..., 0] == 0.0) and red_free[..., 1].sum() > 0.0
+
+
+@pytest.mark.parametrize("sampling", ["cosine", "table"])
+def test_gradient_matches_finite_difference(sampling):
+    biv = lobe_table(width=0.3, diffuse=0.3, specular=1.0, n=8)
+    scene = sphere_scene({**bsdf_dict(biv), "sampling": sampling})
+    params = mi.traverse(scene)
+    key = "sphere.bsdf.table"
+    params.keep(key)
+    table0 = mi.TensorXf(params[key])
+    rng = np.random.default_rng(5)
+    delta = rng.uniform(0.0, 1.0, size=table0.shape).astype(np.float32) * np.array(biv.table)
+
+    def loss(table: mi.TensorXf) -> float:
+        params[key] = table
+        params.update()
+        return float(np.sum(np.array(mi.render(scene, params, spp=16, seed=7), np.float64)))
+
+    dr.enable_grad(params[key])
+    params.update()
+    # The backward pass re-renders with seed_grad: the finite difference uses that seed.
+    image = mi.render(scene, params, spp=16, seed=1, seed_grad=7)
+    dr.backward(dr.sum(image, axis=None))
+    grad = np.array(dr.grad(params[key]))
+    assert np.abs(grad).sum() > 0.0
+    directional = float(np.sum(grad * delta))
+    h = 0.1
+    with dr.suspend_grad():
+        fd = (loss(table0 + h * mi.TensorXf(delta)) - loss(table0)) / h
+    # The image is linear in the table. With cosine sampling the sampling does not
+    # depend on the table, so the difference quotient is exact; with table
+    # sampling the perturbed table is sampled differently (different noise).
+    rtol = 1e-3 if sampling == "cosine" else 0.1
+    assert directional == pytest.approx(fd, rel=rtol)

@@ -1,0 +1,174 @@
+"""The learned smoothness prior: operators, learning against closed forms, files."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mi_bivariate.errors import InputError
+from mi_bivariate.prior import (PAIRS, Prior, default_prior, difference_operators, learn_prior_from_merl,
+                                plot_prior, specular_ratio)
+
+
+def test_difference_operators_on_ramps():
+    n_t, n_s = 7, 5
+    ds, dt = difference_operators(n_t, n_s)
+    assert ds.shape == (n_t * (n_s - 1), n_t * n_s)
+    assert dt.shape == ((n_t - 1) * n_s, n_t * n_s)
+    t, s = np.meshgrid(np.linspace(0, 1, n_t), np.linspace(0, 1, n_s), indexing="ij")
+    ramp_s = (2.5 * s + 0.3).ravel()  # column it * n_s + is
+    np.testing.assert_allclose(ds @ ramp_s, 2.5, rtol=1e-12)
+    np.testing.assert_allclose(dt @ ramp_s, 0.0, atol=1e-12)
+    ramp_t = (-1.5 * t).ravel()
+    np.testing.assert_allclose(dt @ ramp_t, -1.5, rtol=1e-12)
+    np.testing.assert_allclose(ds @ ramp_t, 0.0, atol=1e-12)
+    # Row order: Ds row it * (n_s - 1) + is is the difference (it, is) -> (it, is + 1).
+    f = np.random.default_rng(0).random((n_t, n_s))
+    np.testing.assert_allclose(ds @ f.ravel(), (np.diff(f, axis=1) * (n_s - 1)).ravel())
+    np.testing.assert_allclose(dt @ f.ravel(), (np.diff(f, axis=0) * (n_t - 1)).ravel())
+    with pytest.raises(InputError):
+        difference_operators(1, 5)
+
+
+def test_regulariser_is_the_weighted_sum_of_squared_derivatives():
+    rng = np.random.default_rng(1)
+    n_t, n_s = 5, 4
+    sig = {p: (rng.uniform(0.5, 2, (n_t, n_s)), rng.uniform(0.5, 2, (n_t, n_s))) for p in PAIRS}
+    prior = Prior(sig)
+    f = rng.random((n_t, n_s))
+    sigma_s, sigma_t = sig["gloss"]
+    expected = (np.sum((np.diff(f, axis=1) * (n_s - 1) / sigma_s[:, :-1]) ** 2)
+                + np.sum((np.diff(f, axis=0) * (n_t - 1) / sigma_t[:-1, :]) ** 2))
+    assert np.sum((prior.regulariser("gloss") @ f.ravel()) ** 2) == pytest.approx(expected, rel=1e-12)
+    assert f.ravel() @ prior.penalty_matrix("gloss") @ f.ravel() == pytest.approx(expected, rel=1e-12)
+
+
+def _linear_tables(coeffs_s, coeffs_t, n: int = 9):
+    """Tables ``1 + a (s - 1/2) + b (t - 1/2)`` per channel: median 1, dF/ds = a, dF/dt = b."""
+    t, s = np.meshgrid(np.linspace(0, 1, n), np.linspace(0, 1, n), indexing="ij")
+    return np.stack([1 + a * (s - 0.5) + b * (t - 0.5) for a, b in zip(coeffs_s, coeffs_t)], axis=-1)
+
+
+@pytest.mark.parametrize("centred", [False, True])
+def test_learned_sigmas_match_closed_form(centred):
+    rng = np.random.default_rng(2)
+    # b < 0: brighter towards theta_h = 0 (specular ratio > 1, "gloss" at threshold 1); b >= 0: "diffuse".
+    materials = {}
+    for i in range(4):
+        materials[f"d{i}"] = (rng.uniform(-0.8, 0.8, 3), rng.uniform(0.0, 0.8, 3))
+        materials[f"g{i}"] = (rng.uniform(-0.8, 0.8, 3), rng.uniform(-0.8, -0.1, 3))
+    tables = {name: _linear_tables(a, b) for name, (a, b) in materials.items()}
+    prior = Prior.learn(tables, gloss_threshold=1.0, centred=centred)
+    assert prior.provenance["split"] == {name: "gloss" if name[0] == "g" else "diffuse" for name in materials}
+    for pair in PAIRS:
+        a = np.concatenate([materials[n][0] for n in materials if prior.provenance["split"][n] == pair])
+        b = np.concatenate([materials[n][1] for n in materials if prior.provenance["split"][n] == pair])
+        spread = (lambda v: v.std()) if centred else (lambda v: np.sqrt(np.mean(v**2)))
+        sig_a, sig_b = spread(a), spread(b)
+        sigma_s, sigma_t = prior.pairs[pair]
+        n = sigma_s.shape[0]
+        edges = n * (n - 1)  # as many s-differences as t-differences
+        scale = np.sqrt(sig_a * sig_b)  # geometric mean over both edge sets
+        assert prior.provenance["pair_scale"][pair] == pytest.approx(scale, rel=1e-10)
+        np.testing.assert_allclose(sigma_s, sig_a / scale, rtol=1e-10)
+        np.testing.assert_allclose(sigma_t, sig_b / scale, rtol=1e-10)
+        assert edges > 0
+
+
+def test_specular_ratio_and_split_errors():
+    lambertian = np.full((8, 8, 3), 0.2)
+    assert specular_ratio(lambertian) == pytest.approx(1.0)
+    peaked = lambertian.copy()
+    peaked[0] *= 50
+    assert specular_ratio(peaked) == pytest.approx(50.0)
+    with pytest.raises(InputError, match="no gloss materials"):
+        Prior.learn({"a": lambertian, "b": lambertian * 2})
+    with pytest.raises(InputError, match="different grids"):
+        Prior.learn({"a": lambertian, "b": np.ones((4, 4, 3))})
+    with pytest.raises(InputError, match="empty"):
+        Prior.learn({})
+
+
+def test_floor_bounds_the_weights():
+    flat = np.ones((6, 6, 3))
+    bumpy = flat.copy()
+    bumpy[3, 3] = 2.0  # derivatives only around one node: elsewhere sigma would be 0
+    peaked = bumpy.copy()
+    peaked[0] = 100.0
+    prior = Prior.learn({"flat": flat, "bumpy": bumpy, "peaked": peaked}, floor=1e-2)
+    for sigma_s, sigma_t in prior.pairs.values():
+        assert np.all(np.isfinite(sigma_s)) and np.all(sigma_s > 0)
+        assert np.all(np.isfinite(sigma_t)) and np.all(sigma_t > 0)
+
+
+def test_resampled_interpolates_log_sigma():
+    n = 9
+    t, s = np.meshgrid(np.linspace(0, 1, n), np.linspace(0, 1, n), indexing="ij")
+    # sigma_s varies along t (node axis of its map), sigma_t along s: linear in log -> exact.
+    pairs = {p: (np.exp(1.0 + 2.0 * t), np.exp(-1.0 + 3.0 * s)) for p in PAIRS}
+    prior = Prior(pairs, {"materials": ["x"]})
+    finer = prior.resampled(17, 13)
+    t2, s2 = np.meshgrid(np.linspace(0, 1, 17), np.linspace(0, 1, 13), indexing="ij")
+    for sigma_s, sigma_t in finer.pairs.values():
+        assert sigma_s.shape == (17, 13)
+        np.testing.assert_allclose(sigma_s, np.exp(1.0 + 2.0 * t2), rtol=1e-12)
+        np.testing.assert_allclose(sigma_t, np.exp(-1.0 + 3.0 * s2), rtol=1e-12)
+    same = prior.resampled(n, n)
+    np.testing.assert_array_equal(same.pairs["gloss"][0], pairs["gloss"][0])
+    back = finer.resampled(n, n)
+    np.testing.assert_allclose(back.pairs["diffuse"][1], pairs["diffuse"][1], rtol=1e-12)
+    assert finer.provenance["grid"]["n_t"] == 17 and finer.provenance["resampled_from"]["n_t"] == n
+
+
+def test_save_load_round_trip(tmp_path):
+    rng = np.random.default_rng(4)
+    prior = Prior({p: (rng.uniform(0.1, 9, (4, 6)), rng.uniform(0.1, 9, (4, 6))) for p in PAIRS},
+                  {"materials": ["a", "b"], "split": {"a": "diffuse", "b": "gloss"}})
+    path = tmp_path / "prior.npz"
+    prior.save(path)
+    loaded = Prior.load(path)
+    for p in PAIRS:
+        for x, y in zip(prior.pairs[p], loaded.pairs[p]):
+            np.testing.assert_array_equal(x, y)
+    assert loaded.provenance == prior.provenance
+    with pytest.raises(InputError, match="not found"):
+        Prior.load(tmp_path / "missing.npz")
+    garbage = tmp_path / "garbage.npz"
+    garbage.write_bytes(b"not a zip file")
+    with pytest.raises(InputError, match="garbage.npz"):
+        Prior.load(garbage)
+    other = tmp_path / "other.npz"
+    np.savez(other, table=np.ones((2, 2)))
+    with pytest.raises(InputError, match="other.npz"):
+        Prior.load(other)
+
+
+def test_default_prior_shape_and_provenance():
+    from mi_bivariate.nbrdf import NBRDF_MATERIALS
+
+    prior = default_prior()
+    assert (prior.n_t, prior.n_s) == (32, 32)
+    assert set(prior.pairs) == set(PAIRS)
+    for sigma_s, sigma_t in prior.pairs.values():
+        assert sigma_s.shape == sigma_t.shape == (32, 32)
+        assert sigma_s.dtype == np.float64 and np.all(sigma_s > 0) and np.all(sigma_t > 0)
+        # Each pair is normalised to a geometric mean of 1 over its differences.
+        edges = np.concatenate([np.log(sigma_s[:, :-1]).ravel(), np.log(sigma_t[:-1, :]).ravel()])
+        assert abs(edges.mean()) < 1e-9
+    prov = prior.provenance
+    assert sorted(prov["materials"]) == sorted(NBRDF_MATERIALS)
+    assert set(prov["split"].values()) == set(PAIRS)
+    assert prov["grid"]["n_t"] == 32 and prov["date"]
+    # The gloss pair allows much more variation in t at the specular peak than the diffuse pair.
+    assert prior.pairs["gloss"][1][0, :16].mean() > 100 * prior.pairs["diffuse"][1][0, :16].mean()
+    fig = plot_prior(prior)
+    assert len(fig.axes) == 8  # 4 maps + 4 colour bars
+
+
+def test_learn_prior_from_merl_names(data_dir):
+    prior = learn_prior_from_merl(["black-fabric", "brass"], n_t=8, n_s=8, data_dir=data_dir)
+    assert prior.provenance["split"] == {"black-fabric": "diffuse", "brass": "gloss"}
+    assert "MERL-NBRDF" in prior.provenance["sources"]["brass"]
+    assert (prior.n_t, prior.n_s) == (8, 8)
+    with pytest.raises(InputError, match="not a MERL"):
+        learn_prior_from_merl(["no-such-material"], data_dir=data_dir)

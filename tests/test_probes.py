@@ -1,0 +1,367 @@
+"""Light probes: file I/O and validation, Mitsuba's lat-long convention, rotations,
+angular-map / mirror-ball conversion, quadrature, shared probes."""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mi_bivariate.errors import InputError
+from mi_bivariate.probes import (
+    GRACE_LATLONG_ROTATION,
+    SHARED_PROBES,
+    Probe,
+    log_luminance_correlation,
+    rotation_matrix,
+    shared_probe,
+)
+
+
+# ------------------------------------------------------------ independent truths
+
+
+def latlong_lookup_reference(data: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Independent numpy transcription of Mitsuba's envmap.cpp lookup (local frame).
+
+    uv = (atan2(d.x, -d.z) / 2pi, acos(d.y) / pi); u shifted by half a texel and
+    wrapped; texel columns centred at (i + 1/2) / W, rows at j / (H - 1);
+    bilinear, the first column repeated after the last.
+    """
+    h, w, _ = data.shape
+    u = np.arctan2(d[:, 0], -d[:, 2]) / (2 * np.pi)
+    v = np.arccos(np.clip(d[:, 1], -1, 1)) / np.pi
+    x = u * w - 0.5
+    x -= np.floor(x / w) * w
+    y = v * (h - 1)
+    ix = np.minimum(np.floor(x).astype(int), w - 1)
+    iy = np.minimum(np.floor(y).astype(int), h - 2)
+    wx, wy = (x - ix)[:, None], (y - iy)[:, None]
+    padded = np.concatenate([data, data[:, :1]], axis=1).astype(np.float64)
+    return ((padded[iy, ix] * (1 - wx) + padded[iy, ix + 1] * wx) * (1 - wy)
+            + (padded[iy + 1, ix] * (1 - wx) + padded[iy + 1, ix + 1] * wx) * wy)
+
+
+def random_directions(n: int, seed: int = 0) -> np.ndarray:
+    d = np.random.default_rng(seed).normal(size=(n, 3))
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def environment(d: np.ndarray) -> np.ndarray:
+    """A smooth RGB environment, asymmetric in every axis, ``(N, 3)``."""
+    axes = np.array([[0.9, -0.4, 0.3], [-0.2, 0.7, 0.5], [0.3, 0.2, -0.8]])
+    return np.exp(d @ axes.T)
+
+
+def write_pfm(path: Path, image: np.ndarray) -> None:
+    """Little-endian colour PFM (rows stored bottom to top)."""
+    h, w, _ = image.shape
+    with open(path, "wb") as f:
+        f.write(f"PF\n{w} {h}\n-1\n".encode())
+        f.write(np.ascontiguousarray(image[::-1], dtype="<f4").tobytes())
+
+
+def write_exr(path: Path, image: np.ndarray) -> None:
+    import mitsuba as mi
+
+    mi.Bitmap(np.ascontiguousarray(image, dtype=np.float32)).write(str(path))
+
+
+# ------------------------------------------------------------------ file I/O
+
+
+@pytest.mark.parametrize("name", SHARED_PROBES)
+def test_shared_probes_load(name, probe_path):
+    path = probe_path(name)
+    probe = shared_probe(name, path.parent.parent)
+    assert probe.data.dtype == np.float32 and probe.data.shape[2] == 3
+    assert probe.data.shape[1] == 2 * probe.data.shape[0]
+    assert np.all(np.isfinite(probe.data)) and probe.data.min() >= 0
+    assert np.all(probe.mean_radiance() > 0)
+    expected = GRACE_LATLONG_ROTATION if name == "grace_latlong_1k" else np.eye(3)
+    np.testing.assert_allclose(probe.to_world[:3, :3], expected, atol=1e-12)
+
+
+def test_grace_latlong_rotation_matches_grace_256(probe_path):
+    reference = Probe.load(probe_path("grace_256"))
+    raw = Probe.load(probe_path("grace_latlong_1k"))
+    # The recorded constant is Ry(275) Rz(180): proper, no flip.
+    np.testing.assert_allclose(GRACE_LATLONG_ROTATION, rotation_matrix([0, 275, 0]) @ np.diag([-1.0, -1, 1]),
+                               atol=1e-12)
+    assert np.linalg.det(GRACE_LATLONG_ROTATION) == pytest.approx(1.0)
+    aligned = log_luminance_correlation(reference, raw.rotated(GRACE_LATLONG_ROTATION), 64, min_elevation_deg=0)
+    candidates = {"as loaded": raw}
+    candidates.update({f"z-up Rx({a})": raw.rotated(euler_deg=(a, 0, 0)) for a in (-90, 90)})
+    for label, probe in candidates.items():
+        other = log_luminance_correlation(reference, probe, 64, min_elevation_deg=0)
+        assert aligned > other + 0.2, (label, aligned, other)
+    assert aligned > 0.35
+
+
+def test_rejects_nan_inf_negative(tmp_path):
+    image = np.ones((8, 16, 3), np.float32)
+    image[1, 2, 0] = np.nan
+    image[3, 4, :] = np.inf
+    image[5, 6, 1] = -0.5
+    image[5, 7, 2] = -1.0
+    for path in (tmp_path / "bad.exr", tmp_path / "bad.pfm"):
+        (write_exr if path.suffix == ".exr" else write_pfm)(path, image)
+        with pytest.raises(InputError) as err:
+            Probe.load(path)
+        msg = str(err.value)
+        assert str(path) in msg and "\n" not in msg
+        assert "4 of 128 pixels" in msg and "1 NaN" in msg and "1 infinite" in msg and "2 negative" in msg
+
+
+def test_rejects_unknown_extension_and_missing_file(tmp_path):
+    for name in ("probe.png", "probe"):
+        path = tmp_path / name
+        path.write_bytes(b"\x89PNG")
+        with pytest.raises(InputError, match="unknown image type") as err:
+            Probe.load(path)
+        assert str(path) in str(err.value)
+    with pytest.raises(InputError, match="no such file"):
+        Probe.load(tmp_path / "absent.exr")
+
+
+def test_rejects_truncated_and_corrupt_files(tmp_path):
+    rng = np.random.default_rng(1)
+    image = rng.random((32, 64, 3)).astype(np.float32) * 10
+    exr, pfm = tmp_path / "full.exr", tmp_path / "full.pfm"
+    write_exr(exr, image)
+    write_pfm(pfm, image)
+    hdr = tmp_path / "full.hdr"
+    import mitsuba as mi
+
+    mi.Bitmap(image).write(str(hdr))
+    cases = []
+    for src in (exr, pfm, hdr):
+        raw = src.read_bytes()
+        cut = tmp_path / f"truncated{src.suffix}"
+        cut.write_bytes(raw[: len(raw) // 2])
+        garbage = tmp_path / f"garbage{src.suffix}"
+        garbage.write_bytes(b"not an image at all " * 8)
+        cases += [cut, garbage]
+    for path in cases:
+        with pytest.raises(InputError) as err:
+            Probe.load(path)
+        msg = str(err.value)
+        assert msg.startswith(str(path)) and "\n" not in msg, msg
+
+
+def test_channel_layouts(tmp_path):
+    import mitsuba as mi
+
+    rng = np.random.default_rng(2)
+    grey = rng.random((6, 12, 1)).astype(np.float32)
+    mi.Bitmap(grey).write(str(tmp_path / "grey.exr"))
+    np.testing.assert_array_equal(Probe.load(tmp_path / "grey.exr").data, np.repeat(grey, 3, axis=2))
+
+    rgba = rng.random((6, 12, 4)).astype(np.float32)
+    mi.Bitmap(rgba, mi.Bitmap.PixelFormat.RGBA).write(str(tmp_path / "rgba.exr"))
+    np.testing.assert_allclose(Probe.load(tmp_path / "rgba.exr").data, rgba[..., :3], rtol=1e-6)
+
+    five = rng.random((6, 12, 5)).astype(np.float32)
+    mi.Bitmap(five, mi.Bitmap.PixelFormat.MultiChannel, ["a", "b", "c", "d", "e"]).write(str(tmp_path / "five.exr"))
+    with pytest.raises(InputError, match="5 channels") as err:
+        Probe.load(tmp_path / "five.exr")
+    assert "five.exr" in str(err.value)
+
+    with pytest.raises(InputError, match="NaN"):
+        Probe(np.full((4, 8, 3), np.nan))
+
+
+def test_save_exr_round_trip_keeps_rotation(tmp_path):
+    rng = np.random.default_rng(3)
+    probe = Probe(rng.random((8, 16, 3)) * 5).rotated(euler_deg=(10, 20, 30))
+    path = tmp_path / "out" / "probe.exr"
+    probe.save_exr(path)
+    assert sorted(p.name for p in path.parent.iterdir()) == ["probe.exr"]  # no temp file left
+    back = Probe.load(path)
+    np.testing.assert_array_equal(back.data, probe.data)
+    np.testing.assert_allclose(back.to_world, probe.to_world, atol=1e-12)
+
+
+# ------------------------------------------------------- Mitsuba's lat-long frame
+
+
+def test_eval_matches_numpy_reference_of_envmap():
+    rng = np.random.default_rng(4)
+    data = rng.random((9, 14, 3)).astype(np.float32) * 4
+    d = random_directions(5000, seed=5)
+    # Near the poles and on both sides of the u seam (at the exact poles the
+    # column is decided by the sign of zero: all columns are the same direction).
+    d[:5] = [[1e-3, 1, 2e-3], [-2e-3, -1, 1e-3], [0, 0.1, -1], [1e-4, 0.3, -1], [-1e-4, -0.3, -1]]
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    probe = Probe(data)
+    np.testing.assert_allclose(probe.eval(d), latlong_lookup_reference(data, d), rtol=2e-5, atol=2e-5)
+
+    rotation = rotation_matrix([25, -70, 140])
+    rotated = probe.rotated(rotation)
+    # world d -> local R^T d
+    np.testing.assert_allclose(rotated.eval(d), latlong_lookup_reference(data, d @ rotation), rtol=5e-5, atol=5e-5)
+
+    import mitsuba as mi
+
+    dr_out = np.array(rotated.eval_dr(mi.Vector3f(d.T.astype(np.float32)))).T
+    np.testing.assert_array_equal(dr_out, rotated.eval(d))
+
+
+def test_bright_texel_lights_expected_world_direction():
+    import drjit as dr
+    import mitsuba as mi
+
+    h, w = 33, 64
+    data = np.full((h, w, 3), 0.01, np.float32)
+    # Column 15.5 -> u = 1/4, row 16 -> v = 1/2: Mitsuba's +x direction.
+    data[15:18, 15:17] = 100.0
+    probe = Probe(data)
+    plus_x, minus_x, minus_z = np.eye(3)[0], -np.eye(3)[0], -np.eye(3)[2]
+    values = probe.eval(np.stack([plus_x, minus_x, minus_z]))[:, 0]
+    assert values[0] == pytest.approx(100.0) and values[1] < 0.02 and values[2] < 0.02
+
+    def mean_sampled_direction(p: Probe) -> np.ndarray:
+        # An independent path through Mitsuba: importance sampling (uv_to_direction, to_world).
+        sampler = mi.load_dict({"type": "independent"})
+        sampler.seed(0, 4096)
+        it = dr.zeros(mi.Interaction3f)
+        ds, _ = p.emitter().sample_direction(it, sampler.next_2d())
+        mean = np.array(ds.d).mean(axis=1)
+        return mean / np.linalg.norm(mean)
+
+    assert mean_sampled_direction(probe) @ plus_x > 0.99
+    # Turning the probe +90 deg about +y (right-hand rule) takes +x to -z.
+    turned = probe.rotated(euler_deg=(0, 90, 0))
+    assert turned.eval(minus_z[None])[0, 0] == pytest.approx(100.0, rel=1e-4)
+    assert mean_sampled_direction(turned) @ minus_z > 0.99
+
+
+def test_texel_directions_hit_texels_exactly():
+    rng = np.random.default_rng(6)
+    data = rng.random((7, 12, 3)).astype(np.float32)
+    probe = Probe(data).rotated(euler_deg=(0, 0, 90))
+    dirs, omega = probe.texel_directions()
+    values = probe.eval(dirs).reshape(data.shape)
+    # Interior rows are exact; on a pole row every column is the same direction.
+    np.testing.assert_allclose(values[1:-1], data[1:-1], rtol=1e-4, atol=1e-5)
+    assert omega.shape == (7 * 12,) and omega.sum() == pytest.approx(4 * np.pi)
+
+
+def test_rotation_composition_and_euler_order():
+    rng = np.random.default_rng(7)
+    probe = Probe(rng.random((16, 32, 3)) + 0.5)
+    a, b = rotation_matrix([30, 40, -50]), rotation_matrix([-10, 75, 20])
+    d = random_directions(500, seed=8)
+    expected = probe.eval(d)
+    np.testing.assert_allclose(probe.rotated(a).eval(d @ a.T), expected, rtol=1e-4)
+    both = probe.rotated(a).rotated(b)
+    np.testing.assert_allclose(both.to_world[:3, :3], b @ a, atol=1e-12)
+    np.testing.assert_allclose(both.eval(d @ (b @ a).T), expected, rtol=1e-4)
+
+    x, y, z = np.radians([20.0, -35.0, 60.0])
+    rx = np.array([[1, 0, 0], [0, math.cos(x), -math.sin(x)], [0, math.sin(x), math.cos(x)]])
+    ry = np.array([[math.cos(y), 0, math.sin(y)], [0, 1, 0], [-math.sin(y), 0, math.cos(y)]])
+    rz = np.array([[math.cos(z), -math.sin(z), 0], [math.sin(z), math.cos(z), 0], [0, 0, 1]])
+    np.testing.assert_allclose(probe.rotated(euler_deg=(20, -35, 60)).to_world[:3, :3], rz @ ry @ rx, atol=1e-12)
+
+    flip = np.diag([1.0, -1.0, 1.0])
+    with pytest.raises(InputError, match="mirror"):
+        probe.rotated(flip)
+    mirrored = probe.rotated(flip, allow_reflection=True)
+    np.testing.assert_allclose(mirrored.eval(d @ flip), expected, rtol=1e-4)
+    with pytest.raises(InputError, match="orthonormal"):
+        probe.rotated(2 * np.eye(3))
+
+
+# -------------------------------------------------------------- conversions
+
+
+def _disk_grid(size: int):
+    c = (np.arange(size) + 0.5) / size * 2 - 1
+    a, b = np.meshgrid(c, -c)  # a right, b up; row 0 at the top
+    return a, b, np.hypot(a, b)
+
+
+def _check_against_environment(probe: Probe, max_rel: float) -> None:
+    d = random_directions(4000, seed=9)
+    away_from_rim = d[:, 2] > math.cos(math.radians(140))  # within 140 deg of the centre (+z)
+    got, want = probe.eval(d[away_from_rim]), environment(d[away_from_rim])
+    assert np.abs(got / want - 1).max() < max_rel
+    # An orientation error would be far off: the same check on mirrored directions fails.
+    mirrored = d[away_from_rim] * [-1, 1, 1]
+    assert np.abs(probe.eval(mirrored) / want - 1).max() > 0.2
+
+
+def test_mirror_ball_round_trip():
+    size = 256
+    a, b, r = _disk_grid(size)
+    nz = np.sqrt(np.clip(1 - r * r, 0, None))
+    # Reflect the orthographic view ray (0, 0, -1) about the ball normal (a, b, nz).
+    refl = np.stack([2 * nz * a, 2 * nz * b, 2 * nz * nz - 1], axis=-1)
+    image = environment(refl.reshape(-1, 3)).reshape(size, size, 3)
+    image[r >= 1] = 0
+    probe = Probe.from_mirror_ball(image)
+    assert probe.data.shape == (128, 256, 3)
+    _check_against_environment(probe, 0.02)
+
+
+def test_angular_map_round_trip():
+    size = 256
+    a, b, r = _disk_grid(size)
+    theta = np.pi * np.minimum(r, 1)
+    scale = np.sin(theta) / np.maximum(r, 1e-12)
+    dirs = np.stack([a * scale, b * scale, np.cos(theta)], axis=-1)
+    image = environment(dirs.reshape(-1, 3)).reshape(size, size, 3)
+    image[r >= 1] = 0
+    probe = Probe.from_angular_map(image, width=256)
+    _check_against_environment(probe, 0.02)
+
+
+def test_conversion_rejects_non_square(tmp_path):
+    with pytest.raises(InputError, match="square"):
+        Probe.from_mirror_ball(np.ones((10, 12, 3)), source="ball.exr")
+
+
+# ------------------------------------------------------ quadrature and resampling
+
+
+def test_constant_probe_furnace():
+    probe = Probe.constant([0.5, 1.0, 2.0], 16)
+    assert probe.data.shape == (8, 16, 3)
+    np.testing.assert_allclose(probe.mean_radiance(), [0.5, 1.0, 2.0], rtol=1e-12)
+    np.testing.assert_allclose(probe.eval(random_directions(100)), np.tile([0.5, 1.0, 2.0], (100, 1)), rtol=1e-6)
+    assert probe.solid_angles().sum() == pytest.approx(4 * np.pi)
+
+
+def test_texel_quadrature_integrates_closed_form():
+    # integral over the sphere of exp(k . d) = 4 pi sinh|k| / |k|
+    k = np.array([0.9, -0.4, 0.3])
+    closed = 4 * np.pi * np.sinh(np.linalg.norm(k)) / np.linalg.norm(k)
+    dirs, omega = Probe.constant(1.0, (65, 128)).rotated(euler_deg=(10, 20, 30)).texel_directions()
+    assert omega @ np.exp(dirs @ k) == pytest.approx(closed, rel=1e-3)
+
+
+def test_downsampled_preserves_mean_radiance():
+    rng = np.random.default_rng(10)
+    probe = Probe(rng.random((50, 96, 3)) ** 4 * 100).rotated(euler_deg=(0, 45, 0))
+    small = probe.downsampled(4)
+    assert small.data.shape == (13, 24, 3)
+    np.testing.assert_allclose(small.mean_radiance(), probe.mean_radiance(), rtol=1e-6)
+    np.testing.assert_array_equal(small.to_world, probe.to_world)
+    const = Probe.constant(3.0, (33, 64)).downsampled(2)
+    np.testing.assert_allclose(const.data, 3.0, rtol=1e-6)
+    with pytest.raises(ValueError):
+        probe.downsampled(5)
+
+
+def test_shared_probe_errors(tmp_path, monkeypatch):
+    with pytest.raises(InputError, match="unknown shared probe"):
+        shared_probe("no_such_probe", tmp_path)
+    with pytest.raises(InputError, match="not found"):
+        shared_probe("grace_256", tmp_path)
+    monkeypatch.delenv("MI_BIVARIATE_DATA", raising=False)
+    with pytest.raises(InputError, match="MI_BIVARIATE_DATA"):
+        shared_probe("grace_256")

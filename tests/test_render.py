@@ -1,0 +1,203 @@
+"""mi_bivariate.render: camera conventions, masks, determinism, outputs, scene XML."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import mitsuba as mi
+import numpy as np
+import pytest
+
+from mi_bivariate.analytic import Lambertian
+from mi_bivariate.bivariate import BivariateBRDF
+from mi_bivariate.errors import InputError
+from mi_bivariate.probes import Probe
+from mi_bivariate.render import (bsdf_dict, camera_rays, coverage_mask, make_camera, render_sphere, sensor_dict,
+                                 write_exr, write_png_preview)
+
+SCENES = Path(__file__).resolve().parents[1] / "scenes"
+DIFFUSE = {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.5}}
+
+
+def angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.degrees(np.arccos(np.clip(np.sum(a * b, axis=-1), -1.0, 1.0)))
+
+
+def ray_traced_normals(camera: dict) -> np.ndarray:
+    """Unit-sphere normals at pixel centres from the camera model, ``(H, W, 3)`` (NaN on a miss)."""
+    width, height = camera["resolution"]
+    px, py = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
+    o, d = camera_rays(camera, px, py)
+    od = np.sum(o * d, -1)
+    disc = od * od - (np.sum(o * o, -1) - 1.0)
+    t = -od - np.sqrt(np.where(disc >= 0, disc, np.nan))
+    return o + t[..., None] * d
+
+
+# ----------------------------------------------------------------- camera
+
+@pytest.mark.parametrize("kwargs", [
+    {},
+    {"resolution": (48, 32)},
+    {"camera_to_world": [[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]]},  # camera on world +x
+])
+def test_orthographic_normals_follow_geometry_convention(kwargs):
+    # Mitsuba's own sh_normal AOV against SphereGeometry.normals(): a mirrored or
+    # flipped axis would give errors of tens of degrees.
+    r = render_sphere(DIFFUSE, Probe.constant(1.0, 16), **{"resolution": 48, "spp": 16, **kwargs})
+    height, width = r.mask.shape
+    expected, inside = r.geometry.normals(width, height)
+    assert r.mask.sum() > 0.5 * inside.sum() and np.all(inside[r.mask])
+    err = angle_deg(r.normals[r.mask], expected[r.mask])
+    # Normals are averaged over random positions in the pixel (16 spp): a few
+    # tenths of a degree from the centre normal; a mirrored axis would be tens.
+    assert np.median(err) < 0.5 and err.max() < 3.0
+    np.testing.assert_allclose(r.geometry.view_direction(), np.asarray(r.camera["camera_to_world"]) @ [0, 0, 1])
+
+
+def test_orthographic_geometry_is_exact():
+    cam = make_camera("orthographic", 64)
+    r = render_sphere(DIFFUSE, Probe.constant(1.0, 16), resolution=64, spp=4)
+    assert (r.geometry.cx, r.geometry.cy, r.geometry.radius) == (32.0, 32.0, 0.45 * 64)
+    # The camera model used for masks agrees with the geometry at pixel centres.
+    n_geo, inside = r.geometry.normals(64, 64)
+    n_ray = ray_traced_normals(cam)
+    np.testing.assert_allclose(n_ray[inside], n_geo[inside], atol=1e-9)
+    assert np.all(np.isnan(n_ray[~inside][:, 0]) | (np.abs(np.linalg.norm(n_geo[~inside], axis=-1)) == 0))
+
+
+def test_perspective_normals_follow_camera_model():
+    r = render_sphere(DIFFUSE, Probe.constant(1.0, 16), resolution=(40, 30), spp=16, camera="perspective", fov=40)
+    assert r.geometry is None
+    expected = ray_traced_normals(r.camera)
+    err = angle_deg(r.normals[r.mask], expected[r.mask])
+    assert np.median(err) < 0.5 and err.max() < 3.0
+    # Default distance: silhouette radius = radius_fraction * width pixels.
+    assert abs(r.mask[15].sum() - 2 * 0.45 * 40) <= 3
+
+
+@pytest.mark.parametrize("camera", ["orthographic", "perspective"])
+def test_mask_is_full_coverage(camera):
+    # An emitting sphere (radiance 1) over a black background renders each pixel's
+    # covered fraction: exactly 1 on fully covered pixels, < 1 on partial ones.
+    cam = make_camera(camera, 32)
+    scene = mi.load_dict({
+        "type": "scene", "integrator": {"type": "direct"}, "sensor": sensor_dict(cam),
+        "sphere": {"type": "sphere", "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 1.0}}},
+    })
+    coverage = np.array(mi.render(scene, spp=256, seed=0))[..., 0]
+    mask = coverage_mask(cam)
+    assert np.all(coverage[mask] == pytest.approx(1.0, abs=1e-6))
+    # Unmasked pixels that happen to catch only hits have a tiny uncovered corner.
+    full_outside = (coverage > 1.0 - 1e-6) & ~mask
+    assert full_outside.sum() <= 0.1 * mask.sum()
+    assert np.all(coverage[~mask] <= 1.0 + 1e-6)
+
+
+def test_bad_camera_arguments():
+    with pytest.raises(InputError, match="unknown camera"):
+        make_camera("fisheye")
+    with pytest.raises(InputError, match="rotation"):
+        make_camera(camera_to_world=np.diag([1.0, 1.0, -1.0]))
+    with pytest.raises(InputError, match="outside the unit sphere"):
+        make_camera("perspective", distance=0.5)
+
+
+# --------------------------------------------------------- renders proper
+
+def test_same_seed_same_image():
+    probe = Probe(np.random.default_rng(0).uniform(0.1, 2.0, (16, 32, 3)).astype(np.float32))
+    bsdf = bsdf_dict(BivariateBRDF(np.random.default_rng(1).uniform(0.05, 1.0, (8, 8, 3))))
+    a = render_sphere(bsdf, probe, resolution=32, spp=32, seed=5)
+    b = render_sphere(bsdf, probe, resolution=32, spp=32, seed=5)
+    c = render_sphere(bsdf, probe, resolution=32, spp=32, seed=6)
+    np.testing.assert_array_equal(a.image, b.image)
+    np.testing.assert_array_equal(a.normals, b.normals)
+    assert not np.array_equal(a.image, c.image)
+    assert a.image.dtype == np.float32 and a.image.shape == (32, 32, 3)
+    assert np.all(a.image[~coverage_mask(a.camera) & (a.normals[..., 2] == 0)] >= 0.0)
+
+
+@pytest.mark.parametrize("source", ["bivariate", "merl-file", "analytic"])
+def test_furnace_through_render_sphere(tmp_path, source):
+    rho = np.array([0.3, 0.6, 0.9])
+    biv = BivariateBRDF(np.broadcast_to(rho / math.pi, (4, 4, 3)))
+    if source == "bivariate":
+        bsdf = biv
+    elif source == "merl-file":
+        bsdf = tmp_path / "lambert.binary"
+        biv.write_merl(bsdf)
+    else:
+        bsdf = Lambertian(rho)
+    r = render_sphere(bsdf, Probe.constant(1.0, 16), resolution=32, spp=64)
+    np.testing.assert_allclose(r.image[r.mask].mean(0), rho, rtol=3e-3)
+
+
+def test_bsdf_dict_mapping(tmp_path):
+    biv = BivariateBRDF(np.full((4, 4, 3), 0.1))
+    assert bsdf_dict(biv)["type"] == "bivariate"
+    assert bsdf_dict(biv.to_merl())["type"] == "merl"
+    assert bsdf_dict(Lambertian(0.5))["type"] == "merl"
+    biv.save(tmp_path / "b.npz")
+    assert bsdf_dict(tmp_path / "b.npz") == {"type": "bivariate", "filename": str(tmp_path / "b.npz"),
+                                             "sampling": "table"}
+    assert bsdf_dict(DIFFUSE) is DIFFUSE
+    with pytest.raises(InputError, match="not found"):
+        bsdf_dict(tmp_path / "missing.npz")
+    (tmp_path / "x.txt").write_text("x")
+    with pytest.raises(InputError, match="unknown BRDF file type"):
+        bsdf_dict(tmp_path / "x.txt")
+    with pytest.raises(InputError, match="cannot make a BSDF"):
+        bsdf_dict(42)
+
+
+def test_plugin_errors_surface_as_input_errors(tmp_path):
+    (tmp_path / "bad.binary").write_bytes(b"\x00" * 100)
+    with pytest.raises(InputError, match="not a MERL .binary file"):
+        render_sphere(tmp_path / "bad.binary", Probe.constant(1.0, 16), resolution=8, spp=1)
+
+
+# ----------------------------------------------------------------- output
+
+def test_write_exr_and_png(tmp_path):
+    image = np.random.default_rng(0).uniform(0.0, 4.0, (12, 20, 3)).astype(np.float32)
+    write_exr(tmp_path / "out.exr", image)
+    back = np.array(mi.Bitmap(str(tmp_path / "out.exr")), np.float32)
+    np.testing.assert_array_equal(back[..., :3], image)
+    write_png_preview(tmp_path / "out.png", image)
+    import matplotlib.image
+
+    png = matplotlib.image.imread(str(tmp_path / "out.png"))
+    assert png.shape[:2] == (12, 20)
+    with pytest.raises(InputError):
+        write_exr(tmp_path / "bad.exr", image[..., 0])
+    assert not (tmp_path / "bad.exr").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.exr", "out.png"]  # no temporaries left
+
+
+# -------------------------------------------------------------- scene XML
+
+@pytest.mark.parametrize("name, camera", [("sphere_envmap_ortho.xml", "orthographic"),
+                                          ("sphere_envmap_perspective.xml", "perspective")])
+@pytest.mark.parametrize("brdf_type", ["bivariate", "merl"])
+def test_scene_xml_matches_render_sphere(tmp_path, name, camera, brdf_type):
+    biv = BivariateBRDF(np.random.default_rng(2).uniform(0.05, 0.5, (6, 6, 3)))
+    probe = Probe(np.random.default_rng(3).uniform(0.2, 2.0, (16, 32, 3)).astype(np.float32))
+    probe.save_exr(tmp_path / "env.exr")
+    if brdf_type == "bivariate":
+        biv.save(tmp_path / "brdf.npz")
+        brdf_file = tmp_path / "brdf.npz"
+    else:
+        biv.write_merl(tmp_path / "brdf.binary")
+        brdf_file = tmp_path / "brdf.binary"
+    scene = mi.load_file(str(SCENES / name), brdf_type=brdf_type, brdf_file=str(brdf_file),
+                         envmap=str(tmp_path / "env.exr"), spp="16", res="24", seed="3")
+    xml_image = np.array(mi.render(scene), np.float64)
+    ref = render_sphere(biv, probe, resolution=24, spp=64, camera=camera)
+    assert xml_image.shape == (24, 24, 3)
+    m = ref.mask
+    # Same silhouette, same shading up to noise.
+    assert np.all(xml_image[m].sum(-1) > 0.0)
+    np.testing.assert_allclose(xml_image.sum((0, 1)), ref.image.sum((0, 1)), rtol=0.03)
+    np.testing.assert_allclose(xml_image[m].mean(0), ref.image[m].mean(0), rtol=0.03)

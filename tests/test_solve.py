@@ -1,0 +1,194 @@
+"""The constrained regularised solve (Eq. 6) against independent solvers and closed forms."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.optimize as sopt
+
+from mi_bivariate.errors import InputError
+from mi_bivariate.prior import Prior
+from mi_bivariate.solve import (KKT_TOLERANCE, alpha_sweep, kkt_violation, nnls_gram, prepare_data_term,
+                                solve)
+
+N_T, N_S = 6, 5
+N = N_T * N_S
+
+
+def _problem(kind: str, seed: int, m: int = 120, n: int = 40):
+    """``(A, a)`` for ``min ||A x - a||, x >= 0`` of a given character."""
+    rng = np.random.default_rng(seed)
+    a_mat = rng.standard_normal((m, n))
+    if kind == "ill":  # column scales over 5 decades: cond ~ 1e5
+        a_mat *= np.logspace(0, -5, n)
+    elif kind == "collinear":  # nearly collinear columns
+        a_mat = a_mat[:, :1] + 1e-3 * a_mat
+    truth = np.maximum(rng.standard_normal(n), 0.0)
+    rhs = a_mat @ truth + 0.1 * rng.standard_normal(m)
+    if kind == "active":  # most constraints active at the solution
+        # The unconstrained optimum is negative except on 5 coordinates.
+        coeffs = -np.abs(rng.standard_normal(n))
+        coeffs[:5] = 3.0
+        rhs = a_mat @ coeffs + 0.1 * rng.standard_normal(m)
+    return a_mat, rhs
+
+
+@pytest.mark.parametrize("kind", ["well", "ill", "collinear", "active"])
+def test_nnls_gram_matches_scipy_nnls(kind):
+    for seed in range(4):
+        a_mat, rhs = _problem(kind, seed)
+        expected, _ = sopt.nnls(a_mat, rhs, maxiter=100 * a_mat.shape[1])
+        res = nnls_gram(a_mat.T @ a_mat, a_mat.T @ rhs)
+        assert res.method == "bpp"
+        assert res.kkt_violation < 1e-12
+        assert np.all(res.x >= 0)
+        # Both exact: they differ by the conditioning times round-off only.
+        tol = 1e-9 if kind == "well" else 1e-6
+        np.testing.assert_allclose(res.x, expected, rtol=0, atol=tol * max(1.0, np.abs(expected).max()))
+        if kind == "active":
+            assert np.count_nonzero(res.x) < a_mat.shape[1] // 2
+
+
+def test_kkt_check_catches_a_wrong_answer_and_falls_back():
+    a_mat, rhs = _problem("active", 7)
+    G, b = a_mat.T @ a_mat, a_mat.T @ rhs
+    exact, _ = sopt.nnls(a_mat, rhs)
+    assert kkt_violation(G, b, exact) < 1e-12
+    wrong = exact * 1.01
+    assert kkt_violation(G, b, wrong) > 1e-4
+    off_support = exact.copy()
+    off_support[np.flatnonzero(exact == 0)[0]] = 1e-3 * exact.max()
+    assert kkt_violation(G, b, off_support) > 1e-6
+    negative = exact.copy()
+    negative[np.flatnonzero(exact)[0]] *= -1
+    assert kkt_violation(G, b, negative) > 1e-4
+    # Pivoting stopped after one solve cannot satisfy KKT here: the fallback must run and be exact.
+    res = nnls_gram(G, b, passive=np.ones(b.size, bool), max_iter=1)
+    assert res.method == "bpp+nnls-fallback"
+    assert res.kkt_violation < KKT_TOLERANCE
+    np.testing.assert_allclose(res.x, exact, atol=1e-9 * exact.max())
+
+
+def _lighting(m: int, seed: int) -> np.ndarray:
+    """A non-negative, full-rank ``(m, N, 3)`` float32 lighting matrix with coloured light."""
+    rng = np.random.default_rng(seed)
+    base = rng.random((m, N)) ** 3
+    return (base[:, :, None] * np.array([1.0, 0.7, 0.4]) * rng.uniform(0.5, 2.0, (m, 1, 3))).astype(np.float32)
+
+
+def _truth(seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    table = rng.random((N_T, N_S, 3))
+    table[rng.random((N_T, N_S, 3)) < 0.3] = 0.0  # zeros: constraints active at the truth
+    return table
+
+
+def _prior() -> Prior:
+    """Two different, non-uniform pairs on the test grid."""
+    rng = np.random.default_rng(3)
+    return Prior({p: (rng.uniform(0.2, 5.0, (N_T, N_S)), rng.uniform(0.2, 5.0, (N_T, N_S)))
+                  for p in ("diffuse", "gloss")})
+
+
+def test_solve_matches_scipy_nnls_on_the_stacked_system():
+    """The documented normalisation, written out as one stacked least-squares problem."""
+    L = _lighting(150, 1)
+    I = np.einsum("mnk,nk->mk", L.astype(np.float64), _truth(2).reshape(N, 3))
+    I *= 1 + 0.05 * np.random.default_rng(4).standard_normal(I.shape)
+    prior, alpha = _prior(), 0.3
+    result = solve(L, I, prior, alpha, n_t=N_T, n_s=N_S)
+    m = L.shape[0]
+    for pair, sol in result.pairs.items():
+        reg = np.sqrt(alpha / N) * prior.regulariser(pair).toarray()
+        for k in range(3):
+            l_k = L[:, :, k].astype(np.float64)
+            c = np.sqrt(np.mean(l_k.sum(axis=1) ** 2))
+            stacked = np.vstack([l_k / (c * np.sqrt(m)), reg])
+            rhs = np.concatenate([I[:, k] / (c * np.sqrt(m)), np.zeros(reg.shape[0])])
+            expected, _ = sopt.nnls(stacked, rhs, maxiter=100 * N)
+            np.testing.assert_allclose(sol.table[:, :, k].ravel(), expected, rtol=1e-5, atol=1e-6 * expected.max())
+            resid = I[:, k] - l_k @ expected
+            assert sol.relative_residual[k] == pytest.approx(np.linalg.norm(resid) / np.linalg.norm(I[:, k]), rel=1e-4)
+            assert sol.data_term[k] == pytest.approx(np.sum(resid**2) / (c**2 * m), rel=1e-4)
+            assert sol.prior_term[k] == pytest.approx(np.sum((prior.regulariser(pair) @ expected) ** 2) / N, rel=1e-4)
+        assert np.all(sol.kkt_violation < 1e-12)
+    # The kept table is, per channel, the pair with the lower data term.
+    for k, w in enumerate(result.winner):
+        other = "gloss" if w == "diffuse" else "diffuse"
+        assert result.pairs[w].data_term[k] <= result.pairs[other].data_term[k]
+        np.testing.assert_array_equal(result.table[:, :, k], result.pairs[w].table[:, :, k])
+
+
+def test_alpha_zero_noiseless_recovers_the_truth():
+    L = _lighting(200, 5)
+    truth = _truth(6)
+    I = np.einsum("mnk,nk->mk", L.astype(np.float64), truth.reshape(N, 3))
+    result = solve(L, I, _prior(), alpha=0.0, n_t=N_T, n_s=N_S)
+    np.testing.assert_allclose(result.table, truth, rtol=0, atol=1e-6)  # float32 table
+    for sol in result.pairs.values():
+        np.testing.assert_allclose(sol.table, truth, atol=1e-6)
+        assert np.all(sol.relative_residual < 1e-6)
+
+
+def test_constant_truth_converges_at_the_lambertian_start():
+    L = _lighting(100, 8)
+    albedo = np.array([0.3, 0.2, 0.05])  # 1/sr
+    I = L.astype(np.float64).sum(axis=1) * albedo
+    result = solve(L, I, _prior(), alpha=1.0, n_t=N_T, n_s=N_S)
+    np.testing.assert_allclose(result.lambertian, albedo, rtol=1e-12)
+    np.testing.assert_allclose(result.table, np.broadcast_to(albedo, result.table.shape), rtol=1e-6)
+    for sol in result.pairs.values():
+        assert np.all(sol.iterations == 1)  # the start's passive set is already optimal
+        assert np.all(sol.prior_term < 1e-20)
+
+
+def test_scale_invariance():
+    L = _lighting(150, 9)
+    I = np.einsum("mnk,nk->mk", L.astype(np.float64), _truth(10).reshape(N, 3))
+    I *= 1 + 0.05 * np.random.default_rng(11).standard_normal(I.shape)
+    prior = _prior()
+    base = solve(L, I, prior, 0.5, n_t=N_T, n_s=N_S)
+    brighter_probe = solve(L * 10, I * 10, prior, 0.5, n_t=N_T, n_s=N_S)  # same material, brighter light
+    np.testing.assert_allclose(brighter_probe.table, base.table, rtol=1e-5, atol=1e-7)
+    same_probe_lit_10x = solve(L * 10, I, prior, 0.5, n_t=N_T, n_s=N_S)
+    np.testing.assert_allclose(same_probe_lit_10x.table, base.table / 10, rtol=1e-5, atol=1e-8)
+    brighter_material = solve(L, I * 10, prior, 0.5, n_t=N_T, n_s=N_S)
+    np.testing.assert_allclose(brighter_material.table, base.table * 10, rtol=1e-5, atol=1e-6)
+    assert brighter_material.winner == base.winner
+
+
+def test_prior_grid_is_resampled_and_sweep_reuses_the_data():
+    L = _lighting(120, 12)
+    truth = _truth(13)
+    I = np.einsum("mnk,nk->mk", L.astype(np.float64), truth.reshape(N, 3))
+    points = alpha_sweep(L, I, [0.0, 1e-2, 10.0], Prior.uniform(32, 32), truth=truth, n_t=N_T, n_s=N_S)
+    errors = [p.table_error.max() for p in points]
+    assert errors[0] < 1e-6 and errors[0] < errors[1] < errors[2]
+    data = prepare_data_term(L, I)
+    assert data.gram.shape == (3, N, N) and data.scale.shape == (3,)
+
+
+def test_input_errors():
+    L = _lighting(20, 0)
+    I = np.ones((20, 3))
+    prior = Prior.uniform(N_T, N_S)
+    with pytest.raises(InputError, match="rows"):
+        solve(L, I[:10], prior)
+    with pytest.raises(InputError, match="shape"):
+        solve(L[:, :, :2], I, prior)
+    bad = L.copy()
+    bad[3, 4, 1] = np.nan
+    with pytest.raises(InputError, match="NaN"):
+        solve(bad, I, prior)
+    bad_i = I.copy()
+    bad_i[0, 0] = np.inf
+    with pytest.raises(InputError, match="NaN"):
+        solve(L, bad_i, prior)
+    with pytest.raises(InputError, match="alpha"):
+        solve(L, I, prior, alpha=-1.0)
+    with pytest.raises(InputError, match="M = 0"):
+        solve(L[:0], I[:0], prior)
+    with pytest.raises(InputError, match="grid"):
+        solve(L, I, prior, n_t=4, n_s=4)
+    with pytest.raises(InputError, match="all zero"):
+        solve(np.zeros_like(L), I, prior)
