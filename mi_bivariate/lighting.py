@@ -45,8 +45,8 @@ import numpy as np
 from mi_bivariate.capture import Observations
 from mi_bivariate.errors import InputError
 
-#: Memory budget of one chunk's scatter target and its per-thread copies.
-CHUNK_BYTES = 256 * 2**20
+#: Size of one chunk's scatter target (one thread's copy).
+CHUNK_BYTES = 2 * 2**20
 
 #: Show a progress bar when a job has more (normal, direction) pairs than this.
 PROGRESS_PAIRS = 5 * 10**8
@@ -104,9 +104,12 @@ def light_directions(normals: np.ndarray, views: np.ndarray, n_dirs: int,
     """The light directions of each row (numpy, float64; what the Dr.Jit kernel uses).
 
     A stratified grid on the half hemisphere ``phi in [0, pi)`` of the row
-    frame (:func:`row_frames`): stratum ``(i, j)`` of :func:`direction_grid`
-    holds ``cos theta = (i + a) / n_z``, ``phi = pi (j + b) / n_phi`` with
-    the row's shift ``(a, b)``; each direction is paired with its mirror image
+    frame (:func:`row_frames`): with ``k = i n_phi + j`` over the strata of
+    :func:`direction_grid`, ``cos theta = (k + a) / (n_z n_phi)`` and ``phi =
+    pi (j + b) / n_phi``, with the row's shift ``(a, b)``. Every ring ``i`` is
+    one band of ``cos theta`` swept in azimuth, and ``cos theta`` is
+    stratified into all ``n_z n_phi`` levels (a plain grid, with ``n_z``
+    levels, integrates ``cos theta`` only to ``O(1 / n_z)``). Each direction is paired with its mirror image
     across the view/normal plane (``phi -> -phi``). Both land on the same st
     point (the fold), so the kernel computes their angles once. Uniform in
     solid angle, each direction has weight ``2 pi / K``.
@@ -123,7 +126,7 @@ def light_directions(normals: np.ndarray, views: np.ndarray, n_dirs: int,
     n_z, n_phi = direction_grid(n_dirs)
     k = np.arange(n_z * n_phi)
     i, j = k // n_phi, k % n_phi
-    u1 = (i + offsets[:, :1].astype(np.float64)) / n_z
+    u1 = (k + offsets[:, :1].astype(np.float64)) / (n_z * n_phi)
     u2 = (j + offsets[:, 1:].astype(np.float64)) / n_phi
     r = np.sqrt(np.clip(1.0 - u1 * u1, 0.0, None))
     phi = math.pi * u2
@@ -163,10 +166,9 @@ def _check_inputs(obs: Observations, probes: List[Any], n_t: int, n_s: int, n_di
 def _chunk_rows(n_nodes: int, chunk: Optional[int]) -> int:
     if chunk is not None:
         return max(1, int(chunk))
-    import drjit as dr
-
-    per_row = n_nodes * 4 * 4 * (dr.thread_count() + 1)
-    return max(64, CHUNK_BYTES // per_row)
+    # Each thread's copy of the scatter target (16 B per node and row) should
+    # stay in a 2 MB L2 cache.
+    return max(16, CHUNK_BYTES // (n_nodes * 16))
 
 
 def _row_packets(normals: np.ndarray, views: np.ndarray, offsets: np.ndarray) -> np.ndarray:
@@ -182,6 +184,18 @@ def _row_packets(normals: np.ndarray, views: np.ndarray, offsets: np.ndarray) ->
     return out
 
 
+def _spatial_order(normals: np.ndarray, bits: int = 10) -> np.ndarray:
+    """Row order along a Morton curve over the octahedral map of the normals."""
+    n = normals / np.abs(normals).sum(axis=1, keepdims=True)
+    oct_xy = np.where(n[:, 2:] >= 0.0, n[:, :2], (1.0 - np.abs(n[:, ::-1][:, 1:])) * np.sign(n[:, :2]))
+    q = np.clip((oct_xy + 1.0) * 0.5 * (2**bits - 1), 0, 2**bits - 1).astype(np.uint64)
+    key = np.zeros(len(n), dtype=np.uint64)
+    for b in range(bits):
+        key |= ((q[:, 0] >> np.uint64(b)) & np.uint64(1)) << np.uint64(2 * b)
+        key |= ((q[:, 1] >> np.uint64(b)) & np.uint64(1)) << np.uint64(2 * b + 1)
+    return np.argsort(key, kind="stable")
+
+
 def _lighting_chunk(packets: np.ndarray, probe: Any, n_t: int, n_s: int, n_dirs: int) -> np.ndarray:
     """Rows of L for one chunk: one fused kernel, ``(m, n_t * n_s, 3) float32``.
 
@@ -192,24 +206,24 @@ def _lighting_chunk(packets: np.ndarray, probe: Any, n_t: int, n_s: int, n_dirs:
     import mitsuba as mi
 
     m = len(packets)
-    n_nodes = n_t * n_s
     n_z, n_phi = direction_grid(n_dirs)
     n_pairs = n_z * n_phi
     data = mi.Float(packets.reshape(-1))
 
-    # Lane order: row, then cos theta stratum, then azimuth: consecutive lanes
-    # sweep a ring about the normal, so envmap texel reads stay in cache.
+    # Lane order: direction stratum, then row. The chunk's rows are neighbouring
+    # normals (see _spatial_order()), so consecutive lanes look up nearby
+    # envmap texels and splat into a small, cache-resident part of the target.
     idx = dr.arange(mi.UInt32, m * n_pairs)
-    row = idx // n_pairs
-    k = idx - row * n_pairs
-    i = k // n_phi
-    j = k - i * n_phi
+    k = idx // m
+    row = idx - k * m
+    j = k - (k // n_phi) * n_phi
     p0, p1, p2, p3 = (dr.gather(mi.Vector4f, data, row * 4 + q) for q in range(4))
-    x_axis, y_axis, normal = mi.Vector3f(p0.x, p0.y, p0.z), mi.Vector3f(p1.x, p1.y, p1.z), mi.Vector3f(p2.x, p2.y, p2.z)
+    x_axis, y_axis = mi.Vector3f(p0.x, p0.y, p0.z), mi.Vector3f(p1.x, p1.y, p1.z)
+    normal = mi.Vector3f(p2.x, p2.y, p2.z)
     sin_v, cos_v = p0.w, p1.w
 
     # Shifted stratified grid on the half hemisphere (see light_directions()).
-    u1 = (mi.Float(i) + p2.w) * (1.0 / n_z)
+    u1 = (mi.Float(k) + p2.w) * (1.0 / n_pairs)
     u2 = (mi.Float(j) + p3.x) * (1.0 / n_phi)
     r = dr.safe_sqrt(1.0 - u1 * u1)
     sin_phi, cos_phi = dr.sincos(math.pi * u2)
@@ -217,11 +231,23 @@ def _lighting_chunk(packets: np.ndarray, probe: Any, n_t: int, n_s: int, n_dirs:
 
     base = x_axis * lx + normal * lz
     radiance = probe.eval_dr(base + y_axis * ly) + probe.eval_dr(base - y_axis * ly)
+    weight = lz * (_TWO_PI / (2 * n_pairs))
+    return _splat(m, row, lx, ly, lz, sin_v, cos_v, radiance * weight, n_t, n_s)
 
-    # Rusinkiewicz angles in the row frame, wo = (sin_v, 0, cos_v); both
-    # mirror directions give the same values. theta_d is half the angle
-    # between wi and wo. atan2 of sine and cosine keeps float32 precision at
-    # the specular peak (see coordinates.py).
+
+def _splat(m: int, row: Any, lx: Any, ly: Any, lz: Any, sin_v: Any, cos_v: Any, value: Any,
+           n_t: int, n_s: int, active: Any = True) -> np.ndarray:
+    """Bilinear splat of ``value`` (``mi.Color3f``) at the st point of each lane.
+
+    ``(lx, ly, lz)`` is the light direction in the row frame, whose view is
+    ``wo = (sin_v, 0, cos_v)``. Returns ``(m, n_t * n_s, 3) float32``.
+    """
+    import drjit as dr
+    import mitsuba as mi
+
+    # Rusinkiewicz angles; theta_d is half the angle between wi and wo. atan2
+    # of a sine and a cosine keeps float32 precision at the specular peak,
+    # where acos would smear theta_h over half a t-cell (see coordinates.py).
     hx, hz = lx + sin_v, lz + cos_v
     theta_h = dr.atan2(dr.sqrt(hx * hx + ly * ly), hz)
     dot = lx * sin_v + lz * cos_v
@@ -237,15 +263,38 @@ def _lighting_chunk(packets: np.ndarray, probe: Any, n_t: int, n_s: int, n_dirs:
     ws = fs - mi.Float(i_s)
     wt = ft - mi.Float(i_t)
 
-    weight = lz * (_TWO_PI / (2 * n_pairs))
-    rgb = mi.Vector4f(radiance[0] * weight, radiance[1] * weight, radiance[2] * weight, 0.0)
+    n_nodes = n_t * n_s
+    rgb = mi.Vector4f(value[0], value[1], value[2], 0.0)
     target = dr.zeros(mi.Float, m * n_nodes * 4)
     node = row * n_nodes + i_t * n_s + i_s
+    # 4-wide packets with ReduceMode.Expand: per-thread copies of the target,
+    # no atomics (Auto silently picks Local for big targets: 7x slower).
     for offset, w in ((0, (1.0 - wt) * (1.0 - ws)), (1, (1.0 - wt) * ws),
                       (n_s, wt * (1.0 - ws)), (n_s + 1, wt * ws)):
-        dr.scatter_reduce(dr.ReduceOp.Add, target, rgb * w, node + offset, mode=dr.ReduceMode.Expand)
+        dr.scatter_reduce(dr.ReduceOp.Add, target, rgb * w, node + offset, active=active,
+                          mode=dr.ReduceMode.Expand)
     out = target.numpy().reshape(m, n_nodes, 4)
     return np.ascontiguousarray(out[:, :, :3])
+
+
+def _texel_chunk(packets: np.ndarray, texels: Tuple[Any, Any, int], n_t: int, n_s: int) -> np.ndarray:
+    """Rows of the texel-quadrature L for one chunk, ``(m, n_t * n_s, 3) float32``."""
+    import drjit as dr
+    import mitsuba as mi
+
+    directions, radiance_weight, n_texels = texels
+    m = len(packets)
+    data = mi.Float(packets.reshape(-1))
+    idx = dr.arange(mi.UInt32, m * n_texels)
+    texel = idx // m
+    row = idx - texel * m
+    p0, p1, p2 = (dr.gather(mi.Vector4f, data, row * 4 + q) for q in range(3))
+    d = dr.gather(mi.Vector3f, directions, texel)
+    lx = p0.x * d.x + p0.y * d.y + p0.z * d.z
+    ly = p1.x * d.x + p1.y * d.y + p1.z * d.z
+    lz = p2.x * d.x + p2.y * d.y + p2.z * d.z
+    value = dr.gather(mi.Color3f, radiance_weight, texel) * lz
+    return _splat(m, row, lx, ly, lz, p0.w, p1.w, value, n_t, n_s, active=lz > 0.0)
 
 
 def lighting_matrix(obs: Observations, probes: Union[Any, Sequence[Any]], n_t: int = 32, n_s: int = 32,
@@ -276,8 +325,9 @@ def lighting_matrix(obs: Observations, probes: Union[Any, Sequence[Any]], n_t: i
     rows_per_chunk = _chunk_rows(n_nodes, chunk)
 
     jobs = []
+    order = _spatial_order(obs.normals)
     for p in np.unique(obs.probe_index):
-        rows = np.flatnonzero(obs.probe_index == p)
+        rows = order[obs.probe_index[order] == p]
         jobs += [(int(p), rows[i:i + rows_per_chunk]) for i in range(0, len(rows), rows_per_chunk)]
     if progress is None:
         progress = len(jobs) > 1 and m_total * n_dirs > PROGRESS_PAIRS and sys.stderr.isatty()
@@ -289,4 +339,49 @@ def lighting_matrix(obs: Observations, probes: Union[Any, Sequence[Any]], n_t: i
     L = np.empty((m_total, n_nodes, 3), dtype=np.float32)
     for p, rows in jobs:
         L[rows] = _lighting_chunk(packets[rows], probes[p], n_t, n_s, n_dirs)
+    return L
+
+
+def texel_lighting_matrix(obs: Observations, probes: Union[Any, Sequence[Any]], n_t: int = 32,
+                          n_s: int = 32, downsample: int = 8, chunk: Optional[int] = None) -> np.ndarray:
+    """The lighting matrix by environment-texel quadrature.
+
+    Every texel of the probe, area-downsampled by ``downsample``
+    (:meth:`Probe.downsampled`; the largest factor up to ``downsample`` that
+    divides the width), is one light direction (its Mitsuba texel
+    position) with its solid angle and stored radiance; a row sums the
+    texels in its normal's upper hemisphere. Deterministic and faster than
+    :func:`lighting_matrix` for coarse maps, but it smooths the environment
+    and samples the hemisphere unevenly, so sharp lobes suffer (accuracy:
+    see ``tests/test_lighting.py`` and the benchmark).
+
+    Returns:
+        ``(M, n_t * n_s, 3) float32``, laid out as :func:`lighting_matrix`.
+    """
+    import mitsuba as mi
+
+    from mi_bivariate.variants import ensure_variant
+
+    ensure_variant()
+    probes = _as_probe_list(probes)
+    _check_inputs(obs, probes, n_t, n_s, 2)
+    if downsample < 1:
+        raise InputError(None, f"downsample must be >= 1, got {downsample}")
+    m_total, n_nodes = len(obs), n_t * n_s
+    packets = _row_packets(obs.normals, obs.views, np.zeros((m_total, 2), dtype=np.float32))
+    rows_per_chunk = _chunk_rows(n_nodes, chunk)
+    order = _spatial_order(obs.normals)
+    L = np.empty((m_total, n_nodes, 3), dtype=np.float32)
+    for p in np.unique(obs.probe_index):
+        probe = probes[int(p)]
+        factor = max(f for f in range(1, downsample + 1) if probe.width % f == 0)
+        coarse = probe.downsampled(factor)
+        directions, solid_angle = coarse.texel_directions()
+        radiance = coarse.data.reshape(-1, 3).astype(np.float64) * solid_angle[:, None]
+        texels = (mi.Vector3f(*directions.astype(np.float32).T),
+                  mi.Color3f(*radiance.astype(np.float32).T), len(solid_angle))
+        rows = order[obs.probe_index[order] == p]
+        for i in range(0, len(rows), rows_per_chunk):
+            sel = rows[i:i + rows_per_chunk]
+            L[sel] = _texel_chunk(packets[sel], texels, n_t, n_s)
     return L

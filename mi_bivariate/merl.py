@@ -17,6 +17,7 @@ Node positions (all radians)::
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 from pathlib import Path
@@ -65,21 +66,13 @@ def above_horizon(theta_h, theta_d, phi_d) -> np.ndarray:
     return (along - across > 0.0) & (along + across > 0.0)
 
 
-def _geometric_mask() -> np.ndarray:
-    theta_h, theta_d, phi_d = node_angles()
-    return above_horizon(theta_h[:, None, None], theta_d[None, :, None], phi_d[None, None, :])
-
-
-_GEOMETRIC_MASK: np.ndarray | None = None
-
-
+@functools.lru_cache(maxsize=1)
 def geometric_mask() -> np.ndarray:
-    """``(90, 90, 180) bool``: MERL nodes whose wi and wo are both above the horizon (cached)."""
-    global _GEOMETRIC_MASK
-    if _GEOMETRIC_MASK is None:
-        _GEOMETRIC_MASK = _geometric_mask()
-        _GEOMETRIC_MASK.setflags(write=False)
-    return _GEOMETRIC_MASK
+    """``(90, 90, 180) bool``, read-only: MERL nodes whose wi and wo are both above the horizon."""
+    theta_h, theta_d, phi_d = node_angles()
+    mask = above_horizon(theta_h[:, None, None], theta_d[None, :, None], phi_d[None, None, :])
+    mask.setflags(write=False)
+    return mask
 
 
 def _continuous_index(theta_h, theta_d, phi_d) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -139,27 +132,28 @@ class MERLBRDF:
             InputError: the file is missing, truncated or not a MERL table.
         """
         path = Path(path)
+        if not path.is_file():
+            raise InputError(path, "MERL file not found" if not path.exists() else "not a file")
         try:
             size = path.stat().st_size
+            if size < _HEADER_BYTES:
+                raise InputError(path, f"not a MERL .binary file: {size} bytes, too short for its header")
+            header = tuple(int(v) for v in np.fromfile(path, dtype="<i4", count=3))
+            if header != MERL_SHAPE:
+                raise InputError(path, f"not a MERL .binary file: header {header}, expected {MERL_SHAPE}")
+            if size != MERL_FILE_BYTES:
+                what = "truncated" if size < MERL_FILE_BYTES else "has trailing data"
+                raise InputError(path, f"MERL file {what}: {size} bytes, expected {MERL_FILE_BYTES}")
+            raw = np.fromfile(path, dtype="<f8", offset=_HEADER_BYTES, count=_N_VALUES)
         except OSError as e:
             raise InputError(path, f"cannot read MERL file ({e.strerror or e})") from None
-        if size < _HEADER_BYTES:
-            raise InputError(path, f"not a MERL .binary file: {size} bytes, too short for its header")
-        header = np.fromfile(path, dtype="<i4", count=3)
-        if tuple(int(v) for v in header) != MERL_SHAPE:
-            raise InputError(path, f"not a MERL .binary file: header {tuple(int(v) for v in header)}, "
-                                   f"expected {MERL_SHAPE}")
-        if size != MERL_FILE_BYTES:
-            what = "truncated" if size < MERL_FILE_BYTES else "has trailing data"
-            raise InputError(path, f"MERL file {what}: {size} bytes, expected {MERL_FILE_BYTES}")
-        raw = np.fromfile(path, dtype="<f8", offset=_HEADER_BYTES, count=_N_VALUES)
         raw = raw.reshape((3,) + MERL_SHAPE)
         table = np.empty(MERL_SHAPE + (3,), np.float64)
         for c in range(3):
             channel = raw[c] * MERL_SCALE[c]
             channel[raw[c] < 0.0] = np.nan
             table[..., c] = channel
-        if not np.all(np.isfinite(table) | np.isnan(table)):
+        if np.isinf(table).any():
             raise InputError(path, "MERL file holds infinite values")
         return cls(table, name=name or path.stem)
 
@@ -260,13 +254,13 @@ class MERLBRDF:
     def to_bitmap(self):
         """The table as ``mi.Bitmap`` RGB float32, H = 90 * 90, W = 180 (for the ``merl`` plugin).
 
-        Missing samples become 0 (a renderer sees no light where MERL has no data).
+        Row ``i_h * 90 + i_d``, column ``i_p``. Missing samples stay NaN (the
+        plugin fills them).
         """
         import mitsuba as mi
 
         from mi_bivariate.variants import ensure_variant
 
         ensure_variant()
-        img = np.nan_to_num(self.table, nan=0.0).astype(np.float32).reshape(MERL_SHAPE[0] * MERL_SHAPE[1],
-                                                                             MERL_SHAPE[2], 3)
+        img = np.asarray(self.table, np.float32).reshape(MERL_SHAPE[0] * MERL_SHAPE[1], MERL_SHAPE[2], 3)
         return mi.Bitmap(np.ascontiguousarray(img))

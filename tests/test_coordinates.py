@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import math
 
-import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest

@@ -70,7 +70,7 @@ def test_write_is_atomic(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
-@pytest.mark.parametrize("case", ["truncated", "trailing", "foreign", "tiny", "missing"])
+@pytest.mark.parametrize("case", ["truncated", "trailing", "foreign", "tiny", "missing", "directory"])
 def test_bad_files_raise_input_error(raw_file, tmp_path, case):
     data = raw_file[0].read_bytes()
     path = tmp_path / f"{case}.binary"
@@ -82,6 +82,8 @@ def test_bad_files_raise_input_error(raw_file, tmp_path, case):
         path.write_bytes(b"\x89PNG\r\n\x1a\n" + data[8:])
     elif case == "tiny":
         path.write_bytes(b"ab")
+    elif case == "directory":
+        path.mkdir()
     with pytest.raises(InputError) as info:
         MERLBRDF.read(path)
     message = str(info.value)
@@ -154,6 +156,14 @@ def test_geometric_mask_and_from_function():
     assert np.all(np.isnan(merl.table[~expected]))
 
 
+def test_to_bitmap_layout(raw_file):
+    merl = MERLBRDF.read(raw_file[0])
+    img = np.array(merl.to_bitmap())
+    assert img.shape == (90 * 90, 180, 3) and img.dtype == np.float32
+    np.testing.assert_array_equal(img[17 * 90 + 42, 99], merl.table[17, 42, 99].astype(np.float32))
+    np.testing.assert_array_equal(np.isnan(img), np.isnan(merl.table.reshape(8100, 180, 3)))
+
+
 def test_wrong_table_shape():
     with pytest.raises(InputError, match="mytable"):
         MERLBRDF(np.zeros((90, 90, 90, 3)), name="mytable")
@@ -197,15 +207,3 @@ def test_nbrdf_matches_direct_formula(data_dir):
     np.testing.assert_allclose(merl.table[node], nbrdf.load_nbrdf("brass", data_dir).eval(
         theta_h[node[0]], theta_d[node[1]], phi_d[node[2]]), rtol=1e-6)
 
-
-def test_all_nbrdf_materials_tabulate(data_dir):
-    from mi_bivariate import nbrdf
-
-    mask = geometric_mask()
-    for name in nbrdf.NBRDF_MATERIALS:
-        merl = nbrdf.tabulate(nbrdf.load_nbrdf(name, data_dir))
-        valid = merl.table[mask]
-        assert np.all(np.isfinite(valid)) and valid.min() >= 0.0, name
-        assert valid.max() > 0.0, name
-        assert np.all(np.isnan(merl.table[~mask])), name
-        np.testing.assert_array_equal(merl.valid_mask(), mask)

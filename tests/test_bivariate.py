@@ -1,0 +1,245 @@
+"""BivariateBRDF: Eq. 1 reduction and error, interpolation, file formats, MERL export."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import mitsuba as mi
+import numpy as np
+import pytest
+from scipy.interpolate import RegularGridInterpolator
+
+from mi_bivariate.analytic import BivariateLobe, CookTorranceGGX, Lambertian, to_merl
+from mi_bivariate.bivariate import BivariateBRDF, phi_d_average, reduction_error, reduction_error_per_channel
+from mi_bivariate.coordinates import grid_nodes, half_diff_from_st
+from mi_bivariate.errors import InputError
+from mi_bivariate.merl import MERL_SHAPE, MERLBRDF, node_angles
+
+LOBE = BivariateLobe([0.1, 0.2, 0.3], [4.0, 5.0, 6.0], width=0.1, f0=0.2)
+
+
+@pytest.fixture(scope="module")
+def lobe_merl() -> MERLBRDF:
+    return to_merl(LOBE)
+
+
+@pytest.fixture(scope="module")
+def ggx_merl() -> MERLBRDF:
+    return to_merl(CookTorranceGGX([0.05, 0.1, 0.2], 1.0, alpha=0.15, ior=1.5))
+
+
+def random_table(n_t=8, n_s=12, seed=0):
+    return np.random.default_rng(seed).uniform(0.0, 2.0, (n_t, n_s, 3)).astype(np.float32)
+
+
+# ------------------------------------------------------------------ reduction
+
+
+def test_lambertian_reduces_to_itself():
+    merl = to_merl(Lambertian([0.8, 0.5, 0.2]))
+    biv = BivariateBRDF.reduce(merl)
+    assert (biv.n_t, biv.n_s) == (32, 32)
+    np.testing.assert_allclose(biv.table, np.broadcast_to(np.array([0.8, 0.5, 0.2]) / math.pi, (32, 32, 3)),
+                               rtol=1e-6)
+    assert reduction_error(merl, biv) < 1e-6
+
+
+def test_bivariate_lobe_reduces_to_itself(lobe_merl):
+    # On a 91 x 91 grid the st nodes are MERL's own nodes: the reduction is exact.
+    biv = BivariateBRDF.reduce(lobe_merl, n_t=91, n_s=91)
+    theta_h, theta_d, _ = node_angles()
+    truth = LOBE.eval_half_diff(theta_h[:, None], theta_d[None, :])
+    np.testing.assert_allclose(biv.table[:90, :90], truth, rtol=1e-6)
+    assert reduction_error(lobe_merl, biv) < 1e-6
+    assert reduction_error(lobe_merl) < 1e-12  # the projection alone (paper's Fig. 3 number)
+    # On the default grid only bilinear interpolation between nodes remains.
+    assert reduction_error(lobe_merl, BivariateBRDF.reduce(lobe_merl)) < 0.03
+
+
+def test_direct_reduction_matches_closed_form():
+    biv = BivariateBRDF.reduce(LOBE, n_t=16, n_s=20)
+    theta_h, theta_d = biv.node_angles()
+    limit = (89 / 90) ** 2 * 0.5 * math.pi, 89 / 90 * 0.5 * math.pi  # sampled up to MERL's last nodes
+    truth = LOBE.eval_half_diff(np.minimum(theta_h, limit[0])[:, None], np.minimum(theta_d, limit[1])[None, :])
+    np.testing.assert_allclose(biv.table, truth, rtol=1e-6)
+
+
+def test_ggx_is_not_bivariate(ggx_merl, lobe_merl):
+    error = reduction_error(ggx_merl, BivariateBRDF.reduce(ggx_merl, n_t=91, n_s=91))
+    assert error > 0.02
+    assert error > 1e4 * reduction_error(lobe_merl, BivariateBRDF.reduce(lobe_merl, n_t=91, n_s=91))
+    # The table path and the direct path of reduce agree where the lobe is resolved.
+    direct = BivariateBRDF.reduce(CookTorranceGGX([0.05, 0.1, 0.2], 1.0, alpha=0.15, ior=1.5), n_t=91, n_s=91)
+    tabled = BivariateBRDF.reduce(ggx_merl, n_t=91, n_s=91)
+    # Where theta_h + theta_d = pi/2 the phi_d = 0 sample lies on the horizon;
+    # last-bit differences of the node angles decide whether it counts.
+    theta_h, theta_d, _ = node_angles()
+    clear = np.abs(theta_h[:, None] + theta_d[None, :] - 0.5 * math.pi) > 1e-9
+    np.testing.assert_allclose(direct.table[:90, :90][clear], tabled.table[:90, :90][clear], rtol=1e-5)
+
+
+def test_eq1_error_closed_form():
+    # Only the theta_h = 0 row is present: every phi_d is valid there, and
+    # f = 1 + a cos(2 phi_d) averages to exactly 1 over MERL's phi_d nodes.
+    a = 0.3
+    _, _, phi_d = node_angles()
+    table = np.full(MERL_SHAPE + (3,), np.nan)
+    table[0] = (1.0 + a * np.cos(2.0 * phi_d))[None, :, None]
+    table[0, :, :, 2] *= 2.0
+    merl = MERLBRDF(table)
+    f_bar = phi_d_average(merl)
+    np.testing.assert_allclose(f_bar[0], np.broadcast_to([1.0, 1.0, 2.0], (90, 3)), rtol=1e-12)
+    assert np.all(np.isnan(f_bar[1:]))
+    expected = math.sqrt(np.mean((a * np.cos(2 * phi_d) / (1.0 + a * np.cos(2 * phi_d))) ** 2))
+    assert reduction_error(merl) == pytest.approx(expected, rel=1e-10)
+    np.testing.assert_allclose(reduction_error_per_channel(merl), expected, rtol=1e-10)
+    flat = BivariateBRDF(np.broadcast_to(np.array([1.0, 1.0, 2.0], np.float32), (4, 4, 3)))
+    assert reduction_error(merl, flat) == pytest.approx(expected, rel=1e-6)
+    # Cells with f = 0 do not count (relative error undefined); missing ones neither.
+    table[0, :, :5, 1] = 0.0
+    merl = MERLBRDF(table)
+    per_channel = reduction_error_per_channel(merl, flat)
+    assert per_channel[1] != per_channel[0] and np.isfinite(per_channel).all()
+    assert math.isnan(reduction_error(merl, min_value=10.0))  # no cell above the floor
+    np.testing.assert_allclose(reduction_error_per_channel(merl, min_value=1.5)[:2], np.nan)
+
+
+def test_reduce_skips_missing_samples(lobe_merl):
+    table = np.array(lobe_merl.table)
+    table[:, :, ::2] = 1e6  # garbage, then mark it missing
+    table[:, :, ::2] = np.nan
+    merl = MERLBRDF(table)
+    np.testing.assert_allclose(BivariateBRDF.reduce(merl).table, BivariateBRDF.reduce(lobe_merl).table, rtol=1e-6)
+    # Whole (theta_h, theta_d) rows missing take their nearest neighbour's value.
+    table[40:45, 10:12] = np.nan
+    biv = BivariateBRDF.reduce(MERLBRDF(table), n_t=91, n_s=91)
+    assert np.all(np.isfinite(biv.table))
+
+
+# ------------------------------------------------------------- interpolation
+
+
+def test_eval_st_is_bilinear():
+    biv = BivariateBRDF(random_table())
+    rng = np.random.default_rng(1)
+    s, t = rng.uniform(0.0, 1.0, (2, 500))
+    reference = RegularGridInterpolator((biv.t_nodes, biv.s_nodes), biv.table.astype(np.float64))
+    np.testing.assert_allclose(biv.eval_st(s, t), reference(np.stack([t, s], -1)), rtol=1e-12)
+    # Nodes return the table; arguments outside [0, 1] clamp.
+    tt, ss = np.meshgrid(biv.t_nodes, biv.s_nodes, indexing="ij")
+    np.testing.assert_allclose(biv.eval_st(ss, tt), biv.table, rtol=1e-7)
+    np.testing.assert_allclose(biv.eval_st(1.5, -0.2), biv.table[0, -1], rtol=1e-7)
+    theta_h, theta_d = half_diff_from_st(s, t)
+    np.testing.assert_allclose(biv.eval(theta_h, theta_d), biv.eval_st(s, t), rtol=1e-12)
+    # Resampling onto a grid with the same nodes is the identity.
+    np.testing.assert_array_equal(BivariateBRDF.reduce(biv, biv.n_t, biv.n_s).table, biv.table)
+
+
+# ---------------------------------------------------------------- files, I/O
+
+
+def test_save_load_round_trip(tmp_path):
+    biv = BivariateBRDF(random_table(5, 7), provenance={"material": "test", "alpha": 0.1})
+    path = tmp_path / "brdf.npz"
+    biv.save(path)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["brdf.npz"]
+    back = BivariateBRDF.load(path)
+    np.testing.assert_array_equal(back.table, biv.table)
+    assert back.provenance == {"material": "test", "alpha": 0.1}
+    with np.load(path) as npz:
+        assert set(npz.files) == {"table", "s_nodes", "t_nodes", "meta"}
+        np.testing.assert_array_equal(npz["s_nodes"], grid_nodes(7))
+        meta = json.loads(str(npz["meta"]))
+    assert meta["units"] == "1/sr" and "theta_h" in meta["layout"] and meta["n_t"] == 5
+
+
+def save_npz(path, **arrays):
+    with open(path, "wb") as f:
+        np.savez(f, **arrays)
+    return path
+
+
+@pytest.mark.parametrize("case", ["corrupt", "foreign", "shape", "units", "nodes", "missing"])
+def test_load_errors(tmp_path, case):
+    good = BivariateBRDF(random_table(4, 4))
+    meta = json.dumps(good.metadata())
+    nodes = dict(s_nodes=grid_nodes(4), t_nodes=grid_nodes(4))
+    path = tmp_path / f"{case}.npz"
+    if case == "corrupt":
+        path.write_bytes(b"PK\x03\x04 this is not a zip archive")
+    elif case == "foreign":
+        save_npz(path, weights=np.zeros(3))
+    elif case == "shape":
+        save_npz(path, table=np.zeros((4, 4)), meta=np.array(meta), **nodes)
+    elif case == "units":
+        save_npz(path, table=good.table, meta=np.array(meta.replace("1/sr", "W")), **nodes)
+    elif case == "nodes":
+        save_npz(path, table=good.table, meta=np.array(meta), s_nodes=np.arange(4.0), t_nodes=grid_nodes(4))
+    with pytest.raises(InputError) as info:
+        BivariateBRDF.load(path)
+    assert str(path) in str(info.value) and "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize("table", [np.zeros((32, 32)), np.zeros((1, 5, 3)), np.zeros((4, 4, 4)),
+                                   np.full((4, 4, 3), np.nan), np.full((4, 4, 3), -1.0), "abc"])
+def test_constructor_validates(table):
+    with pytest.raises(InputError, match="my-source"):
+        BivariateBRDF.from_array(table, source="my-source")
+
+
+def test_bitmap_round_trip_and_exr(tmp_path):
+    biv = BivariateBRDF(random_table(6, 9))
+    bitmap = biv.to_bitmap()
+    assert bitmap.pixel_format() == mi.Bitmap.PixelFormat.RGB
+    assert bitmap.component_format() == mi.Struct.Type.Float32
+    assert (bitmap.height(), bitmap.width()) == (6, 9)
+    np.testing.assert_array_equal(BivariateBRDF.from_bitmap(bitmap).table, biv.table)
+    gray = mi.Bitmap(np.zeros((6, 9, 1), np.float32))
+    with pytest.raises(InputError, match="gray"):
+        BivariateBRDF.from_bitmap(gray, source="gray")
+    path = tmp_path / "table.exr"
+    biv.save_exr(path)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["table.exr"]
+    np.testing.assert_array_equal(np.array(mi.Bitmap(str(path))), biv.table)
+
+
+def test_to_merl_write_read(tmp_path):
+    biv = BivariateBRDF(random_table(32, 32), provenance={"source": "random"})
+    path = tmp_path / "biv.binary"
+    biv.write_merl(path)
+    merl = MERLBRDF.read(path)
+    assert np.all(np.isfinite(merl.table))  # every cell, below the horizon too
+    theta_h, theta_d, phi_d = node_angles()
+    expected = biv.eval(theta_h[:, None], theta_d[None, :])
+    np.testing.assert_allclose(merl.table, np.broadcast_to(expected[:, :, None], MERL_SHAPE + (3,)), rtol=1e-12)
+    rng = np.random.default_rng(2)
+    i, j, k = rng.integers(0, 90, 200), rng.integers(0, 90, 200), rng.integers(0, 180, 200)
+    np.testing.assert_allclose(merl.eval(theta_h[i], theta_d[j], phi_d[k]), biv.eval(theta_h[i], theta_d[j]),
+                               rtol=1e-12)
+    # The MERL table of a bivariate BRDF reduces back to it exactly at MERL's nodes.
+    fine = BivariateBRDF(random_table(91, 91, seed=3))
+    np.testing.assert_allclose(BivariateBRDF.reduce(fine.to_merl(), 91, 91).table[:90, :90],
+                               fine.table[:90, :90], rtol=1e-6)
+
+
+# ---------------------------------------------------------------- shared data
+
+
+def test_nbrdf_materials(data_dir):
+    from mi_bivariate.merl import geometric_mask
+    from mi_bivariate.nbrdf import NBRDF_MATERIALS, nbrdf_merl
+
+    mask = geometric_mask()
+    for name in NBRDF_MATERIALS:
+        merl = nbrdf_merl(name, data_dir)
+        valid = merl.table[mask]
+        assert np.all(np.isfinite(valid)) and valid.min() >= 0.0 and valid.max() > 0.0, name
+        assert np.all(np.isnan(merl.table[~mask])), name
+    for name in ("white-paint", "brass", "green-fabric"):
+        merl = nbrdf_merl(name, data_dir)
+        biv = BivariateBRDF.reduce(merl)
+        assert np.all(np.isfinite(biv.table)) and biv.table.min() >= 0.0
+        per_channel = reduction_error_per_channel(merl, biv)
+        print(f"MERL-NBRDF {name}: Eq. 1 error 32x32 {reduction_error(merl, biv):.4f} "
+              f"(per channel {np.round(per_channel, 4)}), projection alone {reduction_error(merl):.4f}")

@@ -1,0 +1,115 @@
+"""Seeded fuzzing of the file readers: truncations and byte flips of small valid files.
+
+Every outcome must be a successful load of sane data or an :class:`InputError`:
+never another exception type, never a crash. A few hundred cases in all.
+"""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import pytest
+
+from mi_bivariate import images
+from mi_bivariate.bivariate import BivariateBRDF
+from mi_bivariate.errors import InputError
+from mi_bivariate.merl import MERL_SHAPE, MERLBRDF
+from mi_bivariate.probes import Probe
+
+N_CASES = 60  # per reader
+
+
+def mutations(data: bytes, rng: np.random.Generator, n: int):
+    """Truncations (anywhere, biased to the header) and 1-8 random byte flips."""
+    for k in range(n):
+        if k % 2 == 0:
+            cut = int(rng.integers(0, min(len(data), 512))) if k % 4 == 0 else int(rng.integers(0, len(data)))
+            yield f"truncate@{cut}", data[:cut]
+        else:
+            buf = bytearray(data)
+            # Half the flips land in the first 256 bytes: headers are where parsers break.
+            span = min(len(buf), 256) if k % 4 == 1 else len(buf)
+            for pos in rng.integers(0, span, int(rng.integers(1, 9))):
+                buf[pos] ^= int(rng.integers(1, 256))
+            yield "flip", bytes(buf)
+
+
+def fuzz(tmp_path: Path, name: str, original: bytes, load: Callable, check: Callable, seed: int) -> dict:
+    rng = np.random.default_rng(seed)
+    outcomes = {"loaded": 0, "InputError": 0}
+    path = tmp_path / name
+    for what, data in mutations(original, rng, N_CASES):
+        path.write_bytes(data)
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                result = load(path)
+        except InputError as exc:
+            assert str(exc).startswith(str(path)), f"{what}: message does not name the file: {exc}"
+            assert "\n" not in str(exc), f"{what}: multi-line message: {exc!r}"
+            outcomes["InputError"] += 1
+            continue
+        except Exception as exc:  # noqa: BLE001 -- the point of the test
+            pytest.fail(f"{name} {what}: {type(exc).__name__}: {exc}")
+        check(result)
+        outcomes["loaded"] += 1
+    assert outcomes["InputError"] > 0
+    return outcomes
+
+
+def _image(h: int = 6, w: int = 8) -> np.ndarray:
+    return np.random.default_rng(0).uniform(0.0, 4.0, (h, w, 3)).astype(np.float32)
+
+
+def _check_image(data: np.ndarray) -> None:
+    # load_image leaves NaN/Inf/negatives to capture (which counts and drops them).
+    assert data.dtype == np.float32 and data.ndim == 3 and data.shape[2] == 3 and data.size > 0
+
+
+def _check_probe(probe: Probe) -> None:
+    assert np.all(np.isfinite(probe.data)) and np.all(probe.data >= 0.0)
+
+
+@pytest.mark.parametrize("suffix", [".exr", ".hdr"])
+def test_fuzz_load_image_and_probe(tmp_path, suffix):
+    import mitsuba as mi
+
+    valid = tmp_path / f"valid{suffix}"
+    mi.Bitmap(_image()).write(str(valid))
+    original = valid.read_bytes()
+    fuzz(tmp_path, f"image{suffix}", original, images.load_image, _check_image, seed=1)
+    fuzz(tmp_path, f"probe{suffix}", original, Probe.load, _check_probe, seed=2)
+
+
+def test_fuzz_merl_read(tmp_path):
+    valid = tmp_path / "valid.binary"
+    table = np.random.default_rng(3).uniform(0.0, 1.0, MERL_SHAPE + (3,))
+    MERLBRDF(table, name="noise").write(valid)
+    original = valid.read_bytes()
+
+    def check(merl: MERLBRDF) -> None:
+        values = merl.table[np.isfinite(merl.table)]
+        assert merl.table.shape == MERL_SHAPE + (3,)
+        assert not np.isinf(merl.table).any() and np.all(values >= 0.0)
+
+    # MERL files are 33 MB: fewer cases, flips spread over the header and the body.
+    global N_CASES
+    saved, N_CASES = N_CASES, 24
+    try:
+        fuzz(tmp_path, "fuzzed.binary", original, MERLBRDF.read, check, seed=4)
+    finally:
+        N_CASES = saved
+
+
+def test_fuzz_bivariate_load(tmp_path):
+    valid = tmp_path / "valid.npz"
+    BivariateBRDF(np.random.default_rng(5).uniform(0.0, 2.0, (6, 5, 3)).astype(np.float32),
+                  provenance={"test": "fuzz"}).save(valid)
+
+    def check(biv: BivariateBRDF) -> None:
+        assert np.all(np.isfinite(biv.table)) and np.all(biv.table >= 0.0)
+
+    fuzz(tmp_path, "fuzzed.npz", valid.read_bytes(), BivariateBRDF.load, check, seed=6)

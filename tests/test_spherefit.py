@@ -1,0 +1,238 @@
+"""Sphere fitting from photographs (mi_bivariate.spherefit) and the perspective sphere geometry.
+
+Truths: an analytically supersampled disc, Mitsuba renders (render.py) whose
+sphere geometry is known exactly, and the renderer's own normals AOV.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import numpy as np
+import pytest
+
+from mi_bivariate import render, spherefit
+from mi_bivariate.errors import InputError, InputWarning
+from mi_bivariate.geometry import Intrinsics, PerspectiveSphereGeometry, SphereGeometry
+from mi_bivariate.probes import Probe, rotation_matrix
+
+BSDF = {"type": "roughplastic", "alpha": 0.2, "diffuse_reflectance": {"type": "rgb", "value": [0.5, 0.3, 0.2]}}
+
+
+def sky_probe() -> Probe:
+    """Bright sky, dark ground and a sun: the sphere's lower rim is dark, as outdoors."""
+    h, w = 32, 64
+    theta = (np.arange(h) + 0.5) / h * np.pi
+    phi = (np.arange(w) + 0.5) / w * 2 * np.pi
+    up = np.cos(theta)[:, None] * np.ones(w)
+    sky = np.where(up > 0, 0.5 + up, 0.05)
+    sun = 20 * np.exp(-((theta[:, None] - 0.6) ** 2 + (phi[None, :] - 2.0) ** 2) / 0.02)
+    return Probe(((sky + sun)[..., None] * np.array([1.0, 0.9, 0.8])).astype(np.float32))
+
+
+def disc_coverage(shape, cx, cy, r, ss=8) -> np.ndarray:
+    """Exact-ish area coverage of each pixel by a disc (ss x ss supersampling)."""
+    h, w = shape
+    o = (np.arange(ss) + 0.5) / ss
+    x = (np.arange(w)[:, None] + o).ravel() - cx
+    y = (np.arange(h)[:, None] + o).ravel() - cy
+    return (x[None, :] ** 2 + y[:, None] ** 2 < r * r).reshape(h, ss, w, ss).mean(axis=(1, 3))
+
+
+def angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    cos = np.sum(a * b, axis=-1) / np.maximum(np.linalg.norm(a, axis=-1) * np.linalg.norm(b, axis=-1), 1e-30)
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+def interior(normals_mask: np.ndarray, views: np.ndarray, normals: np.ndarray, max_deg: float = 60.0):
+    """Pixels well inside the disc: normal within ``max_deg`` of the view."""
+    return normals_mask & (angle_deg(normals, views) < max_deg)
+
+
+# ------------------------------------------------------------- pure fits
+
+def test_fit_circle_exact_and_robust():
+    rng = np.random.default_rng(0)
+    phi = rng.uniform(0, 2 * np.pi, 300)
+    points = np.stack([40.3 + 17.2 * np.cos(phi), -12.9 + 17.2 * np.sin(phi)], axis=1)
+    assert np.allclose(spherefit.kasa_circle(points), (40.3, -12.9, 17.2), atol=1e-9)
+    # 15% gross outliers (a stand occluding the sphere): the robust fit ignores them.
+    points[:45] = np.array([40.3, -12.9]) + 0.7 * (points[:45] - np.array([40.3, -12.9]))
+    cx, cy, r, res, inliers = spherefit.fit_circle(points)
+    assert np.allclose((cx, cy, r), (40.3, -12.9, 17.2), atol=1e-6)
+    assert not inliers[:45].any() and inliers[45:].all()
+
+
+@pytest.mark.parametrize("use", ["image", "mask"])
+def test_fit_supersampled_disc(use):
+    cx, cy, r = 131.3, 120.7, 80.4
+    cov = disc_coverage((256, 240), cx, cy, r)
+    if use == "image":
+        fit = spherefit.fit_sphere(np.repeat(2.0 * cov[..., None], 3, axis=2))
+        tol = 0.02  # coverage refinement: sub-pixel
+    else:
+        fit = spherefit.fit_sphere(mask=cov > 0.5)
+        tol = 0.1  # crack midpoints only
+    assert fit.confident and fit.method == use
+    assert abs(fit.cx - cx) < tol and abs(fit.cy - cy) < tol and abs(fit.radius - r) < tol
+    assert isinstance(fit.geometry, SphereGeometry) and fit.geometry.radius == fit.radius
+    assert fit.rms_px < 0.3
+
+
+def test_cut_off_sphere_is_not_confident():
+    cov = disc_coverage((128, 128), 100.0, 64.0, 40.0)
+    with pytest.warns(InputWarning, match="not confident"):
+        fit = spherefit.fit_sphere(np.repeat(cov[..., None], 3, axis=2))
+    assert not fit.confident and any("beyond" in p for p in fit.problems)
+    assert abs(fit.cx - 100.0) < 0.1 and abs(fit.radius - 40.0) < 0.1
+
+
+def test_explicit_sphere_wins_and_warns_on_disagreement():
+    cov = disc_coverage((128, 128), 64.0, 60.0, 40.0)
+    image = np.repeat(cov[..., None], 3, axis=2)
+    with pytest.warns(InputWarning, match="away from the silhouette"):
+        fit = spherefit.fit_sphere(image, sphere=(70.0, 60.0, 40.0))
+    assert (fit.cx, fit.cy, fit.radius, fit.method) == (70.0, 60.0, 40.0, "user")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        fit = spherefit.fit_sphere(image, sphere=(64.2, 60.0, 40.0))
+    assert isinstance(fit.geometry, SphereGeometry)
+    assert (fit.geometry.cx, fit.geometry.cy, fit.geometry.radius) == (64.2, 60.0, 40.0)
+    with pytest.raises(InputError, match="outside"):
+        spherefit.fit_sphere(image, sphere=(500.0, 60.0, 40.0))
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(image=np.zeros((64, 64, 3))), "no sphere"),
+    (dict(image=np.random.default_rng(0).random((64, 64, 3))), "no sphere"),
+    (dict(image=np.full((64, 64, 3), np.nan)), "no finite pixel"),
+    (dict(image=np.ones((64, 64, 5))), "shape"),
+    (dict(image=np.ones((64, 64, 3)), mask=np.zeros((64, 64), bool)), "no pixel"),
+    (dict(image=np.ones((64, 64, 3)), mask=np.ones((32, 64), bool)), "mask is"),
+    (dict(), "nothing to fit"),
+    (dict(mask=np.ones((8, 8), bool), intrinsics=(0.0, 1.0, 4.0, 4.0)), "intrinsics"),
+    (dict(mask=np.ones((8, 8), bool), radius=-1.0), "radius"),
+])
+def test_fit_sphere_bad_input(kwargs, match):
+    with pytest.raises(InputError, match=match):
+        spherefit.fit_sphere(**kwargs)
+
+
+# ---------------------------------------------------- perspective geometry
+
+def test_intrinsics_match_render_camera_rays():
+    rot = rotation_matrix((20.0, -35.0, 10.0))
+    cam = render.make_camera("perspective", (64, 48), fov=40.0, camera_to_world=rot)
+    k = Intrinsics.from_fov(64, 48, 40.0)
+    x, y = np.random.default_rng(1).uniform(0, 64, 50), np.random.default_rng(2).uniform(0, 48, 50)
+    _, d = render.camera_rays(cam, x, y)
+    assert np.allclose(k.rays(x, y) @ rot.T, d, atol=1e-12)
+    assert np.allclose(k.project(k.rays(x, y)), np.stack([x, y], axis=1), atol=1e-9)
+
+
+def test_perspective_geometry_closed_form():
+    k = Intrinsics(100.0, 100.0, 32.5, 24.5)  # principal point on the centre of pixel (32, 24)
+    geo = PerspectiveSphereGeometry(k, [0.0, 0.0, -5.0], 1.0)
+    normals, views, mask = geo.normals_and_views(64, 48)
+    assert np.allclose(np.linalg.norm(normals[mask], axis=-1), 1.0)
+    # Principal point: the normal and the view both face the camera.
+    assert np.allclose(normals[24, 32], [0, 0, 1]) and np.allclose(views[24, 32], [0, 0, 1])
+    # Right of centre, the normal tilts right (+x); above, it tilts up (+y; image y is down).
+    assert normals[24, 40, 0] > 0 and normals[16, 32, 1] > 0
+    # A point on the silhouette is seen at grazing incidence: the silhouette rays are tangent.
+    sil = geo.silhouette(64)
+    rays = k.rays(sil[:, 0], sil[:, 1])
+    tangent = rays * (rays @ geo.centre)[:, None] - geo.centre
+    assert np.allclose(np.linalg.norm(tangent, axis=1), 1.0, atol=1e-9)
+    assert geo.half_angle == pytest.approx(math.asin(0.2))
+    full = geo.normals_and_views(64, 48, coverage="full")[2]
+    assert (full <= mask).all() and full.sum() < mask.sum()
+
+
+# ------------------------------------------------------ against Mitsuba
+
+@pytest.fixture(scope="module")
+def probe():
+    return sky_probe()
+
+
+@pytest.fixture(scope="module")
+def ortho(probe):
+    return render.render_sphere(BSDF, probe, resolution=256, spp=32, seed=1)
+
+
+def _check_ortho(fit, truth: SphereGeometry, tol: float = 0.3):
+    assert abs(fit.cx - truth.cx) < tol and abs(fit.cy - truth.cy) < tol and abs(fit.radius - truth.radius) < tol
+
+
+def test_orthographic_render(ortho):
+    fit = spherefit.fit_sphere(ortho.image)
+    assert fit.confident and fit.rms_px < 0.5
+    _check_ortho(fit, ortho.geometry)
+
+
+def test_orthographic_render_noisy_ldr(ortho):
+    # Over-exposed (highlights clip), noisy, quantised to 8-bit sRGB, then linearised.
+    rng = np.random.default_rng(3)
+    x = np.clip(ortho.image * 1.5 + rng.normal(0.0, 0.02, ortho.image.shape), 0.0, 1.0)
+    srgb = np.round(np.where(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1 / 2.4) - 0.055) * 255) / 255
+    linear = np.where(srgb <= 0.04045, srgb / 12.92, ((srgb + 0.055) / 1.055) ** 2.4)
+    fit = spherefit.fit_sphere(linear)
+    _check_ortho(fit, ortho.geometry)
+
+
+def test_orthographic_render_in_front_of_a_background(ortho):
+    # render.py hides emitters: composite a background as bright as the sphere behind it,
+    # with a window edge, a horizon and texture (a threshold alone cannot separate them).
+    g = ortho.geometry
+    cov = disc_coverage((256, 256), g.cx, g.cy, g.radius)
+    y, x = np.mgrid[0:256, 0:256] + 0.5
+    bg = 0.25 + 0.15 * np.sin(x / 13.0) * np.cos(y / 29.0) + 0.4 * (y < 90)
+    bg += 2.0 * ((np.abs(x - 40) < 15) & (np.abs(y - 50) < 30))
+    image = ortho.image + (1.0 - cov)[..., None] * bg[..., None] * np.array([0.9, 1.0, 1.1])
+    fit = spherefit.fit_sphere(image)
+    _check_ortho(fit, g)
+    assert fit.confident
+
+
+def test_perspective_render_centred(probe):
+    rot = rotation_matrix((15.0, 30.0, 0.0))
+    res = render.render_sphere(BSDF, probe, resolution=(256, 192), spp=32, camera="perspective", fov=40.0,
+                               radius_fraction=0.3, camera_to_world=rot, seed=2)
+    k = Intrinsics.from_fov(256, 192, 40.0)
+    fit = spherefit.fit_sphere(res.image, intrinsics=k, camera_to_world=rot)
+    assert fit.confident
+    assert fit.geometry.distance == pytest.approx(res.camera["distance"], rel=2e-3)
+    normals, views, mask = fit.geometry.normals_and_views(256, 192)
+    inner = interior(mask & res.mask, views, normals)
+    assert inner.sum() > 5000
+    assert angle_deg(normals, res.normals)[inner].max() < 1.0
+
+
+def test_perspective_render_off_axis(probe):
+    """The camera looks past the sphere: its silhouette is an ellipse off the image centre."""
+    import mitsuba as mi
+
+    cam = render.make_camera("perspective", (256, 192), fov=50.0, distance=4.5)
+    origin, target = np.array([0.0, 0.0, 4.5]), np.array([0.6, -0.3, 0.0])
+    cam["to_world"] = np.array(mi.ScalarTransform4f().look_at(origin=origin.tolist(), target=target.tolist(),
+                                                               up=[0.0, 1.0, 0.0]).matrix, np.float64)
+    out = np.array(mi.render(render.load_scene(render.sphere_scene_dict(BSDF, probe, cam)), spp=32, seed=3))
+    image, aov = out[..., :3], out[..., 3:6]
+    # Mitsuba's look_at frame is (left, up, forward); ours is (right, up, backward).
+    rot = cam["to_world"][:3, :3] @ np.diag([-1.0, 1.0, -1.0])
+    k = Intrinsics.from_fov(256, 192, 50.0)
+    fit = spherefit.fit_sphere(image, intrinsics=k, camera_to_world=rot)
+    assert fit.confident
+    truth = rot.T @ (-origin)  # sphere centre in the camera frame
+    assert np.linalg.norm(fit.geometry.centre - truth) < 0.01 * np.linalg.norm(truth)
+    normals, views, mask = fit.geometry.normals_and_views(256, 192)
+    inner = interior(mask & (np.linalg.norm(aov, axis=-1) > 0.5), views, normals)
+    assert inner.sum() > 5000
+    assert angle_deg(normals, aov)[inner].max() < 1.0
+    assert np.allclose(views[inner], -(k.rays(*np.meshgrid(np.arange(256) + 0.5, np.arange(192) + 0.5))
+                                       @ rot.T)[inner])
+    # The comparison can fail: a mirrored x axis is far off.
+    mirrored = PerspectiveSphereGeometry(k, fit.geometry.centre * [-1, 1, 1], 1.0, rot)
+    assert angle_deg(mirrored.normals_and_views(256, 192)[0], aov)[inner].max() > 10.0
