@@ -10,7 +10,7 @@ from __future__ import annotations
 import os
 import warnings
 from pathlib import Path
-from typing import Union
+from typing import Optional, Union
 
 import numpy as np
 
@@ -79,37 +79,44 @@ def _load_ldr_quiet(path: PathLike) -> np.ndarray:
 
 
 def write_exr(path: PathLike, image: np.ndarray) -> Path:
-    """Write a float32 RGB (or single-channel) EXR atomically."""
+    """Write a linear ``(H, W, 3)`` image as a float32 RGB EXR, atomically."""
     import mitsuba as mi
 
     image = np.ascontiguousarray(image, dtype=np.float32)
     path = Path(path)
+    if image.ndim != 3 or image.shape[2] != 3:
+        raise InputError(path, f"image must have shape (H, W, 3), got {image.shape}")
     with atomic_path(path, suffix=".exr") as tmp:
         mi.Bitmap(image).write(str(tmp))
     return path
 
 
-def tonemap(image: np.ndarray, exposure: float | None = None) -> np.ndarray:
-    """Linear RGB -> sRGB-encoded ``(H, W, 3) uint8`` preview.
+def tonemap(image: np.ndarray, exposure: Optional[float] = None, percentile: float = 99.0) -> np.ndarray:
+    """Linear ``(H, W, 3)`` -> sRGB ``(H, W, 3) uint8``.
 
-    ``exposure`` scales the image first; by default the 99th percentile of the
-    finite, positive pixels maps to 1.
+    ``exposure`` scales radiance before the sRGB curve; by default the
+    ``percentile`` of the non-zero luminance maps to 1 (so highlights clip, not the body).
     """
-    img = np.nan_to_num(np.asarray(image, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
-    img = np.clip(img, 0.0, None)
+    image = np.nan_to_num(np.asarray(image, np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+    image = np.clip(image, 0.0, None)
     if exposure is None:
-        positive = img[img > 0]
-        exposure = 1.0 / np.percentile(positive, 99.0) if positive.size else 1.0
-    x = np.clip(img * exposure, 0.0, 1.0)
-    srgb = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
-    return (srgb * 255.0 + 0.5).astype(np.uint8)
+        lum = image @ np.array([0.2126, 0.7152, 0.0722])
+        lum = lum[lum > 0.0]
+        level = np.percentile(lum, percentile) if lum.size else 1.0
+        exposure = 1.0 / level if level > 0.0 else 1.0
+    x = np.clip(image * exposure, 0.0, 1.0)
+    srgb = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1.0 / 2.4) - 0.055)
+    return np.round(srgb * 255.0).astype(np.uint8)
 
 
-def write_png(path: PathLike, image: np.ndarray, exposure: float | None = None) -> Path:
+def write_png(path: PathLike, image: np.ndarray, exposure: Optional[float] = None) -> Path:
     """Write a tonemapped sRGB PNG preview of a linear image atomically."""
     import mitsuba as mi
 
     path = Path(path)
+    image = np.asarray(image)
+    if image.ndim != 3 or image.shape[2] != 3:
+        raise InputError(path, f"image must have shape (H, W, 3), got {image.shape}")
     rgb = tonemap(image, exposure) if image.dtype != np.uint8 else image
     with atomic_path(path, suffix=".png") as tmp:
         mi.Bitmap(np.ascontiguousarray(rgb), pixel_format=mi.Bitmap.PixelFormat.RGB).write(str(tmp))

@@ -219,8 +219,8 @@ def make_camera(camera: str = "orthographic", resolution: Union[int, Sequence[in
 
     width, height = _resolution(resolution)
     rot = _rotation(camera_to_world)
-    if not 0.0 < radius_fraction <= 0.5:
-        raise InputError("radius_fraction", f"must be in (0, 0.5], got {radius_fraction}")
+    if not radius_fraction > 0.0:
+        raise InputError("radius_fraction", f"must be positive, got {radius_fraction}")
     info: Dict[str, Any] = {"type": camera, "resolution": (width, height), "camera_to_world": rot}
     if camera == "orthographic":
         # Silhouette radius in pixels = radius_fraction * min(W, H); one pixel = 2 half / W world units.
@@ -256,8 +256,12 @@ def sphere_geometry(camera: Dict[str, Any], radius_fraction: float) -> Optional[
 # ------------------------------------------------------------------ scene
 
 def sphere_scene_dict(bsdf: dict, probe: Any, camera: Dict[str, Any], normals: bool = True,
-                      max_depth: int = 2) -> dict:
-    """Scene dictionary: unit sphere, probe emitter, camera, ``path`` (inside ``aov`` when ``normals``)."""
+                      max_depth: int = 2, center: Sequence[float] = (0.0, 0.0, 0.0)) -> dict:
+    """Scene dictionary: unit sphere, probe emitter, camera, ``path`` (inside ``aov`` when ``normals``).
+
+    ``center`` moves the sphere (world units); the probe is at infinity, so
+    this shifts the sphere in the image without changing its shading.
+    """
     integrator = {"type": "path", "max_depth": max_depth, "hide_emitters": True}
     if normals:
         integrator = {"type": "aov", "aovs": "nn:sh_normal", "integrator": integrator}
@@ -265,7 +269,7 @@ def sphere_scene_dict(bsdf: dict, probe: Any, camera: Dict[str, Any], normals: b
         "type": "scene",
         "integrator": integrator,
         "sensor": sensor_dict(camera),
-        "sphere": {"type": "sphere", "center": [0.0, 0.0, 0.0], "radius": 1.0, "bsdf": bsdf},
+        "sphere": {"type": "sphere", "center": [float(c) for c in center], "radius": 1.0, "bsdf": bsdf},
         "probe": probe.emitter_dict(),
     }
 
@@ -323,46 +327,33 @@ def render_sphere(bsdf: Any, probe: Any, resolution: Union[int, Sequence[int]] =
                         camera=cam, spp=int(spp), seed=int(seed))
 
 
-# ----------------------------------------------------------------- output
+def render_like(bsdf: Any, probe: Any, geometry: SphereGeometry, width: int, height: int, spp: int = 64,
+                seed: int = 0) -> SphereRender:
+    """Render the unit sphere exactly where ``geometry`` puts it in a ``width x height`` image.
 
-def write_exr(path: PathLike, image: np.ndarray) -> None:
-    """Write a linear float32 RGB image ``(H, W, 3)`` as OpenEXR (atomic)."""
+    Used to re-render a recovered BRDF next to a user's photo: the orthographic
+    camera gets the photo's scale (``geometry.radius`` pixels per unit) and
+    pose, and the sphere is moved so its centre lands on ``(cx, cy)``.
+    The returned ``mask`` marks pixels whose centre sees the sphere.
+    """
     import mitsuba as mi
 
     from mi_bivariate.variants import ensure_variant
 
     ensure_variant()
-    image = np.ascontiguousarray(np.asarray(image, np.float32))
-    if image.ndim != 3 or image.shape[2] != 3:
-        raise InputError(path, f"image must have shape (H, W, 3), got {image.shape}")
-    with atomic_path(path, suffix=".exr") as tmp:
-        mi.Bitmap(image).write(str(tmp))
+    cam = make_camera("orthographic", (width, height), radius_fraction=geometry.radius / min(width, height),
+                      camera_to_world=geometry.camera_to_world)
+    offset = np.array([(geometry.cx - 0.5 * width) / geometry.radius,
+                       -(geometry.cy - 0.5 * height) / geometry.radius, 0.0])
+    center = np.asarray(geometry.camera_to_world, np.float64) @ offset
+    scene = load_scene(sphere_scene_dict(bsdf_dict(bsdf), probe, cam, normals=True, center=center))
+    out = np.array(mi.render(scene, spp=int(spp), seed=int(seed)), dtype=np.float32)
+    normals, mask = geometry.normals(width, height)
+    return SphereRender(image=np.ascontiguousarray(out[..., :3]), normals=normals.astype(np.float32), mask=mask,
+                        geometry=geometry, camera=cam, spp=int(spp), seed=int(seed))
 
 
-def tonemap(image: np.ndarray, exposure: Optional[float] = None, percentile: float = 99.0) -> np.ndarray:
-    """Linear ``(H, W, 3)`` -> sRGB ``(H, W, 3) uint8``.
-
-    ``exposure`` scales radiance before the sRGB curve; by default the
-    ``percentile`` of the non-zero luminance maps to 1 (so highlights clip, not the body).
-    """
-    image = np.nan_to_num(np.asarray(image, np.float64), nan=0.0, posinf=0.0, neginf=0.0)
-    image = np.clip(image, 0.0, None)
-    if exposure is None:
-        lum = image @ np.array([0.2126, 0.7152, 0.0722])
-        lum = lum[lum > 0.0]
-        level = np.percentile(lum, percentile) if lum.size else 1.0
-        exposure = 1.0 / level if level > 0.0 else 1.0
-    x = np.clip(image * exposure, 0.0, 1.0)
-    srgb = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1.0 / 2.4) - 0.055)
-    return np.round(srgb * 255.0).astype(np.uint8)
-
-
-def write_png_preview(path: PathLike, image: np.ndarray, exposure: Optional[float] = None) -> None:
-    """Write a tonemapped sRGB PNG preview of a linear image (atomic); see :func:`tonemap`."""
-    import matplotlib.image
-
-    image = np.asarray(image)
-    if image.ndim != 3 or image.shape[2] != 3:
-        raise InputError(path, f"image must have shape (H, W, 3), got {image.shape}")
-    with atomic_path(path, suffix=".png") as tmp:
-        matplotlib.image.imsave(str(tmp), tonemap(image, exposure), format="png")
+# ----------------------------------------------------------------- output
+# Previews and EXRs are written by mi_bivariate.images; re-exported here for convenience.
+from mi_bivariate.images import tonemap, write_exr  # noqa: E402
+from mi_bivariate.images import write_png as write_png_preview  # noqa: E402
