@@ -15,9 +15,9 @@ hemisphere folds by itself. Row ``m`` of ``L`` holds these weights for normal
 ``m``; column ``it * n_s + is`` is st node ``(t_it, s_is)`` (the C order of a
 ``(n_t, n_s, 3)`` table); the last axis is the colour channel.
 
-Light directions (:func:`light_directions`): a stratified grid, uniform in
-solid angle, on the half of the normal's hemisphere on one side of the
-view/normal plane, shifted per row by a seeded random offset (a
+Light directions (:func:`light_directions`): a spherical Fibonacci lattice,
+uniform in solid angle, on the half of the normal's hemisphere on one side of
+the view/normal plane, shifted per row by a seeded random offset (a
 Cranley-Patterson rotation, which decorrelates the quadrature error between
 rows), plus the mirror image of every direction across that plane. A
 direction and its mirror image have the same (s, t): the fold of Fig. 4.
@@ -52,6 +52,8 @@ CHUNK_BYTES = 2 * 2**20
 PROGRESS_PAIRS = 5 * 10**8
 
 _TWO_PI = 2.0 * math.pi
+# floor(2^32 / golden ratio): (k G mod 2^32) / 2^32 = frac(k / golden), exact in uint32.
+_GOLDEN_U32 = 2654435769
 
 
 def hemisphere_offsets(n_rows: int, seed: int = 0) -> np.ndarray:
@@ -88,46 +90,63 @@ def row_frames(normals: np.ndarray, views: np.ndarray) -> Tuple[np.ndarray, np.n
     return x, y, wo
 
 
-def direction_grid(n_dirs: int) -> Tuple[int, int]:
-    """Stratification ``(n_z, n_phi)`` of the half hemisphere for about ``n_dirs / 2`` pairs.
+def direction_pairs(n_dirs: int) -> int:
+    """Number of mirrored direction pairs for ``n_dirs`` light directions (K = 2 pairs)."""
+    return max(1, (int(n_dirs) + 1) // 2)
 
-    Strata are near-square in solid angle (``n_phi ~ pi n_z``); the number of
-    directions actually used is ``K = 2 n_z n_phi >= n_dirs``.
+
+def _half_lattice(n_pairs: int) -> Tuple[np.ndarray, np.ndarray]:
+    """Unshifted Fibonacci lattice ``(u1, u2)`` of the half hemisphere, ``(n_pairs,) float64`` each.
+
+    ``u2 = frac(k / golden)`` is computed as ``(k * G mod 2^32) / 2^32`` in
+    exact uint32 arithmetic, as the Dr.Jit kernel does.
     """
-    n_pairs = max(1, (n_dirs + 1) // 2)
-    n_z = max(1, int(round(math.sqrt(n_pairs / math.pi))))
-    return n_z, -(-n_pairs // n_z)
+    k = np.arange(n_pairs, dtype=np.uint64)
+    u1 = (k + 0.5) / n_pairs
+    u2 = ((k * _GOLDEN_U32) % 2**32).astype(np.float32).astype(np.float64) * 2.0**-32
+    return u1, u2
+
+
+def lattice_order(n_pairs: int) -> np.ndarray:
+    """The order in which the kernel visits the lattice, ``(n_pairs,) uint32``.
+
+    Bands of ``cos theta`` swept in azimuth (alternating direction), so that
+    consecutive lattice points are neighbours on the hemisphere and envmap
+    reads stay in cache. Any order gives the same sums.
+    """
+    u1, u2 = _half_lattice(n_pairs)
+    n_bands = max(1, int(round(math.sqrt(n_pairs / math.pi))))
+    band = np.minimum((u1 * n_bands).astype(np.int64), n_bands - 1)
+    sweep = np.where(band % 2 == 0, u2, -u2)
+    return np.lexsort((sweep, band)).astype(np.uint32)
 
 
 def light_directions(normals: np.ndarray, views: np.ndarray, n_dirs: int,
                      offsets: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
     """The light directions of each row (numpy, float64; what the Dr.Jit kernel uses).
 
-    A stratified grid on the half hemisphere ``phi in [0, pi)`` of the row
-    frame (:func:`row_frames`): with ``k = i n_phi + j`` over the strata of
-    :func:`direction_grid`, ``cos theta = (k + a) / (n_z n_phi)`` and ``phi =
-    pi (j + b) / n_phi``, with the row's shift ``(a, b)``. Every ring ``i`` is
-    one band of ``cos theta`` swept in azimuth, and ``cos theta`` is
-    stratified into all ``n_z n_phi`` levels (a plain grid, with ``n_z``
-    levels, integrates ``cos theta`` only to ``O(1 / n_z)``). Each direction is paired with its mirror image
-    across the view/normal plane (``phi -> -phi``). Both land on the same st
-    point (the fold), so the kernel computes their angles once. Uniform in
-    solid angle, each direction has weight ``2 pi / K``.
+    A spherical Fibonacci lattice on the half hemisphere ``phi in [0, pi)`` of
+    the row frame (:func:`row_frames`): ``cos theta_k = frac((k + 1/2) / P +
+    a)``, ``phi_k = pi frac(k / golden + b)`` for ``k < P`` pairs, with the
+    row's Cranley-Patterson shift ``(a, b)``; each direction is paired with its
+    mirror image across the view/normal plane (``phi -> -phi``). Both land on
+    the same st point (the fold), so the kernel computes their angles once.
+    The lattice is stratified in ``cos theta`` (P levels) and near-isotropic
+    everywhere, also around the normal; uniform in solid angle, each of the
+    ``K = 2 P`` directions has weight ``2 pi / K``.
 
     Args:
         normals, views: ``(m, 3)`` unit world vectors.
-        n_dirs: requested K (see :func:`direction_grid`).
+        n_dirs: K (rounded up to even, :func:`direction_pairs`).
         offsets: ``(m, 2)`` from :func:`hemisphere_offsets`.
 
     Returns:
-        ``(m, K, 3)`` unit world directions towards the light (the grid half
-        first, then the mirrors in the same order) and ``(m, K)`` ``cos theta_u``.
+        ``(m, K, 3)`` unit world directions towards the light (the lattice
+        half first, then the mirrors in the same order) and ``(m, K)`` ``cos theta_u``.
     """
-    n_z, n_phi = direction_grid(n_dirs)
-    k = np.arange(n_z * n_phi)
-    i, j = k // n_phi, k % n_phi
-    u1 = (k + offsets[:, :1].astype(np.float64)) / (n_z * n_phi)
-    u2 = (j + offsets[:, 1:].astype(np.float64)) / n_phi
+    u1, u2 = _half_lattice(direction_pairs(n_dirs))
+    u1 = np.mod(u1 + offsets[:, :1].astype(np.float64), 1.0)
+    u2 = np.mod(u2 + offsets[:, 1:].astype(np.float64), 1.0)
     r = np.sqrt(np.clip(1.0 - u1 * u1, 0.0, None))
     phi = math.pi * u2
     lx, ly, lz = r * np.cos(phi), r * np.sin(phi), u1
@@ -206,25 +225,27 @@ def _lighting_chunk(packets: np.ndarray, probe: Any, n_t: int, n_s: int, n_dirs:
     import mitsuba as mi
 
     m = len(packets)
-    n_z, n_phi = direction_grid(n_dirs)
-    n_pairs = n_z * n_phi
+    n_pairs = direction_pairs(n_dirs)
     data = mi.Float(packets.reshape(-1))
+    order = mi.UInt32(lattice_order(n_pairs))
 
-    # Lane order: direction stratum, then row. The chunk's rows are neighbouring
-    # normals (see _spatial_order()), so consecutive lanes look up nearby
-    # envmap texels and splat into a small, cache-resident part of the target.
+    # Lane order: lattice point (in lattice_order()), then row. The chunk's
+    # rows are neighbouring normals (_spatial_order()), so consecutive lanes
+    # read nearby envmap texels and splat into a cache-resident target.
     idx = dr.arange(mi.UInt32, m * n_pairs)
-    k = idx // m
-    row = idx - k * m
-    j = k - (k // n_phi) * n_phi
+    step = idx // m
+    row = idx - step * m
+    k = dr.gather(mi.UInt32, order, step)
     p0, p1, p2, p3 = (dr.gather(mi.Vector4f, data, row * 4 + q) for q in range(4))
     x_axis, y_axis = mi.Vector3f(p0.x, p0.y, p0.z), mi.Vector3f(p1.x, p1.y, p1.z)
     normal = mi.Vector3f(p2.x, p2.y, p2.z)
     sin_v, cos_v = p0.w, p1.w
 
-    # Shifted stratified grid on the half hemisphere (see light_directions()).
-    u1 = (mi.Float(k) + p2.w) * (1.0 / n_pairs)
-    u2 = (mi.Float(j) + p3.x) * (1.0 / n_phi)
+    # Shifted Fibonacci lattice (see light_directions()).
+    u1 = mi.Float(k) * (1.0 / n_pairs) + (0.5 / n_pairs) + p2.w
+    u1 = u1 - dr.floor(u1)
+    u2 = mi.Float(k * _GOLDEN_U32) * 2.0**-32 + p3.x
+    u2 = u2 - dr.floor(u2)
     r = dr.safe_sqrt(1.0 - u1 * u1)
     sin_phi, cos_phi = dr.sincos(math.pi * u2)
     lx, ly, lz = r * cos_phi, r * sin_phi, u1

@@ -39,3 +39,158 @@ def image_psnr(image: np.ndarray, reference: np.ndarray, mask: Optional[np.ndarr
     if mse == 0:
         return float("inf")
     return float(10.0 * np.log10(peak * peak / mse)) if peak > 0 else float("-inf")
+
+
+# ------------------------------------------------------------- BRDF errors
+#
+# Every BRDF error below compares an estimate against a 3D truth on the MERL
+# grid: the nodes (theta_h_i, theta_d_j, phi_d_k) whose directions are both
+# above the horizon and whose truth is finite in all channels ("cells", the
+# same cells as Eq. 1 in :func:`mi_bivariate.bivariate.reduction_error`).
+# The estimate is a bivariate table (evaluated bilinearly in st at each
+# node's (theta_h, theta_d), constant along phi_d) or any 3D BRDF.
+
+def relative_rms(truth: np.ndarray, estimate: np.ndarray, cells: np.ndarray) -> float:
+    """Eq. 1's relative RMS error: ``sqrt(mean_cells ((estimate - truth) / truth)^2)``.
+
+    Args:
+        truth, estimate: broadcastable arrays (1/sr); ``estimate`` may be
+            constant along axes where it broadcasts (e.g. phi_d).
+        cells: ``bool`` array of the truth's shape; cells with ``truth <= 0``
+            are left out (the relative error is undefined there).
+
+    Returns:
+        The error (0.1 = 10 %); NaN if no cell counts.
+    """
+    truth = np.asarray(truth, np.float64)
+    cells = np.asarray(cells, bool) & (truth > 0.0)
+    count = int(cells.sum())
+    if count == 0:
+        return float("nan")
+    estimate = np.broadcast_to(np.asarray(estimate, np.float64), truth.shape)
+    rel = (estimate[cells] - truth[cells]) / truth[cells]
+    return float(np.sqrt(np.mean(rel * rel)))
+
+
+def weighted_relative_l2(truth: np.ndarray, estimate: np.ndarray, weights: np.ndarray) -> float:
+    """``sqrt(sum w (estimate - truth)^2 / sum w truth^2)``: a relative L2 error under weights ``w``.
+
+    Unlike :func:`relative_rms` it weighs absolute errors, so near-zero
+    values of the truth barely count. Cells with zero weight (or non-finite
+    truth) are ignored. NaN if the weighted truth has no energy.
+    """
+    truth = np.asarray(truth, np.float64)
+    estimate = np.broadcast_to(np.asarray(estimate, np.float64), truth.shape)
+    w = np.broadcast_to(np.asarray(weights, np.float64), truth.shape)
+    use = (w > 0.0) & np.isfinite(truth)
+    energy = float(np.sum(w[use] * truth[use] ** 2))
+    if not energy > 0.0:
+        return float("nan")
+    diff = estimate[use] - truth[use]
+    return float(np.sqrt(np.sum(w[use] * diff * diff) / energy))
+
+
+def log_rms(truth: np.ndarray, estimate: np.ndarray, cells: np.ndarray) -> float:
+    """``sqrt(mean_cells (ln(1 + estimate) - ln(1 + truth))^2)`` with BRDF values in 1/sr.
+
+    ``ln(1 + f)`` is linear for f << 1 1/sr (diffuse and grazing values) and
+    logarithmic in the specular peak, so neither the near-zero cells (as in
+    Eq. 1) nor the peak (as in an absolute L2 error) dominate. Negative
+    estimates are clipped to 0. NaN if no cell counts.
+    """
+    truth = np.asarray(truth, np.float64)
+    cells = np.asarray(cells, bool) & np.isfinite(truth)
+    if not cells.any():
+        return float("nan")
+    estimate = np.broadcast_to(np.asarray(estimate, np.float64), truth.shape)
+    d = np.log1p(np.maximum(estimate[cells], 0.0)) - np.log1p(np.maximum(truth[cells], 0.0))
+    return float(np.sqrt(np.mean(d * d)))
+
+
+def merl_cell_weights() -> np.ndarray:
+    """``(90, 90, 180) float64``: each MERL node's share of ``cos(theta_i) cos(theta_o) dw_i dw_o``.
+
+    In Rusinkiewicz coordinates ``dw_i dw_o = 4 cos(theta_d) dw_h dw_d``
+    (for a fixed ``w_i``, ``w_o`` = ``w_i`` mirrored about h has
+    ``dw_o = 4 (w_i . h) dw_h``), with ``dw_h = sin(theta_h) dtheta_h dphi_h``
+    and ``dw_d = sin(theta_d) dtheta_d dphi_d``. On MERL's nodes
+    ``theta_h = t^2 pi / 2`` so ``dtheta_h = pi t dt``; phi_h integrates to
+    2 pi, and the folded phi_d in [0, pi) covers half of [0, 2 pi). The node
+    gets the value at its lower corner times its cell's extent (a left
+    Riemann sum, O(1/90) accurate). Below-horizon nodes get 0; the weights
+    sum to ~pi^2 (the integral of ``cos(theta_i) cos(theta_o)`` over both
+    hemispheres).
+    """
+    from mi_bivariate.merl import MERL_SHAPE, geometric_mask, node_angles
+
+    n_h, n_d, n_p = MERL_SHAPE
+    theta_h, theta_d, phi_d = node_angles()
+    th, td, pd = theta_h[:, None, None], theta_d[None, :, None], phi_d[None, None, :]
+    along = np.cos(td) * np.cos(th)
+    across = np.sin(td) * np.sin(th) * np.cos(pd)
+    cos_io = along * along - across * across            # cos(theta_i) cos(theta_o) at phi_h = 0
+    t = np.arange(n_h)[:, None, None] / n_h
+    measure = (4.0 * np.cos(td) * np.sin(th) * np.sin(td)
+               * (np.pi * t / n_h)                      # dtheta_h = pi t dt, dt = 1/90
+               * (0.5 * np.pi / n_d)                    # dtheta_d
+               * (np.pi / n_p)                          # dphi_d
+               * 2.0 * (2.0 * np.pi))                   # both phi_d halves, phi_h
+    return np.where(geometric_mask(), np.maximum(cos_io, 0.0) * measure, 0.0)
+
+
+def estimate_on_merl_grid(estimate) -> np.ndarray:
+    """An estimate's values on the MERL nodes: ``(90, 90, 1, 3)`` (bivariate) or ``(90, 90, 180, 3)`` float64.
+
+    Accepts a :class:`~mi_bivariate.bivariate.BivariateBRDF`, a
+    :class:`~mi_bivariate.merl.MERLBRDF`, an array of either shape (or
+    ``(90, 90, 3)``), or any object with ``eval(theta_h, theta_d, phi_d)``
+    (a 3D analytic or parametric BRDF).
+    """
+    from mi_bivariate.bivariate import BivariateBRDF
+    from mi_bivariate.merl import MERL_SHAPE, MERLBRDF, node_angles
+
+    theta_h, theta_d, phi_d = node_angles()
+    if isinstance(estimate, BivariateBRDF):
+        return estimate.eval(theta_h[:, None], theta_d[None, :])[:, :, None, :]
+    if isinstance(estimate, MERLBRDF):
+        return np.asarray(estimate.table, np.float64)
+    if isinstance(estimate, np.ndarray):
+        if estimate.shape == MERL_SHAPE[:2] + (3,):
+            return np.asarray(estimate, np.float64)[:, :, None, :]
+        if estimate.shape == MERL_SHAPE + (3,):
+            return np.asarray(estimate, np.float64)
+        raise ValueError(f"estimate array must be (90, 90, 3) or (90, 90, 180, 3), got {estimate.shape}")
+    if callable(getattr(estimate, "eval", None)):
+        th, td, pd = np.meshgrid(theta_h, theta_d, phi_d, indexing="ij")
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            return np.asarray(estimate.eval(th, td, pd), np.float64)
+    raise TypeError(f"cannot evaluate a {type(estimate).__name__} on the MERL grid")
+
+
+def brdf_errors(truth, estimate, min_value: float = 0.0) -> dict:
+    """The BRDF errors of ``estimate`` against the 3D ``truth`` (a :class:`~mi_bivariate.merl.MERLBRDF`).
+
+    Returns a dict of floats:
+
+    - ``eq1``: the paper's Eq. 1, relative RMS over the cells (channels
+      pooled); equals :func:`~mi_bivariate.bivariate.reduction_error` for a
+      bivariate estimate. Dominated by near-zero truth values.
+    - ``eq1_rgb``: Eq. 1 per channel (list of 3).
+    - ``eq1_min``: Eq. 1 over the cells with truth above ``max(min_value, 1e-3)`` 1/sr.
+    - ``cosine``: :func:`weighted_relative_l2` with :func:`merl_cell_weights`:
+      the relative L2 error of f under the measure ``cos(theta_i) cos(theta_o) dw_i dw_o``
+      (what a render under uniform light integrates); dominated by large values.
+    - ``log``: :func:`log_rms`, RMS of ``ln(1 + f)`` differences over the cells.
+    """
+    f = np.asarray(truth.table, np.float64)
+    f_hat = estimate_on_merl_grid(estimate)
+    cells = truth.valid_mask()[..., None] & np.ones(3, bool)
+    eq1_rgb = [relative_rms(f[..., c], f_hat[..., c], cells[..., c] & (f[..., c] > min_value)) for c in range(3)]
+    weights = merl_cell_weights()[..., None]
+    return {
+        "eq1": relative_rms(f, f_hat, cells & (f > min_value)),
+        "eq1_rgb": eq1_rgb,
+        "eq1_min": relative_rms(f, f_hat, cells & (f > max(min_value, 1e-3))),
+        "cosine": weighted_relative_l2(np.where(cells, f, 0.0), f_hat, weights * cells),
+        "log": log_rms(f, f_hat, cells),
+    }

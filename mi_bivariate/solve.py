@@ -53,6 +53,9 @@ KKT_TOLERANCE = 1e-9
 _EXCHANGE_TOLERANCE = 1e-12
 # Block exchanges allowed without progress before Murty's single exchange (Kim & Park).
 _BPP_BACKUP = 3
+# Passive-set solves before handing over to the fallback. Block pivoting typically needs
+# 1-10 on the lighting matrices seen so far; Murty's rule alone could need up to ~N.
+_MAX_ITER = 100
 
 
 # ---------------------------------------------------------------------------
@@ -131,12 +134,21 @@ def nnls_gram(G: np.ndarray, b: np.ndarray, passive: Optional[np.ndarray] = None
         b: ``(N,)`` float64.
         passive: ``(N,)`` bool initial passive set (the variables free to be > 0);
             default empty (x = 0).
-        max_iter: passive-set solves before giving up on pivoting (default 5 N + 10).
+        max_iter: passive-set solves before giving up on pivoting (default 100).
         tol: accepted :func:`kkt_violation`; beyond it the fallback solver runs.
     """
     n = b.size
     passive = np.zeros(n, dtype=bool) if passive is None else np.array(passive, dtype=bool)
-    max_iter = 5 * n + 10 if max_iter is None else int(max_iter)
+    max_iter = _MAX_ITER if max_iter is None else int(max_iter)
+    # A zero diagonal entry is a variable the objective ignores (an st node no pixel sees,
+    # without a prior): G's row and column and b's entry are 0 there. Fix it at 0 rather
+    # than hand singular sub-problems to the pivoting.
+    seen = np.diag(G) > 0
+    if not np.all(seen):
+        sub = nnls_gram(G[np.ix_(seen, seen)], b[seen], passive[seen], max_iter=max_iter, tol=tol)
+        x = np.zeros(n)
+        x[seen] = sub.x
+        return NNLSResult(x, sub.iterations, kkt_violation(G, b, x), sub.method)
     abs_g = np.abs(G)
     b_scale = np.abs(b).max(initial=0.0)
 

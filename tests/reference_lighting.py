@@ -15,7 +15,7 @@ import numpy as np
 
 from mi_bivariate.capture import Observations
 from mi_bivariate.coordinates import half_diff_from_dirs, st_from_half_diff
-from mi_bivariate.lighting import direction_grid, hemisphere_offsets, light_directions
+from mi_bivariate.lighting import direction_pairs, hemisphere_offsets, light_directions
 
 
 def lighting_matrix_reference(obs: Observations, probes: Union[Any, Sequence[Any]], n_t: int = 32,
@@ -31,8 +31,7 @@ def lighting_matrix_reference(obs: Observations, probes: Union[Any, Sequence[Any
     probes = list(probes) if isinstance(probes, (list, tuple)) else [probes]
     rows = np.arange(len(obs)) if rows is None else np.asarray(rows)
     offsets = hemisphere_offsets(len(obs), seed)
-    n_z, n_phi = direction_grid(n_dirs)
-    k_total = 2 * n_z * n_phi
+    k_total = 2 * direction_pairs(n_dirs)
     out = np.zeros((len(rows), n_t * n_s, 3))
     for start in range(0, len(rows), block):
         sel = rows[start:start + block]
