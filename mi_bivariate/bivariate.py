@@ -18,6 +18,7 @@ import json
 import math
 import os
 import zipfile
+import zlib
 from pathlib import Path
 from typing import Any, Optional, Union
 
@@ -143,6 +144,8 @@ class BivariateBRDF:
         Nodes without any valid sample take the value of the nearest node that
         has one. A :class:`BivariateBRDF` is resampled bilinearly.
         """
+        if int(n_t) < 2 or int(n_s) < 2:
+            raise InputError("grid", f"{n_t}x{n_s} is too small", "each st axis needs at least 2 nodes")
         t_nodes, s_nodes = grid_nodes(n_t), grid_nodes(n_s)
         if isinstance(brdf, BivariateBRDF):  # already bivariate: resample
             table = brdf.eval_st(s_nodes[None, :], t_nodes[:, None])
@@ -231,7 +234,7 @@ class BivariateBRDF:
                 meta_text = str(npz["meta"])
         except InputError:
             raise
-        except (zipfile.BadZipFile, ValueError, OSError, EOFError, KeyError) as e:
+        except (zipfile.BadZipFile, zlib.error, ValueError, OSError, EOFError, KeyError, NotImplementedError) as e:
             raise InputError(path, f"not a readable .npz file ({type(e).__name__})") from None
         try:
             meta = json.loads(meta_text)

@@ -18,7 +18,8 @@ Every lattice normal that does not become an observation is counted in
 ``Observations.dropped`` under the first reason that applies, in this order:
 
 ==================  =========================================================
-``view_angle``      further than ``max_view_angle_deg`` from the view
+``view_angle``      further than ``max_view_angle_deg`` from the view (the
+                    lattice normal, or the normal of the pixel it maps to)
 ``outside_image``   its pixel lies outside the image
 ``silhouette``      its pixel is not entirely inside the sphere's silhouette
                     (a mixed sphere/background pixel), or has no valid normal
@@ -174,7 +175,7 @@ def _plateau_warning(values: np.ndarray, source: str) -> None:
     if at_peak >= max(16, int(0.002 * len(finite))):
         warnings.warn(f"{source}: {at_peak} sphere pixels sit exactly at the maximum value {peak:g}; "
                       f"the image looks clipped (pass saturation={peak:g} to drop them)",
-                      InputWarning, stacklevel=4)
+                      InputWarning, stacklevel=3)
 
 
 def _finish(image: np.ndarray, rows: np.ndarray, cols: np.ndarray, normals: np.ndarray,
@@ -261,8 +262,9 @@ def observations_from_sphere(image: np.ndarray, geometry: SphereGeometry, n_norm
         raise InputError(source, f"n_normals must be positive, got {n_normals}")
 
     dropped = {k: 0 for k in DROP_REASONS}
+    cos_max = math.cos(math.radians(max_view_angle_deg))
     lattice = hemisphere_lattice(int(n_normals), seed)  # camera frame, z towards the viewer
-    ok = lattice[:, 2] >= math.cos(math.radians(max_view_angle_deg))
+    ok = lattice[:, 2] >= cos_max
     dropped["view_angle"] = int(np.count_nonzero(~ok))
     lattice = lattice[ok]
 
@@ -287,6 +289,10 @@ def observations_from_sphere(image: np.ndarray, geometry: SphereGeometry, n_norm
         cols, rows, x, y = cols[ok], rows[ok], x[ok], y[ok]
 
     n_cam = np.stack([x, y, np.sqrt(np.clip(1.0 - x * x - y * y, 0.0, None))], axis=-1)
+    # The pixel's own normal can lie slightly beyond the lattice normal's angle.
+    ok = n_cam[:, 2] >= cos_max
+    dropped["view_angle"] += int(np.count_nonzero(~ok))
+    cols, rows, n_cam = cols[ok], rows[ok], n_cam[ok]
     normals = n_cam @ rot.T
     view = rot[:, 2]
     views = np.broadcast_to(view, normals.shape).copy()

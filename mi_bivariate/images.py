@@ -29,6 +29,8 @@ def load_image(path: PathLike, allow_ldr: bool = True) -> np.ndarray:
     not validated for NaN/Inf/negatives here: :mod:`mi_bivariate.capture`
     counts and drops such pixels, and probes reject them.
     """
+    import mitsuba as mi
+
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in HDR_SUFFIXES + LDR_SUFFIXES:
@@ -36,13 +38,7 @@ def load_image(path: PathLike, allow_ldr: bool = True) -> np.ndarray:
                          f"use one of {', '.join(HDR_SUFFIXES + LDR_SUFFIXES)}")
     if not path.is_file():
         raise InputError(path, "no such file")
-    import mitsuba as mi
-
-    try:
-        bitmap = mi.Bitmap(str(path))
-    except Exception as exc:  # Mitsuba raises RuntimeError with a long C++ message
-        first = str(exc).strip().splitlines()[-1] if str(exc).strip() else type(exc).__name__
-        raise InputError(path, f"cannot be read as an image ({first[:160]})") from None
+    bitmap = open_bitmap(path)
     if suffix in LDR_SUFFIXES:
         if not allow_ldr:
             raise InputError(path, "8-bit image: not radiometric", "use a linear HDR image (.exr, .hdr, .pfm)")
@@ -62,6 +58,92 @@ def load_image(path: PathLike, allow_ldr: bool = True) -> np.ndarray:
     if data.size == 0:
         raise InputError(path, "is empty")
     return np.ascontiguousarray(data)
+
+
+def open_bitmap(path: PathLike) -> "mi.Bitmap":
+    """``mi.Bitmap(path)`` with its failures turned into one-line :class:`InputError`.
+
+    Radiance ``.hdr`` files are checked with :func:`check_rgbe` first: Mitsuba
+    3.9's RGBE reader overruns its buffer on a corrupt run length (heap
+    corruption, then a crash far from the cause), so it only ever sees
+    structurally valid files.
+    """
+    import mitsuba as mi
+
+    path = Path(path)
+    if path.suffix.lower() in (".hdr", ".rgbe", ".pic"):
+        check_rgbe(path)
+    try:
+        return mi.Bitmap(str(path))
+    except Exception as exc:  # Mitsuba raises RuntimeError with a long C++ message
+        text = " ".join(str(exc).split())
+        # Mitsuba repeats the path and prefixes its class name; keep only the problem.
+        for junk in (f'"{path}":', str(path), "[Bitmap]", "Bitmap:"):
+            text = text.replace(junk, "")
+        text = text.strip(" :") or type(exc).__name__
+        raise InputError(path, f"cannot be read as an image: {text[:200]}",
+                         "the file is truncated or corrupt") from None
+
+
+def check_rgbe(path: PathLike) -> None:
+    """Validate a Radiance RGBE file's header and run-length structure without decoding it.
+
+    Raises:
+        InputError: no signature, no header end, an unsupported resolution
+            line, a scanline of the wrong width, a zero or overlong run, or
+            missing data.
+    """
+    path = Path(path)
+    data = path.read_bytes()
+    n = len(data)
+
+    def bad(problem: str) -> InputError:
+        return InputError(path, f"cannot be read as an image: corrupt Radiance HDR file, {problem}")
+
+    if not data.startswith(b"#?"):
+        raise bad("no '#?' signature")
+    end = data.find(b"\n\n")
+    if end < 0:
+        raise bad("the header never ends")
+    res_end = data.find(b"\n", end + 2)
+    fields = data[end + 2:res_end].split() if res_end > 0 else []
+    if len(fields) != 4 or fields[0] not in (b"-Y", b"+Y") or fields[2] not in (b"+X", b"-X") \
+            or not fields[1].isdigit() or not fields[3].isdigit():
+        raise bad("unsupported resolution line")
+    height, width = int(fields[1]), int(fields[3])
+    if height == 0 or width == 0:
+        raise bad("empty image")
+    pos = res_end + 1
+    for y in range(height):
+        rle = 8 <= width <= 0x7FFF and pos + 4 <= n and data[pos] == 2 and data[pos + 1] == 2 \
+            and not data[pos + 2] & 0x80
+        if not rle:
+            # Flat (uncompressed) pixels are only valid for the whole image: Mitsuba's
+            # reader switching to flat mode mid-image reads past its buffer.
+            if y > 0:
+                raise bad(f"scanline {y} lacks its run-length marker")
+            if n - pos < 4 * width * height:
+                raise bad("truncated pixel data")
+            return
+        if (data[pos + 2] << 8 | data[pos + 3]) != width:
+            raise bad(f"scanline {y} has the wrong width")
+        pos += 4
+        for _ in range(4):
+            x = 0
+            while x < width:
+                if pos >= n:
+                    raise bad(f"truncated at scanline {y}")
+                count = data[pos]
+                if count > 128:
+                    count, step = count - 128, 2
+                else:
+                    step = 1 + count
+                if count == 0 or count > width - x:
+                    raise bad(f"bad run length in scanline {y}")
+                pos += step
+                x += count
+        if pos > n:
+            raise bad(f"truncated at scanline {y}")
 
 
 def load_mask(path: PathLike, shape: tuple) -> np.ndarray:

@@ -107,20 +107,6 @@ def _half_lattice(n_pairs: int) -> Tuple[np.ndarray, np.ndarray]:
     return u1, u2
 
 
-def lattice_order(n_pairs: int) -> np.ndarray:
-    """The order in which the kernel visits the lattice, ``(n_pairs,) uint32``.
-
-    Bands of ``cos theta`` swept in azimuth (alternating direction), so that
-    consecutive lattice points are neighbours on the hemisphere and envmap
-    reads stay in cache. Any order gives the same sums.
-    """
-    u1, u2 = _half_lattice(n_pairs)
-    n_bands = max(1, int(round(math.sqrt(n_pairs / math.pi))))
-    band = np.minimum((u1 * n_bands).astype(np.int64), n_bands - 1)
-    sweep = np.where(band % 2 == 0, u2, -u2)
-    return np.lexsort((sweep, band)).astype(np.uint32)
-
-
 def light_directions(normals: np.ndarray, views: np.ndarray, n_dirs: int,
                      offsets: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
     """The light directions of each row (numpy, float64; what the Dr.Jit kernel uses).
@@ -227,15 +213,13 @@ def _lighting_chunk(packets: np.ndarray, probe: Any, n_t: int, n_s: int, n_dirs:
     m = len(packets)
     n_pairs = direction_pairs(n_dirs)
     data = mi.Float(packets.reshape(-1))
-    order = mi.UInt32(lattice_order(n_pairs))
 
-    # Lane order: lattice point (in lattice_order()), then row. The chunk's
-    # rows are neighbouring normals (_spatial_order()), so consecutive lanes
-    # read nearby envmap texels and splat into a cache-resident target.
+    # Lane order: lattice point, then row. The chunk's rows are neighbouring
+    # normals (_spatial_order()), so consecutive lanes read nearby envmap
+    # texels and splat into a small, cache-resident part of the target.
     idx = dr.arange(mi.UInt32, m * n_pairs)
-    step = idx // m
-    row = idx - step * m
-    k = dr.gather(mi.UInt32, order, step)
+    k = idx // m
+    row = idx - k * m
     p0, p1, p2, p3 = (dr.gather(mi.Vector4f, data, row * 4 + q) for q in range(4))
     x_axis, y_axis = mi.Vector3f(p0.x, p0.y, p0.z), mi.Vector3f(p1.x, p1.y, p1.z)
     normal = mi.Vector3f(p2.x, p2.y, p2.z)

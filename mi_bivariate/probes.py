@@ -50,6 +50,7 @@ from typing import Any, Dict, Optional, Sequence, Tuple, Union
 import numpy as np
 
 from mi_bivariate.atomic import atomic_path
+from mi_bivariate.images import open_bitmap
 from mi_bivariate.errors import InputError
 
 PathLike = Union[str, os.PathLike]
@@ -129,11 +130,7 @@ def read_hdr_image(path: PathLike) -> Tuple[np.ndarray, Optional[np.ndarray]]:
     if not path.is_file():
         raise InputError(path, "no such file")
     ensure_variant()
-    try:
-        bitmap = mi.Bitmap(str(path))
-    except Exception as exc:  # Mitsuba raises RuntimeError with multi-line text
-        raise InputError(path, f"cannot read as {PROBE_FORMATS[ext]}: {_one_line(exc, path)}",
-                         "the file is truncated or corrupt") from None
+    bitmap = open_bitmap(path)
 
     pf = mi.Bitmap.PixelFormat
     n_colours = {pf.Y: 1, pf.YA: 1, pf.RGB: 3, pf.RGBA: 3}
@@ -169,14 +166,6 @@ def check_radiance(data: np.ndarray, source: Any) -> None:
                                                    (neg.sum(), "negative")) if n]
         raise InputError(source, f"{n_bad} of {nan.size} pixels are not valid radiance ("
                          + ", ".join(parts) + ")", "repair the image; values are never clamped")
-
-
-def _one_line(exc: BaseException, path: Path) -> str:
-    text = " ".join(str(exc).split())
-    # Mitsuba repeats the path and prefixes its class name; keep only the problem.
-    for junk in (f'"{path}":', str(path), "[Bitmap]", "Bitmap:"):
-        text = text.replace(junk, "")
-    return text.strip(" :") or type(exc).__name__
 
 
 def _image_argument(image: Union[np.ndarray, PathLike], source: Optional[str]) -> Tuple[np.ndarray, str]:

@@ -126,7 +126,9 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
     mask_list = _as_list(masks, n, "masks")
     n_t, n_s = (int(g) for g in grid)
     if n_t < 2 or n_s < 2:
-        raise InputError(None, f"grid {n_t}x{n_s} is too small", "each st axis needs at least 2 nodes")
+        raise InputError("grid", f"{n_t}x{n_s} is too small", "each st axis needs at least 2 nodes")
+    if alpha is not None and not (np.isfinite(alpha) and alpha >= 0):
+        raise InputError("alpha", f"must be a finite number >= 0, got {alpha}")
 
     timings: Dict[str, float] = {}
     t0 = time.perf_counter()
@@ -150,7 +152,7 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
     t0 = time.perf_counter()
     if prior is None:
         prior = prior_mod.default_prior()
-    if prior.shape != (n_t, n_s):
+    if (prior.n_t, prior.n_s) != (n_t, n_s):
         prior = prior.resampled(n_t, n_s)
     solution = solve_mod.solve(L, observations.values, prior, alpha=alpha)
     timings["solve"] = time.perf_counter() - t0

@@ -20,13 +20,15 @@ from mi_bivariate.lighting import direction_pairs, hemisphere_offsets, light_dir
 
 def lighting_matrix_reference(obs: Observations, probes: Union[Any, Sequence[Any]], n_t: int = 32,
                               n_s: int = 32, n_dirs: int = 32000, seed: int = 0,
-                              rows: Any = None, block: int = 8) -> np.ndarray:
+                              rows: Any = None, block: int = 8, cosine: bool = True) -> np.ndarray:
     """Eq. 4 row by row: ``(len(rows), n_t * n_s, 3) float64``.
 
     Args:
         rows: optional subset of rows (indices into ``obs``), e.g. to time a
             part of a big job; the per-row shifts are those of the full job.
         block: rows per numpy step (bounds memory: ``block * K`` directions).
+        cosine: include Eq. 3's ``cos theta_u`` (``False`` only for the
+            negative controls of the model-agreement test).
     """
     probes = list(probes) if isinstance(probes, (list, tuple)) else [probes]
     rows = np.arange(len(obs)) if rows is None else np.asarray(rows)
@@ -57,7 +59,8 @@ def lighting_matrix_reference(obs: Observations, probes: Union[Any, Sequence[Any
         i_s = np.minimum(np.floor(fs).astype(int), n_s - 2)
         i_t = np.minimum(np.floor(ft).astype(int), n_t - 2)
         ws, wt = fs - i_s, ft - i_t
-        value = radiance * (cos_u * (2.0 * np.pi / k_total))[..., None]      # (b, K, 3)
+        foreshortening = cos_u if cosine else np.ones_like(cos_u)
+        value = radiance * (foreshortening * (2.0 * np.pi / k_total))[..., None]  # (b, K, 3)
         row_of = np.broadcast_to(np.arange(len(sel))[:, None], i_s.shape) + start
         for di, dj, w in ((0, 0, (1 - wt) * (1 - ws)), (0, 1, (1 - wt) * ws),
                           (1, 0, wt * (1 - ws)), (1, 1, wt * ws)):

@@ -151,10 +151,10 @@ API_CASES = [
     ("empty mask (sphere fit)", lambda f: spherefit.fit_sphere(_sphere_image(), np.zeros((64, 64), bool)),
      "no pixel"),
     ("corrupt exr image", lambda f: images.load_image(f["corrupt_exr"]), "cannot be read"),
-    ("corrupt exr probe", lambda f: Probe.load(f["corrupt_exr"]), "cannot read"),
-    ("truncated exr probe", lambda f: Probe.load(f["truncated_exr"]), "cannot read"),
+    ("corrupt exr probe", lambda f: Probe.load(f["corrupt_exr"]), "cannot be read"),
+    ("truncated exr probe", lambda f: Probe.load(f["truncated_exr"]), "cannot be read"),
     ("corrupt hdr header image", lambda f: images.load_image(f["corrupt_hdr"]), "cannot be read"),
-    ("corrupt hdr header probe", lambda f: Probe.load(f["corrupt_hdr"]), "cannot read"),
+    ("corrupt hdr header probe", lambda f: Probe.load(f["corrupt_hdr"]), "cannot be read"),
     ("negative probe", lambda f: Probe.load(f["negative_probe"]), "negative"),
     ("nan probe", lambda f: Probe.load(f["nan_probe"]), "NaN"),
     ("black probe", lambda f: _black_probe_solve(), "all zero"),
@@ -176,9 +176,7 @@ API_CASES = [
                                              alpha=-1.0), "alpha"),
     ("zero spp", lambda f: render.render_sphere({"type": "diffuse"}, Probe.constant(1.0, 8), resolution=8, spp=0),
      "spp"),
-    pytest.param("grid size 1 (reduce)", lambda f: _grid_1_reduce(), "2 nodes", marks=pytest.mark.xfail(
-        strict=True, raises=ValueError,
-        reason="BivariateBRDF.reduce raises ValueError, not InputError, for an st axis of 1 node")),
+    ("grid size 1 (reduce)", lambda f: _grid_1_reduce(), "2 nodes"),
 ]
 
 
@@ -211,9 +209,9 @@ def _needs_recover(case):
 CLI_CASES = [
     # (id, argv builder, file key named in the message, message fragment)
     ("render: corrupt probe", lambda f: ["render", str(f["npz"]), "--probe", str(f["corrupt_exr"])],
-     "corrupt_exr", "cannot read"),
+     "corrupt_exr", "cannot be read"),
     ("render: corrupt hdr probe", lambda f: ["render", str(f["npz"]), "--probe", str(f["corrupt_hdr"])],
-     "corrupt_hdr", "cannot read"),
+     "corrupt_hdr", "cannot be read"),
     ("render: negative probe", lambda f: ["render", str(f["npz"]), "--probe", str(f["negative_probe"])],
      "negative_probe", "negative"),
     ("render: nan probe", lambda f: ["render", str(f["npz"]), "--probe", str(f["nan_probe"])], "nan_probe", "NaN"),
@@ -230,10 +228,8 @@ CLI_CASES = [
                                            "--resolution", "0"], None, "resolution"),
     ("reduce: truncated MERL", lambda f: ["reduce", str(f["truncated_merl"])], "truncated_merl", "truncated"),
     ("reduce: foreign MERL", lambda f: ["reduce", str(f["foreign_merl"])], "foreign_merl", "not a MERL"),
-    pytest.param("reduce: grid 1", lambda f: ["reduce", str(f["merl"]), "--grid", "1", "1",
-                                              "--out", str(f["merl"].with_name("out.npz"))], None, "2 nodes",
-                 marks=pytest.mark.xfail(strict=True, raises=ValueError, reason=(
-                     "BivariateBRDF.reduce raises ValueError for a 1-node axis; the CLI shows a traceback"))),
+    ("reduce: grid 1", lambda f: ["reduce", str(f["merl"]), "--grid", "1", "1",
+                                  "--out", str(f["merl"].with_name("out.npz"))], None, "2 nodes"),
     _needs_recover(("recover: corrupt image", lambda f: _recover_args(f, "corrupt_exr"), "corrupt_exr",
                     "cannot be read")),
     _needs_recover(("recover: image extension", lambda f: _recover_args(f, "unknown_ext"), "unknown_ext",
@@ -244,10 +240,7 @@ CLI_CASES = [
     _needs_recover(("recover: M = 0", lambda f: _recover_args(f, normals="0"), None, "n_normals")),
     _needs_recover(("recover: K = 0", lambda f: _recover_args(f, dirs="0"), None, "n_dirs")),
     _needs_recover(("recover: grid 1", lambda f: _recover_args(f, grid="1"), None, "too small")),
-    pytest.param("recover: negative alpha", lambda f: _recover_args(f, alpha="-1"), None, "alpha",
-                 marks=pytest.mark.xfail(strict=True, raises=AttributeError, reason=(
-                     "recover.recover calls prior.shape, which prior.Prior lacks; alpha should also be "
-                     "checked before the lighting matrix is built"))),
+    _needs_recover(("recover: negative alpha", lambda f: _recover_args(f, alpha="-1"), None, "alpha")),
 ]
 
 

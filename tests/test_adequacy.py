@@ -1,0 +1,73 @@
+"""mi_bivariate.adequacy: rank, coverage and the inadequate-illumination warning."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+from mi_bivariate import adequacy, capture, lighting
+from mi_bivariate.errors import InputWarning
+from mi_bivariate.geometry import SphereGeometry
+from mi_bivariate.probes import Probe
+
+
+@pytest.fixture(scope="module")
+def sphere_obs() -> capture.Observations:
+    geo = SphereGeometry(128.0, 128.0, 120.0)
+    normals, mask = geo.normals(256, 256)
+    image = np.where(mask[..., None], 0.2 + normals[..., 2:], 0.0).repeat(3, axis=2).astype(np.float32)
+    return capture.observations_from_sphere(image, geo, n_normals=1600)
+
+
+def analyse(obs, probe, **kwargs):
+    L = lighting.lighting_matrix(obs, probe, n_dirs=4000)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        report = adequacy.analyse(L, 32, 32, probes=[probe], **kwargs)
+    return L, report, [w for w in caught if issubclass(w.category, InputWarning)]
+
+
+def test_constant_environment_is_inadequate(sphere_obs):
+    L, report, caught = analyse(sphere_obs, Probe.constant(1.0, 32))
+    assert not report.adequate and caught
+    assert report.rank_fraction < 0.5  # each row depends on the view angle only
+    assert report.detail == [0.0]
+    assert "rank" in report.summary() and "INADEQUATE" in report.summary()
+
+
+def test_observation_map_and_regions(sphere_obs):
+    L, report, _ = analyse(sphere_obs, Probe.constant(1.0, 32))
+    omap = report.observation_map
+    assert omap.shape == (32, 32)
+    assert omap.sum() == pytest.approx(len(sphere_obs), rel=1e-6)
+    # A constant environment lights every reachable node; theta_h > theta_d + 80 deg is not.
+    assert report.unobserved_nodes > 0 and omap[-1, 0] == 0.0
+    assert set(report.regions) == {"specular", "retro", "grazing"}
+    for region in report.regions.values():
+        assert 0 < region["observed"] <= region["nodes"]
+    fig = report.figure()
+    assert len(fig.axes) >= 2
+
+
+def test_spectrum_is_scale_invariant(sphere_obs):
+    L = lighting.lighting_matrix(sphere_obs, Probe.constant(1.0, 32), n_dirs=2000)
+    a, observed = adequacy.singular_spectrum(L)
+    b, _ = adequacy.singular_spectrum(L * np.linspace(1, 100, L.shape[1])[None, :, None])
+    assert np.allclose(a, b, atol=1e-6) and a[0] == 1.0 and observed.sum() == len(a)
+
+
+@pytest.mark.parametrize("name,adequate", [("grace_latlong_1k", True), ("royal_esplanade_1k", False)])
+def test_shared_probes(sphere_obs, data_dir, name, adequate):
+    """Calibration: the blurred royal_esplanade must warn, Grace Cathedral must not."""
+    from mi_bivariate.probes import shared_probe
+
+    probe = shared_probe(name, data_dir)
+    _, report, caught = analyse(sphere_obs, probe)
+    assert report.adequate is adequate and bool(caught) is not adequate, report.summary()
+    if adequate:
+        assert report.rank_fraction > 0.7 and report.detail[0] > 3 * adequacy.MIN_DETAIL
+    else:
+        assert report.detail[0] < 0.5 * adequacy.MIN_DETAIL
+        assert "detail" in str(caught[0].message)
