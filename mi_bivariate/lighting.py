@@ -22,16 +22,19 @@ Cranley-Patterson rotation, which decorrelates the quadrature error between
 rows), plus the mirror image of every direction across that plane. A
 direction and its mirror image have the same (s, t): the fold of Fig. 4.
 
-Implementation: one fused Dr.Jit kernel per chunk of normals (direction,
-envmap lookup, Rusinkiewicz angles via :mod:`coordinates`, bilinear weights)
+Implementation: one fused Dr.Jit kernel per chunk of normals (directions,
+two envmap lookups per mirrored pair, Rusinkiewicz angles, bilinear weights)
 scatters RGB padded to a 4-wide packet into ``[rows, n_t * n_s, 4]`` with
 ``ReduceMode.Expand`` (per-thread copies of the target, no atomics; see the
 field notes: ``Auto`` silently picks ``Local`` on big targets, 7x slower).
-Peak memory per chunk is ``rows * n_t * n_s * 16 B * (threads + 1)`` for the
-target and its per-thread copies (the chunk is sized to keep this under
-:data:`CHUNK_BYTES`), plus the ``(M, n_t * n_s, 3) float32`` result.
-Accumulation order across threads varies, so results agree between runs to
-float32 rounding (~1e-7 relative), not bit for bit.
+Rows are ordered along a space-filling curve of their normals and lanes run
+over (direction, row), so consecutive lanes read nearby envmap texels and
+splat into a cache-resident target. Memory: the ``(M, n_t * n_s, 3)
+float32`` result (94 MB at M = 8000, 32 x 32) plus, per chunk, a
+:data:`CHUNK_BYTES` target per thread and its packed copy; the kernel itself
+stores no per-direction arrays. Measured at M = 8000, K = 32000: peak RSS
+grows by ~200 MB. Accumulation order across threads varies, so results agree
+between runs to float32 rounding (~1e-7 relative), not bit for bit.
 """
 
 from __future__ import annotations
@@ -357,8 +360,11 @@ def texel_lighting_matrix(obs: Observations, probes: Union[Any, Sequence[Any]], 
     position) with its solid angle and stored radiance; a row sums the
     texels in its normal's upper hemisphere. Deterministic and faster than
     :func:`lighting_matrix` for coarse maps, but it smooths the environment
-    and samples the hemisphere unevenly, so sharp lobes suffer (accuracy:
-    see ``tests/test_lighting.py`` and the benchmark).
+    and samples the hemisphere unevenly, so sharp lobes suffer. Measured
+    (``benchmarks/bench_recovery.py``, grace_latlong_1k, per-pixel relative
+    RMS of ``L @ f`` against sampled K = 128000): a 128 x 64 texel map gives
+    9e-4 on a diffuse table and 2.5e-2 on a 0.05 rad lobe (sampled K = 32000:
+    4e-3 and 2e-2) at 0.3x the time; 64 x 32 texels: 1.8e-3 and 1.4e-1.
 
     Returns:
         ``(M, n_t * n_s, 3) float32``, laid out as :func:`lighting_matrix`.

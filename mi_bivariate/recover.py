@@ -146,7 +146,7 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
     timings["lighting matrix"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    report = adequacy.analyse(L, n_t=n_t, n_s=n_s, warn=True)
+    report = adequacy.analyse(L, n_t=n_t, n_s=n_s, probes=probe_list, warn=True)
     timings["adequacy"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()

@@ -9,7 +9,6 @@
 
 from __future__ import annotations
 
-import math
 import os
 
 import numpy as np
@@ -135,9 +134,8 @@ def test_furnace(method):
 # ----------------------------------------------------- texel quadrature
 
 def test_texel_quadrature_accuracy():
-    """Texel quadrature (every texel of a 64 x 128 probe one light) against the sampled L.
-
-    Measured: ~0.5% RMS on the diffuse part, a few % on the 0.15 rad lobe (see the benchmark)."""
+    """Texel quadrature (every texel of a 64 x 128 probe one light) against the sampled L,
+    on a smooth and a sharp table (numbers for a real probe: benchmarks/bench_recovery.py)."""
     geo = capture.SphereGeometry(64.0, 64.0, 60.0)
     obs = capture.observations_from_sphere(np.ones((128, 128, 3), np.float32), geo, n_normals=400,
                                            saturation=2.0)
