@@ -154,7 +154,7 @@ def write_recovery_report(result: Any, path: PathLike, rerender: Optional[np.nda
         if not ax.images:
             ax.set_axis_off()
     plot_table(axes[1, 0], result.brdf, "recovered table (mean RGB)")
-    coverage = np.asarray(result.adequacy.coverage)
+    coverage = np.asarray(result.adequacy.observation_map)
     im = axes[1, 1].imshow(np.log10(np.maximum(coverage / max(coverage.max(), 1e-30), 1e-6)), origin="lower",
                            extent=(0, 1, 0, 1), cmap="cividis", aspect="auto")
     axes[1, 1].set_title("st coverage (log10 relative weight)", fontsize=9)
