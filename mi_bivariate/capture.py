@@ -36,12 +36,12 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import dataclass, field, replace
-from typing import Dict, Optional, Sequence, Tuple
+from typing import Any, Dict, Optional, Sequence, Tuple
 
 import numpy as np
 
 from mi_bivariate.errors import InputError, InputWarning
-from mi_bivariate.geometry import SphereGeometry
+from mi_bivariate.geometry import PerspectiveSphereGeometry, SphereGeometry
 
 DROP_REASONS: Tuple[str, ...] = ("view_angle", "outside_image", "silhouette", "outside_mask",
                                  "duplicate", "nonfinite", "negative", "saturated")
@@ -70,6 +70,12 @@ class Observations:
         pixels: ``(M, 2) int32`` (row, column) of each observation in its image.
         image_index: ``(M,) int32`` which image each row came from (after
             :func:`stack`).
+        positions: ``(M, 3) float64`` world positions of the surface points
+            (meshes; NaN rows or ``None`` where unknown). Rows with a position
+            get shadow rays when the lighting matrix is given an occluder.
+        geometric_normals: ``(M, 3) float64`` unit geometric (face) normals at
+            ``positions``, used to offset shadow rays exactly as Mitsuba does
+            (``None``: the shading normals).
     """
 
     normals: np.ndarray
@@ -79,6 +85,8 @@ class Observations:
     dropped: Dict[str, int] = field(default_factory=lambda: {k: 0 for k in DROP_REASONS})
     pixels: Optional[np.ndarray] = None
     image_index: Optional[np.ndarray] = None
+    positions: Optional[np.ndarray] = None
+    geometric_normals: Optional[np.ndarray] = None
 
     def __post_init__(self) -> None:
         m = len(self.normals)
@@ -86,7 +94,9 @@ class Observations:
             self.pixels = np.full((m, 2), -1, dtype=np.int32)
         if self.image_index is None:
             self.image_index = np.zeros(m, dtype=np.int32)
-        for name in ("views", "values", "probe_index", "pixels", "image_index"):
+        names = ["views", "values", "probe_index", "pixels", "image_index"]
+        names += [k for k in ("positions", "geometric_normals") if getattr(self, k) is not None]
+        for name in names:
             if len(getattr(self, name)) != m:
                 raise ValueError(f"Observations.{name} has {len(getattr(self, name))} rows, normals have {m}")
 
@@ -101,9 +111,17 @@ class Observations:
 
     def subset(self, rows: np.ndarray) -> "Observations":
         """The observations at ``rows`` (index or boolean mask); ``dropped`` is kept."""
+        def pick(a: Optional[np.ndarray]) -> Optional[np.ndarray]:
+            return None if a is None else a[rows]
+
         return Observations(self.normals[rows], self.views[rows], self.values[rows],
                             self.probe_index[rows], dict(self.dropped), self.pixels[rows],
-                            self.image_index[rows])
+                            self.image_index[rows], pick(self.positions), pick(self.geometric_normals))
+
+    @property
+    def has_positions(self) -> bool:
+        """Whether any row knows its surface position (and so can be shadow-tested)."""
+        return self.positions is not None and bool(np.any(np.all(np.isfinite(self.positions), axis=1)))
 
     def with_probe_index(self, index: int) -> "Observations":
         """A copy with every row lit by probe ``index``."""
@@ -307,7 +325,8 @@ def observations_from_normal_map(image: np.ndarray, normals: np.ndarray, mask: n
                                  view: np.ndarray, n_normals: int = 8000,
                                  max_view_angle_deg: float = 80.0, saturation: Optional[float] = None,
                                  seed: int = 0, probe_index: int = 0,
-                                 source: str = "image") -> Observations:
+                                 source: str = "image", positions: Optional[np.ndarray] = None,
+                                 geometric_normals: Optional[np.ndarray] = None) -> Observations:
     """Observations from an image with a per-pixel normal map (e.g. render AOVs).
 
     The lattice is laid about the (mean) view direction and each lattice
@@ -322,6 +341,10 @@ def observations_from_normal_map(image: np.ndarray, normals: np.ndarray, mask: n
             ``(H, W, 3)`` per-pixel directions towards the camera.
         n_normals, max_view_angle_deg, saturation, seed, probe_index, source:
             as in :func:`observations_from_sphere`.
+        positions: optional ``(H, W, 3)`` world positions of the surface seen
+            by each pixel (e.g. ray-cast from a mesh); kept per row for
+            visibility (shadow rays) in the lighting matrix.
+        geometric_normals: optional ``(H, W, 3)`` geometric normals there.
     """
     from scipy.spatial import cKDTree
 
@@ -336,9 +359,18 @@ def observations_from_normal_map(image: np.ndarray, normals: np.ndarray, mask: n
         raise InputError(source, f"view must be (3,) or ({height}, {width}, 3), got {view.shape}")
     if n_normals < 1:
         raise InputError(source, f"n_normals must be positive, got {n_normals}")
+    surface = {}
+    for name, value in (("positions", positions), ("geometric_normals", geometric_normals)):
+        if value is not None:
+            value = np.asarray(value, dtype=np.float64)
+            if value.shape != (height, width, 3):
+                raise InputError(source, f"{name} map has shape {value.shape} but the image is {height}x{width}x3")
+            surface[name] = value
 
     length = np.linalg.norm(normals, axis=-1)
     usable = mask & np.all(np.isfinite(normals), axis=-1) & (length > 0.5)
+    for value in surface.values():
+        usable &= np.all(np.isfinite(value), axis=-1)
     if view.ndim == 3:
         view_len = np.linalg.norm(view, axis=-1)
         usable &= np.all(np.isfinite(view), axis=-1) & (view_len > 0.5)
@@ -365,8 +397,50 @@ def observations_from_normal_map(image: np.ndarray, normals: np.ndarray, mask: n
     own = np.sum(pnormal[nearest] * pview[nearest], axis=1) >= cos_max
     dropped["view_angle"] = int(np.count_nonzero(~ok)) + int(np.count_nonzero(~own))
     nearest = nearest[own]
-    return _finish(image, prow[nearest], pcol[nearest], pnormal[nearest], np.array(pview[nearest]),
-                   dropped, saturation, source, probe_index)
+    obs = _finish(image, prow[nearest], pcol[nearest], pnormal[nearest], np.array(pview[nearest]),
+                  dropped, saturation, source, probe_index)
+    rows, cols = obs.pixels[:, 0], obs.pixels[:, 1]
+    if "positions" in surface:
+        obs.positions = surface["positions"][rows, cols]
+    if "geometric_normals" in surface:
+        g = surface["geometric_normals"][rows, cols]
+        obs.geometric_normals = g / np.maximum(np.linalg.norm(g, axis=1, keepdims=True), 1e-30)
+    return obs
+
+
+def image_observations(image: np.ndarray, geometry: Any, *, n_normals: int = 8000,
+                       max_view_angle_deg: float = 80.0, saturation: Optional[float] = None,
+                       mask: Optional[np.ndarray] = None, seed: int = 0,
+                       source: str = "image") -> Observations:
+    """Observations of one image for any supported geometry.
+
+    ``geometry`` is a :class:`SphereGeometry` (orthographic sphere), a
+    :class:`PerspectiveSphereGeometry` (pinhole photo of a sphere: exact
+    per-pixel normals and views, fully covered pixels only) or a
+    :class:`mi_bivariate.mesh.MeshView` (any mesh with a posed camera).
+    """
+    common = dict(n_normals=n_normals, max_view_angle_deg=max_view_angle_deg, saturation=saturation, seed=seed,
+                  source=source)
+    if isinstance(geometry, SphereGeometry):
+        return observations_from_sphere(image, geometry, mask=mask, **common)
+    if isinstance(geometry, PerspectiveSphereGeometry):
+        image = np.asarray(image)
+        if image.ndim != 3:
+            raise InputError(source, f"expected an (H, W, 3) RGB image, got shape {image.shape}")
+        normals, views, usable = geometry.normals_and_views(image.shape[1], image.shape[0], coverage="full")
+        if mask is not None:
+            mask = np.asarray(mask)
+            if mask.shape != usable.shape:
+                raise InputError(source, f"mask has shape {mask.shape} but the image is "
+                                         f"{image.shape[0]}x{image.shape[1]}")
+            usable = usable & mask.astype(bool)
+        if not usable.any():
+            raise InputError(source, "no pixel lies fully inside the sphere's silhouette")
+        return observations_from_normal_map(image, normals, usable, views, **common)
+    if callable(getattr(geometry, "observations", None)):
+        return geometry.observations(image, mask=mask, **common)
+    raise InputError(source, f"unsupported geometry {type(geometry).__name__}",
+                     "use SphereGeometry, PerspectiveSphereGeometry or mesh.MeshView")
 
 
 def stack(observations: Sequence[Observations],
@@ -390,6 +464,15 @@ def stack(observations: Sequence[Observations],
             raise InputError(None, f"{len(probe_index)} probe indices for {len(parts)} observation sets")
         parts = [p.with_probe_index(k) for p, k in zip(parts, probe_index)]
     dropped = {k: sum(p.dropped.get(k, 0) for p in parts) for k in DROP_REASONS}
+
+    def surface(name: str, fallback: str) -> Optional[np.ndarray]:
+        # Parts without positions (e.g. a convex sphere) get NaN rows: no shadow rays.
+        if all(getattr(p, name) is None for p in parts):
+            return None
+        return np.concatenate([getattr(p, name) if getattr(p, name) is not None
+                               else (np.full((len(p), 3), np.nan) if fallback == "nan" else getattr(p, fallback))
+                               for p in parts])
+
     return Observations(
         normals=np.concatenate([p.normals for p in parts]),
         views=np.concatenate([p.views for p in parts]),
@@ -398,4 +481,6 @@ def stack(observations: Sequence[Observations],
         dropped=dropped,
         pixels=np.concatenate([p.pixels for p in parts]).astype(np.int32),
         image_index=np.concatenate([np.full(len(p), k, dtype=np.int32) for k, p in enumerate(parts)]),
+        positions=surface("positions", "nan"),
+        geometric_normals=surface("geometric_normals", "normals"),
     )

@@ -18,7 +18,9 @@ from typing import Callable, Dict, List, Optional, Sequence
 from mi_bivariate.errors import InputError, InputWarning
 
 
-def _parse_sphere(text: str) -> tuple:
+def _parse_sphere(text: str):
+    if text == "auto":
+        return text
     try:
         cx, cy, r = (float(v) for v in text.split(","))
     except ValueError:
@@ -153,16 +155,21 @@ def cmd_learn_prior(args: argparse.Namespace) -> int:
 
 def cmd_recover(args: argparse.Namespace) -> int:
     from mi_bivariate import recover as rec
-    from mi_bivariate.geometry import SphereGeometry
+    from mi_bivariate import spherefit
+    from mi_bivariate.images import load_image, load_mask
     from mi_bivariate.variants import ensure_variant
 
     ensure_variant(args.variant)
     probe = _load_probe(args.probe, args.data)
-    cx, cy, r = args.sphere
-    result = rec.recover_from_files(
-        [args.image], probe, SphereGeometry(cx, cy, r), mask=args.mask, n_normals=args.normals,
-        n_dirs=args.dirs, grid=tuple(args.grid), alpha=args.alpha, seed=args.seed,
-        max_view_angle_deg=args.max_view_angle, saturation=args.saturation)
+    image = load_image(args.image)
+    mask = load_mask(args.mask, image.shape) if args.mask else None
+    sphere = None if args.sphere in (None, "auto") else args.sphere
+    fit = spherefit.fit_sphere(image, mask, sphere=sphere, source=str(args.image))
+    print(fit.summary())
+    result = rec.recover(
+        image, probe, fit.geometry, masks=mask, n_normals=args.normals, n_dirs=args.dirs,
+        grid=tuple(args.grid), alpha=args.alpha, seed=args.seed, max_view_angle_deg=args.max_view_angle,
+        saturation=args.saturation)
     paths = rec.write_outputs(result, args.out, merl=args.merl, report=not args.no_report)
     print(result.summary())
     for p in paths:
@@ -179,6 +186,47 @@ def cmd_demo(args: argparse.Namespace) -> int:
     ensure_variant(args.variant)
     return demo.run_demo(out_dir=Path(args.out), material=args.material, input_probe=args.input_probe,
                          novel_probe=args.novel_probe, data_dir=args.data, spp=args.spp, seed=args.seed)
+
+
+# --------------------------------------------------------------------------- evaluate
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    from mi_bivariate import evaluate as ev
+    from mi_bivariate.variants import ensure_variant
+
+    ensure_variant(args.variant)
+    data = args.data
+    materials = list(args.materials) or (ev.quick_materials(data) if args.quick else ["nbrdf"])
+    overrides = {k: v for k, v in {
+        "input_probes": tuple(args.input_probes) if args.input_probes else None,
+        "novel_probes": tuple(args.novel_probes) if args.novel_probes else None,
+        "resolution": args.resolution, "spp": args.spp, "novel_spp": args.novel_spp,
+        "n_normals": args.normals, "n_dirs": args.dirs, "grid": tuple(args.grid) if args.grid else None,
+        "alpha": args.alpha, "seed": args.seed,
+        "baselines": tuple(args.baselines) if args.baselines is not None else None,
+    }.items() if v is not None}
+    config = (ev.EvalConfig.quick(shared_data=ev.have_shared_data(data), **overrides) if args.quick
+              else ev.EvalConfig(**overrides))
+    formats = ("png", "pdf") if args.pdf else ("png",)
+    records = ev.run_evaluation(materials, args.out, config=config, jobs=args.jobs, dask=args.dask,
+                                data_dir=data, progress=not args.no_progress, figures=not args.no_figures,
+                                figure_formats=formats)
+    print(ev.format_summary(records))
+    if args.abs:
+        import json
+
+        out = Path(args.out) / "analysis_by_synthesis.jsonl"
+        for record in records[:args.abs]:
+            result = ev.analysis_by_synthesis(record["spec"], config.input_probes[0], config=config, data_dir=data,
+                                              time_factor=args.abs_time_factor)
+            ev.append_record(out, result)
+            a, lin = result["abs"], result["linear"]
+            print(f"analysis by synthesis, {record['material']}: linear solve Eq. 1 {lin['eq1']:.4g} in "
+                  f"{lin['time_s']:.1f} s; Adam+prb {a['final']['eq1']:.4g} after {a['time_s']:.1f} s "
+                  f"({a['iterations']} iterations){' (reached)' if a['reached_linear_eq1'] else ''}")
+    print(f"results: {Path(args.out) / ev.RESULTS_FILE}, {Path(args.out) / ev.SUMMARY_FILE}"
+          + ("" if args.no_figures else f", figures in {Path(args.out) / 'figures'}"))
+    return 0
 
 
 # --------------------------------------------------------------------------- parser
@@ -226,8 +274,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("recover", help="recover a bivariate BRDF from an HDR image of a sphere under a known probe")
     p.add_argument("image", help="linear HDR image (.exr/.hdr/.pfm)")
     p.add_argument("--probe", required=True, help="environment map file or shared probe name")
-    p.add_argument("--sphere", required=True, type=_parse_sphere, metavar="CX,CY,R",
-                   help="sphere centre and radius in pixels (pixel centres at i+0.5, y down)")
+    p.add_argument("--sphere", default="auto", type=_parse_sphere, metavar="CX,CY,R",
+                   help="sphere centre and radius in pixels (pixel centres at i+0.5, y down); "
+                        "default 'auto': fitted to the image (or --mask), with the fit residual reported")
     p.add_argument("--mask", default=None, help="optional mask image (non-zero = usable)")
     p.add_argument("--out", default="brdf.npz", help="output .npz (EXR view and PNG report beside it)")
     p.add_argument("--merl", action="store_true", help="also write a MERL .binary")
@@ -254,6 +303,39 @@ def build_parser() -> argparse.ArgumentParser:
     _add_variant(p)
     _add_data(p)
     p.set_defaults(func=cmd_demo)
+    p = sub.add_parser("evaluate", help="batch evaluation: recover many materials, re-render under novel probes, "
+                                        "compare with the truth and parametric baselines")
+    p.add_argument("materials", nargs="*",
+                   help="folders of MERL .binary files, .binary files, MERL-NBRDF names, 'nbrdf' (all 23) or "
+                        "analytic specs (default: nbrdf; with --quick: two materials)")
+    p.add_argument("--out", default="out/evaluate", help="output folder (results.jsonl, summary.csv, figures/)")
+    p.add_argument("--input-probes", nargs="+", default=None, metavar="PROBE",
+                   help="probes lighting the input image (default: grace_latlong_1k uffizi_256)")
+    p.add_argument("--novel-probes", nargs="+", default=None, metavar="PROBE",
+                   help="probes of the validation renders (default: the other shared probes)")
+    p.add_argument("--jobs", type=int, default=1, help="materials evaluated in parallel worker processes")
+    p.add_argument("--dask", default=None, metavar="ADDRESS", help="send the materials to this Dask scheduler")
+    p.add_argument("--quick", action="store_true", help="a few materials at small sizes (seconds each)")
+    p.add_argument("--resolution", type=int, default=None, help="render width = height (default 128)")
+    p.add_argument("--spp", type=int, default=None, help="samples per pixel of the input render (default 128)")
+    p.add_argument("--novel-spp", type=int, default=None, help="samples per pixel of validation renders (default 64)")
+    p.add_argument("--normals", type=int, default=None, help="normals M (default 8000)")
+    p.add_argument("--dirs", type=int, default=None, help="light directions K (default 32000)")
+    p.add_argument("--grid", type=int, nargs=2, default=None, metavar=("N_T", "N_S"))
+    p.add_argument("--alpha", type=float, default=None, help="regularisation weight")
+    p.add_argument("--baselines", nargs="*", default=None, metavar="MODEL",
+                   help="parametric baselines to fit (default: ggx ward; none: skip)")
+    p.add_argument("--seed", type=int, default=None)
+    p.add_argument("--pdf", action="store_true", help="figures also as PDF")
+    p.add_argument("--no-figures", action="store_true")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--abs", type=int, default=0, metavar="N",
+                   help="also run analysis by synthesis (Adam + prb) on the first N materials")
+    p.add_argument("--abs-time-factor", type=float, default=10.0,
+                   help="analysis by synthesis runs up to this many times the linear solve's time")
+    _add_variant(p)
+    _add_data(p)
+    p.set_defaults(func=cmd_evaluate)
     return parser
 
 

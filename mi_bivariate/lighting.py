@@ -27,6 +27,16 @@ two envmap lookups per mirrored pair, Rusinkiewicz angles, bilinear weights)
 scatters RGB padded to a 4-wide packet into ``[rows, n_t * n_s, 4]`` with
 ``ReduceMode.Expand`` (per-thread copies of the target, no atomics; see the
 field notes: ``Auto`` silently picks ``Local`` on big targets, 7x slower).
+Visibility (``occluder``): the paper assumes every light direction of the
+normal's hemisphere reaches the surface, which holds for a convex object
+only. Given the object as a Mitsuba scene, rows that know their surface
+position (:attr:`Observations.positions`, e.g. ray-cast from a mesh) trace
+a shadow ray per light direction inside the same kernel (``scene.ray_test``
+from the point, offset along the geometric normal exactly as Mitsuba's
+``spawn_ray`` does for a render's shadow rays), and blocked directions
+contribute nothing. With ``max_depth=2`` renders (no interreflection) the
+model is then exact for any shape.
+
 Rows are ordered along a space-filling curve of their normals and lanes run
 over (direction, row), so consecutive lanes read nearby envmap texels and
 splat into a cache-resident target. Memory: the ``(M, n_t * n_s, 3)
@@ -179,16 +189,31 @@ def _chunk_rows(n_nodes: int, chunk: Optional[int]) -> int:
     return max(16, CHUNK_BYTES // (n_nodes * 16))
 
 
-def _row_packets(normals: np.ndarray, views: np.ndarray, offsets: np.ndarray) -> np.ndarray:
-    """Per-row kernel inputs, 16 float32 per row (four 4-wide packets):
-    ``[x, sin theta_v | y, cos theta_v | n, shift_1 | shift_2, 0, 0, 0]``."""
+#: 4-wide float32 packets per row in the kernels' input (see :func:`_row_packets`).
+_PACKETS = 5
+
+
+def _row_packets(normals: np.ndarray, views: np.ndarray, offsets: np.ndarray,
+                 positions: Optional[np.ndarray] = None,
+                 geometric_normals: Optional[np.ndarray] = None) -> np.ndarray:
+    """Per-row kernel inputs, 20 float32 per row (five 4-wide packets):
+    ``[x, sin theta_v | y, cos theta_v | n, shift_1 | shift_2, p | n_g, shadow]``
+    with ``p`` the surface position, ``n_g`` the geometric normal and
+    ``shadow`` 1 where the row traces shadow rays (finite position), else 0."""
     x, y, wo = row_frames(normals, views)
     n = normals / np.linalg.norm(normals, axis=1, keepdims=True)
-    out = np.zeros((len(n), 16), dtype=np.float32)
+    out = np.zeros((len(n), 4 * _PACKETS), dtype=np.float32)
     out[:, 0:3], out[:, 3] = x, wo[:, 0]
     out[:, 4:7], out[:, 7] = y, wo[:, 2]
     out[:, 8:11], out[:, 11] = n, offsets[:, 0]
     out[:, 12] = offsets[:, 1]
+    out[:, 16:19] = n
+    if positions is not None:
+        known = np.all(np.isfinite(positions), axis=1)
+        out[known, 13:16] = positions[known]
+        out[known, 19] = 1.0
+        if geometric_normals is not None:
+            out[known, 16:19] = geometric_normals[known]
     return out
 
 
@@ -204,11 +229,13 @@ def _spatial_order(normals: np.ndarray, bits: int = 10) -> np.ndarray:
     return np.argsort(key, kind="stable")
 
 
-def _lighting_chunk(packets: np.ndarray, probe: Any, n_t: int, n_s: int, n_dirs: int) -> np.ndarray:
+def _lighting_chunk(packets: np.ndarray, probe: Any, n_t: int, n_s: int, n_dirs: int,
+                    occluder: Any = None) -> np.ndarray:
     """Rows of L for one chunk: one fused kernel, ``(m, n_t * n_s, 3) float32``.
 
-    One lane per mirrored direction pair: two envmap lookups, one set of
-    Rusinkiewicz angles and one bilinear splat.
+    One lane per mirrored direction pair: two envmap lookups (and, with an
+    ``occluder`` scene, two shadow rays), one set of Rusinkiewicz angles and
+    one bilinear splat.
     """
     import drjit as dr
     import mitsuba as mi
@@ -223,7 +250,7 @@ def _lighting_chunk(packets: np.ndarray, probe: Any, n_t: int, n_s: int, n_dirs:
     idx = dr.arange(mi.UInt32, m * n_pairs)
     k = idx // m
     row = idx - k * m
-    p0, p1, p2, p3 = (dr.gather(mi.Vector4f, data, row * 4 + q) for q in range(4))
+    p0, p1, p2, p3 = (dr.gather(mi.Vector4f, data, row * _PACKETS + q) for q in range(4))
     x_axis, y_axis = mi.Vector3f(p0.x, p0.y, p0.z), mi.Vector3f(p1.x, p1.y, p1.z)
     normal = mi.Vector3f(p2.x, p2.y, p2.z)
     sin_v, cos_v = p0.w, p1.w
@@ -238,7 +265,22 @@ def _lighting_chunk(packets: np.ndarray, probe: Any, n_t: int, n_s: int, n_dirs:
     lx, ly, lz = r * cos_phi, r * sin_phi, u1
 
     base = x_axis * lx + normal * lz
-    radiance = probe.eval_dr(base + y_axis * ly) + probe.eval_dr(base - y_axis * ly)
+    d_plus, d_minus = base + y_axis * ly, base - y_axis * ly
+    if occluder is None:
+        radiance = probe.eval_dr(d_plus) + probe.eval_dr(d_minus)
+    else:
+        p4 = dr.gather(mi.Vector4f, data, row * _PACKETS + 4)
+        shadow = p4.w > 0.5
+        si = dr.zeros(mi.SurfaceInteraction3f)
+        si.p = mi.Point3f(p3.y, p3.z, p3.w)
+        si.n = mi.Normal3f(p4.x, p4.y, p4.z)
+        # spawn_ray offsets along the geometric normal on the side of the
+        # direction, as a render's shadow rays do: a direction above the
+        # shading horizon but below the face goes into the object.
+        lit_plus = ~(shadow & occluder.ray_test(si.spawn_ray(d_plus), active=shadow))
+        lit_minus = ~(shadow & occluder.ray_test(si.spawn_ray(d_minus), active=shadow))
+        radiance = dr.select(lit_plus, probe.eval_dr(d_plus), 0.0) + \
+            dr.select(lit_minus, probe.eval_dr(d_minus), 0.0)
     weight = lz * (_TWO_PI / (2 * n_pairs))
     return _splat(m, row, lx, ly, lz, sin_v, cos_v, radiance * weight, n_t, n_s)
 
@@ -296,7 +338,7 @@ def _texel_chunk(packets: np.ndarray, texels: Tuple[Any, Any, int], n_t: int, n_
     idx = dr.arange(mi.UInt32, m * n_texels)
     texel = idx // m
     row = idx - texel * m
-    p0, p1, p2 = (dr.gather(mi.Vector4f, data, row * 4 + q) for q in range(3))
+    p0, p1, p2 = (dr.gather(mi.Vector4f, data, row * _PACKETS + q) for q in range(3))
     d = dr.gather(mi.Vector3f, directions, texel)
     lx = p0.x * d.x + p0.y * d.y + p0.z * d.z
     ly = p1.x * d.x + p1.y * d.y + p1.z * d.z
@@ -305,9 +347,50 @@ def _texel_chunk(packets: np.ndarray, texels: Tuple[Any, Any, int], n_t: int, n_
     return _splat(m, row, lx, ly, lz, p0.w, p1.w, value, n_t, n_s, active=lz > 0.0)
 
 
+def _occluder_scene(occluder: Any) -> Any:
+    """A ``mi.Scene`` from a scene or an object with a ``scene()`` method (e.g. a mesh shape)."""
+    import mitsuba as mi
+
+    if occluder is None or isinstance(occluder, mi.Scene):
+        return occluder
+    if callable(getattr(occluder, "scene", None)):
+        return occluder.scene()
+    raise InputError(None, f"occluder must be a Mitsuba scene or have a scene() method, got {type(occluder).__name__}")
+
+
+def _occluder_per_row(obs: Observations, occluder: Any) -> Tuple[List[Any], np.ndarray]:
+    """Distinct occluder scenes and, per row, the index of its scene (-1: no shadow rays).
+
+    ``occluder`` is one scene (or ``scene()`` owner) for every row, or a
+    sequence indexed by :attr:`Observations.image_index` (``None`` entries:
+    no visibility for that image's rows).
+    """
+    m = len(obs)
+    if occluder is None:
+        return [], np.full(m, -1, dtype=np.int64)
+    per_image = list(occluder) if isinstance(occluder, (list, tuple)) else None
+    if per_image is None:
+        return [_occluder_scene(occluder)], np.zeros(m, dtype=np.int64)
+    top = int(obs.image_index.max())
+    if top >= len(per_image):
+        raise InputError(None, f"observations come from image {top} but {len(per_image)} occluder(s) were given")
+    scenes: List[Any] = []
+    index_of_image = []
+    for item in per_image:
+        scene = _occluder_scene(item)
+        if scene is None:
+            index_of_image.append(-1)
+            continue
+        known = [i for i, s in enumerate(scenes) if s is scene]
+        if not known:
+            scenes.append(scene)
+        index_of_image.append(known[0] if known else len(scenes) - 1)
+    return scenes, np.asarray(index_of_image, dtype=np.int64)[obs.image_index]
+
+
 def lighting_matrix(obs: Observations, probes: Union[Any, Sequence[Any]], n_t: int = 32, n_s: int = 32,
                     n_dirs: int = 32000, seed: int = 0, chunk: Optional[int] = None,
-                    progress: Optional[bool] = None) -> np.ndarray:
+                    progress: Optional[bool] = None, occluder: Any = None) -> np.ndarray:
     """The lighting matrix of Eqs. 4-5.
 
     Args:
@@ -319,6 +402,13 @@ def lighting_matrix(obs: Observations, probes: Union[Any, Sequence[Any]], n_t: i
         seed: seeds the per-row shifts of the direction lattice.
         chunk: normals per kernel (default: sized to :data:`CHUNK_BYTES`).
         progress: show a tqdm bar over chunks (default: for big jobs on a tty).
+        occluder: the observed object for visibility: a ``mi.Scene`` (or an
+            object with ``scene()``, such as :class:`mi_bivariate.mesh.MeshShape`),
+            or a sequence of them (or ``None``) indexed by ``obs.image_index``.
+            Rows with a finite :attr:`Observations.positions` then get a shadow
+            ray per light direction; blocked directions contribute nothing.
+            ``None`` (default): every direction of the hemisphere is lit
+            (the paper's model; exact for convex objects).
 
     Returns:
         ``(M, n_t * n_s, 3) float32``; column ``it * n_s + is``.
@@ -329,14 +419,21 @@ def lighting_matrix(obs: Observations, probes: Union[Any, Sequence[Any]], n_t: i
     probes = _as_probe_list(probes)
     _check_inputs(obs, probes, n_t, n_s, n_dirs)
     m_total, n_nodes = len(obs), n_t * n_s
-    packets = _row_packets(obs.normals, obs.views, hemisphere_offsets(m_total, seed))
+    scenes, scene_of_row = _occluder_per_row(obs, occluder)
+    if scenes and not obs.has_positions:
+        raise InputError(None, "an occluder was given but the observations have no surface positions",
+                         "build them from a mesh (mi_bivariate.mesh) or pass positions to "
+                         "observations_from_normal_map")
+    packets = _row_packets(obs.normals, obs.views, hemisphere_offsets(m_total, seed),
+                           obs.positions, obs.geometric_normals)
     rows_per_chunk = _chunk_rows(n_nodes, chunk)
 
     jobs = []
     order = _spatial_order(obs.normals)
     for p in np.unique(obs.probe_index):
-        rows = order[obs.probe_index[order] == p]
-        jobs += [(int(p), rows[i:i + rows_per_chunk]) for i in range(0, len(rows), rows_per_chunk)]
+        for o in np.unique(scene_of_row):
+            rows = order[(obs.probe_index[order] == p) & (scene_of_row[order] == o)]
+            jobs += [(int(p), int(o), rows[i:i + rows_per_chunk]) for i in range(0, len(rows), rows_per_chunk)]
     if progress is None:
         progress = len(jobs) > 1 and m_total * n_dirs > PROGRESS_PAIRS and sys.stderr.isatty()
     if progress:
@@ -345,8 +442,8 @@ def lighting_matrix(obs: Observations, probes: Union[Any, Sequence[Any]], n_t: i
         jobs = tqdm(jobs, desc="lighting matrix", unit="chunk")
 
     L = np.empty((m_total, n_nodes, 3), dtype=np.float32)
-    for p, rows in jobs:
-        L[rows] = _lighting_chunk(packets[rows], probes[p], n_t, n_s, n_dirs)
+    for p, o, rows in jobs:
+        L[rows] = _lighting_chunk(packets[rows], probes[p], n_t, n_s, n_dirs, scenes[o] if o >= 0 else None)
     return L
 
 

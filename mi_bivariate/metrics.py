@@ -167,10 +167,10 @@ def estimate_on_merl_grid(estimate) -> np.ndarray:
     raise TypeError(f"cannot evaluate a {type(estimate).__name__} on the MERL grid")
 
 
-def brdf_errors(truth, estimate, min_value: float = 0.0) -> dict:
-    """The BRDF errors of ``estimate`` against the 3D ``truth`` (a :class:`~mi_bivariate.merl.MERLBRDF`).
+class BRDFErrors:
+    """The BRDF errors of estimates against one 3D truth; the truth's cells are prepared once.
 
-    Returns a dict of floats:
+    Calling the object with an estimate returns a dict of floats:
 
     - ``eq1``: the paper's Eq. 1, relative RMS over the cells (channels
       pooled); equals :func:`~mi_bivariate.bivariate.reduction_error` for a
@@ -181,16 +181,55 @@ def brdf_errors(truth, estimate, min_value: float = 0.0) -> dict:
       the relative L2 error of f under the measure ``cos(theta_i) cos(theta_o) dw_i dw_o``
       (what a render under uniform light integrates); dominated by large values.
     - ``log``: :func:`log_rms`, RMS of ``ln(1 + f)`` differences over the cells.
+
+    Args:
+        truth: a :class:`~mi_bivariate.merl.MERLBRDF`.
+        min_value: Eq. 1 leaves out cells with truth at or below this (1/sr).
     """
-    f = np.asarray(truth.table, np.float64)
-    f_hat = estimate_on_merl_grid(estimate)
-    cells = truth.valid_mask()[..., None] & np.ones(3, bool)
-    eq1_rgb = [relative_rms(f[..., c], f_hat[..., c], cells[..., c] & (f[..., c] > min_value)) for c in range(3)]
-    weights = merl_cell_weights()[..., None]
-    return {
-        "eq1": relative_rms(f, f_hat, cells & (f > min_value)),
-        "eq1_rgb": eq1_rgb,
-        "eq1_min": relative_rms(f, f_hat, cells & (f > max(min_value, 1e-3))),
-        "cosine": weighted_relative_l2(np.where(cells, f, 0.0), f_hat, weights * cells),
-        "log": log_rms(f, f_hat, cells),
-    }
+
+    def __init__(self, truth, min_value: float = 0.0):
+        from mi_bivariate.merl import node_angles
+
+        valid = truth.valid_mask()
+        self.index = np.nonzero(valid)                                   # cells: (i_h, i_d, i_p)
+        self.f = np.asarray(truth.table[valid], np.float64)              # (n_cells, 3)
+        self.weights = merl_cell_weights()[valid][:, None]
+        self.min_value = float(min_value)
+        theta_h, theta_d, phi_d = node_angles()
+        self.angles = (theta_h[self.index[0]], theta_d[self.index[1]], phi_d[self.index[2]])
+
+    def estimate_at_cells(self, estimate) -> np.ndarray:
+        """``(n_cells, 3)`` float64 values of an estimate (see :func:`estimate_on_merl_grid`) at the cells."""
+        from mi_bivariate.bivariate import BivariateBRDF
+        from mi_bivariate.merl import MERLBRDF
+
+        i_h, i_d, i_p = self.index
+        if isinstance(estimate, BivariateBRDF):
+            return estimate_on_merl_grid(estimate)[i_h, i_d, 0]
+        if isinstance(estimate, (MERLBRDF, np.ndarray)):
+            grid = estimate_on_merl_grid(estimate)
+            return grid[i_h, i_d, 0] if grid.shape[2] == 1 else grid[i_h, i_d, i_p]
+        if callable(getattr(estimate, "eval", None)):
+            with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+                return np.asarray(estimate.eval(*self.angles), np.float64)
+        raise TypeError(f"cannot evaluate a {type(estimate).__name__} on the MERL grid")
+
+    def __call__(self, estimate) -> dict:
+        f, f_hat = self.f, self.estimate_at_cells(estimate)
+        cells = np.ones_like(f, bool)
+        eq1_cells = f > self.min_value
+        return {
+            "eq1": relative_rms(f, f_hat, eq1_cells),
+            "eq1_rgb": [relative_rms(f[:, c], f_hat[:, c], eq1_cells[:, c]) for c in range(3)],
+            "eq1_min": relative_rms(f, f_hat, f > max(self.min_value, 1e-3)),
+            "cosine": weighted_relative_l2(f, f_hat, self.weights),
+            "log": log_rms(f, f_hat, cells),
+        }
+
+
+def brdf_errors(truth, estimate, min_value: float = 0.0) -> dict:
+    """The BRDF errors of ``estimate`` against the 3D ``truth``; see :class:`BRDFErrors`.
+
+    For several estimates of one truth, build a :class:`BRDFErrors` once.
+    """
+    return BRDFErrors(truth, min_value)(estimate)

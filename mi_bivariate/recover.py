@@ -15,7 +15,7 @@ import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Dict, List, Optional, Sequence, Tuple, Union
+from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
@@ -54,6 +54,8 @@ class Recovery:
     geometries: List[SphereGeometry] = field(default_factory=list)
     probes: List[Probe] = field(default_factory=list)
     timings: Dict[str, float] = field(default_factory=dict)
+    sphere_fit: Optional[Any] = None
+    alignment: Optional[Any] = None
 
     def relative_residual(self) -> float:
         """``||I - L f|| / ||I||`` over all rows and channels."""
@@ -96,7 +98,8 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
             max_view_angle_deg: float = 80.0,
             saturation: Optional[float] = None,
             seed: int = 0,
-            keep_inputs: bool = True) -> Recovery:
+            keep_inputs: bool = True,
+            visibility: bool = True) -> Recovery:
     """Recover a bivariate BRDF from HDR images of a sphere under known probes.
 
     Args:
@@ -104,7 +107,10 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
             or other probes; all rows stack into one system).
         probe: the probe lighting each image (one for all, or one per image),
             in Mitsuba's envmap frame (y up).
-        geometry: the sphere in each image (pixels; see :mod:`geometry`).
+        geometry: what each image shows: a sphere (:class:`SphereGeometry`,
+            :class:`PerspectiveSphereGeometry`, pixels and camera pose; see
+            :mod:`geometry`) or a known mesh with its camera
+            (:class:`mi_bivariate.mesh.MeshView`). Poses may differ per image.
         masks: optional ``(H, W) bool`` usable-pixel masks.
         n_normals: normals M per image (uniform over the visible hemisphere).
         n_dirs: light directions K per normal.
@@ -114,6 +120,9 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
         max_view_angle_deg: drop normals further than this from the view.
         saturation: drop pixels with any channel at or above this value.
         seed: seeds normal selection and light directions.
+        visibility: for mesh views, trace shadow rays against the mesh so
+            that directions it blocks itself contribute nothing (the paper
+            ignores this; it matters for non-convex shapes).
     """
     if isinstance(images, np.ndarray) and images.ndim == 3:
         images = [images]
@@ -134,15 +143,18 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
     t0 = time.perf_counter()
     parts = []
     for k, (image, geo, mask) in enumerate(zip(images, geometries, mask_list)):
-        obs = capture.observations_from_sphere(image, geo, n_normals=n_normals,
-                                               max_view_angle_deg=max_view_angle_deg,
-                                               saturation=saturation, mask=mask, seed=seed + k)
+        obs = capture.image_observations(image, geo, n_normals=n_normals, max_view_angle_deg=max_view_angle_deg,
+                                 saturation=saturation, mask=mask, seed=seed + k,
+                                 source=f"image {k}" if n > 1 else "image")
         parts.append(obs.with_probe_index(k))
     observations = capture.stack(parts)
     timings["observations"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    L = lighting.lighting_matrix(observations, probe_list, n_t=n_t, n_s=n_s, n_dirs=n_dirs, seed=seed)
+    occluders = [geo.occluder() if visibility and callable(getattr(geo, "occluder", None)) else None
+                 for geo in geometries]
+    L = lighting.lighting_matrix(observations, probe_list, n_t=n_t, n_s=n_s, n_dirs=n_dirs, seed=seed,
+                                 occluder=occluders if any(o is not None for o in occluders) else None)
     timings["lighting matrix"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -164,11 +176,78 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
         "images": n, "normals": int(len(observations.values)), "light_directions": int(n_dirs),
         "alpha": float(solution.alpha), "prior_winner": list(solution.winner), "seed": int(seed),
         "probes": [getattr(p, "source", "?") for p in probe_list],
+        "visibility": bool(any(o is not None for o in occluders)),
     })
     return Recovery(brdf=brdf, observations=observations, lighting_matrix=L, solution=solution,
                     adequacy=report, predicted=predicted,
                     images=images if keep_inputs else [], geometries=geometries,
                     probes=probe_list, timings=timings)
+
+
+def _auto_saturation(image: np.ndarray, region: Optional[np.ndarray]) -> Optional[float]:
+    """The clipping level of an image whose highlights sit on a plateau at its maximum, else ``None``."""
+    values = np.asarray(image, np.float64)
+    values = values[region] if region is not None else values.reshape(-1, 3)
+    values = values[np.all(np.isfinite(values), axis=1)]
+    if len(values) == 0:
+        return None
+    peak = float(values.max())
+    at_peak = int(np.count_nonzero(np.any(values >= peak, axis=1)))
+    if peak > 0.0 and at_peak >= max(4, int(0.002 * len(values))):
+        return peak
+    return None
+
+
+def recover_from_photo(image: np.ndarray, probe: Probe, *, intrinsics: Any = None,
+                       sphere: Optional[Sequence[float]] = None, mask: Optional[np.ndarray] = None,
+                       camera_to_world: Any = None, saturation: Union[None, float, str] = "auto",
+                       estimate_yaw: bool = False, yaw_kwargs: Optional[dict] = None,
+                       source: str = "image", **kwargs) -> Recovery:
+    """Recover a BRDF from one photograph of a sphere, finding the sphere automatically.
+
+    The photo path: :func:`mi_bivariate.spherefit.fit_sphere` (orthographic,
+    or perspective with ``intrinsics``) -> per-pixel normals and views ->
+    observations -> lighting matrix -> solve (:func:`recover`).
+
+    Args:
+        image: ``(H, W, 3)`` linear HDR photo.
+        probe: the environment, in Mitsuba's envmap frame (y up).
+        intrinsics: ``(fx, fy, cx, cy)`` pixels or :class:`~mi_bivariate.geometry.Intrinsics`
+            (pinhole model); ``None``: orthographic.
+        sphere: explicit ``(cx, cy, r)`` in pixels instead of the fit.
+        mask: optional ``(H, W) bool`` user mask of the sphere.
+        camera_to_world: ``(3, 3)`` camera rotation in the probe's frame.
+        saturation: drop pixels at or above this value; ``"auto"``: the
+            image's maximum when highlights sit on a plateau there (clipped).
+        estimate_yaw: first estimate the probe's rotation about the vertical
+            (:func:`mi_bivariate.alignment.estimate_yaw`) and recover under
+            the aligned probe (the main error source for captured data).
+        yaw_kwargs: options for :func:`~mi_bivariate.alignment.estimate_yaw`.
+        kwargs: passed to :func:`recover`.
+
+    Returns:
+        The :class:`Recovery`, with ``sphere_fit`` (and ``alignment``) set.
+    """
+    from mi_bivariate import spherefit
+
+    fit = spherefit.fit_sphere(image, mask, sphere=sphere, intrinsics=intrinsics,
+                               camera_to_world=camera_to_world, source=source)
+    if isinstance(saturation, str):
+        if saturation != "auto":
+            raise InputError("saturation", f"must be a number, None or 'auto', got {saturation!r}")
+        region = fit.region if fit.region is not None else None
+        saturation = _auto_saturation(image, region)
+    alignment = None
+    if estimate_yaw:
+        from mi_bivariate import alignment as alignment_mod
+
+        alignment = alignment_mod.estimate_yaw(image, probe, fit.geometry, saturation=saturation,
+                                               **(yaw_kwargs or {}))
+        probe = alignment.probe
+    result = recover(image, probe, fit.geometry, saturation=saturation, **kwargs)
+    result.sphere_fit = fit
+    result.alignment = alignment
+    return result
 
 
 def recover_from_files(image_paths: Sequence[PathLike], probe: Union[Probe, Sequence[Probe]],

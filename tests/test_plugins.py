@@ -79,7 +79,7 @@ def test_register_is_idempotent_per_variant():
     ({"type": "bivariate"}, "needs a 'filename'"),
     ({"type": "bivariate", "table": "nope"}, "must be a mitsuba.Bitmap"),
     ({"type": "bivariate", "filename": "/no/such/file.npz"}, "not found"),
-    ({"type": "merl", "filename": "/no/such/file.binary"}, "cannot read MERL file"),
+    ({"type": "merl", "filename": "/no/such/file.binary"}, "MERL file not found"),
     ({"type": "bivariate", "sampling": "magic"}, "sampling must be"),
 ])
 def test_bad_properties_raise_readable_errors(props, message):

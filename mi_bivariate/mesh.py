@@ -1,0 +1,553 @@
+"""Any known shape: a triangle mesh seen by a posed camera.
+
+The paper measures a sphere; nothing in Eqs. 3-6 needs one. What the capture
+step needs is, per pixel, the world normal it sees, the direction towards the
+camera and (for visibility) the surface point. For a mesh these come from
+Mitsuba itself: the mesh is loaded into a scene and the camera's pixel-centre
+rays are intersected with ``scene.ray_intersect`` (vectorised over the
+image). The normal is the shading normal ``si.sh_frame.n``, the one Mitsuba's
+BSDFs use in a render: interpolated vertex normals when the mesh has them,
+else the face normal (flat shading; warned about with ``normals="auto"``).
+
+Self-occlusion: a non-convex object hides part of each normal's hemisphere
+from the environment (the paper ignores it). :attr:`Observations.positions`
+keeps each pixel's surface point so that
+:func:`mi_bivariate.lighting.lighting_matrix` can trace shadow rays against
+:meth:`MeshShape.scene` (``occluder=``).
+
+Cameras (:class:`Camera`) follow :mod:`mi_bivariate.geometry`: camera frame x
+right, y up, z towards the viewer, looking down -z; pixel (i, j) has its
+centre at (i + 0.5, j + 0.5), image y down. A perspective camera has
+:class:`~mi_bivariate.geometry.Intrinsics` in pixels; an orthographic one
+uses the same class with ``fx, fy`` in pixels per world unit.
+
+Pixel coverage: a pixel is used when the rays through its centre and its
+four corners all hit the mesh on one continuous surface patch (corner
+points close to the centre's tangent plane, normals within
+:data:`PATCH_MAX_ANGLE_DEG`), so pixels that mix the object with the
+background, or a near surface with a far one, are left out.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Dict, Optional, Sequence, Tuple, Union
+
+import numpy as np
+
+from mi_bivariate.capture import Observations, observations_from_normal_map
+from mi_bivariate.errors import InputError, InputWarning
+from mi_bivariate.geometry import Intrinsics
+
+PathLike = Union[str, os.PathLike]
+
+#: Mesh file types read through trimesh.
+MESH_SUFFIXES = (".obj", ".ply", ".stl", ".glb", ".gltf", ".off")
+
+#: A pixel's corner hits must have shading normals within this angle of its centre's.
+PATCH_MAX_ANGLE_DEG = 30.0
+#: ... and lie this close to the centre's tangent plane (relative to their distance).
+PATCH_MAX_SLOPE = 0.35
+
+
+# ------------------------------------------------------------------ camera
+
+def _rotation(matrix: Any, source: str) -> np.ndarray:
+    rot = np.eye(3) if matrix is None else np.asarray(matrix, dtype=np.float64)
+    if rot.shape != (3, 3) or not np.all(np.isfinite(rot)) or not np.allclose(rot @ rot.T, np.eye(3), atol=1e-6) \
+            or np.linalg.det(rot) < 0:
+        raise InputError(source, "camera_to_world is not a (3, 3) rotation matrix")
+    return rot
+
+
+@dataclass(frozen=True)
+class Camera:
+    """A posed pinhole or orthographic camera, in world units.
+
+    Attributes:
+        width, height: image size in pixels.
+        intrinsics: perspective: focal lengths and principal point in pixels;
+            orthographic: ``fx, fy`` in pixels per world unit and the pixel
+            position of the optical axis.
+        camera_to_world: ``(3, 3)`` rotation from camera-frame to world vectors.
+        position: ``(3,)`` world position of the centre of projection
+            (perspective) or of the optical axis' point on the image plane,
+            where rays start (orthographic).
+        orthographic: parallel projection along the camera's -z.
+    """
+
+    width: int
+    height: int
+    intrinsics: Intrinsics
+    camera_to_world: np.ndarray = field(default_factory=lambda: np.eye(3))
+    position: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    orthographic: bool = False
+
+    def __post_init__(self) -> None:
+        if int(self.width) < 1 or int(self.height) < 1:
+            raise InputError("camera", f"image size must be positive, got {self.width}x{self.height}")
+        object.__setattr__(self, "width", int(self.width))
+        object.__setattr__(self, "height", int(self.height))
+        try:
+            k = Intrinsics.coerce(self.intrinsics)
+        except ValueError as exc:
+            raise InputError("camera", str(exc)) from None
+        if not all(math.isfinite(v) for v in (k.fx, k.fy, k.cx, k.cy)) or k.fx <= 0 or k.fy <= 0:
+            raise InputError("camera", f"invalid intrinsics {k}")
+        object.__setattr__(self, "intrinsics", k)
+        object.__setattr__(self, "camera_to_world", _rotation(self.camera_to_world, "camera"))
+        position = np.asarray(self.position, dtype=np.float64).reshape(-1)
+        if position.shape != (3,) or not np.all(np.isfinite(position)):
+            raise InputError("camera", f"position must be a finite 3-vector, got {self.position!r}")
+        object.__setattr__(self, "position", position)
+
+    @classmethod
+    def look_at(cls, origin: Sequence[float], target: Sequence[float], up: Sequence[float] = (0.0, 1.0, 0.0),
+                width: int = 128, height: Optional[int] = None, fov_deg: Optional[float] = 30.0,
+                scale: Optional[float] = None) -> "Camera":
+        """A camera at ``origin`` looking at ``target``.
+
+        Args:
+            fov_deg: horizontal field of view (perspective, square pixels,
+                centred principal point).
+            scale: instead, pixels per world unit: an orthographic camera.
+        """
+        height = width if height is None else height
+        origin, target, up = (np.asarray(v, dtype=np.float64) for v in (origin, target, up))
+        back = origin - target
+        if not np.linalg.norm(back) > 0:
+            raise InputError("camera", "origin and target coincide")
+        z = back / np.linalg.norm(back)
+        x = np.cross(up, z)
+        if not np.linalg.norm(x) > 1e-9:
+            raise InputError("camera", "the up vector is parallel to the viewing direction")
+        x /= np.linalg.norm(x)
+        rot = np.stack([x, np.cross(z, x), z], axis=1)
+        if scale is not None:
+            k = Intrinsics(float(scale), float(scale), 0.5 * width, 0.5 * height)
+            return cls(width, height, k, rot, origin, orthographic=True)
+        if fov_deg is None or not 0.0 < fov_deg < 180.0:
+            raise InputError("camera", f"fov must be in (0, 180) degrees, got {fov_deg}")
+        return cls(width, height, Intrinsics.from_fov(width, height, fov_deg), rot, origin)
+
+    @property
+    def view_axis(self) -> np.ndarray:
+        """World direction from the scene towards the camera (the camera's +z), ``(3,)``."""
+        return self.camera_to_world[:, 2].copy()
+
+    def rays(self, x: np.ndarray, y: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+        """World ray origins and unit directions through pixel positions (x right, y down), ``(..., 3)``."""
+        k, rot = self.intrinsics, self.camera_to_world
+        x, y = np.broadcast_arrays(np.asarray(x, np.float64), np.asarray(y, np.float64))
+        if self.orthographic:
+            local = np.stack([(x - k.cx) / k.fx, -(y - k.cy) / k.fy, np.zeros_like(x)], axis=-1)
+            origins = self.position + local @ rot.T
+            directions = np.broadcast_to(-rot[:, 2], origins.shape).copy()
+        else:
+            directions = k.rays(x, y) @ rot.T
+            origins = np.broadcast_to(self.position, directions.shape).copy()
+        return origins, directions
+
+    def sensor_dict(self) -> dict:
+        """Mitsuba sensor dictionary (box filter, RGB float film) for a render from this camera.
+
+        Raises:
+            InputError: non-square pixels, or (perspective) an off-centre
+                principal point, which Mitsuba's sensors do not model here.
+        """
+        import mitsuba as mi
+
+        k, rot = self.intrinsics, self.camera_to_world
+        if abs(k.fx - k.fy) > 1e-6 * k.fx:
+            raise InputError("camera", "cannot render non-square pixels (fx != fy)")
+        origin = self.position.copy()
+        if self.orthographic:
+            origin += rot @ np.array([(0.5 * self.width - k.cx) / k.fx, -(0.5 * self.height - k.cy) / k.fy, 0.0])
+        elif abs(k.cx - 0.5 * self.width) > 1e-6 or abs(k.cy - 0.5 * self.height) > 1e-6:
+            raise InputError("camera", "cannot render an off-centre principal point")
+        look = mi.ScalarTransform4f().look_at(origin=origin.tolist(), target=(origin - rot[:, 2]).tolist(),
+                                              up=rot[:, 1].tolist())
+        film = {"type": "hdrfilm", "width": self.width, "height": self.height, "pixel_format": "rgb",
+                "rfilter": {"type": "box"}}
+        if self.orthographic:
+            # Mitsuba's orthographic film spans [-1, 1] across the width (times the scale).
+            half = 0.5 * self.width / k.fx
+            return {"type": "orthographic", "film": film, "near_clip": 1e-4, "far_clip": 1e5,
+                    "to_world": look @ mi.ScalarTransform4f().scale([half, half, 1.0])}
+        fov = math.degrees(2.0 * math.atan(0.5 * self.width / k.fx))
+        return {"type": "perspective", "film": film, "fov": fov, "fov_axis": "x", "near_clip": 1e-4,
+                "far_clip": 1e5, "to_world": look}
+
+
+# -------------------------------------------------------------------- mesh
+
+def _trimesh_load(path: Path) -> Any:
+    import trimesh
+
+    try:
+        loaded = trimesh.load(str(path), force="mesh", process=False)
+    except Exception as exc:  # trimesh raises many types on foreign or corrupt files
+        raise InputError(path, f"cannot read the mesh ({type(exc).__name__}: {str(exc).strip()[:200]})",
+                         f"use one of {', '.join(MESH_SUFFIXES)}") from None
+    if not isinstance(loaded, trimesh.Trimesh):
+        raise InputError(path, "the file holds no triangle mesh")
+    return loaded
+
+
+def _file_vertex_normals(path: Path, n_vertices: int) -> Optional[np.ndarray]:
+    """The vertex normals stored in a mesh file, or ``None``.
+
+    trimesh reads them but drops them from the mesh it returns (its cache is
+    invalidated on load), so the format loader is asked directly.
+    """
+    try:
+        from trimesh.exchange.load import mesh_loaders
+
+        kind = path.suffix.lower().lstrip(".")
+        if kind not in mesh_loaders:
+            return None
+        with open(path, "rb") as f:
+            kwargs = mesh_loaders[kind](f, file_type=kind)
+        if isinstance(kwargs, dict) and "geometry" in kwargs and isinstance(kwargs["geometry"], dict) \
+                and len(kwargs["geometry"]) == 1:
+            kwargs = next(iter(kwargs["geometry"].values()))
+        normals = kwargs.get("vertex_normals") if isinstance(kwargs, dict) else None
+    except Exception:  # an unreadable normal block is the same as none
+        return None
+    if normals is None:
+        return None
+    normals = np.asarray(normals, dtype=np.float64)
+    if normals.shape != (n_vertices, 3) or not np.all(np.isfinite(normals)):
+        return None
+    return normals
+
+
+class MeshShape:
+    """A triangle mesh of known shape, in world units.
+
+    Attributes:
+        vertices: ``(V, 3) float64``.
+        faces: ``(F, 3) int64`` vertex indices, counter-clockwise seen from outside.
+        vertex_normals: ``(V, 3) float64`` unit shading normals, or ``None``
+            (face normals: flat shading).
+        source: the file (or a description) for messages.
+        watertight: whether the surface is closed (visibility is exact
+            only then; light can leak through holes otherwise).
+    """
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, vertex_normals: Optional[np.ndarray] = None,
+                 source: str = "mesh", watertight: Optional[bool] = None):
+        vertices = np.asarray(vertices, dtype=np.float64)
+        faces = np.asarray(faces)
+        if vertices.ndim != 2 or vertices.shape[1] != 3 or len(vertices) < 3:
+            raise InputError(source, f"a mesh needs (V >= 3, 3) vertices, got shape {vertices.shape}")
+        if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) < 1:
+            raise InputError(source, f"a mesh needs (F >= 1, 3) triangle faces, got shape {faces.shape}")
+        if not np.issubdtype(faces.dtype, np.integer) or faces.min() < 0 or faces.max() >= len(vertices):
+            raise InputError(source, "face indices must be integers in [0, V)")
+        if not np.all(np.isfinite(vertices)):
+            raise InputError(source, "the mesh has non-finite vertex positions")
+        if vertex_normals is not None:
+            vertex_normals = np.asarray(vertex_normals, dtype=np.float64)
+            length = np.linalg.norm(vertex_normals, axis=1, keepdims=True)
+            if vertex_normals.shape != vertices.shape or not np.all(np.isfinite(vertex_normals)) \
+                    or np.any(length < 1e-12):
+                raise InputError(source, "vertex normals must be finite, non-zero and one per vertex")
+            vertex_normals = vertex_normals / length
+        self.vertices = vertices
+        self.faces = faces.astype(np.int64)
+        self.vertex_normals = vertex_normals
+        self.source = str(source)
+        self.watertight = bool(watertight) if watertight is not None else self._is_watertight()
+        self._scenes: Dict[str, Any] = {}
+
+    def __repr__(self) -> str:
+        shading = "vertex normals" if self.vertex_normals is not None else "face normals"
+        return (f"MeshShape({self.source!r}, {len(self.vertices)} vertices, {len(self.faces)} faces, "
+                f"{shading}, {'watertight' if self.watertight else 'open'})")
+
+    def _is_watertight(self) -> bool:
+        import trimesh
+
+        return bool(trimesh.Trimesh(self.vertices, self.faces, process=False).is_watertight)
+
+    @classmethod
+    def load(cls, source: Union[PathLike, Any], normals: str = "auto") -> "MeshShape":
+        """A mesh from a file trimesh reads (OBJ, PLY, STL, GLB, ...) or a ``trimesh.Trimesh``.
+
+        Args:
+            normals: ``"auto"``: the file's vertex normals when it has them,
+                else face normals with an :class:`InputWarning`; ``"vertex"``:
+                the file's, else smooth angle-weighted ones computed from the
+                faces; ``"face"``: face normals (flat shading).
+
+        Raises:
+            InputError: unreadable file, no triangles, non-finite vertices.
+
+        Warns:
+            InputWarning: no vertex normals (``"auto"``), a surface that is
+                not closed (visibility leaks through holes), faces wound inwards.
+        """
+        import trimesh
+
+        if normals not in ("auto", "vertex", "face"):
+            raise InputError("normals", f"must be 'auto', 'vertex' or 'face', got {normals!r}")
+        if isinstance(source, trimesh.Trimesh):
+            mesh, name = source, "trimesh mesh"
+            # A Trimesh whose normals were set explicitly keeps them in its cache.
+            stored = np.asarray(mesh._cache["vertex_normals"]) if "vertex_normals" in mesh._cache else None
+        else:
+            path = Path(source)
+            if not path.is_file():
+                raise InputError(path, "mesh file not found")
+            if path.suffix.lower() not in MESH_SUFFIXES:
+                raise InputError(path, f"unknown mesh file type {path.suffix!r}", f"use one of {', '.join(MESH_SUFFIXES)}")
+            mesh, name = _trimesh_load(path), str(path)
+            stored = _file_vertex_normals(path, len(mesh.vertices))
+        if len(mesh.faces) == 0 or len(mesh.vertices) < 3:
+            raise InputError(name, "the mesh has no triangles")
+        if not np.all(np.isfinite(mesh.vertices)):
+            raise InputError(name, "the mesh has non-finite vertex positions")
+        # Degenerate (zero-area) faces have no normal; Mitsuba would shade them with NaN.
+        area = np.asarray(mesh.area_faces)
+        keep = area > 1e-14 * max(float(area.max()), 1e-300)
+        faces = np.asarray(mesh.faces)[keep]
+        if len(faces) == 0:
+            raise InputError(name, "every face of the mesh is degenerate (zero area)")
+
+        vertex_normals = None
+        if normals == "vertex":
+            vertex_normals = stored if stored is not None else np.asarray(mesh.vertex_normals)
+        elif normals == "auto":
+            if stored is None:
+                warnings.warn(f"{name}: the mesh has no vertex normals; using face normals (flat shading). "
+                              "Pass normals='vertex' to smooth them", InputWarning, stacklevel=2)
+            vertex_normals = stored
+        shape = cls(mesh.vertices, faces, vertex_normals, source=name)
+        if not shape.watertight:
+            warnings.warn(f"{name}: the mesh is not watertight (open edges); shadow rays can leak through "
+                          "its holes, so visibility is only approximate", InputWarning, stacklevel=2)
+        elif float(trimesh.Trimesh(shape.vertices, shape.faces, process=False).volume) < 0.0:
+            warnings.warn(f"{name}: the faces are wound inwards (negative volume); their geometric normals "
+                          "point into the object. Fix with trimesh.repair.fix_normals", InputWarning, stacklevel=2)
+        return shape
+
+    @property
+    def diagonal(self) -> float:
+        """Length of the bounding box diagonal (world units)."""
+        return float(np.linalg.norm(self.vertices.max(axis=0) - self.vertices.min(axis=0)))
+
+    def mitsuba_mesh(self, bsdf: Optional[dict] = None) -> Any:
+        """The mesh as a ``mi.Mesh`` (with ``bsdf``, a BSDF dictionary, when given)."""
+        import mitsuba as mi
+
+        from mi_bivariate.variants import ensure_variant
+
+        ensure_variant()
+        props = mi.Properties()
+        if bsdf is not None:
+            props["bsdf"] = mi.load_dict(bsdf)
+        has_normals = self.vertex_normals is not None
+        mesh = mi.Mesh(Path(self.source).stem or "mesh", len(self.vertices), len(self.faces), props=props,
+                       has_vertex_normals=has_normals)
+        params = mi.traverse(mesh)
+        params["vertex_positions"] = mi.Float(self.vertices.astype(np.float32).ravel())
+        params["faces"] = mi.UInt32(self.faces.astype(np.uint32).ravel())
+        if has_normals:
+            params["vertex_normals"] = mi.Float(self.vertex_normals.astype(np.float32).ravel())
+        params.update()
+        return mesh
+
+    def scene(self) -> Any:
+        """A ``mi.Scene`` holding only this mesh (for ray casts and shadow rays), cached per variant."""
+        from mi_bivariate.variants import ensure_variant
+
+        import mitsuba as mi
+
+        variant = ensure_variant()
+        if variant not in self._scenes:
+            self._scenes[variant] = mi.load_dict({"type": "scene", "shape": self.mitsuba_mesh()})
+        return self._scenes[variant]
+
+
+# ----------------------------------------------------------- ray casting
+
+@dataclass
+class SurfaceMaps:
+    """What each pixel of a camera sees of a mesh (all world frame, ``float64``).
+
+    Attributes:
+        normals: ``(H, W, 3)`` unit shading normals (0 outside ``mask``).
+        views: ``(H, W, 3)`` unit directions from the surface towards the camera.
+        positions: ``(H, W, 3)`` surface points (NaN where no hit).
+        geometric_normals: ``(H, W, 3)`` unit face normals.
+        hit: ``(H, W) bool`` the pixel-centre ray hits the mesh.
+        mask: ``(H, W) bool`` the whole pixel sees one continuous patch
+            (see the module docstring); the pixels to use.
+    """
+
+    normals: np.ndarray
+    views: np.ndarray
+    positions: np.ndarray
+    geometric_normals: np.ndarray
+    hit: np.ndarray
+    mask: np.ndarray
+
+
+def _cast(scene: Any, origins: np.ndarray, directions: np.ndarray) -> Tuple[np.ndarray, ...]:
+    """Intersect rays ``(N, 3)``: ``valid (N,)``, ``p``, ``sh_n``, ``n`` ``(N, 3)`` float64."""
+    import mitsuba as mi
+
+    ray = mi.Ray3f(mi.Point3f(origins.astype(np.float32).T), mi.Vector3f(directions.astype(np.float32).T))
+    si = scene.ray_intersect(ray)
+    valid = np.array(si.is_valid(), dtype=bool)
+    p = np.array(si.p, dtype=np.float64).T
+    sh_n = np.array(si.sh_frame.n, dtype=np.float64).T
+    n = np.array(si.n, dtype=np.float64).T
+    return valid, p, sh_n, n
+
+
+def surface_maps(shape: MeshShape, camera: Camera) -> SurfaceMaps:
+    """Ray-cast ``shape`` from ``camera`` at pixel centres and corners.
+
+    Raises:
+        InputError: the camera sees no part of the mesh.
+    """
+    scene = shape.scene()
+    w, h = camera.width, camera.height
+    x, y = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    o, d = camera.rays(x, y)
+    valid, p, sh_n, n = _cast(scene, o.reshape(-1, 3), d.reshape(-1, 3))
+    if not valid.any():
+        raise InputError(shape.source, "the camera sees no part of the mesh",
+                         "check the camera position, direction and field of view")
+    sh_n /= np.maximum(np.linalg.norm(sh_n, axis=1, keepdims=True), 1e-30)
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
+
+    # Corner rays: the same patch must cover the whole pixel.
+    cx, cy = np.meshgrid(np.arange(w + 1, dtype=np.float64), np.arange(h + 1, dtype=np.float64))
+    co, cd = camera.rays(cx, cy)
+    c_valid, c_p, c_n, _ = _cast(scene, co.reshape(-1, 3), cd.reshape(-1, 3))
+    c_valid, c_p, c_n = c_valid.reshape(h + 1, w + 1), c_p.reshape(h + 1, w + 1, 3), c_n.reshape(h + 1, w + 1, 3)
+    c_n /= np.maximum(np.linalg.norm(c_n, axis=-1, keepdims=True), 1e-30)
+    valid, p, sh_n, n = valid.reshape(h, w), p.reshape(h, w, 3), sh_n.reshape(h, w, 3), n.reshape(h, w, 3)
+    mask = valid.copy()
+    cos_max = math.cos(math.radians(PATCH_MAX_ANGLE_DEG))
+    for dy, dx in ((0, 0), (0, 1), (1, 0), (1, 1)):
+        cv = c_valid[dy:dy + h, dx:dx + w]
+        cp = c_p[dy:dy + h, dx:dx + w]
+        cn = c_n[dy:dy + h, dx:dx + w]
+        offset = cp - p
+        dist = np.linalg.norm(offset, axis=-1)
+        with np.errstate(invalid="ignore"):
+            flat = np.abs(np.sum(offset * sh_n, axis=-1)) <= PATCH_MAX_SLOPE * dist + 1e-9
+            mask &= cv & flat & (np.sum(cn * sh_n, axis=-1) >= cos_max)
+
+    views = np.where(valid[..., None], -d, 0.0)
+    nan = np.where(valid[..., None], 0.0, np.nan)
+    return SurfaceMaps(normals=np.where(valid[..., None], sh_n, 0.0), views=views, positions=p + nan,
+                       geometric_normals=np.where(valid[..., None], n, 0.0), hit=valid, mask=mask)
+
+
+@dataclass(frozen=True)
+class MeshView:
+    """A mesh seen by a posed camera: the ``geometry`` of an image of a known shape.
+
+    Usable wherever :func:`mi_bivariate.recover.recover` takes a geometry.
+    """
+
+    shape: MeshShape
+    camera: Camera
+
+    def surface(self) -> SurfaceMaps:
+        """:func:`surface_maps` (cached)."""
+        cache = self.__dict__.get("_surface")
+        if cache is None:
+            cache = surface_maps(self.shape, self.camera)
+            object.__setattr__(self, "_surface", cache)
+        return cache
+
+    def occluder(self) -> MeshShape:
+        """The object that casts shadows on itself (for ``lighting_matrix(occluder=...)``)."""
+        return self.shape
+
+    def observations(self, image: np.ndarray, **kwargs: Any) -> Observations:
+        """:func:`observations_from_mesh` for this view."""
+        return observations_from_mesh(image, self, **kwargs)
+
+
+def observations_from_mesh(image: np.ndarray, view: MeshView, n_normals: int = 8000,
+                           max_view_angle_deg: float = 80.0, saturation: Optional[float] = None,
+                           mask: Optional[np.ndarray] = None, seed: int = 0, probe_index: int = 0,
+                           source: str = "image") -> Observations:
+    """Observations from an image of a known mesh (normals uniform over those it shows).
+
+    Per-pixel normals, views and surface points come from :func:`surface_maps`;
+    selection is :func:`mi_bivariate.capture.observations_from_normal_map`.
+    The rows keep their surface points (:attr:`Observations.positions`) for
+    visibility.
+
+    Args:
+        image: ``(H, W, 3)`` linear RGB of the camera's size.
+        view: the mesh and camera.
+        mask: optional ``(H, W) bool``, True where pixels may be used.
+        n_normals, max_view_angle_deg, saturation, seed, probe_index, source:
+            as in :func:`mi_bivariate.capture.observations_from_sphere`.
+    """
+    image = np.asarray(image)
+    cam = view.camera
+    if image.ndim != 3 or image.shape[:2] != (cam.height, cam.width):
+        raise InputError(source, f"image has shape {image.shape} but the camera is {cam.width}x{cam.height}",
+                         "give the camera the image's size")
+    maps = view.surface()
+    usable = maps.mask
+    if mask is not None:
+        mask = np.asarray(mask)
+        if mask.shape != usable.shape:
+            raise InputError(source, f"mask has shape {mask.shape} but the image is {cam.height}x{cam.width}")
+        usable = usable & mask.astype(bool)
+    if not usable.any():
+        raise InputError(source, "no pixel sees the mesh cleanly (all are silhouette or masked pixels)",
+                         "use a larger image or move the camera closer")
+    return observations_from_normal_map(image, maps.normals, usable, maps.views, n_normals=n_normals,
+                                        max_view_angle_deg=max_view_angle_deg, saturation=saturation,
+                                        seed=seed, probe_index=probe_index, source=source,
+                                        positions=maps.positions, geometric_normals=maps.geometric_normals)
+
+
+# --------------------------------------------------------------- renders
+
+def mesh_scene_dict(shape: MeshShape, bsdf: dict, probe: Any, camera: Camera, max_depth: int = 2) -> dict:
+    """Scene dictionary: the mesh with ``bsdf``, the probe's envmap and the camera (``path`` integrator).
+
+    ``max_depth=2`` is direct lighting with self-shadowing but no
+    interreflection: the forward model of the lighting matrix with visibility.
+    """
+    return {
+        "type": "scene",
+        "integrator": {"type": "path", "max_depth": int(max_depth), "hide_emitters": True},
+        "sensor": camera.sensor_dict(),
+        "shape": shape.mitsuba_mesh(bsdf),
+        "probe": probe.emitter_dict(),
+    }
+
+
+def render_mesh(bsdf: Any, probe: Any, view: MeshView, spp: int = 64, seed: int = 0,
+                max_depth: int = 2) -> np.ndarray:
+    """Render ``view.shape`` with ``bsdf`` (anything :func:`mi_bivariate.render.bsdf_dict` takes)
+    under ``probe`` from ``view.camera``: ``(H, W, 3) float32`` linear RGB (background 0)."""
+    import mitsuba as mi
+
+    from mi_bivariate.render import bsdf_dict, load_scene
+    from mi_bivariate.variants import ensure_variant
+
+    ensure_variant()
+    if int(spp) < 1:
+        raise InputError("spp", f"must be >= 1, got {spp}")
+    scene = load_scene(mesh_scene_dict(view.shape, bsdf_dict(bsdf), probe, view.camera, max_depth))
+    out = np.array(mi.render(scene, spp=int(spp), seed=int(seed)), dtype=np.float32)
+    return np.ascontiguousarray(out[..., :3])
