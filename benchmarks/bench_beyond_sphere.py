@@ -71,8 +71,8 @@ def bench_visibility(quick: bool) -> List[str]:
     from mi_bivariate.probes import shared_probe
     from mi_bivariate.render import bsdf_dict
 
-    res, spp = (128, 128) if quick else (256, 512)
-    m, k = (2000, 8000) if quick else (8000, 32000)
+    res, spp = (128, 256) if quick else (256, 512)
+    m, k = (2000, 32000) if quick else (8000, 32000)
     probe, novel = shared_probe(PROBE), shared_probe(NOVEL)
     shape = MeshShape.load(trimesh.creation.torus(1.0, 0.45, major_sections=128, minor_sections=64), normals="vertex")
     view = MeshView(shape, Camera.look_at((0.0, 3.2, 3.2), (0, 0, 0), width=res, fov_deg=40))
@@ -108,8 +108,8 @@ def bench_multiview(quick: bool) -> List[str]:
     from mi_bivariate.recover import recover
     from mi_bivariate.render import render_sphere
 
-    res, spp = (96, 128) if quick else (192, 256)
-    m, k = (1500, 8000) if quick else (4000, 16000)
+    res, spp = (96, 256) if quick else (192, 256)
+    m, k = (1500, 32000) if quick else (4000, 32000)
     probes = [shared_probe(n) for n in ("grace_256", "pisa_256", "grace_256", "pisa_256")]
     single = shared_probe("grace_256")
     novel = shared_probe(NOVEL)
@@ -185,8 +185,8 @@ def bench_realism(quick: bool) -> List[str]:
     from mi_bivariate.nbrdf import nbrdf_merl
     from mi_bivariate.probes import shared_probe
 
-    res, spp = (128, 128) if quick else (256, 256)
-    m, k = (2000, 8000) if quick else (8000, 32000)
+    res, spp = (128, 256) if quick else (256, 256)
+    m, k = (2000, 32000) if quick else (8000, 32000)
     probe, novel = shared_probe(PROBE), shared_probe(NOVEL)
     lines = [f"### 3. Realistic perspective photos through the photo path (fov 30 deg, {res} px, {spp} spp, "
              f"M = {m}, K = {k}; novel probe {NOVEL}). Growth = error / clean error.", "",

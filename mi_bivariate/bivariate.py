@@ -42,7 +42,8 @@ ST_MAP = "s = 2 theta_d / pi, t = sqrt(2 theta_h / pi); nodes at i / (n - 1)"
 _ST_MAX = (MERL_SHAPE[0] - 1) / MERL_SHAPE[0]
 
 
-def _validate_table(table: Any, source: str) -> np.ndarray:
+def validate_table(table: Any, source: str) -> np.ndarray:
+    """Check a ``(n_t >= 2, n_s >= 2, 3)`` table (finite, non-negative); return C-contiguous float32."""
     try:
         table = np.asarray(table, dtype=np.float32)
     except (TypeError, ValueError):
@@ -50,7 +51,7 @@ def _validate_table(table: Any, source: str) -> np.ndarray:
     if table.ndim != 3 or table.shape[2] != 3 or table.shape[0] < 2 or table.shape[1] < 2:
         raise InputError(source, f"bivariate BRDF table must have shape (n_t >= 2, n_s >= 2, 3), got {table.shape}")
     if not np.all(np.isfinite(table)):
-        raise InputError(source, "bivariate BRDF table has non-finite values")
+        raise InputError(source, "bivariate BRDF table has non-finite (NaN or infinite) values")
     if np.any(table < 0.0):
         raise InputError(source, f"bivariate BRDF table has negative values (min {table.min():g} 1/sr)")
     return np.ascontiguousarray(table)
@@ -71,7 +72,7 @@ class BivariateBRDF:
     """
 
     def __init__(self, table: Any, provenance: Optional[dict] = None, source: str = "bivariate table"):
-        self.table = _validate_table(table, source)
+        self.table = validate_table(table, source)
         self.provenance = dict(provenance or {})
 
     def __repr__(self) -> str:

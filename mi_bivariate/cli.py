@@ -185,7 +185,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
     ensure_variant(args.variant)
     return demo.run_demo(out_dir=Path(args.out), material=args.material, input_probe=args.input_probe,
-                         novel_probe=args.novel_probe, data_dir=args.data, spp=args.spp, seed=args.seed)
+                         novel_probe=args.novel_probe, data_dir=args.data, spp=args.spp, seed=args.seed,
+                         resolution=args.resolution)
 
 
 # --------------------------------------------------------------------------- evaluate
@@ -210,7 +211,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     formats = ("png", "pdf") if args.pdf else ("png",)
     records = ev.run_evaluation(materials, args.out, config=config, jobs=args.jobs, dask=args.dask,
                                 data_dir=data, progress=not args.no_progress, figures=not args.no_figures,
-                                figure_formats=formats)
+                                figure_formats=formats, threads=args.threads)
     print(ev.format_summary(records))
     if args.abs:
         import json
@@ -298,7 +299,8 @@ def build_parser() -> argparse.ArgumentParser:
                                                     "an analytic material without shared data)")
     p.add_argument("--input-probe", default="grace_latlong_1k", help="probe lighting the input image")
     p.add_argument("--novel-probe", default="pisa_256", help="probe for the validation render")
-    p.add_argument("--spp", type=int, default=256)
+    p.add_argument("--spp", type=int, default=256, help="samples per pixel of every render")
+    p.add_argument("--resolution", type=int, default=256, help="image width and height in pixels")
     p.add_argument("--seed", type=int, default=0)
     _add_variant(p)
     _add_data(p)
@@ -315,6 +317,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="probes of the validation renders (default: the other shared probes)")
     p.add_argument("--jobs", type=int, default=1, help="materials evaluated in parallel worker processes")
     p.add_argument("--dask", default=None, metavar="ADDRESS", help="send the materials to this Dask scheduler")
+    p.add_argument("--threads", type=int, default=None,
+                   help="Dr.Jit threads per job (default: cores // jobs; 1 makes numbers bitwise reproducible)")
     p.add_argument("--quick", action="store_true", help="a few materials at small sizes (seconds each)")
     p.add_argument("--resolution", type=int, default=None, help="render width = height (default 128)")
     p.add_argument("--spp", type=int, default=None, help="samples per pixel of the input render (default 128)")

@@ -39,6 +39,7 @@ import math
 import os
 import re
 import time
+import warnings
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable, Dict, Iterable, Iterator, List, Optional, Sequence, Tuple, Union
@@ -46,7 +47,7 @@ from typing import Any, Callable, Dict, Iterable, Iterator, List, Optional, Sequ
 import numpy as np
 
 from mi_bivariate.atomic import atomic_path
-from mi_bivariate.errors import InputError
+from mi_bivariate.errors import InputError, InputWarning
 
 PathLike = Union[str, os.PathLike]
 
@@ -100,8 +101,8 @@ class EvalConfig:
 
         Without the shared data (``shared_data=False``) the probes are synthetic.
         """
-        base = dict(resolution=48, spp=16, novel_spp=8, n_normals=1000, n_dirs=4000, grid=(16, 16),
-                    baseline_nfev=10, novel_probes=("pisa_256",))
+        base = dict(resolution=48, spp=16, novel_spp=8, n_normals=1000, n_dirs=3000, grid=(12, 12),
+                    baseline_nfev=8, novel_probes=("pisa_256",))
         if not shared_data:
             base.update(input_probes=("synthetic:1", "synthetic:3"), novel_probes=("synthetic:7",))
         base.update(overrides)
@@ -406,8 +407,7 @@ def evaluate_material(task: MaterialTask) -> Tuple[dict, Dict[str, np.ndarray]]:
         t0 = time.perf_counter()
         entry["baselines"] = {}
         for fam, fit in fits.items():
-            entry["baselines"][fam] = {**fit.summary(), "errors": brdf_errors(fit.brdf),
-                                       "errors_bivariate": brdf_errors(fit.table)}
+            entry["baselines"][fam] = {**fit.summary(), "errors": brdf_errors(fit.brdf)}
             arrays[f"baseline__{label}__{fam}"] = fit.table.table
         entry["timings"]["baselines_errors"] = time.perf_counter() - t0
         del rec
@@ -570,38 +570,53 @@ def _blas_threads(n: int) -> Iterator[None]:
                 os.environ[k] = v
 
 
-def _run_tasks(tasks: List[MaterialTask], jobs: int, dask: Any) -> Iterator[Tuple[dict, Dict[str, np.ndarray]]]:
-    """Yield ``(record, arrays)`` as tasks finish (in-process, process pool, or Dask)."""
+def _run_tasks(tasks: List[MaterialTask], jobs: int, dask: Any) -> Iterator[Tuple[MaterialTask, Any]]:
+    """Yield ``(task, (record, arrays))`` or ``(task, exception)`` as tasks finish.
+
+    In-process, in a spawn-context process pool, or on Dask. A task's
+    exception is yielded, not raised, so one bad material does not stop the
+    batch; ``KeyboardInterrupt`` still does.
+    """
     if dask is not None:
         from distributed import Client, as_completed
 
         client = dask if isinstance(dask, Client) else Client(dask)
         try:
-            futures = [client.submit(evaluate_material, t, pure=False, key=f"mi-bivariate-{t.material.slug}-"
-                                     f"{t.config.hash()}") for t in tasks]
-            for fut in as_completed(futures):
-                yield fut.result()
+            futures = {client.submit(evaluate_material, t, pure=False,
+                                     key=f"mi-bivariate-{t.material.slug}-{t.config.hash()}"): t for t in tasks}
+            for fut in as_completed(list(futures)):
+                try:
+                    yield futures[fut], fut.result()
+                except Exception as exc:  # noqa: BLE001 (reported per material)
+                    yield futures[fut], exc
         finally:
             if client is not dask:
                 client.close()
         return
     if jobs <= 1:
         for t in tasks:
-            yield evaluate_material(t)
+            try:
+                result = evaluate_material(t)
+            except Exception as exc:  # noqa: BLE001
+                result = exc
+            yield t, result
         return
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor, as_completed as cf_completed
 
     import mitsuba as mi
 
-    with _blas_threads(tasks[0].threads or 1):
+    with _blas_threads(tasks[0].threads or threads_per_job(jobs)):
         pool = ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("spawn"),
                                    initializer=_init_worker, initargs=(mi.variant(),))
     with pool:
-        futures = [pool.submit(evaluate_material, t) for t in tasks]
+        futures = {pool.submit(evaluate_material, t): t for t in tasks}
         try:
             for fut in cf_completed(futures):
-                yield fut.result()
+                try:
+                    yield futures[fut], fut.result()
+                except Exception as exc:  # noqa: BLE001
+                    yield futures[fut], exc
         except BaseException:
             for fut in futures:
                 fut.cancel()
@@ -612,7 +627,8 @@ def run_evaluation(materials: Sequence[Union[str, MaterialSpec]], out_dir: PathL
                    config: Optional[EvalConfig] = None, jobs: int = 1, dask: Any = None,
                    data_dir: Optional[PathLike] = None, progress: bool = True,
                    figures: bool = True, figure_formats: Sequence[str] = ("png",),
-                   on_record: Optional[Callable[[dict], None]] = None) -> List[dict]:
+                   on_record: Optional[Callable[[dict], None]] = None,
+                   threads: Optional[int] = None) -> List[dict]:
     """Evaluate materials, resuming from ``out_dir/results.jsonl``.
 
     Args:
@@ -625,6 +641,10 @@ def run_evaluation(materials: Sequence[Union[str, MaterialSpec]], out_dir: PathL
         progress: show a tqdm progress bar.
         figures: draw the figures at the end (:func:`make_figures`).
         on_record: called with each new record after it is safely on disk.
+        threads: Dr.Jit threads per job (default: cores // jobs in worker
+            processes; unchanged in-process and on Dask). Numbers are bitwise
+            reproducible only with 1 thread per job: with more, the lighting
+            matrix's parallel scatter-add sums in a varying order (~1e-6 relative).
 
     Returns:
         All records of this configuration, in material order.
@@ -650,35 +670,52 @@ def run_evaluation(materials: Sequence[Union[str, MaterialSpec]], out_dir: PathL
     repair_results(results)
     h = config.hash()
     done = {r["material"] for r in read_records(results, h)}
-    threads = threads_per_job(jobs) if dask is None else None
-    tasks = [MaterialTask(m, config, None if data_dir is None else str(data_dir),
-                          threads if jobs > 1 else None)
+    if threads is None and dask is None and jobs > 1:
+        threads = threads_per_job(jobs)
+    tasks = [MaterialTask(m, config, None if data_dir is None else str(data_dir), threads)
              for m in specs if m.label not in done]
     with atomic_path(out / "config.json") as tmp:
         tmp.write_text(json.dumps({"config_hash": h, **config.to_dict()}, indent=2))
 
+    import drjit as dr
+
+    parent_threads = dr.thread_count()
+    failures: List[Tuple[str, BaseException]] = []
     if tasks:
         from tqdm.auto import tqdm
 
         bar = tqdm(total=len(specs), initial=len(specs) - len(tasks), desc="materials", unit="material",
                    disable=not progress)
         try:
-            for record, arrays in _run_tasks(tasks, jobs, dask):
+            for task, result in _run_tasks(tasks, jobs, dask):
+                bar.update(1)
+                if isinstance(result, BaseException):
+                    # Not a record: a rerun tries this material again.
+                    failures.append((task.material.label, result))
+                    warnings.warn(f"{task.material.label}: evaluation failed: {type(result).__name__}: {result}",
+                                  InputWarning, stacklevel=2)
+                    continue
+                record, arrays = result
                 # Artifacts before the record: a record on disk always has its artifacts.
                 save_artifacts(out / "materials" / f"{record['slug']}.npz", arrays)
                 append_record(results, record)
                 if on_record is not None:
                     on_record(record)
                 bar.set_postfix_str(record["material"][:24])
-                bar.update(1)
         finally:
             bar.close()
+            dr.set_thread_count(parent_threads)      # in-process tasks may have changed it
 
     by_label = {r["material"]: r for r in read_records(results, h)}
     records = [by_label[m.label] for m in specs if m.label in by_label]
     write_summary_csv(records, out / SUMMARY_FILE)
     if figures and records:
         make_figures(out, records, formats=figure_formats)
+    if failures and not records:
+        label, exc = failures[0]
+        if isinstance(exc, InputError):
+            raise exc
+        raise RuntimeError(f"every material failed; first: {label}: {type(exc).__name__}: {exc}") from exc
     return records
 
 

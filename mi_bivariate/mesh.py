@@ -273,7 +273,8 @@ class MeshShape:
     def _is_watertight(self) -> bool:
         import trimesh
 
-        return bool(trimesh.Trimesh(self.vertices, self.faces, process=False).is_watertight)
+        # Merge duplicate vertices first: STL stores every triangle separately.
+        return bool(trimesh.Trimesh(self.vertices, self.faces, process=True).is_watertight)
 
     @classmethod
     def load(cls, source: Union[PathLike, Any], normals: str = "auto") -> "MeshShape":
@@ -308,6 +309,10 @@ class MeshShape:
                 raise InputError(path, f"unknown mesh file type {path.suffix!r}", f"use one of {', '.join(MESH_SUFFIXES)}")
             mesh, name = _trimesh_load(path), str(path)
             stored = _file_vertex_normals(path, len(mesh.vertices))
+            if stored is None:
+                # Nothing to keep in step with the file's vertex order: weld duplicates
+                # (STL repeats every corner) so computed vertex normals are smooth.
+                mesh.merge_vertices()
         if len(mesh.faces) == 0 or len(mesh.vertices) < 3:
             raise InputError(name, "the mesh has no triangles")
         if not np.all(np.isfinite(mesh.vertices)):

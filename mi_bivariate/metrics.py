@@ -216,14 +216,13 @@ class BRDFErrors:
 
     def __call__(self, estimate) -> dict:
         f, f_hat = self.f, self.estimate_at_cells(estimate)
-        cells = np.ones_like(f, bool)
         eq1_cells = f > self.min_value
         return {
             "eq1": relative_rms(f, f_hat, eq1_cells),
             "eq1_rgb": [relative_rms(f[:, c], f_hat[:, c], eq1_cells[:, c]) for c in range(3)],
             "eq1_min": relative_rms(f, f_hat, f > max(self.min_value, 1e-3)),
             "cosine": weighted_relative_l2(f, f_hat, self.weights),
-            "log": log_rms(f, f_hat, cells),
+            "log": log_rms(f, f_hat, np.ones_like(f, bool)),
         }
 
 

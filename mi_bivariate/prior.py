@@ -79,6 +79,13 @@ FORMAT_VERSION = 1
 DEFAULT_GLOSS_THRESHOLD = 30.0
 #: Sigmas are floored at this fraction of their map's median.
 DEFAULT_FLOOR = 1e-2
+#: Sigmas are capped at this multiple of their map's median (None: no cap). Without a cap the
+#: learned maps span ~5 decades (the specular row of glossy materials), leaving weakly
+#: observed nodes effectively unregularised: a rendered Lambertian sphere then came back
+#: with spikes of 100x its albedo there (Eq. 1 error 294); capped at 100 it is 0.6, and
+#: the median Eq. 1 / floor ratio over 10 MERL-NBRDF materials fell from 9.2 to 5.2 at
+#: an unchanged novel-lighting error (benchmarks/tune_alpha.py, docs/results.md).
+DEFAULT_CEILING: Optional[float] = 100.0
 
 PathLike = Union[str, os.PathLike]
 SigmaPair = Tuple[np.ndarray, np.ndarray]
@@ -205,7 +212,8 @@ def _typical(sigma: np.ndarray) -> float:
     return 1.0
 
 
-def _sigma_maps(samples: np.ndarray, floor: float, centred: bool) -> Tuple[SigmaPair, float]:
+def _sigma_maps(samples: np.ndarray, floor: float, centred: bool,
+                ceiling: Optional[float] = None) -> Tuple[SigmaPair, float]:
     """Per-edge derivative spread of ``samples`` -> (padded sigma maps, pair scale)."""
     n_t, n_s = samples.shape[1:]
     d_s = np.diff(samples, axis=2) * (n_s - 1)
@@ -216,6 +224,9 @@ def _sigma_maps(samples: np.ndarray, floor: float, centred: bool) -> Tuple[Sigma
         sig_s, sig_t = np.sqrt(np.mean(d_s**2, axis=0)), np.sqrt(np.mean(d_t**2, axis=0))
     sig_s = np.maximum(sig_s, floor * _typical(sig_s))
     sig_t = np.maximum(sig_t, floor * _typical(sig_t))
+    if ceiling is not None:
+        sig_s = np.minimum(sig_s, ceiling * _typical(sig_s))
+        sig_t = np.minimum(sig_t, ceiling * _typical(sig_t))
     scale = float(np.exp(np.mean(np.log(np.concatenate([sig_s.ravel(), sig_t.ravel()])))))
     return _pad_edges(sig_s / scale, sig_t / scale), scale
 
@@ -278,6 +289,7 @@ class Prior:
               *,
               gloss_threshold: float = DEFAULT_GLOSS_THRESHOLD,
               floor: float = DEFAULT_FLOOR,
+              ceiling: Optional[float] = DEFAULT_CEILING,
               centred: bool = False,
               sources: Optional[Mapping[str, str]] = None) -> "Prior":
         """Learn both pairs from bivariate tables on a common grid.
@@ -288,6 +300,10 @@ class Prior:
             gloss_threshold: a material with :func:`specular_ratio` above this trains
                 the gloss pair, otherwise the diffuse pair.
             floor: relative sigma floor (fraction of the map's median).
+            ceiling: relative sigma cap (multiple of the map's median), or None. A cap keeps
+                every node regularised: where the training set varies wildly (the
+                specular row of glossy materials) an uncapped sigma leaves weakly
+                observed nodes free to absorb noise.
             centred: use the spread about the mean instead of about zero.
             sources: optional ``{name: where it came from}`` for the provenance.
 
@@ -306,7 +322,7 @@ class Prior:
                 raise InputError("prior training set", f"no {pair} materials (specular ratios "
                                  f"{ {n: round(r, 2) for n, r in ratios.items()} }, threshold {gloss_threshold})",
                                  "add materials of both kinds or change gloss_threshold")
-            pairs[pair], scales[pair] = _sigma_maps(samples, floor, centred)
+            pairs[pair], scales[pair] = _sigma_maps(samples, floor, centred, ceiling)
         n_t, n_s = next(iter(named.values())).shape[:2]
         provenance = {
             "kind": "learned",
@@ -322,6 +338,7 @@ class Prior:
             "sigma": ("root mean square about zero" if not centred else "standard deviation about the mean")
                      + " of the forward-difference derivative across (material, channel) samples",
             "floor": f"{floor} x median of each map (mean if the median is 0)",
+            "ceiling": None if ceiling is None else f"{ceiling} x median of each map",
             "pair_scale": scales,
             "pair_scale_note": "each pair divided by its sigmas' geometric mean (stored as pair_scale)",
             "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),

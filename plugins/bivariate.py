@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from mi_bivariate.bivariate import validate_table
 from mi_bivariate.errors import InputError
 
 from ._tabulated import half_vector_profile, luminance, make_tabulated_bsdf_base
@@ -43,18 +44,6 @@ def bitmap_to_array(bitmap: Any, source: str) -> np.ndarray:
     return array
 
 
-def validate_bivariate_table(table: np.ndarray, source: str) -> np.ndarray:
-    """Check a ``(n_t, n_s, 3)`` table (both n >= 2, finite, non-negative); return float32."""
-    table = np.asarray(table, dtype=np.float32)
-    if table.ndim != 3 or table.shape[2] != 3 or table.shape[0] < 2 or table.shape[1] < 2:
-        raise InputError(source, f"a bivariate table must have shape (n_t >= 2, n_s >= 2, 3), got {table.shape}")
-    if not np.all(np.isfinite(table)):
-        raise InputError(source, "bivariate table holds NaN or infinite values")
-    if np.any(table < 0.0):
-        raise InputError(source, f"bivariate table holds negative values (min {table.min():.3g})")
-    return table
-
-
 def load_bivariate_table(props: Any) -> np.ndarray:
     """The ``(n_t, n_s, 3) float32`` table named by a plugin's properties."""
     if "filename" in props:
@@ -62,9 +51,9 @@ def load_bivariate_table(props: Any) -> np.ndarray:
 
         filename = str(props["filename"])
         table = BivariateBRDF.load(filename).table
-        return validate_bivariate_table(table, filename)
+        return validate_table(table, filename)
     if "table" in props:
-        return validate_bivariate_table(bitmap_to_array(props["table"], "bivariate table"), "bivariate table")
+        return validate_table(bitmap_to_array(props["table"], "bivariate table"), "bivariate table")
     raise InputError("bivariate", "the BSDF needs a 'filename' (.npz) or a 'table' (mi.Bitmap) property")
 
 

@@ -1,0 +1,173 @@
+"""Batch evaluation: quick mode end to end, resume after a kill, worker processes, Dask, baselines."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mi_bivariate import analytic, baselines, metrics
+from mi_bivariate.bivariate import BivariateBRDF
+from mi_bivariate import evaluate as ev
+from mi_bivariate.cli import main
+
+# Tiny protocol for the mechanics tests (one input probe, no baselines): seconds per material.
+MATERIALS = ["lambertian:albedo=0.5,0.3,0.2", "ggx:diffuse=0.2,specular=0.5,alpha=0.2",
+             "oren-nayar:albedo=0.6,sigma=0.3"]
+TINY_ARGS = ["--input-probes", "synthetic:1", "--novel-probes", "synthetic:7", "--resolution", "32",
+             "--spp", "8", "--novel-spp", "4", "--normals", "300", "--dirs", "1000", "--grid", "8", "8",
+             "--baselines", "--no-figures", "--no-progress"]
+TINY = ev.EvalConfig(input_probes=("synthetic:1",), novel_probes=("synthetic:7",), resolution=32, spp=8,
+                     novel_spp=4, n_normals=300, n_dirs=1000, grid=(8, 8), baselines=())
+
+
+def _numbers(record: dict) -> dict:
+    """A record without its timings (what must reproduce exactly)."""
+    r = json.loads(json.dumps(record))
+    r.pop("timings", None)
+    r.pop("threads", None)
+    for e in r["inputs"].values():
+        e.pop("timings", None)
+        for b in e.get("baselines", {}).values():
+            b.pop("time_s", None)
+    return r
+
+
+def test_quick_end_to_end(tmp_path, capsys):
+    out = tmp_path / "quick"
+    assert main(["evaluate", "--quick", "--out", str(out), "--no-progress"]) == 0
+    records = [json.loads(line) for line in (out / "results.jsonl").read_text().splitlines()]
+    assert len(records) == 2
+    for r in records:
+        assert set(r["inputs"]) == set(ev.probe_label(p) for p in ev.EvalConfig.quick(
+            shared_data=ev.have_shared_data()).input_probes)
+        floor = r["floor"]
+        for e in r["inputs"].values():
+            for key in ("eq1", "eq1_min", "cosine", "log"):
+                assert np.isfinite(e["recovered"][key]) and e["recovered"][key] >= 0
+                assert np.isfinite(e["baselines"]["ggx"]["errors"][key])
+            assert 0 < e["images"][next(iter(e["images"]))]["rel_rmse"] < 10
+            assert e["adequacy"]["rank_fraction"] > 0
+        art = ev.load_artifacts(out / "materials" / f"{r['slug']}.npz")
+        assert art["floor"].shape == (12, 12, 3) and art["mask"].dtype == bool
+        # The saved tables reproduce the recorded errors (figures are drawn from them).
+        errors = metrics.BRDFErrors(ev.load_truth(ev.MaterialSpec(r["material"], r["kind"], r["spec"])))
+        assert errors(BivariateBRDF(art["floor"]))["log"] == pytest.approx(floor["log"], rel=1e-6)
+        probe = next(iter(r["inputs"]))
+        assert errors(BivariateBRDF(art[f"recovered__{probe}"]))["eq1"] == pytest.approx(
+            r["inputs"][probe]["recovered"]["eq1"], rel=1e-6)
+    csv_lines = (out / "summary.csv").read_text().splitlines()
+    assert len(csv_lines) == 1 + 2 * len(records)
+    figures = sorted(p.name for p in (out / "figures").glob("*.png"))
+    assert {"fig3_reduction.png", "fig5_validation.png", "fig6_errors.png", "fig6_incident.png",
+            "fig7_environment.png", "tables.png", "baselines.png"} <= set(figures)
+    assert "materials" in capsys.readouterr().out
+
+
+@pytest.fixture(scope="module")
+def resumed(tmp_path_factory):
+    """Kill a CLI run after its first material, cut its last line, resume in-process."""
+    out = tmp_path_factory.mktemp("resume")
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    cmd = [sys.executable, "-m", "mi_bivariate.cli", "evaluate", *MATERIALS, "--out", str(out), *TINY_ARGS]
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    results = out / "results.jsonl"
+    deadline = time.monotonic() + 90
+    try:
+        while time.monotonic() < deadline and proc.poll() is None:
+            if results.is_file() and results.read_text().count("\n") >= 1:
+                break
+            time.sleep(0.05)
+    finally:
+        proc.kill()                                       # SIGKILL mid-run: no cleanup at all
+        proc.wait()
+    first = results.read_text().splitlines()
+    finished = [json.loads(line)["material"] for line in first]
+    stamps = {m: (out / "materials" / f"{ev.MaterialSpec(m, '', '').slug}.npz").stat().st_mtime_ns
+              for m in finished}
+    with open(results, "a") as f:                         # a last line cut mid-write
+        f.write('{"material": "cut-off", "config_ha')
+    new = []
+    records = ev.run_evaluation(MATERIALS, out, config=TINY, progress=False, figures=False,
+                                on_record=lambda r: new.append(r["material"]))
+    return {"out": out, "first": first, "finished": finished, "stamps": stamps, "new": new, "records": records}
+
+
+def test_resume_after_kill_and_truncation(resumed):
+    out, first, finished, records = resumed["out"], resumed["first"], resumed["finished"], resumed["records"]
+    assert 1 <= len(first) < len(MATERIALS), "the run must be interrupted after its first material"
+    assert sorted(resumed["new"]) == sorted(set(r["material"] for r in records) - set(finished))  # none redone
+    assert len(records) == len(MATERIALS)                                                         # none lost
+    lines = (out / "results.jsonl").read_text().splitlines()
+    assert lines[:len(first)] == first                                      # finished ones kept verbatim
+    assert all(json.loads(line) for line in lines) and len(lines) == len(MATERIALS)
+    for m, stamp in resumed["stamps"].items():
+        assert (out / "materials" / f"{ev.MaterialSpec(m, '', '').slug}.npz").stat().st_mtime_ns == stamp
+    # A rerun with everything done computes nothing; another config has another hash.
+    again = []
+    ev.run_evaluation(MATERIALS, out, config=TINY, progress=False, figures=False, on_record=again.append)
+    assert again == []
+    assert ev.EvalConfig(**{**TINY.to_dict(), "seed": 1, "grid": (8, 8)}).hash() != TINY.hash()
+
+
+def _close(a, b, rtol: float) -> bool:
+    if isinstance(a, dict):
+        return a.keys() == b.keys() and all(_close(a[k], b[k], rtol) for k in a)
+    if isinstance(a, list):
+        return len(a) == len(b) and all(_close(x, y, rtol) for x, y in zip(a, b))
+    if isinstance(a, float):
+        return a == b or abs(a - b) <= rtol * max(abs(a), abs(b))
+    return a == b
+
+
+def test_jobs_and_dask_reproduce_in_process(resumed, tmp_path):
+    # Worker processes (spawn, 1 Dr.Jit thread each) and in-process with 1 thread: identical numbers.
+    pooled = ev.run_evaluation(MATERIALS[:2], tmp_path / "pooled", config=TINY, jobs=2, progress=False,
+                               figures=False)
+    assert all(r["threads"] == ev.threads_per_job(2) for r in pooled)
+    serial = ev.run_evaluation(MATERIALS[:2], tmp_path / "serial", config=TINY, threads=pooled[0]["threads"],
+                               progress=False, figures=False)
+    assert [_numbers(r) for r in serial] == [_numbers(r) for r in pooled]
+    # Dask (in-process worker) and the resumed 2-thread run: the same up to the float32
+    # summation order of the lighting matrix.
+    distributed = pytest.importorskip("distributed")
+    with distributed.LocalCluster(n_workers=1, processes=False, threads_per_worker=1,
+                                  dashboard_address=None) as cluster, distributed.Client(cluster) as client:
+        dasked = ev.run_evaluation(MATERIALS[:1], tmp_path / "dask", config=TINY, dask=client, progress=False,
+                                   figures=False)
+    resumed_by = {r["material"]: r for r in resumed["records"]}
+    for r in dasked + serial:
+        assert _close(_numbers(r), _numbers(resumed_by[r["material"]]), rtol=1e-4)
+
+
+def test_baseline_fit_recovers_its_own_model():
+    # Data made by the model itself through a random lighting matrix: the fit must find it.
+    truth = analytic.CookTorranceGGX([0.3, 0.2, 0.1], [0.05, 0.06, 0.07], alpha=0.15, ior=1.7)
+    averager = baselines.PhiAverager(12, 12)
+    rng = np.random.default_rng(0)
+    L = (rng.random((1500, 144, 3)) * (rng.random((1500, 144, 1)) < 0.1)).astype(np.float32)
+    I = np.einsum("mnc,nc->mc", L, averager.average(truth).reshape(-1, 3))
+    fit = baselines.fit_baseline("ggx", L, I, grid=(12, 12), averager=averager)
+    assert fit.relative_residual < 1e-3
+    assert fit.params["alpha"] == pytest.approx(0.15, rel=0.02)
+    assert np.asarray(fit.params["kd"]) == pytest.approx([0.3, 0.2, 0.1], rel=0.05)
+
+
+def test_phi_averager_matches_reduce():
+    from mi_bivariate.bivariate import BivariateBRDF
+
+    model = baselines.WardIsotropic([0.2, 0.1, 0.1], 0.3, alpha=0.2)
+    table = baselines.PhiAverager(10, 12, n_phi=30).average(model)
+    np.testing.assert_allclose(table, BivariateBRDF.reduce(model, n_t=10, n_s=12, n_phi=30).table, rtol=1e-5)
+
+
+def test_bad_material_is_one_line_error(tmp_path, capsys):
+    assert main(["evaluate", "no-such-material", "--out", str(tmp_path), *TINY_ARGS]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("mi-bivariate: error: no-such-material") and len(err.strip().splitlines()) == 1

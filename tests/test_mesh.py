@@ -1,0 +1,205 @@
+"""Known meshes: loading, ray-cast normals, and visibility in the lighting matrix."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+import trimesh
+
+from mi_bivariate import lighting, mesh, metrics, solve
+from mi_bivariate.analytic import BivariateLobe, CookTorranceGGX
+from mi_bivariate.bivariate import BivariateBRDF
+from mi_bivariate.errors import InputError, InputWarning
+from mi_bivariate.geometry import PerspectiveSphereGeometry, SphereGeometry
+from mi_bivariate.merl import MERLBRDF
+from mi_bivariate.probes import Probe
+from mi_bivariate.render import bsdf_dict
+
+
+def sky_probe(yaw_deg: float = 0.0, n_lights: int = 2) -> Probe:
+    """A smooth sky with soft suns (64 x 128): strong directional light, cheap to integrate.
+
+    ``n_lights`` > 2 adds smaller lamps spread over the sphere (seeded), so
+    that the specular peak is observed from many normals.
+    """
+    h, w = 64, 128
+    theta = (np.arange(h) + 0.5)[:, None] / h * np.pi
+    phi = (np.arange(w) + 0.5)[None, :] / w * 2 * np.pi
+    d = np.stack(np.broadcast_arrays(np.sin(theta) * np.cos(phi), np.cos(theta) + 0 * phi,
+                                     np.sin(theta) * np.sin(phi)), axis=-1)
+    sky = np.clip(0.25 + 0.25 * d[..., 1:2], 0.05, None) * np.array([0.8, 0.9, 1.0])
+    lights = [((0.5, 0.7, 0.5), 60.0, (1.0, 0.9, 0.7)), ((-0.8, 0.2, -0.3), 20.0, (0.6, 0.7, 1.0))]
+    rng = np.random.default_rng(7)
+    for _ in range(max(0, n_lights - 2)):
+        lights.append((rng.normal(size=3), rng.uniform(5.0, 20.0), rng.uniform(0.5, 1.0, 3)))
+    for direction, power, colour in lights:
+        u = np.asarray(direction, float) / np.linalg.norm(direction)
+        sky = sky + power * np.exp(-(1.0 - d @ u) / 0.01)[..., None] * np.asarray(colour)
+    probe = Probe(sky.astype(np.float32), source="sky")
+    return probe.rotated(euler_deg=(0, yaw_deg, 0)) if yaw_deg else probe
+
+
+@pytest.fixture(scope="module")
+def torus_view():
+    shape = mesh.MeshShape.load(trimesh.creation.torus(1.0, 0.45, major_sections=96, minor_sections=48),
+                                normals="vertex")
+    return mesh.MeshView(shape, mesh.Camera.look_at((0.0, 3.2, 3.2), (0, 0, 0), width=96, fov_deg=40))
+
+
+def test_formats_normals_and_warnings(tmp_path):
+    torus = trimesh.creation.torus(1.0, 0.4, major_sections=32, minor_sections=16)
+    _ = torus.vertex_normals  # cached: exported with the mesh
+    for ext in ("obj", "ply", "glb"):
+        path = tmp_path / f"torus.{ext}"
+        torus.export(path)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", InputWarning)
+            shape = mesh.MeshShape.load(path)
+        assert shape.vertex_normals is not None and shape.watertight, ext
+        assert len(shape.faces) == len(torus.faces)
+    # STL has no vertex normals: flat shading, with a warning naming the file.
+    stl = tmp_path / "torus.stl"
+    torus.export(stl)
+    with pytest.warns(InputWarning, match="torus.stl.*no vertex normals"):
+        shape = mesh.MeshShape.load(stl)
+    assert shape.vertex_normals is None
+    smooth = mesh.MeshShape.load(stl, normals="vertex")
+    assert smooth.watertight and len(smooth.vertices) == len(torus.vertices)
+    # An open surface: visibility can leak, said so.
+    open_mesh = trimesh.Trimesh(torus.vertices, torus.faces[10:], process=False)
+    open_mesh.export(tmp_path / "open.ply")
+    with pytest.warns(InputWarning, match="open.ply.*not watertight"):
+        mesh.MeshShape.load(tmp_path / "open.ply", normals="vertex")
+    # Foreign, missing and empty files: one-line InputErrors naming the file.
+    (tmp_path / "junk.obj").write_bytes(b"\x00\xff garbage \x00" * 10)
+    with pytest.raises(InputError, match="junk.obj"):
+        mesh.MeshShape.load(tmp_path / "junk.obj")
+    with pytest.raises(InputError, match="missing.ply.*not found"):
+        mesh.MeshShape.load(tmp_path / "missing.ply")
+    with pytest.raises(InputError, match="unknown mesh file type"):
+        (tmp_path / "x.txt").write_text("v 0 0 0\n")
+        mesh.MeshShape.load(tmp_path / "x.txt")
+    with pytest.raises(InputError):
+        mesh.MeshShape(np.zeros((3, 3)), np.array([[0, 1, 5]]))
+
+
+def test_ray_cast_normals_match_the_analytic_sphere():
+    """Mitsuba ray casts on a fine icosphere reproduce geometry.py's closed-form normals and views."""
+    shape = mesh.MeshShape.load(trimesh.creation.icosphere(subdivisions=5), normals="vertex")
+    cam = mesh.Camera.look_at((0, 0, 4.0), (0, 0, 0), width=80, fov_deg=35)
+    maps = mesh.surface_maps(shape, cam)
+    n, v, full = PerspectiveSphereGeometry(cam.intrinsics, np.array([0, 0, -4.0])).normals_and_views(80, 80, "full")
+    assert np.count_nonzero(full ^ maps.mask) <= 4  # only tessellation-edge pixels may differ
+    both = full & maps.mask
+    assert np.degrees(np.arccos(np.clip(np.sum(n[both] * maps.normals[both], -1), -1, 1))).max() < 0.3
+    assert np.abs(v[both] - maps.views[both]).max() < 1e-5
+    # Orthographic camera, rotated pose: normals in the world frame, views constant.
+    rot = np.linalg.qr(np.random.default_rng(1).normal(size=(3, 3)))[0]
+    rot *= np.sign(np.linalg.det(rot))
+    cam = mesh.Camera(80, 80, (30.0, 30.0, 40.0, 40.0), rot, rot @ [0, 0, 5.0], orthographic=True)
+    maps = mesh.surface_maps(shape, cam)
+    n, centre = SphereGeometry(40.0, 40.0, 30.0, rot).normals(80, 80)
+    both = centre & maps.mask
+    assert both.sum() > 0.9 * centre.sum()
+    assert np.degrees(np.arccos(np.clip(np.sum(n[both] * maps.normals[both], -1), -1, 1))).max() < 0.3
+    assert np.allclose(maps.views[both], rot[:, 2], atol=1e-6)
+    with pytest.raises(InputError, match="sees no part"):
+        mesh.surface_maps(shape, mesh.Camera.look_at((0, 0, 4.0), (0, 0, 8.0), width=16))
+
+
+def test_visibility_kernel_matches_a_reference(torus_view):
+    """L @ f with shadow rays equals an independent sum over the same directions, each
+    tested with its own Mitsuba ray and f evaluated by the BRDF class."""
+    from mi_bivariate.coordinates import half_diff_from_dirs
+
+    probe = sky_probe()
+    image = np.ones((96, 96, 3), np.float32)
+    obs = torus_view.observations(image, n_normals=600, seed=2)
+    rows = np.arange(0, len(obs), len(obs) // 12)
+    sub = obs.subset(rows)
+    brdf = BivariateBRDF.reduce(BivariateLobe(diffuse=0.3, specular=3.0, width=0.2))
+    k = 2000
+    L = lighting.lighting_matrix(sub, probe, n_dirs=k, occluder=torus_view.shape, seed=3)
+    predicted = np.einsum("mnc,nc->mc", L, brdf.table.reshape(-1, 3))
+
+    import mitsuba as mi
+
+    dirs, cos_u = lighting.light_directions(sub.normals, sub.views, k, lighting.hemisphere_offsets(len(sub), 3))
+    m, kk = cos_u.shape
+    o = np.repeat(sub.positions, kk, axis=0)
+    g = np.repeat(sub.geometric_normals, kk, axis=0)
+    d = dirs.reshape(-1, 3)
+    # Offset as Mitsuba's spawn_ray: along the geometric normal, towards the direction's side.
+    eps = (1.0 + np.abs(o).max(axis=1, keepdims=True)) * mi.math.RayEpsilon
+    o = o + g * np.where(np.sum(g * d, axis=1, keepdims=True) >= 0, eps, -eps)
+    blocked = np.array(torus_view.shape.scene().ray_test(mi.Ray3f(mi.Point3f(o.T), mi.Vector3f(d.T))))
+    radiance = probe.eval(d).reshape(m, kk, 3)
+    frame_n = sub.normals
+    tx = np.cross(np.where(np.abs(frame_n[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]]), frame_n)
+    tx /= np.linalg.norm(tx, axis=1, keepdims=True)
+    frame = np.stack([tx, np.cross(frame_n, tx), frame_n], axis=1)
+    wi = np.einsum("mij,mkj->mki", frame, dirs)
+    wo = np.broadcast_to(np.einsum("mij,mj->mi", frame, sub.views)[:, None, :], wi.shape)
+    theta_h, _, theta_d, _ = half_diff_from_dirs(wi, wo)
+    f = brdf.eval(theta_h, theta_d)
+    lit = ~blocked.reshape(m, kk)
+    reference = np.sum(radiance * f * (cos_u * lit * 2 * np.pi / kk)[..., None], axis=1)
+    assert 0.05 < 1 - lit.mean() < 0.9  # the rows are partly shadowed: the test means something
+    assert np.allclose(predicted, reference, rtol=2e-3, atol=1e-4 * reference.max())
+
+
+def test_model_agreement_with_self_shadowing(torus_view):
+    """A Mitsuba render of the bivariate plugin on the torus (max_depth 2) matches L @ f
+    with visibility; without it the model is clearly off (and too bright)."""
+    probe = sky_probe()
+    table = BivariateBRDF.reduce(BivariateLobe(diffuse=0.3, specular=1.5, width=0.3))
+    image = mesh.render_mesh(bsdf_dict(table), probe, torus_view, spp=256, seed=1)
+    obs = torus_view.observations(image, n_normals=1500)
+    predicted = {}
+    for vis in (True, False):
+        L = lighting.lighting_matrix(obs, probe, n_dirs=8000, occluder=torus_view.shape if vis else None)
+        predicted[vis] = np.einsum("mnc,nc->mc", L, table.table.reshape(-1, 3))
+    ratio = {vis: obs.values.sum() / p.sum() for vis, p in predicted.items()}
+    assert abs(ratio[True] - 1) < 0.02, ratio
+    assert ratio[False] < 0.97, ratio
+    # On the rows the torus shadows noticeably, only the model with visibility agrees.
+    shadowed = predicted[False].sum(1) > 1.1 * predicted[True].sum(1)
+    assert shadowed.sum() > 0.1 * len(obs)
+
+    def error(p: np.ndarray, rows: np.ndarray) -> float:
+        return float(np.sqrt(np.mean((p[rows] - obs.values[rows]) ** 2)) / np.sqrt(np.mean(obs.values[rows] ** 2)))
+
+    every = np.ones(len(obs), bool)
+    assert error(predicted[True], every) < 0.08
+    assert error(predicted[True], shadowed) < 0.4 * error(predicted[False], shadowed), \
+        (error(predicted[True], shadowed), error(predicted[False], shadowed))
+
+
+def test_recovery_with_visibility_beats_without(torus_view):
+    """A non-convex shape: recovery with shadow rays has lower Eq. 1, BRDF and novel-probe errors.
+
+    Measured here: Eq. 1 0.56 vs 0.78, cosine-weighted 0.42 vs 0.84, novel-probe
+    image 0.019 vs 0.26. (Eq. 1 is fragile: at 128 spp the weakly observed
+    theta_h = 0 row of the visibility solve overshoots 100x and Eq. 1 reads 22;
+    see the report. The image error improves either way.)"""
+    probe, novel = sky_probe(n_lights=12), sky_probe(yaw_deg=140.0)
+    brdf = CookTorranceGGX(albedo_diffuse=(0.35, 0.25, 0.15), specular=0.6, alpha=0.2)
+    truth = MERLBRDF.from_function(brdf.eval, name="ggx", dtype=np.float32)
+    truth_bsdf = bsdf_dict(truth)
+    image = mesh.render_mesh(truth_bsdf, probe, torus_view, spp=256, seed=1)
+    reference = mesh.render_mesh(truth_bsdf, novel, torus_view, spp=128, seed=7)
+    obs = torus_view.observations(image, n_normals=1500)
+    result = {}
+    for vis in (True, False):
+        L = lighting.lighting_matrix(obs, probe, n_dirs=8000, occluder=torus_view.shape if vis else None)
+        estimate = BivariateBRDF(solve.solve(L, obs.values).table)
+        e = metrics.brdf_errors(truth, estimate)
+        render = mesh.render_mesh(bsdf_dict(estimate), novel, torus_view, spp=128, seed=7)
+        result[vis] = (e["eq1"], e["cosine"], metrics.image_relative_rmse(render, reference, torus_view.surface().mask))
+    with_vis, without = result[True], result[False]
+    assert with_vis[0] < without[0], result
+    assert with_vis[1] < 0.8 * without[1], result
+    assert with_vis[2] < 0.6 * without[2], result
+    assert with_vis[2] < 0.1, result
