@@ -116,8 +116,21 @@ class EvalConfig:
 
     def hash(self) -> str:
         """16 hex digits of SHA-256 over the canonical JSON of the config and protocol version."""
-        text = json.dumps({"protocol": PROTOCOL_VERSION, **self.to_dict()}, sort_keys=True)
+        text = json.dumps({"protocol": PROTOCOL_VERSION, "solver": _solver_identity(), **self.to_dict()},
+                          sort_keys=True)
         return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def _solver_identity() -> dict:
+    """What else decides the numbers: the packaged prior's bytes and the default alpha.
+
+    A finished material is only reused on resume when these are unchanged, so a
+    re-learnt prior or a re-tuned alpha never mixes with old results.
+    """
+    from mi_bivariate import prior, solve
+
+    digest = hashlib.sha256(Path(prior.DEFAULT_PRIOR_PATH).read_bytes()).hexdigest()[:16]
+    return {"default_prior_sha256": digest, "default_alpha": solve.DEFAULT_ALPHA}
 
 
 # ------------------------------------------------------------------ materials
