@@ -19,7 +19,7 @@ appended, flushed and fsynced by the parent process only, so an interrupted
 run loses nothing that finished; a rerun skips the materials already there
 with the same configuration hash (:meth:`EvalConfig.hash`) and tolerates a
 truncated last line. Small per-material artifacts (tables, float16 renders,
-incident-plane curves of the truth) go to ``materials/<slug>.npz`` so that
+incident-plane curves of the truth) go to ``materials/<config hash>/<slug>.npz`` so that
 :func:`make_figures` needs no recomputation. ``summary.csv`` is written
 (atomically) at the end.
 
@@ -504,6 +504,16 @@ def save_artifacts(path: PathLike, arrays: Dict[str, np.ndarray]) -> None:
             np.savez_compressed(f, **arrays)
 
 
+def artifact_path(out_dir: PathLike, record_or_slug: Union[dict, str], config_hash: Optional[str] = None) -> Path:
+    """``out_dir/materials/<config hash>/<slug>.npz``: one folder per configuration, so a
+    rerun with another configuration never overwrites the artifacts of recorded results."""
+    if isinstance(record_or_slug, dict):
+        slug, config_hash = record_or_slug["slug"], record_or_slug["config_hash"]
+    else:
+        slug = record_or_slug
+    return Path(out_dir) / "materials" / str(config_hash) / f"{slug}.npz"
+
+
 def load_artifacts(path: PathLike) -> Dict[str, np.ndarray]:
     """Read a material's artifacts (all arrays into memory)."""
     with np.load(path, allow_pickle=False) as npz:
@@ -678,7 +688,7 @@ def run_evaluation(materials: Sequence[Union[str, MaterialSpec]], out_dir: PathL
     for p in tuple(config.input_probes) + tuple(config.novel_probes):
         load_probe(p, data_dir)
     out = Path(out_dir)
-    (out / "materials").mkdir(parents=True, exist_ok=True)
+    (out / "materials" / config.hash()).mkdir(parents=True, exist_ok=True)
     results = out / RESULTS_FILE
     repair_results(results)
     h = config.hash()
@@ -710,7 +720,7 @@ def run_evaluation(materials: Sequence[Union[str, MaterialSpec]], out_dir: PathL
                     continue
                 record, arrays = result
                 # Artifacts before the record: a record on disk always has its artifacts.
-                save_artifacts(out / "materials" / f"{record['slug']}.npz", arrays)
+                save_artifacts(artifact_path(out, record), arrays)
                 append_record(results, record)
                 if on_record is not None:
                     on_record(record)
@@ -753,7 +763,7 @@ def make_figures(out_dir: PathLike, records: Optional[Sequence[dict]] = None,
     if not records:
         return []
     fig_dir = Path(fig_dir) if fig_dir is not None else out / "figures"
-    arts = {r["material"]: load_artifacts(out / "materials" / f"{r['slug']}.npz") for r in records}
+    arts = {r["material"]: load_artifacts(artifact_path(out, r)) for r in records}
     written: List[Path] = []
 
     def save(fig: Any, stem: str) -> None:

@@ -54,7 +54,7 @@ def test_quick_end_to_end(tmp_path, capsys):
                 assert np.isfinite(e["baselines"]["ggx"]["errors"][key])
             assert 0 < e["images"][next(iter(e["images"]))]["rel_rmse"] < 10
             assert e["adequacy"]["rank_fraction"] > 0
-        art = ev.load_artifacts(out / "materials" / f"{r['slug']}.npz")
+        art = ev.load_artifacts(ev.artifact_path(out, r))
         assert art["floor"].shape == (12, 12, 3) and art["mask"].dtype == bool
         # The saved tables reproduce the recorded errors (figures are drawn from them).
         errors = metrics.BRDFErrors(ev.load_truth(ev.MaterialSpec(r["material"], r["kind"], r["spec"])))
@@ -89,7 +89,7 @@ def resumed(tmp_path_factory):
         proc.wait()
     first = results.read_text().splitlines()
     finished = [json.loads(line)["material"] for line in first]
-    stamps = {m: (out / "materials" / f"{ev.MaterialSpec(m, '', '').slug}.npz").stat().st_mtime_ns
+    stamps = {m: ev.artifact_path(out, ev.MaterialSpec(m, "", "").slug, TINY.hash()).stat().st_mtime_ns
               for m in finished}
     with open(results, "a") as f:                         # a last line cut mid-write
         f.write('{"material": "cut-off", "config_ha')
@@ -108,7 +108,7 @@ def test_resume_after_kill_and_truncation(resumed):
     assert lines[:len(first)] == first                                      # finished ones kept verbatim
     assert all(json.loads(line) for line in lines) and len(lines) == len(MATERIALS)
     for m, stamp in resumed["stamps"].items():
-        assert (out / "materials" / f"{ev.MaterialSpec(m, '', '').slug}.npz").stat().st_mtime_ns == stamp
+        assert ev.artifact_path(out, ev.MaterialSpec(m, "", "").slug, TINY.hash()).stat().st_mtime_ns == stamp
     # A rerun with everything done computes nothing; another config has another hash.
     again = []
     ev.run_evaluation(MATERIALS, out, config=TINY, progress=False, figures=False, on_record=again.append)
