@@ -801,9 +801,10 @@ def analysis_by_synthesis(material: Union[str, MaterialSpec], input_probe: str =
     ``log f`` (positivity); the loss is the mean squared pixel error over the
     sphere relative to the image's mean square. Every ``eval_every``
     iterations the BRDF errors against the 3D truth are measured (the clock
-    is paused meanwhile). It stops when Eq. 1 reaches the linear method's
-    (``reached``) or after ``time_factor`` x the linear method's time
-    (lighting matrix + adequacy + solve).
+    is paused meanwhile). It records when Eq. 1 and the log-space error first
+    reach the linear method's, and stops when both have or after
+    ``time_factor`` x the linear method's time (observations + lighting
+    matrix + adequacy + solve).
 
     Returns:
         A JSON-friendly dict with both methods' times and errors and the trace.
@@ -848,7 +849,7 @@ def analysis_by_synthesis(material: Union[str, MaterialSpec], input_probe: str =
     opt["log_table"] = mi.TensorXf(np.log(np.ascontiguousarray(start)))
     trace = []
     clock = 0.0
-    reached_at = None
+    reached_at = reached_log_at = None
     it = 0
     while it < max_iterations:
         t0 = time.perf_counter()
@@ -857,26 +858,33 @@ def analysis_by_synthesis(material: Union[str, MaterialSpec], input_probe: str =
         image = mi.render(scene, params, spp=spp, seed=1000 + it)
         loss = dr.sum((image - reference) ** 2 * mask) / (n_mask * norm)
         dr.backward(loss)
+        # Paths through degenerate configurations can give NaN gradients; drop them rather
+        # than let one poison the table.
+        grad = dr.grad(opt["log_table"])
+        dr.set_grad(opt["log_table"], dr.select(dr.isfinite(grad), grad, 0.0))
         opt.step()
+        opt["log_table"] = dr.clip(opt["log_table"], -14.0, 9.0)     # f in [1e-6, 8e3] 1/sr
         dr.eval(opt["log_table"])
         clock += time.perf_counter() - t0
         it += 1
         if it % eval_every == 0 or clock >= time_factor * linear_s:
-            table = np.exp(np.asarray(opt["log_table"].numpy(), np.float64))
+            table = np.nan_to_num(np.exp(np.asarray(opt["log_table"].numpy(), np.float64)), nan=0.0)
             errors = brdf_errors(BivariateBRDF(np.maximum(table, 0.0)))
             trace.append({"iteration": it, "time_s": clock, "loss": float(loss.array[0]),
                           "eq1": errors["eq1"], "eq1_min": errors["eq1_min"], "log": errors["log"],
                           "cosine": errors["cosine"]})
             if reached_at is None and errors["eq1"] <= target:
                 reached_at = clock
-                break
-            if clock >= time_factor * linear_s:
+            if reached_log_at is None and errors["log"] <= linear_errors["log"]:
+                reached_log_at = clock
+            if (reached_at is not None and reached_log_at is not None) or clock >= time_factor * linear_s:
                 break
     last = trace[-1] if trace else {}
     return {"material": spec.label, "input_probe": probe_label(input_probe), "config_hash": config.hash(),
             "linear": {"time_s": linear_s, **{k: v for k, v in linear_errors.items() if k != "eq1_rgb"}},
             "abs": {"iterations": it, "time_s": clock, "spp": spp, "learning_rate": learning_rate,
                     "reached_linear_eq1": reached_at is not None, "time_to_linear_eq1_s": reached_at,
+                    "reached_linear_log": reached_log_at is not None, "time_to_linear_log_s": reached_log_at,
                     "final": {k: last.get(k) for k in ("eq1", "eq1_min", "log", "cosine")}},
             "trace": trace}
 
