@@ -43,16 +43,13 @@ def timed(fn: Callable[[], object], repeats: int) -> float:
 
 
 def load_probe():
+    from mi_bivariate.demo import synthetic_environment
     from mi_bivariate.probes import Probe, shared_probe
 
     try:
         return shared_probe("grace_256"), "grace_256 (shared data)"
-    except Exception:
-        h, w = 128, 256
-        y, x = np.mgrid[0:h, 0:w]
-        data = np.stack([0.3 + 0.7 * (1 - y / h), 0.4 + 0.3 * x / w, 0.5 + 0.0 * x], -1).astype(np.float32)
-        data[20:26, 60:66] = 200.0
-        return Probe(data, source="synthetic"), "synthetic sky + sun (no shared data)"
+    except Exception:  # no shared data: the demo's procedural environment
+        return Probe(synthetic_environment(seed=1), source="synthetic"), "synthetic environment (no shared data)"
 
 
 def glossy_material():

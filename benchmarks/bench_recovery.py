@@ -38,16 +38,13 @@ def peak_rss_mb() -> float:
 
 
 def load_probe():
+    from mi_bivariate.demo import synthetic_environment
     from mi_bivariate.probes import Probe, shared_probe
 
     try:
         return shared_probe("grace_latlong_1k"), "grace_latlong_1k (1024 x 512)"
-    except Exception:
-        h, w = 512, 1024
-        y, x = np.mgrid[0:h, 0:w]
-        data = np.stack([0.3 + 0.7 * (1 - y / h), 0.4 + 0.3 * x / w, 0.5 + 0.0 * x], -1).astype(np.float32)
-        data[100:110, 300:310] = 500.0
-        return Probe(data, source="synthetic"), "synthetic sky + sun (no shared data)"
+    except Exception:  # no shared data: the demo's procedural environment
+        return Probe(synthetic_environment(seed=1), source="synthetic"), "synthetic environment (no shared data)"
 
 
 def sphere_observations(n: int):
