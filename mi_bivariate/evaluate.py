@@ -163,15 +163,13 @@ def resolve_materials(items: Sequence[str], data_dir: Optional[PathLike] = None)
         InputError: an item that is none of these, or an empty folder.
     """
     from mi_bivariate import analytic, nbrdf
+    from mi_bivariate.merl import merl_files_in
 
     out: List[MaterialSpec] = []
     for item in items:
         path = Path(item)
         if path.is_dir():
-            files = sorted(path.glob("*.binary"))
-            if not files:
-                raise InputError(path, "folder has no MERL .binary files")
-            out += [MaterialSpec(f.stem, "merl", str(f)) for f in files]
+            out += [MaterialSpec(f.stem, "merl", str(f)) for f in merl_files_in(path)]
         elif path.suffix == ".binary":
             if not path.is_file():
                 raise InputError(path, "MERL file not found")

@@ -21,7 +21,7 @@ import functools
 import math
 import os
 from pathlib import Path
-from typing import Callable, Tuple, Union
+from typing import Callable, List, Tuple, Union
 
 import numpy as np
 
@@ -264,3 +264,16 @@ class MERLBRDF:
         ensure_variant()
         img = np.asarray(self.table, np.float32).reshape(MERL_SHAPE[0] * MERL_SHAPE[1], MERL_SHAPE[2], 3)
         return mi.Bitmap(np.ascontiguousarray(img))
+
+
+def merl_files_in(folder: Union[str, os.PathLike]) -> List[Path]:
+    """The MERL ``.binary`` files of a folder, sorted by name.
+
+    Raises:
+        InputError: the folder holds none.
+    """
+    folder = Path(folder)
+    files = sorted(folder.glob("*.binary"))
+    if not files:
+        raise InputError(folder, "folder holds no MERL .binary files")
+    return files

@@ -467,10 +467,9 @@ def _expand_sources(sources: Union[PathLike, Iterable[PathLike]]) -> list:
     for src in sources:
         path = Path(src)
         if path.is_dir():
-            found = sorted(path.glob("*.binary"))
-            if not found:
-                raise InputError(path, "directory holds no MERL .binary files")
-            expanded.extend(found)
+            from .merl import merl_files_in
+
+            expanded.extend(merl_files_in(path))
         else:
             expanded.append(src)
     return expanded
