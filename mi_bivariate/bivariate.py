@@ -66,14 +66,25 @@ class BivariateBRDF:
         provenance: JSON-serialisable description of where the table came
             from (saved with it).
         source: names the input in error messages.
+        confidence: optional per-node maps ``{name: (n_t, n_s, 3)}`` saved with the
+            table, e.g. from a recovery: ``resolution`` (0..1, how much of the node's
+            value the image set rather than the prior), ``posterior_std`` (1/sr) and
+            ``observation_weight`` (the lighting matrix's information per node).
 
     Raises:
         InputError: wrong shape, non-finite or negative values.
     """
 
-    def __init__(self, table: Any, provenance: Optional[dict] = None, source: str = "bivariate table"):
+    def __init__(self, table: Any, provenance: Optional[dict] = None, source: str = "bivariate table",
+                 confidence: Optional[dict] = None):
         self.table = validate_table(table, source)
         self.provenance = dict(provenance or {})
+        self.confidence = {}
+        for name, value in (confidence or {}).items():
+            value = np.asarray(value, np.float32)
+            if value.shape != self.table.shape or not np.all(np.isfinite(value)):
+                raise InputError(source, f"confidence map {name!r} must be finite and shaped {self.table.shape}")
+            self.confidence[str(name)] = value
 
     def __repr__(self) -> str:
         return f"BivariateBRDF(n_t={self.n_t}, n_s={self.n_s}, provenance={self.provenance!r})"
@@ -213,7 +224,8 @@ class BivariateBRDF:
         with atomic_path(path) as tmp:
             with open(tmp, "wb") as f:
                 np.savez_compressed(f, table=self.table, s_nodes=self.s_nodes, t_nodes=self.t_nodes,
-                                    meta=np.array(meta))
+                                    meta=np.array(meta),
+                                    **{f"confidence_{k}": v for k, v in self.confidence.items()})
 
     @classmethod
     def load(cls, path: PathLike) -> "BivariateBRDF":
@@ -233,6 +245,7 @@ class BivariateBRDF:
                                      "write it with BivariateBRDF.save")
                 table, s_nodes, t_nodes = npz["table"], npz["s_nodes"], npz["t_nodes"]
                 meta_text = str(npz["meta"])
+                confidence = {k[len("confidence_"):]: npz[k] for k in npz.files if k.startswith("confidence_")}
         except InputError:
             raise
         except (zipfile.BadZipFile, zlib.error, ValueError, OSError, EOFError, KeyError, NotImplementedError) as e:
@@ -244,7 +257,7 @@ class BivariateBRDF:
         if not isinstance(meta, dict) or meta.get("units") != UNITS:
             units = meta.get("units") if isinstance(meta, dict) else None
             raise InputError(path, f"bivariate BRDF units must be {UNITS!r}, got {units!r}")
-        biv = cls(table, provenance=meta.get("provenance"), source=os.fspath(path))
+        biv = cls(table, provenance=meta.get("provenance"), source=os.fspath(path), confidence=confidence)
         for name, nodes, n in (("s_nodes", s_nodes, biv.n_s), ("t_nodes", t_nodes, biv.n_t)):
             if np.shape(nodes) != (n,) or not np.allclose(nodes, grid_nodes(n), atol=1e-9):
                 raise InputError(path, f"{name} are not the uniform st nodes i/(n-1) of a {n}-node axis")

@@ -143,11 +143,15 @@ def cmd_reduce(args: argparse.Namespace) -> int:
 # --------------------------------------------------------------------------- learn-prior
 
 def cmd_learn_prior(args: argparse.Namespace) -> int:
-    from mi_bivariate import prior
+    from mi_bivariate import training_set
 
-    learnt = prior.learn_prior_from_merl(args.sources, n_t=args.grid[0], n_s=args.grid[1], data_dir=args.data)
-    learnt.save(args.out)
-    print(f"wrote {args.out}")
+    smooth, basis = training_set.learn_priors_from_merl(args.sources, n_t=args.grid[0], n_s=args.grid[1],
+                                                        data_dir=args.data)
+    basis_out = training_set.basis_path_for(args.out)
+    smooth.save(args.out)
+    basis.save(basis_out)
+    print(f"wrote {args.out} (smoothness prior, {len(smooth.provenance['materials'])} materials) and "
+          f"{basis_out} (basis prior, {basis.basis.shape[1]} components)")
     return 0
 
 

@@ -30,7 +30,24 @@ NBRDF_MATERIALS: Tuple[str, ...] = (
     "red-phenolic", "silver-metallic-paint2", "specular-green-phenolic", "specular-white-phenolic",
     "tungsten-carbide", "white-acrylic", "white-paint", "yellow-matte-plastic",
 )
+#: The 50 materials of ``merl_nbrdf_train.npz``: for learning priors and choosing settings,
+#: so that the development materials above are scored by models that never saw them.
+NBRDF_TRAIN_MATERIALS: Tuple[str, ...] = (
+    "aventurnine", "beige-fabric", "black-oxidized-steel", "black-phenolic", "black-soft-plastic",
+    "blue-fabric", "blue-metallic-paint2", "blue-rubber", "chrome-steel", "color-changing-paint2",
+    "color-changing-paint3", "dark-blue-paint", "fruitwood-241", "gold-metallic-paint2", "gold-paint",
+    "gray-plastic", "grease-covered-steel", "green-metallic-paint", "green-metallic-paint2",
+    "green-plastic", "light-brown-fabric", "maroon-plastic", "neoprene-rubber", "nickel", "orange-paint",
+    "pickled-oak-260", "pink-fabric2", "pink-plastic", "polyethylene", "pure-rubber", "pvc", "red-fabric",
+    "red-fabric2", "red-metallic-paint", "red-specular-plastic", "silicon-nitrade", "silver-metallic-paint",
+    "special-walnut-224", "specular-black-phenolic", "specular-blue-phenolic", "specular-maroon-phenolic",
+    "specular-red-phenolic", "specular-yellow-phenolic", "ss440", "two-layer-silver", "violet-acrylic",
+    "white-fabric", "white-fabric2", "yellow-phenolic", "yellow-plastic",
+)
+#: Every shared MERL-NBRDF material (development first).
+ALL_NBRDF_MATERIALS: Tuple[str, ...] = NBRDF_MATERIALS + NBRDF_TRAIN_MATERIALS
 NBRDF_FILE = Path("merl_nbrdf") / "merl_nbrdf_dev.npz"
+NBRDF_TRAIN_FILE = Path("merl_nbrdf") / "merl_nbrdf_train.npz"
 _LAYERS = ("W1", "b1", "W2", "b2", "W3", "b3")
 _SHAPES = {"W1": (6, 21), "b1": (21,), "W2": (21, 21), "b2": (21,), "W3": (21, 3), "b3": (3,)}
 # Rows per MLP pass. Small enough that OpenBLAS runs these skinny products on
@@ -62,8 +79,13 @@ _resolve_data_dir = data_dir
 
 
 def _check_name(name: str) -> None:
-    if name not in NBRDF_MATERIALS:
-        raise InputError(name, "unknown MERL-NBRDF material", f"valid: {', '.join(NBRDF_MATERIALS)}")
+    if name not in ALL_NBRDF_MATERIALS:
+        raise InputError(name, "unknown MERL-NBRDF material", f"valid: {', '.join(ALL_NBRDF_MATERIALS)}")
+
+
+def _weights_file(name: str) -> Path:
+    """The shared file holding material ``name`` (development or training set)."""
+    return NBRDF_FILE if name in NBRDF_MATERIALS else NBRDF_TRAIN_FILE
 
 
 class NBRDF:
@@ -123,13 +145,13 @@ def _load_npz(path: Path) -> Dict[str, np.ndarray]:
 
 
 def load_nbrdf(name: str, data_dir: Optional[PathLike] = None) -> NBRDF:
-    """Load one material's weights from ``<data_dir>/merl_nbrdf/merl_nbrdf_dev.npz``.
+    """Load one material's weights from ``<data_dir>/merl_nbrdf/merl_nbrdf_{dev,train}.npz``.
 
     Raises:
         InputError: unknown material (lists the valid ones), missing data, malformed file.
     """
     _check_name(name)
-    path = _resolve_data_dir(data_dir) / NBRDF_FILE
+    path = _resolve_data_dir(data_dir) / _weights_file(name)
     arrays = _load_npz(path)
     weights = {}
     for layer in _LAYERS:

@@ -453,60 +453,11 @@ DEFAULT_PRIOR_PATH = Path(__file__).resolve().parent / "data" / "default_prior.n
 
 
 def default_prior() -> Prior:
-    """The packaged prior (learned from the 23 MERL-NBRDF materials on a 32 x 32 grid)."""
+    """The packaged prior (learned from the 73 shared MERL-NBRDF materials on a 32 x 32 grid)."""
     if not DEFAULT_PRIOR_PATH.is_file():
         raise InputError(DEFAULT_PRIOR_PATH, "packaged default prior is missing",
-                         "regenerate it with `python -m mi_bivariate.prior`")
+                         "regenerate it with `python scripts/make_priors.py`")
     return Prior.load(DEFAULT_PRIOR_PATH)
-
-
-def _expand_sources(sources: Union[PathLike, Iterable[PathLike]]) -> list:
-    if isinstance(sources, (str, os.PathLike)):
-        sources = [sources]
-    expanded = []
-    for src in sources:
-        path = Path(src)
-        if path.is_dir():
-            from .merl import merl_files_in
-
-            expanded.extend(merl_files_in(path))
-        else:
-            expanded.append(src)
-    return expanded
-
-
-def learn_prior_from_merl(sources: Union[PathLike, Iterable[PathLike]],
-                          n_t: int = 32, n_s: int = 32,
-                          data_dir: Optional[PathLike] = None,
-                          **learn_kwargs: Any) -> Prior:
-    """Learn a prior from MERL materials: a directory of ``.binary`` files, file paths,
-    or MERL-NBRDF material names (see :data:`mi_bivariate.nbrdf.NBRDF_MATERIALS`).
-
-    Each material is reduced to an ``(n_t, n_s)`` bivariate table (Eq. 1) and passed to
-    :meth:`Prior.learn` with ``learn_kwargs``.
-    """
-    from .bivariate import BivariateBRDF
-    from .merl import MERLBRDF
-    from .nbrdf import NBRDF_MATERIALS, nbrdf_merl
-
-    tables: Dict[str, Any] = {}
-    origin: Dict[str, str] = {}
-    for src in _expand_sources(sources):
-        path = Path(src)
-        if path.is_file():
-            merl = MERLBRDF.read(path)
-            name, where = (merl.name or path.stem), f"MERL file {path.name}"
-        elif str(src) in NBRDF_MATERIALS:
-            merl = nbrdf_merl(str(src), data_dir)
-            name, where = str(src), "MERL-NBRDF (Sztrajman et al. 2021 neural fit)"
-        else:
-            raise InputError(src, "not a MERL .binary file, a directory of them, or a MERL-NBRDF name",
-                             f"names: {', '.join(NBRDF_MATERIALS)}")
-        if name in tables:
-            raise InputError(src, f"material {name!r} given twice")
-        tables[name] = BivariateBRDF.reduce(merl, n_t=n_t, n_s=n_s)
-        origin[name] = where
-    return Prior.learn(tables, sources=origin, **learn_kwargs)
 
 
 def plot_prior(prior: Prior):
@@ -527,43 +478,3 @@ def plot_prior(prior: Prior):
             ax.set_xlabel(r"$s = 2\theta_d/\pi$")
             ax.set_ylabel(r"$t = \sqrt{2\theta_h/\pi}$")
     return fig
-
-
-def main(argv: Optional[Sequence[str]] = None) -> int:
-    """``python -m mi_bivariate.prior [SOURCES...] [--out PATH] [--figure PNG]``.
-
-    Without sources, learns from all MERL-NBRDF materials in ``MI_BIVARIATE_DATA`` and
-    writes the packaged default prior.
-    """
-    import argparse
-
-    parser = argparse.ArgumentParser(prog="python -m mi_bivariate.prior", description=main.__doc__)
-    parser.add_argument("sources", nargs="*", help="directory of .binary files, files, or MERL-NBRDF names")
-    parser.add_argument("--out", default=str(DEFAULT_PRIOR_PATH))
-    parser.add_argument("--figure", default=None, help="also save the sigma-map figure (PNG)")
-    parser.add_argument("--n", type=int, default=32, help="grid size n_t = n_s")
-    args = parser.parse_args(argv)
-    try:
-        if args.sources:
-            sources = args.sources
-        else:
-            from .nbrdf import NBRDF_MATERIALS
-            sources = list(NBRDF_MATERIALS)
-        prior = learn_prior_from_merl(sources, n_t=args.n, n_s=args.n)
-        prior.save(args.out)
-        if args.figure:
-            with atomic_path(args.figure, suffix=".png") as tmp:
-                plot_prior(prior).savefig(tmp, dpi=120)
-    except InputError as exc:
-        print(f"error: {exc}")
-        return 1
-    split = prior.provenance["split"]
-    for pair in PAIRS:
-        names = [f"{n} ({prior.provenance['specular_ratio'][n]:.3g})" for n in sorted(split) if split[n] == pair]
-        print(f"{pair}: {', '.join(names)}")
-    print(f"wrote {args.out}")
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -20,10 +20,12 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
 import numpy as np
 
 from mi_bivariate import adequacy, capture, lighting, prior as prior_mod, solve as solve_mod
+from mi_bivariate.basis_prior import BasisPrior, default_basis_prior
 from mi_bivariate.bivariate import BivariateBRDF
 from mi_bivariate.errors import InputError
 from mi_bivariate.geometry import SphereGeometry
 from mi_bivariate.images import load_image, load_mask
+from mi_bivariate.noise import estimate_camera_noise
 from mi_bivariate.probes import Probe
 
 PathLike = Union[str, os.PathLike]
@@ -71,8 +73,12 @@ class Recovery:
             f"observations: {len(obs.values)} normals (dropped pixels: {dropped})",
             f"lighting matrix: {self.lighting_matrix.shape[0]} x {self.lighting_matrix.shape[1]} x 3",
             f"adequacy: {self.adequacy.summary()}",
-            f"solve: alpha {self.solution.alpha:g}, prior pair per channel (R/G/B) {winners}, "
+            f"solve: alpha ({self.solution.alpha_rule}) R/G/B "
+            f"{' '.join(f'{a:.3g}' for a in self.solution.alphas)}, prior pair per channel {winners}, "
+            f"basis prior {'on' if self.brdf.provenance.get('basis_prior') else 'off'}, "
             f"relative residual {self.relative_residual():.4f}",
+            f"confidence: {100 * float(np.mean(self.solution.resolution > 0.5)):.0f}% of the nodes set "
+            f"mostly by the image (resolution > 0.5), the rest by the priors",
             f"timings: {stages}",
         ])
 
@@ -93,8 +99,11 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
             n_normals: int = 8000,
             n_dirs: int = 32000,
             grid: Tuple[int, int] = (32, 32),
-            alpha: Optional[float] = None,
+            alpha: Union[None, float, str] = None,
             prior: Optional[prior_mod.Prior] = None,
+            basis_prior: Union[BasisPrior, None, str] = "default",
+            noise: Any = None,
+            sampling: str = "mis",
             max_view_angle_deg: float = 80.0,
             saturation: Optional[float] = None,
             seed: int = 0,
@@ -115,8 +124,23 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
         n_normals: normals M per image (uniform over the visible hemisphere).
         n_dirs: light directions K per normal.
         grid: st grid ``(n_t, n_s)``.
-        alpha: regularisation weight (default: :data:`solve.DEFAULT_ALPHA`).
+        alpha: the smoothness prior's weight (default :data:`solve.DEFAULT_ALPHA`), or
+            ``"gcv"``: chosen per channel by generalised cross-validation
+            (:func:`solve.gcv_curve`; measured to over-fit clean images, see docs/recovery.md).
         prior: smoothness prior (default: the packaged one, resampled to ``grid``).
+        basis_prior: the data-driven table prior (:mod:`mi_bivariate.basis_prior`):
+            ``"default"`` the packaged one (learnt from the 73 shared MERL-NBRDF
+            materials, used when its grid matches), a :class:`BasisPrior`, or
+            ``None`` for the smoothness prior alone. With it the solve runs twice:
+            the first estimate and its per-node confidence give the basis prior's
+            prediction, which then joins Eq. 6 as a per-node Gaussian.
+        noise: the camera's noise, variance ``a I + b`` in each image's units:
+            ``(a, b)`` for every image, a list with one ``(a, b)`` or ``None`` per
+            image, ``"auto"`` (estimated from each image, :func:`noise.estimate_camera_noise`),
+            or ``None`` (clean input; only the model error counts, see
+            :func:`solve.row_sigma`).
+        sampling: light-direction sampling of the lighting matrix
+            (:func:`lighting.lighting_matrix`: ``"mis"`` or ``"uniform"``).
         max_view_angle_deg: drop normals further than this from the view.
         saturation: drop pixels with any channel at or above this value.
         seed: seeds normal selection and light directions.
@@ -136,8 +160,8 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
     n_t, n_s = (int(g) for g in grid)
     if n_t < 2 or n_s < 2:
         raise InputError("grid", f"{n_t}x{n_s} is too small", "each st axis needs at least 2 nodes")
-    if alpha is not None and not (np.isfinite(alpha) and alpha >= 0):
-        raise InputError("alpha", f"must be a finite number >= 0, got {alpha}")
+    if alpha is not None and alpha != "gcv" and not (np.isfinite(alpha) and alpha >= 0):
+        raise InputError("alpha", f"must be a finite number >= 0 or 'gcv', got {alpha}")
 
     timings: Dict[str, float] = {}
     t0 = time.perf_counter()
@@ -154,7 +178,8 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
     occluders = [geo.occluder() if visibility and callable(getattr(geo, "occluder", None)) else None
                  for geo in geometries]
     L = lighting.lighting_matrix(observations, probe_list, n_t=n_t, n_s=n_s, n_dirs=n_dirs, seed=seed,
-                                 occluder=occluders if any(o is not None for o in occluders) else None)
+                                 occluder=occluders if any(o is not None for o in occluders) else None,
+                                 sampling=sampling)
     timings["lighting matrix"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -166,22 +191,84 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
         prior = prior_mod.default_prior()
     if (prior.n_t, prior.n_s) != (n_t, n_s):
         prior = prior.resampled(n_t, n_s)
-    solution = solve_mod.solve(L, observations.values, prior, alpha=alpha)
+    basis = _basis_prior(basis_prior, n_t, n_s)
+    noise_models = _noise_list(noise, images)
+    sigma = solve_mod.row_sigma(observations.values, observations.image_index, noise=noise_models)
+    data = solve_mod.prepare_data_term(L, observations.values, sigma)
+    solution = solve_mod.solve_prepared(data, prior, alpha)
+    if basis is not None:
+        mean, std = basis.predict(solution.table, solution.resolution, solution.posterior_std)
+        solution = solve_mod.solve_prepared(data, prior, alpha, mean=mean, mean_std=std)
     timings["solve"] = time.perf_counter() - t0
 
     table = solution.table
     predicted = np.einsum("mnc,nc->mc", L, table.reshape(n_t * n_s, 3), optimize=True)
-    brdf = BivariateBRDF(table, provenance={
+    level = np.where(data.level > 0, data.level, 1.0)
+    confidence = {
+        "resolution": solution.resolution,
+        "posterior_std": solution.posterior_std,
+        "observation_weight": (np.stack([np.diag(g) for g in data.gram], axis=-1) * level**2).reshape(n_t, n_s, 3),
+    }
+    brdf = BivariateBRDF(table, confidence=confidence, provenance={
         "method": "passive reflectometry (Romeiro et al. 2008), mi_bivariate.recover",
         "images": n, "normals": int(len(observations.values)), "light_directions": int(n_dirs),
-        "alpha": float(solution.alpha), "prior_winner": list(solution.winner), "seed": int(seed),
+        "sampling": sampling, "alpha": [float(a) for a in solution.alphas], "alpha_rule": solution.alpha_rule,
+        "prior_winner": list(solution.winner), "seed": int(seed),
+        "basis_prior": None if basis is None else {"materials": len(basis.materials),
+                                                    "components": int(basis.basis.shape[1])},
+        "noise": None if noise_models is None else [None if v is None else [np.asarray(x).tolist() for x in v]
+                                                    for v in noise_models],
         "probes": [getattr(p, "source", "?") for p in probe_list],
         "visibility": bool(any(o is not None for o in occluders)),
+        "confidence": "resolution: share of each node's value set by the image (diag of the model "
+                      "resolution matrix); posterior_std: 1/sr; observation_weight: diag(L^T W L) "
+                      "times the table level^2",
     })
     return Recovery(brdf=brdf, observations=observations, lighting_matrix=L, solution=solution,
                     adequacy=report, predicted=predicted,
                     images=images if keep_inputs else [], geometries=geometries,
                     probes=probe_list, timings=timings)
+
+
+def _basis_prior(value: Union[BasisPrior, None, str], n_t: int, n_s: int) -> Optional[BasisPrior]:
+    if value is None or isinstance(value, BasisPrior):
+        if value is not None and (value.n_t, value.n_s) != (n_t, n_s):
+            raise InputError("basis_prior", f"is learnt on a {value.n_t} x {value.n_s} grid, the recovery "
+                             f"uses {n_t} x {n_s}", "learn one on this grid (mi-bivariate learn-prior)")
+        return value
+    if value != "default":
+        raise InputError("basis_prior", f"must be 'default', None or a BasisPrior, got {value!r}")
+    packaged = default_basis_prior()
+    if packaged is None or (packaged.n_t, packaged.n_s) != (n_t, n_s):
+        return None
+    return packaged
+
+
+def _noise_list(noise: Any, images: Sequence[np.ndarray]) -> Optional[list]:
+    """Per-image ``(a, b)`` (or None) from ``"auto"``, one pair, a list, or None."""
+    n = len(images)
+    if noise is None:
+        return None
+    if isinstance(noise, str):
+        if noise != "auto":
+            raise InputError("noise", f"must be 'auto', (a, b), a list or None, got {noise!r}")
+        return [_estimate_noise(img, f"image {k}" if n > 1 else "image") for k, img in enumerate(images)]
+    if isinstance(noise, (list, tuple)) and len(noise) == 2 and all(np.isscalar(v) for v in noise):
+        return [tuple(float(v) for v in noise)] * n
+    items = list(noise)
+    if len(items) != n:
+        raise InputError("noise", f"{len(items)} noise models given for {n} images")
+    return [None if v is None else tuple(np.asarray(x, np.float64) for x in v) for v in items]
+
+
+def _estimate_noise(image: np.ndarray, source: str) -> Tuple[np.ndarray, np.ndarray]:
+    """Per-channel ``(a, b)`` of one image, over its lit pixels eroded by 2 (see :mod:`noise`)."""
+    lit = np.all(np.isfinite(image), axis=2) & np.all(image > 0, axis=2)
+    inner = lit.copy()
+    for _ in range(2):
+        inner[1:-1, 1:-1] &= inner[:-2, 1:-1] & inner[2:, 1:-1] & inner[1:-1, :-2] & inner[1:-1, 2:]
+    pairs = [estimate_camera_noise(image[..., c], inner, source) for c in range(3)]
+    return np.array([p[0] for p in pairs]), np.array([p[1] for p in pairs])
 
 
 def _auto_saturation(image: np.ndarray, region: Optional[np.ndarray]) -> Optional[float]:

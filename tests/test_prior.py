@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from mi_bivariate.errors import InputError
-from mi_bivariate.prior import (PAIRS, Prior, default_prior, difference_operators, learn_prior_from_merl,
+from mi_bivariate.training_set import learn_prior_from_merl
+from mi_bivariate.prior import (PAIRS, Prior, default_prior, difference_operators,
                                 plot_prior, specular_ratio)
 
 
@@ -141,7 +142,7 @@ def test_save_load_round_trip(tmp_path):
 
 
 def test_default_prior_shape_and_provenance():
-    from mi_bivariate.nbrdf import NBRDF_MATERIALS
+    from mi_bivariate.nbrdf import ALL_NBRDF_MATERIALS
 
     prior = default_prior()
     assert (prior.n_t, prior.n_s) == (32, 32)
@@ -153,7 +154,7 @@ def test_default_prior_shape_and_provenance():
         edges = np.concatenate([np.log(sigma_s[:, :-1]).ravel(), np.log(sigma_t[:-1, :]).ravel()])
         assert abs(edges.mean()) < 1e-9
     prov = prior.provenance
-    assert sorted(prov["materials"]) == sorted(NBRDF_MATERIALS)
+    assert sorted(prov["materials"]) == sorted(ALL_NBRDF_MATERIALS)
     assert set(prov["split"].values()) == set(PAIRS)
     assert prov["grid"]["n_t"] == 32 and prov["date"]
     # The gloss pair allows much more variation in t at the specular peak than the diffuse pair.

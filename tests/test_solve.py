@@ -8,8 +8,8 @@ import scipy.optimize as sopt
 
 from mi_bivariate.errors import InputError
 from mi_bivariate.prior import Prior
-from mi_bivariate.solve import (KKT_TOLERANCE, alpha_sweep, kkt_violation, nnls_gram, prepare_data_term,
-                                solve)
+from mi_bivariate.solve import (KKT_TOLERANCE, alpha_sweep, gcv_curve, kkt_violation, nnls_gram,
+                                prepare_data_term, row_sigma, solve)
 
 N_T, N_S = 6, 5
 N = N_T * N_S
@@ -91,32 +91,82 @@ def _prior() -> Prior:
 
 
 def test_solve_matches_scipy_nnls_on_the_stacked_system():
-    """The documented normalisation, written out as one stacked least-squares problem."""
+    """The documented objective, written out as one stacked least-squares problem."""
     L = _lighting(150, 1)
     I = np.einsum("mnk,nk->mk", L.astype(np.float64), _truth(2).reshape(N, 3))
     I *= 1 + 0.05 * np.random.default_rng(4).standard_normal(I.shape)
     prior, alpha = _prior(), 0.3
     result = solve(L, I, prior, alpha, n_t=N_T, n_s=N_S)
+    sigma = row_sigma(I)
     m = L.shape[0]
+    ones = np.ones(N)
     for pair, sol in result.pairs.items():
-        reg = np.sqrt(alpha / N) * prior.regulariser(pair).toarray()
         for k in range(3):
             l_k = L[:, :, k].astype(np.float64)
-            c = np.sqrt(np.mean(l_k.sum(axis=1) ** 2))
-            stacked = np.vstack([l_k / (c * np.sqrt(m)), reg])
-            rhs = np.concatenate([I[:, k] / (c * np.sqrt(m)), np.zeros(reg.shape[0])])
+            w = 1.0 / (sigma[:, k] * np.sqrt(m))
+            g, b = (l_k * w[:, None]).T @ (l_k * w[:, None]), (l_k * w[:, None]).T @ (I[:, k] * w)
+            level = (ones @ b) / (ones @ g @ ones)
+            reg = np.sqrt(alpha / (N * level**2)) * prior.regulariser(pair).toarray()
+            stacked = np.vstack([l_k * w[:, None], reg])
+            rhs = np.concatenate([I[:, k] * w, np.zeros(reg.shape[0])])
             expected, _ = sopt.nnls(stacked, rhs, maxiter=100 * N)
             np.testing.assert_allclose(sol.table[:, :, k].ravel(), expected, rtol=1e-5, atol=1e-6 * expected.max())
             resid = I[:, k] - l_k @ expected
             assert sol.relative_residual[k] == pytest.approx(np.linalg.norm(resid) / np.linalg.norm(I[:, k]), rel=1e-4)
-            assert sol.data_term[k] == pytest.approx(np.sum(resid**2) / (c**2 * m), rel=1e-4)
-            assert sol.prior_term[k] == pytest.approx(np.sum((prior.regulariser(pair) @ expected) ** 2) / N, rel=1e-4)
+            assert sol.data_term[k] == pytest.approx(np.sum((resid * w) ** 2), rel=1e-4)
+            assert sol.prior_term[k] == pytest.approx(
+                np.sum((prior.regulariser(pair) @ expected) ** 2) / (N * level**2), rel=1e-4)
         assert np.all(sol.kkt_violation < 1e-12)
-    # The kept table is, per channel, the pair with the lower data term.
+        assert np.all((sol.resolution >= 0) & (sol.resolution <= 1))
+    # The kept table is, per channel, the pair with the lower data term (alpha given: the paper's rule).
     for k, w in enumerate(result.winner):
         other = "gloss" if w == "diffuse" else "diffuse"
         assert result.pairs[w].data_term[k] <= result.pairs[other].data_term[k]
         np.testing.assert_array_equal(result.table[:, :, k], result.pairs[w].table[:, :, k])
+
+
+def test_images_combine_by_information_not_brightness():
+    """Two images stacked: scaling one image and its probe by 50 changes nothing."""
+    L = _lighting(160, 21)
+    truth = _truth(22)
+    I = np.einsum("mnk,nk->mk", L.astype(np.float64), truth.reshape(N, 3))
+    I *= 1 + 0.03 * np.random.default_rng(23).standard_normal(I.shape)
+    index = np.repeat([0, 1], 80)
+    base = solve(L, I, _prior(), 0.1, image_index=index, n_t=N_T, n_s=N_S)
+    scale = np.where(index == 1, 50.0, 1.0)
+    scaled = solve(L * scale[:, None, None], I * scale[:, None], _prior(), 0.1, image_index=index,
+                   n_t=N_T, n_s=N_S)
+    np.testing.assert_allclose(scaled.table, base.table, rtol=1e-4, atol=1e-6 * base.table.max())
+    # Without per-image weights (one sigma scale for all rows) the bright image dominates.
+    unweighted = solve(L * scale[:, None, None], I * scale[:, None], _prior(), 0.1,
+                       sigma=np.ones_like(I), n_t=N_T, n_s=N_S)
+    assert np.abs(unweighted.table - base.table).max() > 1e-3 * base.table.max()
+
+
+def test_gcv_trace_and_choice():
+    """Hutchinson's trace against the exact one; GCV's alpha near the error-minimising alpha."""
+    rng = np.random.default_rng(31)
+    L = _lighting(300, 32)
+    truth = _truth(33)
+    clean = np.einsum("mnk,nk->mk", L.astype(np.float64), truth.reshape(N, 3))
+    I = clean * (1 + 0.05 * rng.standard_normal(clean.shape))
+    sigma = 0.05 * np.abs(clean) + 1e-12
+    data = prepare_data_term(L, I, sigma)
+    penalty = _prior().penalty_matrix("diffuse")
+    curve = gcv_curve(data, penalty, 1, probes=256)
+    for alpha, dof in zip(curve.alphas, curve.dof):
+        lam = alpha / (N * data.level[1] ** 2)
+        exact = np.trace(np.linalg.solve(data.gram[1] + lam * penalty, data.gram[1]))
+        assert dof == pytest.approx(exact, rel=0.1, abs=0.5)
+    errors = []
+    for alpha in curve.alphas:
+        lam = alpha / (N * data.level[1] ** 2)
+        f = np.linalg.solve(data.gram[1] + lam * penalty, data.rhs[1])
+        errors.append(np.linalg.norm(f - truth[:, :, 1].ravel()))
+    lam = curve.alpha / (N * data.level[1] ** 2)
+    chosen = np.linalg.norm(np.linalg.solve(data.gram[1] + lam * penalty, data.rhs[1]) - truth[:, :, 1].ravel())
+    assert chosen <= 1.5 * min(errors)
+    assert chosen < 0.5 * errors[-1] and chosen < 0.5 * max(errors)
 
 
 def test_alpha_zero_noiseless_recovers_the_truth():

@@ -1,0 +1,167 @@
+"""The measured materials priors learn from, and leave-one-out priors for scoring.
+
+The shared data holds 73 MERL-NBRDF materials (23 development, 50 training; see
+:mod:`mi_bivariate.nbrdf`). Both priors of the solve, the smoothness weights of Eq. 6
+(:class:`mi_bivariate.prior.Prior`) and the table basis
+(:class:`mi_bivariate.basis_prior.BasisPrior`), are learnt from their exact bivariate
+reductions (Eq. 1). A number reported on a shared material must come from priors
+that never saw it: :func:`leave_one_out_priors`.
+
+Reductions take ~1 s per material; they are cached (``.npz`` keyed by the
+shared files' contents and the grid) in ``$MI_BIVARIATE_CACHE`` or
+``~/.cache/mi_bivariate``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from pathlib import Path
+from typing import Dict, Iterable, Optional, Sequence, Tuple, Union
+
+import numpy as np
+
+from .atomic import atomic_path
+from .basis_prior import BasisPrior
+from .bivariate import BivariateBRDF
+from .errors import InputError
+from .merl import MERLBRDF, merl_files_in
+from .nbrdf import ALL_NBRDF_MATERIALS, NBRDF_FILE, NBRDF_TRAIN_FILE, data_dir as nbrdf_data_dir, nbrdf_merl
+from .prior import Prior
+
+PathLike = Union[str, os.PathLike]
+
+
+def cache_dir() -> Path:
+    """Where derived data is cached: ``$MI_BIVARIATE_CACHE`` or ``~/.cache/mi_bivariate``."""
+    value = os.environ.get("MI_BIVARIATE_CACHE")
+    return Path(value) if value else Path.home() / ".cache" / "mi_bivariate"
+
+
+def _data_digest(root: Path) -> str:
+    h = hashlib.sha256()
+    for rel in (NBRDF_FILE, NBRDF_TRAIN_FILE):
+        path = root / rel
+        if path.is_file():
+            h.update(path.read_bytes())
+    return h.hexdigest()[:16]
+
+
+def reduced_tables(n_t: int = 32, n_s: int = 32, names: Sequence[str] = ALL_NBRDF_MATERIALS,
+                   data_dir: Optional[PathLike] = None, cache: bool = True,
+                   progress: bool = False) -> Dict[str, np.ndarray]:
+    """Exact Eq. 1 reductions of shared MERL-NBRDF materials, ``{name: (n_t, n_s, 3) float64}`` (1/sr)."""
+    root = nbrdf_data_dir(data_dir)
+    path = cache_dir() / f"nbrdf_reductions_{_data_digest(root)}_{int(n_t)}x{int(n_s)}.npz"
+    stored: Dict[str, np.ndarray] = {}
+    if cache and path.is_file():
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                stored = {k: np.asarray(z[k], np.float64) for k in z.files}
+        except (OSError, ValueError):
+            stored = {}
+    missing = [n for n in names if n not in stored]
+    if missing:
+        iterator = missing
+        if progress:
+            from tqdm import tqdm
+
+            iterator = tqdm(missing, desc="reducing materials", unit="material")
+        for name in iterator:
+            stored[name] = BivariateBRDF.reduce(nbrdf_merl(name, root), n_t=n_t, n_s=n_s).table.astype(np.float64)
+        if cache:
+            try:
+                path.parent.mkdir(parents=True, exist_ok=True)
+                with atomic_path(path, suffix=".npz") as tmp:
+                    with open(tmp, "wb") as fh:
+                        np.savez(fh, **stored)
+            except OSError:
+                pass  # a read-only home only costs time
+    return {n: stored[n] for n in names}
+
+
+def learn_priors(tables: Dict[str, np.ndarray], exclude: Sequence[str] = (),
+                 provenance: Optional[dict] = None) -> Tuple[Prior, BasisPrior]:
+    """Both priors from ``tables`` without the materials in ``exclude``."""
+    kept = {k: v for k, v in tables.items() if k not in set(exclude)}
+    if len(kept) < 3:
+        raise InputError("prior training set", f"has {len(kept)} materials", "give at least 3")
+    prov = {"excluded": sorted(exclude), **(provenance or {})}
+    return Prior.learn(kept), BasisPrior.learn(kept, provenance=prov)
+
+
+def leave_one_out_priors(material: str, n_t: int = 32, n_s: int = 32,
+                         data_dir: Optional[PathLike] = None) -> Tuple[Prior, BasisPrior]:
+    """Priors learnt from every shared MERL-NBRDF material except ``material``.
+
+    For a material outside the shared set this is simply all 73.
+    """
+    tables = reduced_tables(n_t, n_s, data_dir=data_dir)
+    return learn_priors(tables, exclude=(material,), provenance={"training": "shared MERL-NBRDF, leave-one-out"})
+
+
+def _expand_sources(sources: Union[PathLike, Iterable[PathLike]]) -> list:
+    if isinstance(sources, (str, os.PathLike)):
+        sources = [sources]
+    expanded = []
+    for src in sources:
+        path = Path(src)
+        if path.is_dir():
+            found = merl_files_in(path)
+            if not found:
+                raise InputError(path, "folder holds no MERL .binary files")
+            expanded.extend(found)
+        else:
+            expanded.append(src)
+    return expanded
+
+
+def tables_from_sources(sources: Union[PathLike, Iterable[PathLike]], n_t: int = 32, n_s: int = 32,
+                        data_dir: Optional[PathLike] = None) -> Tuple[Dict[str, np.ndarray], Dict[str, str]]:
+    """Reduce MERL materials to ``(n_t, n_s, 3)`` tables: a folder of ``.binary`` files, files,
+    or MERL-NBRDF names (:data:`mi_bivariate.nbrdf.ALL_NBRDF_MATERIALS`).
+
+    Returns:
+        ``({name: table}, {name: where it came from})``.
+    """
+    tables: Dict[str, np.ndarray] = {}
+    origin: Dict[str, str] = {}
+    names = [str(s) for s in _expand_sources(sources) if str(s) in ALL_NBRDF_MATERIALS and not Path(s).is_file()]
+    shared = reduced_tables(n_t, n_s, names, data_dir) if names else {}
+    for src in _expand_sources(sources):
+        path = Path(src)
+        if path.is_file():
+            merl = MERLBRDF.read(path)
+            name, where = (merl.name or path.stem), f"MERL file {path.name}"
+            table = BivariateBRDF.reduce(merl, n_t=n_t, n_s=n_s).table.astype(np.float64)
+        elif str(src) in shared:
+            name, where, table = str(src), "MERL-NBRDF (Sztrajman et al. 2021 neural fit)", shared[str(src)]
+        else:
+            raise InputError(src, "not a MERL .binary file, a directory of them, or a MERL-NBRDF name",
+                             "see mi_bivariate.nbrdf.ALL_NBRDF_MATERIALS for the names")
+        if name in tables:
+            raise InputError(src, f"material {name!r} given twice")
+        tables[name], origin[name] = table, where
+    if not tables:
+        raise InputError("prior training set", "is empty")
+    return tables, origin
+
+
+def learn_prior_from_merl(sources: Union[PathLike, Iterable[PathLike]], n_t: int = 32, n_s: int = 32,
+                          data_dir: Optional[PathLike] = None, **learn_kwargs) -> Prior:
+    """The smoothness prior (:meth:`Prior.learn`) from MERL sources (see :func:`tables_from_sources`)."""
+    tables, origin = tables_from_sources(sources, n_t, n_s, data_dir)
+    return Prior.learn(tables, sources=origin, **learn_kwargs)
+
+
+def learn_priors_from_merl(sources: Union[PathLike, Iterable[PathLike]], n_t: int = 32, n_s: int = 32,
+                           data_dir: Optional[PathLike] = None) -> Tuple[Prior, BasisPrior]:
+    """Both priors from MERL sources, each material reduced once."""
+    tables, origin = tables_from_sources(sources, n_t, n_s, data_dir)
+    return Prior.learn(tables, sources=origin), BasisPrior.learn(tables, provenance={"sources": origin})
+
+
+def basis_path_for(prior_path: PathLike) -> Path:
+    """Where ``learn-prior`` writes the basis prior beside a smoothness prior file: ``<stem>_basis.npz``."""
+    path = Path(prior_path)
+    return path.with_name(path.stem + "_basis.npz")

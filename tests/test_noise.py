@@ -1,0 +1,41 @@
+"""The camera noise model: estimation from one image against the noise that was added."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mi_bivariate.errors import InputError
+from mi_bivariate.noise import add_camera_noise, estimate_camera_noise
+
+
+def _sphere_like(n: int = 256) -> tuple:
+    y, x = np.mgrid[0:n, 0:n] + 0.5
+    r2 = ((x - n / 2) ** 2 + (y - n / 2) ** 2) / (0.45 * n) ** 2
+    mask = r2 < 1
+    z = np.sqrt(np.clip(1 - r2, 0, 1))
+    clean = 0.05 + 2.0 * z**3 + 0.5 * x / n  # smooth shading over a 40x range
+    return np.repeat(clean[..., None], 3, axis=2), mask
+
+
+@pytest.mark.parametrize("a,b", [(0.01, 1e-4), (0.0, 4e-4), (0.02, 0.0)])
+def test_estimate_recovers_the_added_noise(a, b):
+    clean, mask = _sphere_like()
+    noisy = add_camera_noise(clean, a, b, seed=1)
+    # Per-pixel channels carry independent noise; the estimator sees their mean (variance / 3).
+    a_hat, b_hat = estimate_camera_noise(noisy, mask)
+    level = np.median(clean[mask, 0])
+    assert a_hat * level + b_hat == pytest.approx((a * level + b) / 3, rel=0.25)
+    high = np.quantile(clean[mask, 0], 0.95)
+    assert a_hat * high + b_hat == pytest.approx((a * high + b) / 3, rel=0.25)
+
+
+def test_clean_image_has_almost_no_noise_and_bad_input_is_an_input_error():
+    clean, mask = _sphere_like()
+    a_hat, b_hat = estimate_camera_noise(clean, mask)
+    assert a_hat * 2.0 + b_hat < 1e-5
+    with pytest.raises(InputError):
+        estimate_camera_noise(clean[:5, :5], mask[:5, :5])
+    with pytest.raises(InputError):
+        add_camera_noise(clean, -1.0, 0.0)
+    np.testing.assert_array_equal(add_camera_noise(clean, 0.01, 0.0, seed=3), add_camera_noise(clean, 0.01, 0.0, seed=3))
