@@ -27,6 +27,7 @@ import numpy as np
 from mi_bivariate.atomic import atomic_path
 from mi_bivariate.coordinates import grid_nodes, half_diff_from_st, st_from_half_diff
 from mi_bivariate.errors import InputError
+from mi_bivariate.images import write_exr
 from mi_bivariate.merl import MERL_SHAPE, MERLBRDF, above_horizon, node_angles
 
 PathLike = Union[str, os.PathLike]
@@ -251,10 +252,13 @@ class BivariateBRDF:
         return biv
 
     def save_exr(self, path: PathLike) -> None:
-        """Write the table as an RGB float32 EXR image (rows = theta_h (t), columns = theta_d (s)), atomic."""
-        bitmap = self.to_bitmap()
-        with atomic_path(path, suffix=".exr") as tmp:
-            bitmap.write(str(tmp))
+        """Write the table as an RGB float32 EXR image (rows = theta_h (t), columns = theta_d (s)), atomic.
+
+        The header records the units, layout and st map besides the tool's provenance.
+        """
+        write_exr(path, self.table, units=UNITS,
+                  metadata={"layout": LAYOUT, "st_map": ST_MAP,
+                            "provenance": json.dumps(self.provenance, default=str)})
 
     def to_merl(self, name: Optional[str] = None) -> MERLBRDF:
         """A MERL table whose every cell (valid or not) holds the bivariate value at its (theta_h, theta_d)."""

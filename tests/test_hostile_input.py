@@ -293,6 +293,19 @@ def _fake_bitmap_module(monkeypatch):
     monkeypatch.setattr(mi, "Bitmap", FailingBitmap)
 
 
+def _fake_openexr(monkeypatch):
+    import OpenEXR
+
+    class FailingFile:
+        def __init__(self, *args, **kwargs):
+            pass
+
+        def write(self, path):
+            _partial_then_fail(path)
+
+    monkeypatch.setattr(OpenEXR, "File", FailingFile)
+
+
 def _write_npz(path):
     BivariateBRDF(np.full((4, 4, 3), 0.2, np.float32)).save(path)
 
@@ -308,8 +321,8 @@ def _fail_savez(monkeypatch):
 
 
 @pytest.mark.parametrize("name, write, sabotage", [
-    ("out.exr", lambda p: images.write_exr(p, np.ones((4, 4, 3), np.float32)), _fake_bitmap_module),
-    ("out.exr", lambda p: render.write_exr(p, np.ones((4, 4, 3), np.float32)), _fake_bitmap_module),
+    ("out.exr", lambda p: images.write_exr(p, np.ones((4, 4, 3), np.float32)), _fake_openexr),
+    ("out.exr", lambda p: render.write_exr(p, np.ones((4, 4, 3), np.float32)), _fake_openexr),
     ("out.npz", _write_npz, _fail_savez),
     ("out.png", lambda p: images.write_png(p, np.ones((4, 4, 3), np.float32)), _fake_bitmap_module),
 ], ids=["images.write_exr", "render.write_exr", "BivariateBRDF.save", "images.write_png"])
