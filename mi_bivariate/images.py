@@ -147,19 +147,22 @@ def _read_exr(path: Path) -> Tuple[np.ndarray, Dict[str, str]]:
     import OpenEXR
 
     try:
-        header = OpenEXR.File(str(path), header_only=True).header()
-        lo, hi = (np.asarray(v, np.int64) for v in header["dataWindow"])
-    except Exception as exc:  # noqa: BLE001 -- the library raises RuntimeError and others on corrupt files
+        return _read_exr_unchecked(path, OpenEXR)
+    except InputError:
+        raise
+    except Exception as exc:  # noqa: BLE001 -- the library raises RuntimeError, UnicodeDecodeError, ... on corrupt files
         raise _exr_error(path, exc) from None
+
+
+def _read_exr_unchecked(path: Path, OpenEXR) -> Tuple[np.ndarray, Dict[str, str]]:  # noqa: N803
+    header = OpenEXR.File(str(path), header_only=True).header()
+    lo, hi = (np.asarray(v, np.int64) for v in header["dataWindow"])
     width, height = int(hi[0] - lo[0] + 1), int(hi[1] - lo[1] + 1)
     _check_size(path, width, height)
-    names = [c.name for c in header.get("channels", [])]
-    if any((c.xSampling, c.ySampling) != (1, 1) for c in header.get("channels", [])):
+    channels = list(header.get("channels", []))
+    names = [str(c.name) for c in channels]
+    if any((c.xSampling, c.ySampling) != (1, 1) for c in channels):
         raise InputError(path, "has sub-sampled channels", "write full-resolution channels")
-    try:
-        planes = OpenEXR.File(str(path), separate_channels=True).channels()
-    except Exception as exc:  # noqa: BLE001
-        raise _exr_error(path, exc) from None
     upper = {n.upper(): n for n in names}
     if all(k in upper for k in "RGB"):
         order = [upper[k] for k in "RGB"]
@@ -168,13 +171,11 @@ def _read_exr(path: Path) -> Tuple[np.ndarray, Dict[str, str]]:
     else:
         raise InputError(path, f"has {len(names)} channels ({', '.join(names) or 'none'})",
                          "expected grey, RGB or RGBA")
-    try:
-        stack = [np.asarray(planes[n].pixels, dtype=np.float32) for n in order]
-    except (KeyError, ValueError, TypeError) as exc:
-        raise _exr_error(path, exc) from None
+    planes = OpenEXR.File(str(path), separate_channels=True).channels()
+    stack = [np.asarray(planes[n].pixels, dtype=np.float32) for n in order]
     if any(p.shape != (height, width) for p in stack):
         raise InputError(path, "cannot be read as an image: channel sizes disagree with the data window")
-    metadata = {k: v for k, v in header.items() if isinstance(v, str)}
+    metadata = {str(k): v for k, v in header.items() if isinstance(v, str)}
     return np.stack(stack, axis=-1), metadata
 
 
