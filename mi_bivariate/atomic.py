@@ -85,15 +85,28 @@ def atomic_paths(paths: Sequence[PathLike], suffixes: Optional[Sequence[str]] = 
     try:
         for path, suffix in zip(paths, suffixes):
             temps.append(_make_temp(path, suffix))
+        def destination(name: object) -> Optional[Path]:
+            """The destination whose temporary ``name`` is (or was written through)."""
+            if not isinstance(name, str):
+                return None
+            base = os.path.basename(name)
+            for tmp, path in zip(temps, paths):
+                if base == tmp.name or base.startswith(f".{tmp.name}."):
+                    return path
+            return None
+
         try:
             yield list(temps)
             for tmp, path in zip(temps, paths):
                 _publish(tmp, path)
         except OSError as exc:
-            name = exc.filename if isinstance(exc.filename, str) else None
-            target = next((p for t, p in zip(temps, paths) if name and os.path.abspath(name) == os.path.abspath(t)),
-                          paths[0])
-            raise _write_error(target, exc) from None
+            raise _write_error(destination(exc.filename) or paths[0], exc) from None
+        except InputError as exc:
+            # A nested atomic writer named our temporary: name the real destination instead.
+            target = destination(exc.source)
+            if target is None:
+                raise
+            raise InputError(target, exc.problem, exc.hint) from None
     except BaseException:
         for tmp in temps:
             with contextlib.suppress(OSError):

@@ -614,9 +614,21 @@ def test_write_failures_are_one_line_and_all_or_none(files, tmp_path, monkeypatc
 
     monkeypatch.setattr(OpenEXR, "File", FullDisk)
     line = _cli(["reduce", str(files["merl"]), "--grid", "4", "4", "--out", str(out)], capsys)
-    assert "x.exr" in line and "No space left" in line
+    assert line.startswith(f"mi-bivariate: error: {tmp_path / 'x.exr'}: ") and "No space left" in line, line
     assert out.read_bytes() == b"previous table" and (tmp_path / "x.exr").read_bytes() == b"previous view"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["x.exr", "x.npz"]
+
+
+@pytest.mark.skipif(not hasattr(os, "geteuid") or os.geteuid() == 0, reason="root may write anywhere")
+def test_read_only_output_folder(files, tmp_path, capsys):
+    folder = tmp_path / "ro"
+    folder.mkdir()
+    folder.chmod(0o555)
+    try:
+        line = _cli(["reduce", str(files["merl"]), "--grid", "4", "4", "--out", str(folder / "x.npz")], capsys)
+    finally:
+        folder.chmod(0o755)
+    assert "not writable" in line and list(folder.iterdir()) == []
 
 
 def test_output_folder_that_is_a_file(files, tmp_path, capsys):
