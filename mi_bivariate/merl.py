@@ -114,6 +114,8 @@ class MERLBRDF:
         table = np.asarray(table)
         if table.shape != MERL_SHAPE + (3,):
             raise InputError(name, f"a MERL table must have shape {MERL_SHAPE + (3,)}, got {table.shape}")
+        if table.dtype.kind not in "biuf":
+            raise InputError(name, f"a MERL table holds real numbers, got {table.dtype}")
         if not np.issubdtype(table.dtype, np.floating):
             table = table.astype(np.float64)
         self.table = table
