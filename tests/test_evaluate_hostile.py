@@ -4,7 +4,6 @@ results lines, bad input leaving no folder behind, workers outliving a killed pa
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 import textwrap
