@@ -15,7 +15,7 @@ __version__ = "0.1.0"
 
 _SUBMODULES = (
     "adequacy", "analytic", "atomic", "bivariate", "capture", "cli", "coordinates", "demo", "errors",
-    "evaluate", "geometry", "images", "lighting", "merl", "nbrdf", "prior", "probes", "recover", "render",
+    "evaluate", "geometry", "images", "lighting", "merl", "nbrdf", "npzio", "prior", "probes", "recover", "render",
     "report", "solve", "variants",
 )
 

@@ -1,4 +1,14 @@
-"""Atomic output files: a failed run never leaves a half-written result."""
+"""Atomic output files: a failed run never leaves a half-written result, never clobbers an input.
+
+- :func:`atomic_path` writes one file through a temporary next to it.
+- :func:`atomic_paths` writes several files together: all to temporaries
+  first, then renamed into place only once every one of them is complete.
+- :func:`check_outputs` refuses, before any work is done, an output that is
+  one of the inputs, a directory, or in a folder that cannot be written.
+
+Operating-system failures while writing (a read-only folder, a full disk)
+become one-line :class:`InputError` naming the destination.
+"""
 
 from __future__ import annotations
 
@@ -6,36 +16,139 @@ import contextlib
 import os
 import tempfile
 from pathlib import Path
-from typing import Iterator, Union
+from typing import Iterable, Iterator, List, Optional, Sequence, Union
+
+from mi_bivariate.errors import InputError
+
+PathLike = Union[str, os.PathLike]
+
+
+def _write_error(path: Path, exc: OSError) -> InputError:
+    return InputError(path, f"cannot be written ({exc.strerror or exc})",
+                      "check the folder exists and is writable, and that the disk has space")
+
+
+def _make_temp(path: Path, suffix: str) -> Path:
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix or path.suffix, dir=path.parent)
+    except OSError as exc:
+        raise _write_error(path, exc) from None
+    os.close(fd)
+    return Path(tmp)
+
+
+def _publish(tmp: Path, path: Path) -> None:
+    # mkstemp creates 0600 files; give the result the permissions a plain open() would.
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o666 & ~umask)
+    os.replace(tmp, path)
 
 
 @contextlib.contextmanager
-def atomic_path(path: Union[str, os.PathLike], suffix: str = "") -> Iterator[Path]:
+def atomic_path(path: PathLike, suffix: str = "") -> Iterator[Path]:
     """Yield a temporary path next to ``path``; move it onto ``path`` on success.
 
     The temporary file lives in the destination directory so the final
     ``os.replace`` is atomic. On any exception the temporary file is removed
-    and an existing ``path`` is left untouched.
+    and an existing ``path`` is left untouched; an ``OSError`` (no space, no
+    permission) becomes an :class:`InputError` naming ``path``.
 
     Args:
         path: final destination.
-        suffix: extension for the temporary file (some writers, e.g. Mitsuba's
-            ``Bitmap.write``, pick the format from it); defaults to the
-            destination's own suffix.
+        suffix: extension for the temporary file (some writers pick the
+            format from it); defaults to the destination's own suffix.
     """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix or path.suffix, dir=path.parent)
-    os.close(fd)
-    tmp_path = Path(tmp)
+    with atomic_paths([path], [suffix]) as (tmp,):
+        yield tmp
+
+
+@contextlib.contextmanager
+def atomic_paths(paths: Sequence[PathLike], suffixes: Optional[Sequence[str]] = None) -> Iterator[List[Path]]:
+    """Write several files all or none: yield temporaries, rename them all on success.
+
+    Every file is first written completely to its temporary (next to its
+    destination); only when the ``with`` block ends without an exception are
+    they renamed into place, one ``os.replace`` each. On any exception every
+    temporary is removed and no destination is touched.
+
+    Args:
+        paths: final destinations (distinct).
+        suffixes: per-path temporary suffixes (default: each destination's own).
+    """
+    paths = [Path(p) for p in paths]
+    if len({os.path.abspath(p) for p in paths}) != len(paths):
+        raise ValueError(f"atomic_paths: duplicate destinations in {[str(p) for p in paths]}")
+    suffixes = list(suffixes) if suffixes is not None else [""] * len(paths)
+    temps: List[Path] = []
     try:
-        yield tmp_path
-        # mkstemp creates 0600 files; give the result the permissions a plain open() would.
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp_path, 0o666 & ~umask)
-        os.replace(tmp_path, path)
+        for path, suffix in zip(paths, suffixes):
+            temps.append(_make_temp(path, suffix))
+        def destination(name: object) -> Optional[Path]:
+            """The destination whose temporary ``name`` is (or was written through)."""
+            if not isinstance(name, str):
+                return None
+            base = os.path.basename(name)
+            for tmp, path in zip(temps, paths):
+                if base == tmp.name or base.startswith(f".{tmp.name}."):
+                    return path
+            return None
+
+        try:
+            yield list(temps)
+            for tmp, path in zip(temps, paths):
+                _publish(tmp, path)
+        except OSError as exc:
+            raise _write_error(destination(exc.filename) or paths[0], exc) from None
+        except InputError as exc:
+            # A nested atomic writer named our temporary: name the real destination instead.
+            target = destination(exc.source)
+            if target is None:
+                raise
+            raise InputError(target, exc.problem, exc.hint) from None
     except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            tmp_path.unlink()
+        for tmp in temps:
+            with contextlib.suppress(OSError):
+                tmp.unlink()
         raise
+
+
+def same_file(a: PathLike, b: PathLike) -> bool:
+    """Whether two paths name the same file (``os.path.samefile`` when both exist, else resolved paths)."""
+    try:
+        if os.path.exists(a) and os.path.exists(b):
+            return os.path.samefile(a, b)
+    except OSError:
+        pass
+    return Path(a).resolve() == Path(b).resolve()
+
+
+def check_outputs(outputs: Iterable[PathLike], inputs: Iterable[Optional[PathLike]] = ()) -> None:
+    """Refuse outputs that would clobber an input or cannot be written, before any work is done.
+
+    Raises:
+        InputError: naming the output, if it is one of ``inputs`` (same file by
+            ``os.path.samefile`` or resolved path), two outputs coincide, it is
+            an existing directory, its parent is a file, or its folder exists
+            but is not writable.
+    """
+    outputs = [Path(o) for o in outputs]
+    inputs = [Path(i) for i in inputs if i is not None and str(i)]
+    for k, out in enumerate(outputs):
+        for inp in inputs:
+            if same_file(out, inp):
+                raise InputError(out, f"output would overwrite the input {inp}", "choose another --out")
+        for other in outputs[:k]:
+            if same_file(out, other):
+                raise InputError(out, "is written twice by this command", "choose another --out")
+        if out.is_dir():
+            raise InputError(out, "output is a directory", "give a file name")
+        parent = out.parent
+        while not parent.exists() and parent != parent.parent:
+            parent = parent.parent
+        if not parent.is_dir():
+            raise InputError(out, f"cannot be written: {parent} is not a folder")
+        if not os.access(parent, os.W_OK | os.X_OK):
+            raise InputError(out, f"cannot be written: the folder {parent} is not writable",
+                             "choose another --out")

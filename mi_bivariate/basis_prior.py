@@ -41,6 +41,7 @@ import numpy as np
 
 from .atomic import atomic_path
 from .errors import InputError
+from .npzio import read_npz
 
 PathLike = Union[str, os.PathLike]
 FORMAT = "mi_bivariate.basis_prior"
@@ -198,14 +199,15 @@ class BasisPrior:
     @classmethod
     def load(cls, path: PathLike) -> "BasisPrior":
         path = Path(path)
-        if not path.is_file():
-            raise InputError(path, "basis prior file not found")
+        keys = ("meta", "mean", "basis", "variances", "residual")
+        z = read_npz(path, what="mi_bivariate basis prior", required=keys, hint="write it with BasisPrior.save")
         try:
-            with np.load(path, allow_pickle=False) as z:
-                meta = json.loads(str(z["meta"]))
-                arrays = {k: np.asarray(z[k], np.float64) for k in ("mean", "basis", "variances", "residual")}
-        except (OSError, ValueError, KeyError) as exc:
+            meta = json.loads(str(z["meta"]))
+            arrays = {k: np.asarray(z[k], np.float64) for k in keys[1:]}
+        except (ValueError, TypeError) as exc:
             raise InputError(path, f"not a mi_bivariate basis prior ({exc.__class__.__name__}: {exc})") from None
+        if not isinstance(meta, dict) or "grid" not in meta:
+            raise InputError(path, "not a mi_bivariate basis prior (no grid in its metadata)")
         if meta.get("format") != FORMAT:
             raise InputError(path, f"not a mi_bivariate basis prior (format {meta.get('format')!r})")
         n_t, n_s = (int(v) for v in meta["grid"])

@@ -17,8 +17,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import zipfile
-import zlib
 from pathlib import Path
 from typing import Any, Optional, Union
 
@@ -27,6 +25,8 @@ import numpy as np
 from mi_bivariate.atomic import atomic_path
 from mi_bivariate.coordinates import grid_nodes, half_diff_from_st, st_from_half_diff
 from mi_bivariate.errors import InputError
+from mi_bivariate.images import write_exr
+from mi_bivariate.npzio import read_npz
 from mi_bivariate.merl import MERL_SHAPE, MERLBRDF, above_horizon, node_angles
 
 PathLike = Union[str, os.PathLike]
@@ -44,6 +44,9 @@ _ST_MAX = (MERL_SHAPE[0] - 1) / MERL_SHAPE[0]
 
 def validate_table(table: Any, source: str) -> np.ndarray:
     """Check a ``(n_t >= 2, n_s >= 2, 3)`` table (finite, non-negative); return C-contiguous float32."""
+    kind = getattr(getattr(table, "dtype", None), "kind", "f")
+    if kind not in "biuf":
+        raise InputError(source, f"bivariate BRDF table holds {getattr(table, 'dtype')} values", "expected real numbers")
     try:
         table = np.asarray(table, dtype=np.float32)
     except (TypeError, ValueError):
@@ -235,21 +238,13 @@ class BivariateBRDF:
             InputError: missing, corrupt or foreign file; inconsistent nodes or units.
         """
         path = Path(path)
-        if not path.is_file():
-            raise InputError(path, "bivariate BRDF file not found")
-        try:
-            with np.load(path, allow_pickle=False) as npz:
-                missing = [k for k in ("table", "s_nodes", "t_nodes", "meta") if k not in npz.files]
-                if missing:
-                    raise InputError(path, f"not a bivariate BRDF file: missing {', '.join(missing)}",
-                                     "write it with BivariateBRDF.save")
-                table, s_nodes, t_nodes = npz["table"], npz["s_nodes"], npz["t_nodes"]
-                meta_text = str(npz["meta"])
-                confidence = {k[len("confidence_"):]: npz[k] for k in npz.files if k.startswith("confidence_")}
-        except InputError:
-            raise
-        except (zipfile.BadZipFile, zlib.error, ValueError, OSError, EOFError, KeyError, NotImplementedError) as e:
-            raise InputError(path, f"not a readable .npz file ({type(e).__name__})") from None
+        arrays = read_npz(path, what="bivariate BRDF file", required=("table", "s_nodes", "t_nodes", "meta"),
+                          hint="write it with BivariateBRDF.save")
+        table, s_nodes, t_nodes = arrays["table"], arrays["s_nodes"], arrays["t_nodes"]
+        if arrays["meta"].shape != () or arrays["meta"].dtype.kind not in "US":
+            raise InputError(path, "bivariate BRDF metadata is not a JSON string")
+        meta_text = str(arrays["meta"])
+        confidence = {k[len("confidence_"):]: arrays[k] for k in arrays if k.startswith("confidence_")}
         try:
             meta = json.loads(meta_text)
         except json.JSONDecodeError:
@@ -264,10 +259,13 @@ class BivariateBRDF:
         return biv
 
     def save_exr(self, path: PathLike) -> None:
-        """Write the table as an RGB float32 EXR image (rows = theta_h (t), columns = theta_d (s)), atomic."""
-        bitmap = self.to_bitmap()
-        with atomic_path(path, suffix=".exr") as tmp:
-            bitmap.write(str(tmp))
+        """Write the table as an RGB float32 EXR image (rows = theta_h (t), columns = theta_d (s)), atomic.
+
+        The header records the units, layout and st map besides the tool's provenance.
+        """
+        write_exr(path, self.table, units=UNITS,
+                  metadata={"layout": LAYOUT, "st_map": ST_MAP,
+                            "provenance": json.dumps(self.provenance, default=str)})
 
     def to_merl(self, name: Optional[str] = None) -> MERLBRDF:
         """A MERL table whose every cell (valid or not) holds the bivariate value at its (theta_h, theta_d)."""

@@ -17,6 +17,122 @@ from typing import Callable, Dict, List, Optional, Sequence
 
 from mi_bivariate.errors import InputError, InputWarning
 
+# Limits on user numbers, checked before anything is allocated. Each is far above
+# the documented defaults and below what a 16 GB machine (or Dr.Jit's 32-bit
+# array sizes) can hold.
+#: Nodes per st axis, and nodes of the whole grid (the solve's normal equations are N x N).
+MAX_GRID_AXIS = 256
+MAX_GRID_NODES = 64 * 64
+#: Normals M and light directions K of a recovery.
+MAX_NORMALS = 1_000_000
+MAX_DIRS = 10_000_000
+#: Bytes of the lighting matrix (M x N x 3 float32).
+MAX_LIGHTING_BYTES = 4 << 30
+#: Lanes of one lighting kernel (rows of a chunk x direction pairs): Dr.Jit indexes with uint32.
+MAX_KERNEL_LANES = 1 << 31
+#: Render width/height, samples per pixel, and samples of one render (width x height x spp).
+MAX_RESOLUTION = 8192
+MAX_SPP = 1 << 16
+MAX_RENDER_SAMPLES = 1 << 28
+#: Sampler seeds are unsigned 32-bit integers.
+MAX_SEED = 2**32 - 1
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with usage errors as one line ``mi-bivariate: error: ... (see ... --help)``, exit status 2."""
+
+    def error(self, message: str):  # type: ignore[override]
+        self.exit(2, f"mi-bivariate: error: {message} (see '{self.prog} --help')\n")
+
+
+def _check_max(flag: str, value: Optional[int], limit: int, hint: str = "") -> None:
+    if value is not None and value > limit:
+        raise InputError(flag, f"{value} is over the limit of {limit}", hint or None)
+
+
+def _check_seed(seed: Optional[int]) -> None:
+    if seed is not None and not 0 <= seed <= MAX_SEED:
+        raise InputError("--seed", f"must be an integer from 0 to {MAX_SEED}, got {seed}")
+
+
+def _check_grid(grid: Optional[Sequence[int]]) -> None:
+    if grid is None:
+        return
+    n_t, n_s = grid
+    for flag, n in (("--grid N_T", n_t), ("--grid N_S", n_s)):
+        _check_max(flag, n, MAX_GRID_AXIS)
+    if n_t > 0 and n_s > 0 and n_t * n_s > MAX_GRID_NODES:
+        raise InputError("--grid", f"{n_t} x {n_s} = {n_t * n_s} nodes is over the limit of {MAX_GRID_NODES}",
+                         "the solve's normal equations grow as the square of the node count")
+
+
+def _check_recovery_sizes(normals: Optional[int], dirs: Optional[int], grid: Optional[Sequence[int]]) -> None:
+    """Upper limits on M, K and the grid, and on the lighting matrix and kernel they imply.
+
+    Lower limits (M = 0, a one-node axis) are the library's checks, reported with its words.
+    """
+    from mi_bivariate import lighting
+
+    _check_grid(grid)
+    _check_max("--normals", normals, MAX_NORMALS)
+    _check_max("--dirs", dirs, MAX_DIRS)
+    if normals is None or dirs is None or grid is None or min(normals, dirs, *grid) < 1:
+        return
+    n_nodes = grid[0] * grid[1]
+    size = normals * n_nodes * 3 * 4
+    if size > MAX_LIGHTING_BYTES:
+        raise InputError("--normals", f"the lighting matrix of {normals} normals x {n_nodes} nodes would take "
+                         f"{size / 2**30:.1f} GiB, over the limit of {MAX_LIGHTING_BYTES / 2**30:.0f} GiB",
+                         "use fewer normals or a smaller grid")
+    lanes = min(normals, lighting._chunk_rows(n_nodes, None)) * lighting.direction_pairs(dirs)
+    if lanes > MAX_KERNEL_LANES:
+        raise InputError("--dirs", f"{dirs} directions with a {grid[0]} x {grid[1]} grid make a lighting kernel of "
+                         f"{lanes} lanes, over the limit of {MAX_KERNEL_LANES}", "use fewer directions")
+
+
+def _check_render_sizes(resolution: Optional[int], spp: Optional[int], flag: str = "--spp") -> None:
+    _check_max("--resolution", resolution, MAX_RESOLUTION)
+    _check_max(flag, spp, MAX_SPP)
+    if resolution and spp and resolution > 0 and spp > 0 and resolution * resolution * spp > MAX_RENDER_SAMPLES:
+        raise InputError(flag, f"{resolution} x {resolution} pixels x {spp} spp = {resolution * resolution * spp} "
+                         f"samples, over the limit of {MAX_RENDER_SAMPLES} for one render",
+                         "lower --spp or --resolution")
+
+
+def _check_float(flag: str, value: Optional[float], lo: float, hi: float, lo_open: bool = False) -> None:
+    import math
+
+    if value is None:
+        return
+    ok = math.isfinite(value) and (value > lo if lo_open else value >= lo) and value <= hi
+    if not ok:
+        interval = f"{'(' if lo_open else '['}{lo:g}, {hi:g}]"
+        raise InputError(flag, f"must be a finite number in {interval}, got {value}")
+
+
+def _existing_files(*specs: Optional[str]) -> List[Path]:
+    """The arguments that name existing files (inputs an output must not overwrite)."""
+    return [Path(s) for s in specs if s and Path(s).is_file()]
+
+
+def _check_out_file(out: Optional[str]) -> None:
+    """``--out`` naming an existing folder is refused (the command writes files, not into a folder)."""
+    if out and Path(out).is_dir():
+        raise InputError(out, "--out is a folder", "give a file name")
+
+
+#: Library names of inputs (``"image"``) -> the user's file names, for warnings (see :func:`_format_warning`).
+_SOURCE_NAMES: Dict[str, str] = {}
+
+
+def _check_out_folder(out: Path) -> None:
+    """An output folder must not be an existing file and must be creatable/writable."""
+    from mi_bivariate.atomic import check_outputs
+
+    if out.exists() and not out.is_dir():
+        raise InputError(out, "--out must be a folder, but this is a file", "choose another --out")
+    check_outputs([out / ".probe-write"])
+
 
 def _parse_sphere(text: str):
     if text == "auto":
@@ -112,14 +228,21 @@ def cmd_render(args: argparse.Namespace) -> int:
     from mi_bivariate import render
     from mi_bivariate.variants import ensure_variant
 
+    from mi_bivariate.atomic import atomic_paths, check_outputs
+
+    _check_render_sizes(args.resolution, args.spp)
+    _check_seed(args.seed)
+    _check_out_file(args.out)
+    out = Path(args.out)
+    check_outputs([out, out.with_suffix(".png")], _existing_files(args.brdf, args.probe))
     ensure_variant(args.variant)
     brdf = _load_brdf_source(args.brdf, args.data)
     probe = _load_probe(args.probe, args.data)
     result = render.render_sphere(render.bsdf_dict(brdf), probe, resolution=args.resolution, spp=args.spp,
                                   camera=args.camera, seed=args.seed)
-    out = Path(args.out)
-    render.write_exr(out, result.image)
-    render.write_png_preview(out.with_suffix(".png"), result.image)
+    with atomic_paths([out, out.with_suffix(".png")]) as (exr, png):
+        render.write_exr(exr, result.image)
+        render.write_png_preview(png, result.image)
     print(f"wrote {out} and {out.with_suffix('.png')}")
     return 0
 
@@ -127,14 +250,25 @@ def cmd_render(args: argparse.Namespace) -> int:
 # --------------------------------------------------------------------------- reduce
 
 def cmd_reduce(args: argparse.Namespace) -> int:
-    from mi_bivariate import bivariate, merl
+    import numpy as np
 
+    from mi_bivariate import bivariate, merl
+    from mi_bivariate.atomic import atomic_paths, check_outputs
+
+    _check_grid(args.grid)
+    _check_out_file(args.out)
+    out = Path(args.out) if args.out else Path(args.merl).with_suffix(".npz")
+    check_outputs([out, out.with_suffix(".exr")], _existing_files(args.merl))
     source = merl.MERLBRDF.read(args.merl)
+    valid = source.table[np.isfinite(source.table)]
+    if not np.any(valid > 0.0):
+        raise InputError(args.merl, "MERL table holds no positive value: the relative error of a reduction is "
+                                    "undefined", "check the file")
     biv = bivariate.BivariateBRDF.reduce(source, n_t=args.grid[0], n_s=args.grid[1])
     error = bivariate.reduction_error(source, biv)
-    out = Path(args.out) if args.out else Path(args.merl).with_suffix(".npz")
-    biv.save(out)
-    biv.save_exr(out.with_suffix(".exr"))
+    with atomic_paths([out, out.with_suffix(".exr")]) as (npz, exr):
+        biv.save(npz)
+        biv.save_exr(exr)
     print(f"Eq. 1 relative RMS error of the bivariate reduction: {error:.4f}")
     print(f"wrote {out} and {out.with_suffix('.exr')}")
     return 0
@@ -144,12 +278,17 @@ def cmd_reduce(args: argparse.Namespace) -> int:
 
 def cmd_learn_prior(args: argparse.Namespace) -> int:
     from mi_bivariate import training_set
+    from mi_bivariate.atomic import atomic_paths, check_outputs
 
+    _check_grid(args.grid)
+    _check_out_file(args.out)
+    basis_out = training_set.basis_path_for(args.out)
+    check_outputs([args.out, basis_out], _existing_files(*args.sources))
     smooth, basis = training_set.learn_priors_from_merl(args.sources, n_t=args.grid[0], n_s=args.grid[1],
                                                         data_dir=args.data)
-    basis_out = training_set.basis_path_for(args.out)
-    smooth.save(args.out)
-    basis.save(basis_out)
+    with atomic_paths([args.out, basis_out], suffixes=[".npz", ".npz"]) as (tmp_smooth, tmp_basis):
+        smooth.save(tmp_smooth)
+        basis.save(tmp_basis)
     print(f"wrote {args.out} (smoothness prior, {len(smooth.provenance['materials'])} materials) and "
           f"{basis_out} (basis prior, {basis.basis.shape[1]} components)")
     return 0
@@ -163,17 +302,41 @@ def cmd_recover(args: argparse.Namespace) -> int:
     from mi_bivariate.images import load_image, load_mask
     from mi_bivariate.variants import ensure_variant
 
+    from mi_bivariate.atomic import check_outputs
+
+    _check_recovery_sizes(args.normals, args.dirs, args.grid)
+    _check_seed(args.seed)
+    _check_float("--max-view-angle", args.max_view_angle, 0.0, 90.0, lo_open=True)
+    _check_float("--saturation", args.saturation, 0.0, float("inf"), lo_open=True)
+    _check_float("--alpha", args.alpha, float("-inf"), float("inf"))  # the sign is the library's check
+    if args.threads is not None and not 1 <= args.threads <= 1024:
+        raise InputError("--threads", f"must be from 1 to 1024, got {args.threads}")
+    _check_out_file(args.out)
+    outputs = rec.output_paths(args.out, merl=args.merl, report=not args.no_report)
+    _SOURCE_NAMES.update({"image": str(args.image), "lighting matrix L": str(args.probe)})
+    check_outputs(outputs, _existing_files(args.image, args.probe, args.mask))
     ensure_variant(args.variant)
+    if args.threads is not None:
+        import drjit as dr
+
+        dr.set_thread_count(args.threads)
     probe = _load_probe(args.probe, args.data)
     image = load_image(args.image)
     mask = load_mask(args.mask, image.shape) if args.mask else None
     sphere = None if args.sphere in (None, "auto") else args.sphere
     fit = spherefit.fit_sphere(image, mask, sphere=sphere, source=str(args.image))
     print(fit.summary())
-    result = rec.recover(
-        image, probe, fit.geometry, masks=mask, n_normals=args.normals, n_dirs=args.dirs,
-        grid=tuple(args.grid), alpha=args.alpha, seed=args.seed, max_view_angle_deg=args.max_view_angle,
-        saturation=args.saturation)
+    try:
+        result = rec.recover(
+            image, probe, fit.geometry, masks=mask, n_normals=args.normals, n_dirs=args.dirs,
+            grid=tuple(args.grid), alpha=args.alpha, seed=args.seed, max_view_angle_deg=args.max_view_angle,
+            saturation=args.saturation)
+    except InputError as exc:
+        # The library names its arguments ("image", "lighting matrix L"); name the user's files.
+        names = {"image": args.image, "lighting matrix L": args.probe}
+        if exc.source in names:
+            raise InputError(names[exc.source], exc.problem, exc.hint) from None
+        raise
     paths = rec.write_outputs(result, args.out, merl=args.merl, report=not args.no_report)
     print(result.summary())
     for p in paths:
@@ -187,6 +350,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from mi_bivariate import demo
     from mi_bivariate.variants import ensure_variant
 
+    _check_render_sizes(args.resolution, args.spp)
+    _check_seed(args.seed)
+    _check_out_folder(Path(args.out))
     ensure_variant(args.variant)
     return demo.run_demo(out_dir=Path(args.out), material=args.material, input_probe=args.input_probe,
                          novel_probe=args.novel_probe, data_dir=args.data, spp=args.spp, seed=args.seed,
@@ -199,6 +365,17 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from mi_bivariate import evaluate as ev
     from mi_bivariate.variants import ensure_variant
 
+    _check_recovery_sizes(args.normals or 8000, args.dirs or 32000, args.grid or (32, 32))
+    _check_render_sizes(args.resolution or 128, args.spp)
+    _check_render_sizes(args.resolution or 128, args.novel_spp, flag="--novel-spp")
+    _check_seed(args.seed)
+    _check_float("--alpha", args.alpha, float("-inf"), float("inf"))
+    _check_float("--abs-time-factor", args.abs_time_factor, 0.0, 1e6, lo_open=True)
+    if not 1 <= args.jobs <= 256:
+        raise InputError("--jobs", f"must be from 1 to 256, got {args.jobs}")
+    if args.threads is not None and not 1 <= args.threads <= 1024:
+        raise InputError("--threads", f"must be from 1 to 1024, got {args.threads}")
+    _check_out_folder(Path(args.out))
     ensure_variant(args.variant)
     data = args.data
     materials = list(args.materials) or (ev.quick_materials(data) if args.quick else ["nbrdf"])
@@ -237,7 +414,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 # --------------------------------------------------------------------------- parser
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="mi-bivariate",
         description="Passive reflectometry for Mitsuba 3: recover a bivariate (theta_h, theta_d) BRDF "
                     "from an HDR image of a known sphere under a known light probe.")
@@ -293,6 +470,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-view-angle", type=float, default=80.0, help="drop normals further from the view (deg)")
     p.add_argument("--saturation", type=float, default=None, help="drop pixels with any channel >= this value")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threads", type=int, default=None,
+                   help="Dr.Jit threads (1: bit-identical outputs from run to run; default: all cores, where "
+                        "the lighting matrix's parallel sums vary at float32 rounding)")
+    p.add_argument("--deterministic", dest="threads", action="store_const", const=1,
+                   help="same as --threads 1")
     _add_variant(p)
     _add_data(p)
     p.set_defaults(func=cmd_recover)
@@ -348,7 +530,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _format_warning(message, category, filename, lineno, line=None) -> str:
-    return f"mi-bivariate: warning: {message}\n"
+    text = " ".join(str(message).split())
+    for name, path in _SOURCE_NAMES.items():
+        if text.startswith(name + ":"):
+            text = path + text[len(name):]
+            break
+    return f"mi-bivariate: warning: {text}\n"
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
@@ -359,6 +546,15 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         return int(args.func(args) or 0)
     except InputError as exc:
         print(f"mi-bivariate: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:
+        # A file the checks could not foresee (vanished, unreadable, a full disk).
+        name = exc.filename if exc.filename is not None else args.command
+        print(f"mi-bivariate: error: {name}: {exc.strerror or exc} (check the path, permissions and free space)",
+              file=sys.stderr)
+        return 2
+    except MemoryError:
+        print(f"mi-bivariate: error: {args.command}: out of memory (use smaller sizes)", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("mi-bivariate: interrupted", file=sys.stderr)

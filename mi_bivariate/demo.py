@@ -17,7 +17,7 @@ from typing import Optional, Tuple
 import numpy as np
 
 from mi_bivariate import analytic, metrics, nbrdf, probes, render
-from mi_bivariate.atomic import atomic_path
+from mi_bivariate.atomic import atomic_paths
 from mi_bivariate.bivariate import BivariateBRDF, reduction_error
 from mi_bivariate.errors import InputError
 from mi_bivariate.recover import recover
@@ -110,18 +110,20 @@ def run_demo(out_dir: Path = Path("out/demo"), material: Optional[str] = None,
         "timings_s": {k: round(v, 3) for k, v in rec.timings.items()},
     }
 
-    out_dir.mkdir(parents=True, exist_ok=True)
-    rec.brdf.save(out_dir / "recovered.npz")
-    rec.brdf.save_exr(out_dir / "recovered_table.exr")
-    render.write_exr(out_dir / "input.exr", shot.image)
-    render.write_exr(out_dir / "novel_recovered.exr", novel_rec.image)
-    render.write_exr(out_dir / "novel_truth.exr", novel_truth.image)
+    # All outputs together (all or none): a failure leaves an earlier demo's files as they were.
+    names = ("recovered.npz", "recovered_table.exr", "input.exr", "novel_recovered.exr", "novel_truth.exr",
+             "demo.png", "metrics.json")
     from mi_bivariate import report
 
-    figure = report.write_demo_figure(out_dir / "demo.png", shot, novel_rec, novel_truth, rec, truth, floor,
-                                      numbers)
-    with atomic_path(out_dir / "metrics.json") as tmp:
-        tmp.write_text(json.dumps(numbers, indent=2))
+    with atomic_paths([out_dir / n for n in names]) as tmp:
+        rec.brdf.save(tmp[0])
+        rec.brdf.save_exr(tmp[1])
+        render.write_exr(tmp[2], shot.image)
+        render.write_exr(tmp[3], novel_rec.image)
+        render.write_exr(tmp[4], novel_truth.image)
+        report.write_demo_figure(tmp[5], shot, novel_rec, novel_truth, rec, truth, floor, numbers)
+        tmp[6].write_text(json.dumps(numbers, indent=2))
+    figure = out_dir / "demo.png"
     numbers["total_s"] = time.perf_counter() - t_start
 
     print()

@@ -38,6 +38,7 @@ import json
 import math
 import os
 import re
+import sys
 import time
 import warnings
 from dataclasses import asdict, dataclass, field, replace
@@ -442,48 +443,70 @@ def evaluate_material(task: MaterialTask) -> Tuple[dict, Dict[str, np.ndarray]]:
 
 # ------------------------------------------------------------------ results I/O
 
+#: Damaged lines of ``results.jsonl`` are moved here (and their materials recomputed).
+REJECTED_FILE = "results.rejected.jsonl"
+#: Held (``flock``) by the run using an output folder.
+LOCK_FILE = ".evaluate.lock"
+
+
+def _parse_record(line: bytes) -> Optional[dict]:
+    """A results line as a record, or ``None`` if damaged (not UTF-8, not JSON, not a record)."""
+    try:
+        rec = json.loads(line.decode("utf-8"))
+    except (UnicodeDecodeError, ValueError, RecursionError):
+        return None
+    if not isinstance(rec, dict) or not isinstance(rec.get("material"), str) \
+            or not isinstance(rec.get("config_hash"), str):
+        return None
+    return rec
+
+
 def read_records(path: PathLike, config_hash: Optional[str] = None) -> List[dict]:
     """Records of a ``results.jsonl`` (optionally only those with ``config_hash``).
 
-    Lines that do not parse (a last line cut by an interruption) are skipped.
+    Damaged lines (a last line cut by an interruption, bytes that are not
+    UTF-8, invalid JSON, a record without ``material`` or ``config_hash``) are
+    skipped; :func:`repair_results` sets them aside.
     """
     path = Path(path)
     if not path.is_file():
         return []
     records = []
-    for line in path.read_text().splitlines():
-        try:
-            rec = json.loads(line)
-        except json.JSONDecodeError:
-            continue
-        if isinstance(rec, dict) and (config_hash is None or rec.get("config_hash") == config_hash):
+    for line in path.read_bytes().splitlines():
+        rec = _parse_record(line)
+        if rec is not None and (config_hash is None or rec.get("config_hash") == config_hash):
             records.append(rec)
     return records
 
 
 def repair_results(path: PathLike) -> int:
-    """Drop unparsable lines of a results file (atomically) so appends start on a fresh line.
+    """Set damaged lines of a results file aside so that their materials are recomputed.
 
-    Returns the number of lines dropped. Every complete record is kept,
-    whatever its configuration.
+    Damaged lines (see :func:`read_records`) are appended, as they were, to
+    ``results.rejected.jsonl`` beside it, and the results file is rewritten
+    (atomically) with the good lines only, ending in a newline. Returns the
+    number of lines set aside. Every complete record is kept, whatever its
+    configuration.
     """
     path = Path(path)
     if not path.is_file():
         return 0
     raw = path.read_bytes()
-    lines = raw.decode("utf-8", errors="replace").splitlines()
-    good = []
-    for line in lines:
-        try:
-            if isinstance(json.loads(line), dict):
-                good.append(line)
-        except json.JSONDecodeError:
-            pass
-    dropped = len(lines) - len(good)
-    if dropped or (raw and not raw.endswith(b"\n")):
+    lines = [line for line in raw.splitlines() if line.strip()]
+    good = [line for line in lines if _parse_record(line) is not None]
+    bad = [line for line in lines if _parse_record(line) is None]
+    if bad:
+        rejected = path.with_name(REJECTED_FILE)
+        with open(rejected, "ab") as f:
+            f.write(b"".join(line + b"\n" for line in bad))
+            f.flush()
+            os.fsync(f.fileno())
+        warnings.warn(f"{path}: {len(bad)} damaged line(s) set aside in {rejected}; their materials are "
+                      "recomputed", InputWarning, stacklevel=2)
+    if bad or (raw and not raw.endswith(b"\n")) or len(lines) != len(raw.splitlines()):
         with atomic_path(path) as tmp:
-            tmp.write_text("".join(g + "\n" for g in good))
-    return dropped
+            tmp.write_bytes(b"".join(line + b"\n" for line in good))
+    return len(bad)
 
 
 def append_record(path: PathLike, record: dict) -> None:
@@ -569,10 +592,77 @@ def threads_per_job(jobs: int) -> int:
     return max(1, (os.cpu_count() or 1) // max(1, jobs))
 
 
-def _init_worker(variant: Optional[str]) -> None:
+def _watch_parent(parent: int, interval: float = 0.5) -> None:
+    """Exit this process as soon as ``parent`` is no longer its parent (it died)."""
+    import threading
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(interval)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="mi-bivariate-parent-watch", daemon=True).start()
+
+
+def _init_worker(variant: Optional[str], parent: Optional[int] = None) -> None:
+    """Worker set-up: die with the parent (``PR_SET_PDEATHSIG`` on Linux and a
+    watchdog thread polling ``os.getppid``), then select the variant."""
+    if parent is not None:
+        if sys.platform.startswith("linux"):
+            import ctypes
+            import signal
+
+            with contextlib.suppress(OSError, AttributeError):
+                libc = ctypes.CDLL(None, use_errno=True)
+                libc.prctl(1, signal.SIGTERM, 0, 0, 0)  # PR_SET_PDEATHSIG = 1
+        if os.getppid() != parent:      # the parent died before the signal was armed
+            os._exit(1)
+        _watch_parent(parent)
     from mi_bivariate.variants import ensure_variant
 
     ensure_variant(variant)
+
+
+def _connect_dask(address: Any) -> Any:
+    """A ``distributed.Client`` for ``address`` (a client is returned as is); InputError if unreachable."""
+    try:
+        from distributed import Client
+    except ImportError:
+        raise InputError("--dask", "the 'distributed' package is not installed",
+                         "pip install distributed, or run without --dask") from None
+    if isinstance(address, Client):
+        return address
+    try:
+        return Client(address, timeout="5s")
+    except (OSError, TimeoutError, ValueError, TypeError) as exc:
+        text = " ".join(str(exc).split())[:160] or type(exc).__name__
+        raise InputError("--dask", f"cannot reach a Dask scheduler at {address!r} ({text})",
+                         "start the scheduler or check the address") from None
+
+
+@contextlib.contextmanager
+def _folder_lock(out: Path) -> Iterator[None]:
+    """Hold an exclusive ``flock`` on ``out/.evaluate.lock`` (released when the process ends, even killed).
+
+    Raises:
+        InputError: another run holds it.
+    """
+    import fcntl
+
+    path = out / LOCK_FILE
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            holder = os.pread(fd, 64, 0).decode("ascii", "replace").strip() or "?"
+            raise InputError(out, f"another evaluate run (pid {holder}) is using this folder",
+                             "wait for it to finish, or use another --out") from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        yield
+    finally:
+        os.close(fd)
 
 
 @contextlib.contextmanager
@@ -599,9 +689,9 @@ def _run_tasks(tasks: List[MaterialTask], jobs: int, dask: Any) -> Iterator[Tupl
     batch; ``KeyboardInterrupt`` still does.
     """
     if dask is not None:
-        from distributed import Client, as_completed
+        from distributed import as_completed
 
-        client = dask if isinstance(dask, Client) else Client(dask)
+        client = _connect_dask(dask)
         try:
             futures = {client.submit(evaluate_material, t, pure=False,
                                      key=f"mi-bivariate-{t.material.slug}-{t.config.hash()}"): t for t in tasks}
@@ -629,7 +719,7 @@ def _run_tasks(tasks: List[MaterialTask], jobs: int, dask: Any) -> Iterator[Tupl
 
     with _blas_threads(tasks[0].threads or threads_per_job(jobs)):
         pool = ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("spawn"),
-                                   initializer=_init_worker, initargs=(mi.variant(),))
+                                   initializer=_init_worker, initargs=(mi.variant(), os.getpid()))
     with pool:
         futures = {pool.submit(evaluate_material, t): t for t in tasks}
         try:
@@ -682,10 +772,38 @@ def run_evaluation(materials: Sequence[Union[str, MaterialSpec]], out_dir: PathL
             [m for m in materials if isinstance(m, MaterialSpec)]
     if not specs:
         raise InputError("materials", "no materials given")
-    # Fail early (in the parent, with a one-line error) on a missing probe or data folder.
+    # Fail early (in the parent, with a one-line error) on a missing probe or data folder,
+    # a damaged MERL file or an unreachable scheduler: before the output folder exists.
     for p in tuple(config.input_probes) + tuple(config.novel_probes):
         load_probe(p, data_dir)
+    from mi_bivariate.merl import MERLBRDF
+
+    for m in specs:
+        if m.kind == "merl":
+            MERLBRDF.check_file(m.spec)
     out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise InputError(out, "the output folder is a file", "choose another --out")
+    client = _connect_dask(dask) if dask is not None else None
+    created = not out.exists()
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(out, f"cannot create the output folder ({exc.strerror or exc})") from None
+    try:
+        with _folder_lock(out):
+            records = _run_locked(specs, out, config, jobs, client, data_dir, progress, figures,
+                                  figure_formats, on_record, threads, created)
+    finally:
+        if client is not None and client is not dask:
+            client.close()
+    return records
+
+
+def _run_locked(specs: List[MaterialSpec], out: Path, config: EvalConfig, jobs: int, dask: Any,
+                data_dir: Optional[PathLike], progress: bool, figures: bool, figure_formats: Sequence[str],
+                on_record: Optional[Callable[[dict], None]], threads: Optional[int], created: bool) -> List[dict]:
+    """:func:`run_evaluation`'s work, in a folder it holds the lock of."""
     (out / "materials" / config.hash()).mkdir(parents=True, exist_ok=True)
     results = out / RESULTS_FILE
     repair_results(results)
@@ -734,6 +852,10 @@ def run_evaluation(materials: Sequence[Union[str, MaterialSpec]], out_dir: PathL
         make_figures(out, records, formats=figure_formats)
     if failures and not records:
         label, exc = failures[0]
+        if created:  # nothing came of it: leave no folder behind
+            import shutil
+
+            shutil.rmtree(out, ignore_errors=True)
         if isinstance(exc, InputError):
             raise exc
         raise RuntimeError(f"every material failed; first: {label}: {type(exc).__name__}: {exc}") from exc

@@ -1,16 +1,30 @@
 """Reading and writing the toolkit's images (linear HDR, float32 RGB).
 
-Readers validate what they load and raise :class:`InputError` naming the file;
-writers are atomic. 8-bit formats load with an :class:`InputWarning`: they are
-not radiometric, so a BRDF recovered from them is only qualitative.
+One reader, :func:`read_image`, serves every image input (photographs,
+probes, masks). It decides the format by the file's content (magic bytes),
+never by its name:
+
+- OpenEXR (``76 2f 31 01``) through the ``OpenEXR`` package;
+- Radiance RGBE (``#?``) after :func:`check_rgbe` validated its structure
+  (Mitsuba's RGBE reader corrupts the heap on a bad run length), then Mitsuba;
+- PFM (``PF``/``Pf`` header) after its header and size are checked, then Mitsuba;
+- PNG and JPEG (8-bit, not radiometric): with an :class:`InputWarning`, or
+  an :class:`InputError` where a linear image is required or the file is
+  named like an HDR image.
+
+Image sizes are checked before pixels are allocated. Readers raise
+:class:`InputError` naming the file; writers are atomic, and EXR outputs
+carry provenance (tool version, command line, units) in their header.
 """
 
 from __future__ import annotations
 
 import os
+import shlex
+import sys
 import warnings
 from pathlib import Path
-from typing import Optional, Union
+from typing import Dict, Optional, Tuple, Union
 
 import numpy as np
 
@@ -18,34 +32,96 @@ from mi_bivariate.atomic import atomic_path
 from mi_bivariate.errors import InputError, InputWarning
 
 PathLike = Union[str, os.PathLike]
-HDR_SUFFIXES = (".exr", ".hdr", ".pfm")
+HDR_SUFFIXES = (".exr", ".hdr", ".rgbe", ".pic", ".pfm")
 LDR_SUFFIXES = (".png", ".jpg", ".jpeg")
 
+#: Largest image read, in pixels (width x height): 2^28 (16384 x 16384, 3 GiB as float32 RGB).
+MAX_IMAGE_PIXELS = 1 << 28
 
-def load_image(path: PathLike, allow_ldr: bool = True) -> np.ndarray:
-    """Load a linear RGB image as ``(H, W, 3) float32``.
+EXR_MAGIC = b"\x76\x2f\x31\x01"
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+JPEG_MAGIC = b"\xff\xd8\xff"
+FORMAT_NAMES = {"exr": "OpenEXR", "rgbe": "Radiance HDR", "pfm": "PFM", "png": "PNG", "jpeg": "JPEG"}
+#: Default units written into EXR headers of rendered or captured images.
+RADIANCE_UNITS = "linear RGB radiance (relative, W m^-2 sr^-1 up to the probe's scale)"
 
-    Grey images are expanded to RGB; an alpha channel is dropped. Values are
-    not validated for NaN/Inf/negatives here: :mod:`mi_bivariate.capture`
-    counts and drops such pixels, and probes reject them.
+
+def sniff_format(path: PathLike) -> Optional[str]:
+    """The image format of a file's content: ``exr``, ``rgbe``, ``pfm``, ``png``, ``jpeg`` or ``None``."""
+    with open(path, "rb") as f:
+        head = f.read(16)
+    if head.startswith(EXR_MAGIC):
+        return "exr"
+    if head.startswith(b"#?"):
+        return "rgbe"
+    if head[:2] in (b"PF", b"Pf") and head[2:3].isspace():
+        return "pfm"
+    if head.startswith(PNG_MAGIC):
+        return "png"
+    if head.startswith(JPEG_MAGIC):
+        return "jpeg"
+    return None
+
+
+def _check_size(path: Path, width: int, height: int) -> None:
+    if width <= 0 or height <= 0:
+        raise InputError(path, f"cannot be read as an image: empty ({width}x{height} pixels)")
+    if width * height > MAX_IMAGE_PIXELS:
+        raise InputError(path, f"image is {width}x{height} pixels, over the limit of {MAX_IMAGE_PIXELS} pixels",
+                         "downsample it")
+
+
+def read_image(path: PathLike, allow_ldr: bool = True) -> Tuple[np.ndarray, Dict[str, str]]:
+    """Read an image file as linear RGB, whatever its name says.
+
+    Grey images are expanded to RGB; alpha (and any channel past RGB) is
+    dropped. Values are not validated here (probes reject NaN/Inf/negatives,
+    capture counts and drops them).
+
+    Args:
+        path: the file; its extension must be an image one (``.exr``,
+            ``.hdr``, ``.rgbe``, ``.pic``, ``.pfm``, ``.png``, ``.jpg``), but
+            the content decides the format.
+        allow_ldr: accept 8-bit PNG/JPEG (linearised from sRGB, with an
+            :class:`InputWarning`); otherwise they are an :class:`InputError`.
+
+    Returns:
+        ``(H, W, 3) float32`` pixels and the file's string metadata (EXR
+        header attributes; empty for other formats).
+
+    Raises:
+        InputError: unknown extension or content, missing, truncated or
+            corrupt file, too large, unsupported channel layout, 8-bit content
+            where linear radiance is required.
     """
-    import mitsuba as mi
-
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in HDR_SUFFIXES + LDR_SUFFIXES:
-        raise InputError(path, f"unknown image extension {path.suffix!r}",
+        raise InputError(path, f"unknown image type: extension {path.suffix or '(none)'!r}",
                          f"use one of {', '.join(HDR_SUFFIXES + LDR_SUFFIXES)}")
-    if not path.is_file():
+    if not path.exists():
         raise InputError(path, "no such file")
-    bitmap = open_bitmap(path)
-    if suffix in LDR_SUFFIXES:
+    if not path.is_file():
+        raise InputError(path, "not a file")
+    try:
+        fmt = sniff_format(path)
+    except OSError as e:
+        raise InputError(path, f"cannot be read ({e.strerror or e})") from None
+    if fmt is None:
+        raise InputError(path, "cannot be read as an image: not an OpenEXR, Radiance HDR, PFM, PNG or JPEG file",
+                         "the file is corrupt or of another type")
+    if fmt in ("png", "jpeg"):
+        if suffix in HDR_SUFFIXES:
+            raise InputError(path, f"is an 8-bit {FORMAT_NAMES[fmt]} image named {path.suffix}: not linear radiance",
+                             "convert the original capture to a linear HDR image")
         if not allow_ldr:
             raise InputError(path, "8-bit image: not radiometric", "use a linear HDR image (.exr, .hdr, .pfm)")
         warnings.warn(f"{path}: 8-bit image is not radiometric; it is linearised from sRGB, "
-                      "and the recovered BRDF is only qualitative", InputWarning, stacklevel=2)
-        bitmap = bitmap.convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.Float32, srgb_gamma=False)
-    data = np.array(bitmap, dtype=np.float32, copy=True)
+                      "and the recovered BRDF is only qualitative", InputWarning, stacklevel=3)
+    if fmt == "exr":
+        data, metadata = _read_exr(path)
+    else:
+        data, metadata = _read_with_mitsuba(path, fmt), {}
     if data.ndim == 2:
         data = data[..., None]
     channels = data.shape[2]
@@ -57,25 +133,106 @@ def load_image(path: PathLike, allow_ldr: bool = True) -> np.ndarray:
         raise InputError(path, f"has {channels} channels", "expected grey, RGB or RGBA")
     if data.size == 0:
         raise InputError(path, "is empty")
-    return np.ascontiguousarray(data)
+    return np.ascontiguousarray(data, dtype=np.float32), metadata
 
 
-def open_bitmap(path: PathLike) -> "mi.Bitmap":
-    """``mi.Bitmap(path)`` with its failures turned into one-line :class:`InputError`.
+def _exr_error(path: Path, exc: BaseException) -> InputError:
+    text = " ".join(str(exc).split())[:200] or type(exc).__name__
+    return InputError(path, f"cannot be read as an image: corrupt OpenEXR file ({text})",
+                      "the file is truncated or corrupt")
 
-    Radiance ``.hdr`` files are checked with :func:`check_rgbe` first: Mitsuba
-    3.9's RGBE reader overruns its buffer on a corrupt run length (heap
-    corruption, then a crash far from the cause), so it only ever sees
-    structurally valid files.
-    """
+
+def _read_exr(path: Path) -> Tuple[np.ndarray, Dict[str, str]]:
+    """An EXR's first part through the ``OpenEXR`` package: ``(H, W, C) float32`` and string metadata."""
+    import OpenEXR
+
+    try:
+        return _read_exr_unchecked(path, OpenEXR)
+    except InputError:
+        raise
+    except Exception as exc:  # noqa: BLE001 -- the library raises RuntimeError, UnicodeDecodeError, ... on corrupt files
+        raise _exr_error(path, exc) from None
+
+
+def _read_exr_unchecked(path: Path, OpenEXR) -> Tuple[np.ndarray, Dict[str, str]]:  # noqa: N803
+    header = OpenEXR.File(str(path), header_only=True).header()
+    lo, hi = (np.asarray(v, np.int64) for v in header["dataWindow"])
+    width, height = int(hi[0] - lo[0] + 1), int(hi[1] - lo[1] + 1)
+    _check_size(path, width, height)
+    channels = list(header.get("channels", []))
+    names = [str(c.name) for c in channels]
+    if any((c.xSampling, c.ySampling) != (1, 1) for c in channels):
+        raise InputError(path, "has sub-sampled channels", "write full-resolution channels")
+    upper = {n.upper(): n for n in names}
+    if all(k in upper for k in "RGB"):
+        order = [upper[k] for k in "RGB"]
+    elif "Y" in upper:
+        order = [upper["Y"]]
+    else:
+        raise InputError(path, f"has {len(names)} channels ({', '.join(names) or 'none'})",
+                         "expected grey, RGB or RGBA")
+    planes = OpenEXR.File(str(path), separate_channels=True).channels()
+    stack = [np.asarray(planes[n].pixels, dtype=np.float32) for n in order]
+    if any(p.shape != (height, width) for p in stack):
+        raise InputError(path, "cannot be read as an image: channel sizes disagree with the data window")
+    metadata = {str(k): v for k, v in header.items() if isinstance(v, str)}
+    return np.stack(stack, axis=-1), metadata
+
+
+def _check_pfm(path: Path) -> None:
+    """Validate a PFM header (``PF``/``Pf``, width, height, non-zero finite scale) and its data size."""
+    with open(path, "rb") as f:
+        head = f.read(256)
+    tokens, pos = [], 0
+    while len(tokens) < 4:
+        while pos < len(head) and head[pos:pos + 1].isspace():
+            pos += 1
+        start = pos
+        while pos < len(head) and not head[pos:pos + 1].isspace():
+            pos += 1
+        if start == pos:
+            raise InputError(path, "cannot be read as an image: corrupt PFM file, incomplete header")
+        tokens.append(head[start:pos])
+    pos += 1  # the single whitespace byte before the data
+    kind, width, height, scale = tokens
+    try:
+        width, height, scale = int(width), int(height), float(scale)
+    except ValueError:
+        raise InputError(path, "cannot be read as an image: corrupt PFM file, bad header") from None
+    if not np.isfinite(scale) or scale == 0.0:
+        raise InputError(path, "cannot be read as an image: corrupt PFM file, bad scale")
+    _check_size(path, width, height)
+    expected = pos + width * height * (3 if kind == b"PF" else 1) * 4
+    size = path.stat().st_size
+    if size != expected:
+        raise InputError(path, f"cannot be read as an image: corrupt PFM file, {size} bytes where its header "
+                               f"implies {expected}", "the file is truncated or corrupt")
+
+
+def _png_size(path: Path) -> None:
+    with open(path, "rb") as f:
+        head = f.read(24)
+    if len(head) < 24 or head[12:16] != b"IHDR":
+        raise InputError(path, "cannot be read as an image: corrupt PNG file")
+    _check_size(path, int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big"))
+
+
+def _read_with_mitsuba(path: Path, fmt: str) -> np.ndarray:
+    """RGBE, PFM, PNG or JPEG through ``mi.Bitmap`` after the structural checks."""
     import mitsuba as mi
 
-    path = Path(path)
-    if path.suffix.lower() in (".hdr", ".rgbe", ".pic"):
+    if fmt == "rgbe":
         check_rgbe(path)
+    elif fmt == "pfm":
+        _check_pfm(path)
+    elif fmt == "png":
+        _png_size(path)
     try:
-        return mi.Bitmap(str(path))
-    except Exception as exc:  # Mitsuba raises RuntimeError with a long C++ message
+        bitmap = mi.Bitmap(str(path))
+        if fmt in ("png", "jpeg"):
+            bitmap = bitmap.convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.Float32, srgb_gamma=False)
+        return np.array(bitmap, dtype=np.float32, copy=True)
+    except Exception as exc:  # noqa: BLE001 -- Mitsuba raises RuntimeError with a long C++ message
         text = " ".join(str(exc).split())
         # Mitsuba repeats the path and prefixes its class name; keep only the problem.
         for junk in (f'"{path}":', str(path), "[Bitmap]", "Bitmap:"):
@@ -83,6 +240,11 @@ def open_bitmap(path: PathLike) -> "mi.Bitmap":
         text = text.strip(" :") or type(exc).__name__
         raise InputError(path, f"cannot be read as an image: {text[:200]}",
                          "the file is truncated or corrupt") from None
+
+
+def load_image(path: PathLike, allow_ldr: bool = True) -> np.ndarray:
+    """Load a linear RGB image as ``(H, W, 3) float32`` (see :func:`read_image`)."""
+    return read_image(path, allow_ldr=allow_ldr)[0]
 
 
 def check_rgbe(path: PathLike) -> None:
@@ -113,6 +275,7 @@ def check_rgbe(path: PathLike) -> None:
     height, width = int(fields[1]), int(fields[3])
     if height == 0 or width == 0:
         raise bad("empty image")
+    _check_size(path, width, height)
     pos = res_end + 1
     for y in range(height):
         rle = 8 <= width <= 0x7FFF and pos + 4 <= n and data[pos] == 2 and data[pos + 1] == 2 \
@@ -147,29 +310,46 @@ def check_rgbe(path: PathLike) -> None:
 
 
 def load_mask(path: PathLike, shape: tuple) -> np.ndarray:
-    """Load a mask image as ``(H, W) bool`` (non-zero = usable), checking it matches ``shape``."""
-    data = load_image(path, allow_ldr=True) if Path(path).suffix.lower() in HDR_SUFFIXES else _load_ldr_quiet(path)
+    """Load a mask image as ``(H, W) bool`` (non-zero = usable), checking it matches ``shape``.
+
+    Any image format will do (8-bit ones without a warning: a mask is not radiometric).
+    """
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", InputWarning)
+        data = load_image(path, allow_ldr=True)
     if data.shape[:2] != tuple(shape[:2]):
         raise InputError(path, f"mask is {data.shape[1]}x{data.shape[0]} but the image is {shape[1]}x{shape[0]}")
     return np.any(data > 0, axis=2)
 
 
-def _load_ldr_quiet(path: PathLike) -> np.ndarray:
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", InputWarning)
-        return load_image(path)
+def provenance_header(units: str, extra: Optional[Dict[str, str]] = None) -> Dict[str, str]:
+    """String attributes for an output EXR header: tool version, command line, units, plus ``extra``."""
+    from mi_bivariate import __version__
+
+    header = {"mi_bivariate_version": __version__,
+              "mi_bivariate_command": shlex.join([os.path.basename(sys.argv[0] or "python")] + sys.argv[1:]),
+              "units": units}
+    header.update({str(k): str(v) for k, v in (extra or {}).items()})
+    return header
 
 
-def write_exr(path: PathLike, image: np.ndarray) -> Path:
-    """Write a linear ``(H, W, 3)`` image as a float32 RGB EXR, atomically."""
-    import mitsuba as mi
+def write_exr(path: PathLike, image: np.ndarray, units: str = RADIANCE_UNITS,
+              metadata: Optional[Dict[str, str]] = None) -> Path:
+    """Write a linear ``(H, W, 3)`` image as a float32 RGB EXR (ZIP compressed), atomically.
+
+    Written with the ``OpenEXR`` package; the header carries
+    :func:`provenance_header` (``units`` and any ``metadata`` strings).
+    """
+    import OpenEXR
 
     image = np.ascontiguousarray(image, dtype=np.float32)
     path = Path(path)
     if image.ndim != 3 or image.shape[2] != 3:
         raise InputError(path, f"image must have shape (H, W, 3), got {image.shape}")
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
+              **provenance_header(units, metadata)}
     with atomic_path(path, suffix=".exr") as tmp:
-        mi.Bitmap(image).write(str(tmp))
+        OpenEXR.File(header, {"RGB": image}).write(str(tmp))
     return path
 
 

@@ -114,6 +114,8 @@ class MERLBRDF:
         table = np.asarray(table)
         if table.shape != MERL_SHAPE + (3,):
             raise InputError(name, f"a MERL table must have shape {MERL_SHAPE + (3,)}, got {table.shape}")
+        if table.dtype.kind not in "biuf":
+            raise InputError(name, f"a MERL table holds real numbers, got {table.dtype}")
         if not np.issubdtype(table.dtype, np.floating):
             table = table.astype(np.float64)
         self.table = table
@@ -124,12 +126,12 @@ class MERLBRDF:
 
     # ------------------------------------------------------------------ I/O
 
-    @classmethod
-    def read(cls, path: PathLike, name: str | None = None) -> "MERLBRDF":
-        """Read a MERL ``.binary`` file (validates header and size).
+    @staticmethod
+    def check_file(path: PathLike) -> None:
+        """Check a MERL ``.binary`` file's header and size without reading its table.
 
         Raises:
-            InputError: the file is missing, truncated or not a MERL table.
+            InputError: the file is missing, not a file, truncated, too long or not a MERL table.
         """
         path = Path(path)
         if not path.is_file():
@@ -139,11 +141,24 @@ class MERLBRDF:
             if size < _HEADER_BYTES:
                 raise InputError(path, f"not a MERL .binary file: {size} bytes, too short for its header")
             header = tuple(int(v) for v in np.fromfile(path, dtype="<i4", count=3))
-            if header != MERL_SHAPE:
-                raise InputError(path, f"not a MERL .binary file: header {header}, expected {MERL_SHAPE}")
-            if size != MERL_FILE_BYTES:
-                what = "truncated" if size < MERL_FILE_BYTES else "has trailing data"
-                raise InputError(path, f"MERL file {what}: {size} bytes, expected {MERL_FILE_BYTES}")
+        except OSError as e:
+            raise InputError(path, f"cannot read MERL file ({e.strerror or e})") from None
+        if header != MERL_SHAPE:
+            raise InputError(path, f"not a MERL .binary file: header {header}, expected {MERL_SHAPE}")
+        if size != MERL_FILE_BYTES:
+            what = "truncated" if size < MERL_FILE_BYTES else "has trailing data"
+            raise InputError(path, f"MERL file {what}: {size} bytes, expected {MERL_FILE_BYTES}")
+
+    @classmethod
+    def read(cls, path: PathLike, name: str | None = None) -> "MERLBRDF":
+        """Read a MERL ``.binary`` file (validates header and size).
+
+        Raises:
+            InputError: the file is missing, truncated or not a MERL table.
+        """
+        path = Path(path)
+        cls.check_file(path)
+        try:
             raw = np.fromfile(path, dtype="<f8", offset=_HEADER_BYTES, count=_N_VALUES)
         except OSError as e:
             raise InputError(path, f"cannot read MERL file ({e.strerror or e})") from None

@@ -67,6 +67,7 @@ import scipy.sparse as sp
 
 from .atomic import atomic_path
 from .errors import InputError
+from .npzio import read_npz
 
 PAIRS: Tuple[str, str] = ("diffuse", "gloss")
 FORMAT = "mi_bivariate.prior"
@@ -406,14 +407,15 @@ class Prior:
     def load(cls, path: PathLike) -> "Prior":
         """Read a file written by :meth:`save`; InputError naming the file if unusable."""
         path = Path(path)
-        if not path.is_file():
-            raise InputError(path, "prior file not found")
+        keys = ["meta"] + [f"{p}_sigma_{axis}" for p in PAIRS for axis in "st"]
+        z = read_npz(path, what="mi_bivariate prior file", required=keys, hint="write it with Prior.save")
         try:
-            with np.load(path, allow_pickle=False) as z:
-                meta = json.loads(str(z["meta"]))
-                pairs = {p: (z[f"{p}_sigma_s"], z[f"{p}_sigma_t"]) for p in PAIRS}
-        except (OSError, ValueError, KeyError) as exc:
-            raise InputError(path, f"not a mi_bivariate prior file ({exc.__class__.__name__}: {exc})") from None
+            meta = json.loads(str(z["meta"]))
+        except (ValueError, RecursionError):
+            raise InputError(path, "not a mi_bivariate prior file (metadata is not JSON)") from None
+        if not isinstance(meta, dict):
+            raise InputError(path, "not a mi_bivariate prior file (metadata is not a JSON object)")
+        pairs = {p: (z[f"{p}_sigma_s"], z[f"{p}_sigma_t"]) for p in PAIRS}
         if meta.get("format") != FORMAT:
             raise InputError(path, f"not a mi_bivariate prior file (format {meta.get('format')!r})")
         try:

@@ -49,8 +49,7 @@ from typing import Any, Dict, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
-from mi_bivariate.atomic import atomic_path
-from mi_bivariate.images import open_bitmap
+from mi_bivariate.images import read_image, write_exr
 from mi_bivariate.errors import InputError
 
 PathLike = Union[str, os.PathLike]
@@ -105,52 +104,36 @@ _EVAL_CHUNK = 1 << 22
 
 
 def read_hdr_image(path: PathLike) -> Tuple[np.ndarray, Optional[np.ndarray]]:
-    """Read an HDR image (.exr, .hdr/.rgbe, .pfm) as linear RGB.
+    """Read an HDR image (OpenEXR, Radiance RGBE or PFM content) as linear RGB.
 
-    Alpha channels are dropped and grey images expanded to RGB. Values must be
-    finite and non-negative; nothing is clamped.
+    The format is decided by the content (:func:`mi_bivariate.images.read_image`,
+    the toolkit's one image reader); 8-bit content is refused. Alpha channels
+    are dropped and grey images expanded to RGB. Values must be finite and
+    non-negative; nothing is clamped.
 
     Returns:
         ``(H, W, 3) float32`` radiance and the ``(4, 4)`` ``to_world`` stored
         by :meth:`Probe.save_exr` in the file's metadata (``None`` if absent).
 
     Raises:
-        InputError: unknown extension, missing or unreadable file, unsupported
-            channel layout, NaN/Inf/negative pixels.
+        InputError: unknown extension or content, missing or unreadable file,
+            unsupported channel layout, NaN/Inf/negative pixels.
     """
-    import mitsuba as mi
-
-    from mi_bivariate.variants import ensure_variant
-
     path = Path(path)
     ext = path.suffix.lower()
     if ext not in PROBE_FORMATS:
         raise InputError(path, f"unknown image type {ext or '(no extension)'!r}",
                          "use " + ", ".join(PROBE_FORMATS))
-    if not path.is_file():
-        raise InputError(path, "no such file")
-    ensure_variant()
-    bitmap = open_bitmap(path)
-
-    pf = mi.Bitmap.PixelFormat
-    n_colours = {pf.Y: 1, pf.YA: 1, pf.RGB: 3, pf.RGBA: 3}
-    if bitmap.pixel_format() not in n_colours:
-        raise InputError(path, f"has {bitmap.channel_count()} channels "
-                         f"({bitmap.pixel_format().name}); expected grey, RGB, or either with alpha")
-    n_colour = n_colours[bitmap.pixel_format()]
-    pixels = np.array(bitmap, copy=True).reshape(bitmap.height(), bitmap.width(), -1)
-    pixels = pixels[..., :n_colour].astype(np.float32)  # drops alpha
-    if n_colour == 1:
-        pixels = np.repeat(pixels, 3, axis=-1)
+    pixels, metadata = read_image(path, allow_ldr=False)
     check_radiance(pixels, path)
-
     to_world = None
-    metadata = bitmap.metadata()
     if _TO_WORLD_KEY in metadata:
         try:
             to_world = np.array([float(x) for x in str(metadata[_TO_WORLD_KEY]).split()]).reshape(4, 4)
         except ValueError:
             raise InputError(path, f"malformed {_TO_WORLD_KEY} metadata") from None
+        if not np.all(np.isfinite(to_world)):
+            raise InputError(path, f"malformed {_TO_WORLD_KEY} metadata (non-finite values)")
     return pixels, to_world
 
 
@@ -502,21 +485,14 @@ class Probe:
     # -------------------------------------------------------------------- I/O
 
     def save_exr(self, path: PathLike) -> None:
-        """Write ``data`` as a float32 RGB OpenEXR (atomically).
+        """Write ``data`` as a float32 RGB OpenEXR (atomically, with provenance in the header).
 
         The image stays in the probe's own frame; ``to_world`` goes into the
         file's metadata and :meth:`load` restores it (Mitsuba's ``filename``
         loading ignores it).
         """
-        import mitsuba as mi
-
-        from mi_bivariate.variants import ensure_variant
-
-        ensure_variant()
-        bitmap = mi.Bitmap(np.array(self.data))
-        bitmap.metadata()[_TO_WORLD_KEY] = " ".join(repr(float(x)) for x in self.to_world.reshape(-1))
-        with atomic_path(path, suffix=".exr") as tmp:
-            bitmap.write(str(tmp))
+        write_exr(path, self.data, units="linear RGB radiance (relative)",
+                  metadata={_TO_WORLD_KEY: " ".join(repr(float(x)) for x in self.to_world.reshape(-1))})
 
 
 # ----------------------------------------------------------------- helpers

@@ -348,27 +348,36 @@ def recover_from_files(image_paths: Sequence[PathLike], probe: Union[Probe, Sequ
     return recover(images, probe, geometry, masks=masks, **kwargs)
 
 
-def write_outputs(result: Recovery, out: PathLike, merl: bool = False, report: bool = True) -> List[Path]:
-    """Write the table (``.npz``), its EXR view, optionally a MERL ``.binary`` and a PNG report.
-
-    Every file is written atomically; returns the paths written.
-    """
+def output_paths(out: PathLike, merl: bool = False, report: bool = True) -> List[Path]:
+    """The files :func:`write_outputs` writes for ``out``: ``.npz``, ``.exr``, [``.binary``], [``_report.png``]."""
     out = Path(out)
     if out.suffix != ".npz":
         out = out.with_suffix(".npz")
-    written = [out]
-    result.brdf.save(out)
-    exr = out.with_suffix(".exr")
-    result.brdf.save_exr(exr)
-    written.append(exr)
+    paths = [out, out.with_suffix(".exr")]
     if merl:
-        binary = out.with_suffix(".binary")
-        result.brdf.to_merl().write(binary)
-        written.append(binary)
+        paths.append(out.with_suffix(".binary"))
     if report:
-        from mi_bivariate import report as report_mod
+        paths.append(out.with_name(out.stem + "_report.png"))
+    return paths
 
-        png = out.with_name(out.stem + "_report.png")
-        report_mod.write_recovery_report(result, png)
-        written.append(png)
-    return written
+
+def write_outputs(result: Recovery, out: PathLike, merl: bool = False, report: bool = True) -> List[Path]:
+    """Write the table (``.npz``), its EXR view, optionally a MERL ``.binary`` and a PNG report.
+
+    All or none: every file is written to a temporary first and they are
+    renamed into place together (:func:`mi_bivariate.atomic.atomic_paths`).
+    Returns the paths written.
+    """
+    from mi_bivariate.atomic import atomic_paths
+
+    paths = output_paths(out, merl=merl, report=report)
+    with atomic_paths(paths) as temps:
+        result.brdf.save(temps[0])
+        result.brdf.save_exr(temps[1])
+        if merl:
+            result.brdf.to_merl().write(temps[2])
+        if report:
+            from mi_bivariate import report as report_mod
+
+            report_mod.write_recovery_report(result, temps[-1])
+    return paths

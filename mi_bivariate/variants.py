@@ -11,6 +11,8 @@ from __future__ import annotations
 import os
 from typing import Optional
 
+from mi_bivariate.errors import InputError
+
 DEFAULT_VARIANT = "llvm_ad_rgb"
 SUPPORTED_VARIANTS = ("llvm_ad_rgb", "cuda_ad_rgb", "scalar_rgb")
 
@@ -24,19 +26,26 @@ def ensure_variant(variant: Optional[str] = None) -> str:
 
     Returns:
         The active variant name.
+
+    Raises:
+        InputError: (a ``ValueError``) naming ``--variant`` or
+            ``MI_BIVARIATE_VARIANT`` for an unsupported or unavailable variant.
     """
     import mitsuba as mi
 
     current = mi.variant()
+    source = "--variant"
     if variant is None:
         if current in SUPPORTED_VARIANTS:
             variant = current
         else:
-            variant = os.environ.get("MI_BIVARIATE_VARIANT", DEFAULT_VARIANT)
+            variant = os.environ.get("MI_BIVARIATE_VARIANT") or DEFAULT_VARIANT
+            source = "MI_BIVARIATE_VARIANT"
     if variant not in SUPPORTED_VARIANTS:
-        raise ValueError(f"unsupported Mitsuba variant {variant!r}; use one of {SUPPORTED_VARIANTS}")
+        raise InputError(source, f"unsupported Mitsuba variant {variant!r}", f"use one of {', '.join(SUPPORTED_VARIANTS)}")
     if variant not in mi.variants():
-        raise RuntimeError(f"Mitsuba variant {variant!r} is not available in this build ({mi.variants()})")
+        raise InputError(source, f"Mitsuba variant {variant!r} is not available in this build",
+                         f"available: {', '.join(v for v in mi.variants() if v in SUPPORTED_VARIANTS)}")
     if current != variant:
         mi.set_variant(variant)
     from mi_bivariate.plugins import register

@@ -8,6 +8,9 @@ the check; remove the mark when it is added.
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 import warnings
 from pathlib import Path
 
@@ -293,6 +296,19 @@ def _fake_bitmap_module(monkeypatch):
     monkeypatch.setattr(mi, "Bitmap", FailingBitmap)
 
 
+def _fake_openexr(monkeypatch):
+    import OpenEXR
+
+    class FailingFile:
+        def __init__(self, *args, **kwargs):
+            pass
+
+        def write(self, path):
+            _partial_then_fail(path)
+
+    monkeypatch.setattr(OpenEXR, "File", FailingFile)
+
+
 def _write_npz(path):
     BivariateBRDF(np.full((4, 4, 3), 0.2, np.float32)).save(path)
 
@@ -308,8 +324,8 @@ def _fail_savez(monkeypatch):
 
 
 @pytest.mark.parametrize("name, write, sabotage", [
-    ("out.exr", lambda p: images.write_exr(p, np.ones((4, 4, 3), np.float32)), _fake_bitmap_module),
-    ("out.exr", lambda p: render.write_exr(p, np.ones((4, 4, 3), np.float32)), _fake_bitmap_module),
+    ("out.exr", lambda p: images.write_exr(p, np.ones((4, 4, 3), np.float32)), _fake_openexr),
+    ("out.exr", lambda p: render.write_exr(p, np.ones((4, 4, 3), np.float32)), _fake_openexr),
     ("out.npz", _write_npz, _fail_savez),
     ("out.png", lambda p: images.write_png(p, np.ones((4, 4, 3), np.float32)), _fake_bitmap_module),
 ], ids=["images.write_exr", "render.write_exr", "BivariateBRDF.save", "images.write_png"])
@@ -321,3 +337,325 @@ def test_failed_write_leaves_previous_output(tmp_path, monkeypatch, name, write,
         write(target)
     assert target.read_bytes() == b"previous result"
     assert sorted(p.name for p in tmp_path.iterdir()) == [name]
+
+
+# ------------------------------------------------- content decides the format
+
+def _rgbe_bytes(tmp: Path, corrupt: bool) -> bytes:
+    """A 16 x 16 Radiance file (run-length encoded); ``corrupt`` makes a run overlong."""
+    hdr = _write_bitmap(tmp / "src.hdr", np.random.default_rng(0).uniform(0.1, 2.0, (16, 16, 3)))
+    data = bytearray(hdr.read_bytes())
+    if corrupt:
+        start = data.index(b"+X 16\n") + len(b"+X 16\n")
+        assert data[start:start + 2] == b"\x02\x02"
+        data[start + 4] = 200          # run of 72 > the 16-pixel scanline
+    return bytes(data)
+
+
+_CONFUSION_SCRIPT = r"""
+import sys, warnings
+import numpy as np
+from mi_bivariate import images
+from mi_bivariate.errors import InputError
+from mi_bivariate.probes import Probe
+for path in sys.argv[1:]:
+    for load in (images.load_image, Probe.load):
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                load(path)
+            print("loaded", path)
+        except InputError as exc:
+            assert "\n" not in str(exc) and str(exc).startswith(path), exc
+            print("InputError", exc)
+print("done")
+"""
+
+
+def test_rgbe_content_under_any_name_is_validated(tmp_path):
+    """Corrupt RGBE bytes named .exr/.pfm/.hdr: a one-line error, never Mitsuba's heap corruption (SIGABRT)."""
+    bad = _rgbe_bytes(tmp_path, corrupt=True)
+    paths = []
+    for name in ("bad.exr", "bad.pfm", "bad.hdr", "bad.rgbe"):
+        (tmp_path / name).write_bytes(bad)
+        paths.append(str(tmp_path / name))
+    env = dict(os.environ, MALLOC_CHECK_="3")
+    proc = subprocess.run([sys.executable, "-c", _CONFUSION_SCRIPT, *paths], capture_output=True, text=True,
+                          timeout=120, env=env)
+    assert proc.returncode == 0 and proc.stdout.rstrip().endswith("done"), proc.stderr[-2000:]
+    lines = proc.stdout.splitlines()[:-1]
+    assert len(lines) == 2 * len(paths) and all(line.startswith("InputError") for line in lines), proc.stdout
+    assert all("bad run length" in line for line in lines), proc.stdout
+
+
+def test_valid_content_under_another_hdr_name_loads_the_same(tmp_path):
+    image = np.random.default_rng(1).uniform(0.0, 3.0, (6, 9, 3)).astype(np.float32)
+    exr = images.write_exr(tmp_path / "a.exr", image)
+    (tmp_path / "a.hdr").write_bytes(exr.read_bytes())
+    np.testing.assert_array_equal(images.load_image(tmp_path / "a.hdr"), image)
+    good = _rgbe_bytes(tmp_path, corrupt=False)
+    (tmp_path / "b.exr").write_bytes(good)
+    np.testing.assert_array_equal(images.load_image(tmp_path / "b.exr"), images.load_image(tmp_path / "src.hdr"))
+
+
+@pytest.mark.parametrize("name", ["photo.exr", "photo.hdr", "photo.pfm"])
+def test_8bit_content_named_hdr_is_refused(files, tmp_path, name):
+    path = tmp_path / name
+    path.write_bytes(files["png"].read_bytes())
+    _raises(lambda: images.load_image(path), "8-bit PNG image named")
+    _raises(lambda: Probe.load(path), "8-bit PNG image named")
+
+
+def test_exr_written_with_openexr_and_provenance(tmp_path):
+    import OpenEXR
+
+    image = np.random.default_rng(2).uniform(0.0, 3.0, (5, 7, 3)).astype(np.float32)
+    path = images.write_exr(tmp_path / "out.exr", image, units="1/sr")
+    header = OpenEXR.File(str(path), header_only=True).header()
+    assert header["units"] == "1/sr" and header["mi_bivariate_version"] and "mi_bivariate_command" in header
+    np.testing.assert_array_equal(OpenEXR.File(str(path)).channels()["RGB"].pixels, image)
+    BivariateBRDF(np.full((4, 5, 3), 0.25, np.float32)).save_exr(tmp_path / "table.exr")
+    assert OpenEXR.File(str(tmp_path / "table.exr"), header_only=True).header()["units"] == "1/sr"
+
+
+def test_exr_reads_with_one_drjit_thread(tmp_path):
+    """mi.Bitmap's EXR I/O never returned under dr.set_thread_count(1); the OpenEXR reader does."""
+    path = images.write_exr(tmp_path / "probe.exr", np.ones((8, 16, 3), np.float32))
+    code = ("import drjit as dr, mitsuba as mi; mi.set_variant('llvm_ad_rgb'); dr.set_thread_count(1); "
+            "from mi_bivariate import images; from mi_bivariate.probes import Probe; "
+            f"images.load_image({str(path)!r}); Probe.load({str(path)!r}).save_exr({str(tmp_path / 'b.exr')!r}); "
+            "print('ok')")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0 and proc.stdout.strip() == "ok", proc.stderr[-2000:]
+
+
+# ------------------------------------------------------------------ npz files
+
+def _npz(path: Path, **arrays) -> Path:
+    with open(path, "wb") as f:
+        np.savez(f, **arrays)
+    return path
+
+
+def test_npz_checks_before_inflating(tmp_path):
+    from mi_bivariate import npzio
+    from mi_bivariate.prior import Prior, default_prior
+
+    valid = tmp_path / "brdf.npz"
+    BivariateBRDF(np.full((4, 4, 3), 0.1, np.float32)).save(valid)
+    npy = tmp_path / "array.npz"
+    np.save(open(npy, "wb"), np.ones((4, 4, 3)))
+    _raises(lambda: BivariateBRDF.load(npy), "single .npy array")
+    # A member inflating past the limit is refused from the zip directory, before it is read.
+    bomb = tmp_path / "bomb.npz"
+    with open(bomb, "wb") as f:
+        np.savez_compressed(f, table=np.zeros(3 << 20, np.uint8))
+    assert bomb.stat().st_size < 100_000
+    _raises(lambda: npzio.read_npz(bomb, max_member_bytes=1 << 20), "inflates to")
+    # A .npy header declaring more than its member holds (np.load would allocate it first).
+    import io
+    import zipfile
+
+    member = io.BytesIO()
+    np.save(member, np.zeros(4, np.float64))
+    for claim, match in ((b"(9,)", "header declares"), (b"(10000000000000,)", "over the limit")):
+        payload = member.getvalue().replace(b"(4,)", claim)   # a header claiming more than the member holds
+        with zipfile.ZipFile(tmp_path / "lying.npz", "w") as zf:
+            zf.writestr("table.npy", payload)
+        _raises(lambda: npzio.read_npz(tmp_path / "lying.npz"), match)
+    meta = str(np.load(valid)["meta"])
+    for dtype, word in ((np.complex64, "complex"), ("datetime64[s]", "datetime")):
+        bad = _npz(tmp_path / f"{word}.npz", table=np.zeros((4, 4, 3), dtype), s_nodes=np.linspace(0, 1, 4),
+                   t_nodes=np.linspace(0, 1, 4), meta=np.array(meta))
+        _raises(lambda: BivariateBRDF.load(bad), word)
+    _raises(lambda: BivariateBRDF(np.zeros((4, 4, 3), np.complex64)), "complex")
+    prior = tmp_path / "prior.npz"
+    default_prior().save(prior)
+    raw = prior.read_bytes()
+    for cut in (len(raw) // 2, len(raw) - 30, 40):
+        (tmp_path / "cut.npz").write_bytes(raw[:cut])
+        _raises(lambda: Prior.load(tmp_path / "cut.npz"), "cut.npz")
+
+
+# ---------------------------------------------------- CLI: outputs and limits
+
+def _cli(argv, capsys) -> str:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", InputWarning)
+        status = cli.main(argv)
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if not line.startswith("mi-bivariate: warning:")]
+    assert status == 2 and len(lines) == 1 and lines[0].startswith("mi-bivariate: error: "), err
+    return lines[0]
+
+
+def _snapshot(folder: Path) -> dict:
+    return {p.name: p.read_bytes() for p in folder.iterdir() if p.is_file()}
+
+
+@pytest.mark.parametrize("case", ["recover npz beside photo", "recover onto probe", "reduce onto input",
+                                  "render onto probe", "render onto brdf", "render png onto probe",
+                                  "learn-prior onto source"])
+def test_no_output_overwrites_an_input(files, tmp_path, capsys, case):
+    d = tmp_path
+    photo = d / "photo.exr"
+    photo.write_bytes(files["image"].read_bytes())
+    probe = d / "p.exr"
+    probe.write_bytes(files["probe"].read_bytes())
+    merl = d / "x.binary"
+    merl.write_bytes(files["merl"].read_bytes())
+    npz = d / "b.npz"
+    npz.write_bytes(files["npz"].read_bytes())
+    rec = ["recover", str(photo), "--probe", str(probe), "--sphere", "32,32,28", "--normals", "300",
+           "--dirs", "200", "--grid", "4", "4", "--no-report"]
+    argv, victim = {
+        "recover npz beside photo": (rec + ["--out", str(d / "photo.npz")], photo),
+        "recover onto probe": (rec + ["--out", str(d / "p.npz")], probe),
+        "reduce onto input": (["reduce", str(merl), "--out", str(merl)], merl),
+        "render onto probe": (["render", "lambertian", "--probe", str(probe), "--out", str(probe)], probe),
+        "render onto brdf": (["render", str(npz), "--probe", str(probe), "--out", str(npz)], npz),
+        "render png onto probe": (["render", "lambertian", "--probe", str(d / "p.png"), "--out",
+                                   str(d / "p.exr")], d / "p.png"),
+        "learn-prior onto source": (["learn-prior", str(merl), "--out", str(merl)], merl),
+    }[case]
+    if case == "render png onto probe":
+        (d / "p.png").write_bytes(files["png"].read_bytes())
+    before = _snapshot(d)
+    line = _cli(argv, capsys)
+    assert "overwrite the input" in line and str(victim) in line, line
+    assert _snapshot(d) == before
+
+
+LIMIT_CASES = [
+    ("grid 2000", ["--grid", "2000", "2000"], "--grid"),
+    ("grid nodes", ["--grid", "200", "200"], "nodes is over the limit"),
+    ("normals 1e9", ["--normals", "1000000000"], "--normals"),
+    ("lighting matrix", ["--normals", "900000", "--grid", "64", "64"], "GiB"),
+    ("dirs", ["--dirs", "100000000"], "--dirs"),
+    ("kernel lanes", ["--dirs", "9000000", "--grid", "2", "2", "--normals", "100000"], "lanes"),
+    ("negative seed", ["--seed", "-1"], "--seed"),
+    ("saturation nan", ["--saturation", "nan"], "--saturation"),
+    ("max view angle", ["--max-view-angle", "-10"], "--max-view-angle"),
+    ("bad variant", ["--variant", "cuda_nope"], "--variant"),
+    ("out is a folder", ["--out", "."], "--out is a folder"),
+    ("threads", ["--threads", "0"], "--threads"),
+]
+
+
+@pytest.mark.parametrize("case, extra, match", LIMIT_CASES, ids=[c[0] for c in LIMIT_CASES])
+def test_recover_limits_before_allocation(files, tmp_path, monkeypatch, capsys, case, extra, match):
+    monkeypatch.chdir(tmp_path)
+    line = _cli(_recover_args(files) + extra, capsys)
+    assert match in line, line
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("argv, match", [
+    (["render", "lambertian", "--probe", "P", "--resolution", "100000"], "--resolution"),
+    (["render", "lambertian", "--probe", "P", "--spp", "100000000"], "--spp"),
+    (["render", "lambertian", "--probe", "P", "--resolution", "8000", "--spp", "4096"], "samples"),
+    (["demo", "--spp", "1000000"], "--spp"),
+    (["demo", "--out", "F"], "must be a folder"),
+    (["evaluate", "--out", "F", "--quick"], "must be a folder"),
+    (["evaluate", "--dirs", "100000000", "--quick"], "--dirs"),
+    (["evaluate", "--jobs", "0", "--quick"], "--jobs"),
+    (["reduce", "M", "--grid", "2000", "2000"], "--grid"),
+    (["learn-prior", "M", "--grid", "1000", "10"], "--grid"),
+], ids=lambda v: " ".join(v) if isinstance(v, list) else v)
+def test_cli_limits_and_folders(files, tmp_path, monkeypatch, capsys, argv, match):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "F").write_text("a file")
+    argv = [{"P": str(files["probe"]), "M": str(files["merl"])}.get(a, a) for a in argv]
+    line = _cli(argv, capsys)
+    assert match in line, line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["F"]
+
+
+def test_variant_from_environment_is_one_line(files, monkeypatch, capsys):
+    import mitsuba as mi
+
+    monkeypatch.setenv("MI_BIVARIATE_VARIANT", "no_such_variant")
+    monkeypatch.setattr(mi, "variant", lambda: None)
+    line = _cli(["info"], capsys)
+    assert "MI_BIVARIATE_VARIANT" in line and "no_such_variant" in line
+
+
+def test_usage_errors_are_one_line(capsys):
+    with pytest.raises(SystemExit) as info:
+        cli.main(["recover", "x.exr", "--normals", "1e9", "--probe", "p"])
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and len(err.strip().splitlines()) == 1 and err.startswith("mi-bivariate: error:")
+
+
+def test_all_zero_merl_is_refused(tmp_path, capsys):
+    zero = tmp_path / "zero.binary"
+    MERLBRDF(np.zeros(MERL_SHAPE + (3,)), name="zero").write(zero)
+    line = _cli(["reduce", str(zero), "--out", str(tmp_path / "z.npz")], capsys)
+    assert str(zero) in line and "no positive value" in line and "nan" not in line
+
+
+def test_write_failures_are_one_line_and_all_or_none(files, tmp_path, monkeypatch, capsys):
+    """A full disk on the second of two outputs: one-line error, the first output keeps its old content."""
+    import errno
+
+    import OpenEXR
+
+    out = tmp_path / "x.npz"
+    out.write_bytes(b"previous table")
+    (tmp_path / "x.exr").write_bytes(b"previous view")
+
+    class FullDisk:
+        def __init__(self, *args, **kwargs):
+            pass
+
+        def write(self, path):
+            Path(path).write_bytes(b"half")
+            raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(OpenEXR, "File", FullDisk)
+    line = _cli(["reduce", str(files["merl"]), "--grid", "4", "4", "--out", str(out)], capsys)
+    assert line.startswith(f"mi-bivariate: error: {tmp_path / 'x.exr'}: ") and "No space left" in line, line
+    assert out.read_bytes() == b"previous table" and (tmp_path / "x.exr").read_bytes() == b"previous view"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["x.exr", "x.npz"]
+
+
+@pytest.mark.skipif(not hasattr(os, "geteuid") or os.geteuid() == 0, reason="root may write anywhere")
+def test_read_only_output_folder(files, tmp_path, capsys):
+    folder = tmp_path / "ro"
+    folder.mkdir()
+    folder.chmod(0o555)
+    try:
+        line = _cli(["reduce", str(files["merl"]), "--grid", "4", "4", "--out", str(folder / "x.npz")], capsys)
+    finally:
+        folder.chmod(0o755)
+    assert "not writable" in line and list(folder.iterdir()) == []
+
+
+def test_output_folder_that_is_a_file(files, tmp_path, capsys):
+    (tmp_path / "plain").write_text("a file")
+    line = _cli(["reduce", str(files["merl"]), "--grid", "4", "4", "--out", str(tmp_path / "plain" / "x.npz")],
+                capsys)
+    assert "is not a folder" in line
+
+
+def test_black_probe_error_names_the_probe_file(files, tmp_path, capsys):
+    black = images.write_exr(tmp_path / "black.exr", np.zeros((8, 16, 3), np.float32))
+    argv = _recover_args(files) + ["--out", str(tmp_path / "o.npz")]
+    argv[argv.index("--probe") + 1] = str(black)
+    line = _cli(argv, capsys)
+    assert str(black) in line and "lighting matrix L" not in line, line
+
+
+def test_recover_threads_1_is_bit_identical(files, tmp_path):
+    """``recover --threads 1`` twice: the same bytes in every table array (and no EXR hang)."""
+    tables = []
+    for k in range(2):
+        out = tmp_path / f"run{k}.npz"
+        argv = _recover_args(files, normals="2000", dirs="4000", grid="8") + ["--threads", "1", "--out", str(out)]
+        argv[argv.index("--grid") + 2] = "8"
+        proc = subprocess.run([sys.executable, "-m", "mi_bivariate.cli", *argv], capture_output=True, text=True,
+                              timeout=180)
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        with np.load(out) as z:
+            tables.append({k: z[k].tobytes() for k in z.files if k != "meta"})
+    assert tables[0] == tables[1]

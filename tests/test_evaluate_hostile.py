@@ -1,0 +1,146 @@
+"""``evaluate`` against hostile situations: a second run on the same folder, damaged
+results lines, bad input leaving no folder behind, workers outliving a killed parent."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import textwrap
+import time
+import warnings
+from pathlib import Path
+
+import pytest
+
+from mi_bivariate import evaluate as ev
+from mi_bivariate.cli import main
+from mi_bivariate.errors import InputError, InputWarning
+
+# One material at the test suite's tiny protocol (seconds).
+MATERIAL = "lambertian:albedo=0.5,0.3,0.2"
+TINY_ARGS = ["--input-probes", "synthetic:1", "--novel-probes", "synthetic:7", "--resolution", "32",
+             "--spp", "8", "--novel-spp", "4", "--normals", "300", "--dirs", "1000", "--grid", "8", "8",
+             "--baselines", "--no-figures", "--no-progress"]
+TINY = ev.EvalConfig(input_probes=("synthetic:1",), novel_probes=("synthetic:7",), resolution=32, spp=8,
+                     novel_spp=4, n_normals=300, n_dirs=1000, grid=(8, 8), baselines=())
+
+
+def _one_line_error(capsys, status: int) -> str:
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if not line.startswith("mi-bivariate: warning:")]
+    assert status == 2 and len(lines) == 1 and lines[0].startswith("mi-bivariate: error: "), err
+    return lines[0]
+
+
+def test_damaged_lines_are_set_aside_and_recomputed(tmp_path):
+    out = tmp_path / "eval"
+    first = ev.run_evaluation([MATERIAL], out, config=TINY, progress=False, figures=False)
+    results = out / ev.RESULTS_FILE
+    good = results.read_bytes()
+    record = json.loads(good)
+    damaged = [
+        good.replace(b'"material"', b'"m\xffaterial"', 1).rstrip(b"\n"),   # not UTF-8
+        b'{"config_hash": "%s", "floor": {}}' % TINY.hash().encode(),       # no material
+        b"[1, 2, 3]",                                                        # not a record
+        b'{"material": "x", "config_ha',                                     # cut off
+    ]
+    results.write_bytes(b"\n".join(damaged) + b"\n")
+    redone = []
+    with pytest.warns(InputWarning, match="4 damaged line"):
+        again = ev.run_evaluation([MATERIAL], out, config=TINY, progress=False, figures=False,
+                                  on_record=lambda r: redone.append(r["material"]))
+    assert redone == [record["material"]]                     # recomputed, not a failure on every resume
+    assert [r["material"] for r in again] == [r["material"] for r in first]
+    assert (out / ev.REJECTED_FILE).read_bytes() == b"\n".join(damaged) + b"\n"   # kept verbatim, aside
+    lines = results.read_bytes().splitlines()
+    assert len(lines) == 1 and json.loads(lines[0])["material"] == record["material"]
+    # A third run has nothing to set aside or redo.
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", InputWarning)
+        assert ev.repair_results(results) == 0
+    assert ev.read_records(results, TINY.hash())[0]["material"] == record["material"]
+
+
+def test_second_run_on_a_folder_refuses(tmp_path, capsys):
+    out = tmp_path / "eval"
+    out.mkdir()
+    with ev._folder_lock(out):                       # another run holds the folder
+        status = main(["evaluate", MATERIAL, "--out", str(out), *TINY_ARGS])
+        line = _one_line_error(capsys, status)
+    assert str(out) in line and "another evaluate run" in line
+    assert not (out / ev.RESULTS_FILE).exists()
+
+
+@pytest.mark.parametrize("case", ["unknown material", "truncated MERL", "unreachable dask", "out is a file"])
+def test_bad_input_leaves_no_folder(tmp_path, capsys, case):
+    out = tmp_path / "new" / "eval"
+    material, extra = MATERIAL, []
+    if case == "unknown material":
+        material = "no-such-material"
+    elif case == "truncated MERL":
+        material = str(tmp_path / "short.binary")
+        Path(material).write_bytes(b"\x5a\x00\x00\x00" * 2 + b"\xb4\x00\x00\x00" + b"\x00" * 100)
+    elif case == "unreachable dask":
+        extra = ["--dask", "tcp://127.0.0.1:9"]
+    else:
+        out = tmp_path / "file"
+        out.write_text("not a folder")
+    status = main(["evaluate", material, "--out", str(out), *TINY_ARGS, *extra])
+    line = _one_line_error(capsys, status)
+    if case == "out is a file":
+        assert out.read_text() == "not a folder" and str(out) in line
+    else:
+        assert not (tmp_path / "new").exists(), line
+    if case == "truncated MERL":
+        assert material in line and "truncated" in line
+    if case == "unreachable dask":
+        assert "--dask" in line and "scheduler" in line
+
+
+def test_workers_die_with_their_parent(tmp_path):
+    """SIGKILL the parent of a worker pool: its workers exit within seconds (no 360 MB orphans)."""
+    script = tmp_path / "parent.py"
+    script.write_text(textwrap.dedent("""
+        import multiprocessing, os, time
+        from concurrent.futures import ProcessPoolExecutor
+        from mi_bivariate import evaluate as ev
+
+        if __name__ == "__main__":
+            pool = ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("spawn"),
+                                       initializer=ev._init_worker, initargs=("scalar_rgb", os.getpid()))
+            pids = {pool.submit(time.sleep, 0.5) and f.result() for f in [pool.submit(os.getpid) for _ in range(4)]}
+            print(" ".join(map(str, sorted(pids))), flush=True)
+            time.sleep(120)
+    """))
+    proc = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True)
+    try:
+        pids = [int(p) for p in proc.stdout.readline().split()]
+        assert pids, "the pool started no worker"
+    finally:
+        proc.kill()
+        proc.wait()
+
+    def alive(pid: int) -> bool:
+        try:
+            status = Path(f"/proc/{pid}/status").read_text()
+        except OSError:
+            return False
+        return "\nState:\tZ" not in status
+
+    deadline = time.monotonic() + 15
+    while time.monotonic() < deadline and any(alive(p) for p in pids):
+        time.sleep(0.1)
+    assert not any(alive(p) for p in pids), f"workers {pids} outlived their parent"
+
+
+def test_read_records_never_raises_on_garbage(tmp_path):
+    path = tmp_path / ev.RESULTS_FILE
+    path.write_bytes(b"\xff\xfe\x00garbage\n{\"material\": 3, \"config_hash\": \"h\"}\n\n"
+                     b"{\"material\": \"ok\", \"config_hash\": \"h\"}")
+    assert [r["material"] for r in ev.read_records(path)] == ["ok"]
+    with pytest.warns(InputWarning):
+        assert ev.repair_results(path) == 2
+    assert path.read_bytes() == b"{\"material\": \"ok\", \"config_hash\": \"h\"}\n"
+    with pytest.raises(InputError):
+        ev._connect_dask("not a scheduler address")
