@@ -107,8 +107,9 @@ def test_stacked_probes_use_their_own_probe():
     stacked = capture.stack([base, base], probe_index=[0, 1])
     L = lighting.lighting_matrix(stacked, probes, n_t=8, n_s=8, n_dirs=8000)
     alone = lighting.lighting_matrix(base, probes[1], n_t=8, n_s=8, n_dirs=8000)
-    # Rows are seeded by position, so compare the totals (quadrature-level agreement).
-    assert np.allclose(L[30:].sum(axis=1), alone.sum(axis=1), rtol=2e-3)
+    # Rows are seeded by position, so compare the totals (quadrature-level agreement:
+    # MIS at K = 8000 has ~1e-3 per-row error on this smooth integrand).
+    assert np.allclose(L[30:].sum(axis=1), alone.sum(axis=1), rtol=5e-3)
     assert not np.allclose(L[:30].sum(axis=1), alone.sum(axis=1), rtol=0.1)
 
 
@@ -146,7 +147,8 @@ def test_mis_is_unbiased_and_far_less_noisy_on_sharp_light_and_lobes():
     obs = capture.observations_from_sphere(np.ones((128, 128, 3), np.float32), geo, n_normals=150,
                                            saturation=2.0)
     theta_h, _ = half_diff_from_st(grid_nodes(32)[None, :], grid_nodes(32)[:, None])
-    table = (0.02 + 30.0 * np.exp(-(theta_h / 0.03) ** 2))[..., None] * np.ones(3)
+    lobe = np.broadcast_to(0.02 + 30.0 * np.exp(-(theta_h / 0.03) ** 2), (32, 32))
+    table = lobe[..., None] * np.ones(3)
 
     def predict(sampling, k, seed):
         return apply(lighting.lighting_matrix(obs, probe, n_dirs=k, seed=seed, sampling=sampling), table)
