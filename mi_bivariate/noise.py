@@ -9,7 +9,7 @@ over-fitted.
 :func:`estimate_camera_noise` finds ``(a, b)`` from one image of a smooth object:
 second differences ``I[x-1] - 2 I[x] + I[x+1]`` along rows and columns cancel the
 smooth signal up to its curvature and keep ``6 sigma^2`` of white noise; their
-robust (median-based) variance per intensity bin, fitted by non-negative least
+robust (low-quantile) variance per intensity bin, fitted by non-negative least
 squares to ``a I + b``, is the estimate (the approach of Foi et al., "Practical
 Poissonian-Gaussian noise modeling and fitting for single-image raw-data", IEEE
 TIP 2008, in its simplest form).
@@ -26,8 +26,12 @@ from .errors import InputError
 
 #: Intensity bins of the estimate (quantiles of the masked image).
 BINS = 12
-#: Median of chi-square(1): var = median(d^2) / this, for Gaussian d.
-_CHI2_MEDIAN = 0.454936423119572
+#: Quantile of ``d^2`` per bin that estimates the noise: low, so that the few pixels
+#: whose second difference holds the signal's own curvature (the edges of sharp
+#: highlights) do not count as noise.
+QUANTILE = 0.25
+#: That quantile of chi-square(1): ``var = quantile(d^2) / this`` for Gaussian ``d``.
+_CHI2_QUANTILE = float(__import__("scipy.stats", fromlist=["chi2"]).chi2.ppf(QUANTILE, 1))
 
 
 def _second_differences(image: np.ndarray, mask: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
@@ -71,9 +75,11 @@ def estimate_camera_noise(image: np.ndarray, mask: Optional[np.ndarray] = None,
         if sel.sum() < 20:
             continue
         centres.append(float(np.median(level[sel])))
-        variances.append(float(np.median(d[sel] ** 2)) / _CHI2_MEDIAN / 6.0)
+        variances.append(float(np.quantile(d[sel] ** 2, QUANTILE)) / _CHI2_QUANTILE / 6.0)
         counts.append(int(sel.sum()))
-    if len(centres) < 2:
+    if len(centres) == 1:  # a uniform image: no signal dependence to fit
+        return 0.0, float(variances[0])
+    if not centres:
         raise InputError(source, "the image is too uniform to estimate its noise", "give (a, b) explicitly")
     x = np.asarray(centres)
     w = np.sqrt(np.asarray(counts, np.float64)) / np.maximum(np.asarray(variances), 1e-300)
