@@ -506,6 +506,7 @@ def evaluate_material(task: MaterialTask) -> Tuple[dict, Dict[str, np.ndarray]]:
     cfg, data_dir = task.config, task.data_dir
     cfg.validate()
     t_start = time.perf_counter()
+    cpu_start = time.process_time()
     timings: Dict[str, float] = {}
     # Probes first: their EXR reads need worker threads (see _io_threads).
     inputs = [load_probe(p, data_dir) for p in cfg.input_probes]
@@ -612,8 +613,13 @@ def evaluate_material(task: MaterialTask) -> Tuple[dict, Dict[str, np.ndarray]]:
         del rec
         per_input[label] = entry
 
+    # Render counts go with the timings: a cache hit changes the work, not the numbers.
     timings["render_seconds"] = renderer.seconds
+    timings["renders_rendered"] = float(renderer.renders)
+    timings["renders_from_cache"] = float(renderer.cached)
     timings["total"] = time.perf_counter() - t_start
+    # CPU seconds of this process (all its threads): the fair cost on a machine shared with other jobs.
+    timings["cpu_total"] = time.process_time() - cpu_start
     record = {
         "material": task.material.label,
         "kind": task.material.kind,
@@ -625,7 +631,7 @@ def evaluate_material(task: MaterialTask) -> Tuple[dict, Dict[str, np.ndarray]]:
         "floor_images": floor_images,
         "relight_floor": {k: v["rel_rmse"] for k, v in floor_images.items()},
         "inputs": per_input,
-        "renders": {"renderer": cfg.renderer, "rendered": renderer.renders, "from_cache": renderer.cached},
+        "renderer": cfg.renderer,
         "timings": timings,
         "threads": task.threads,
     }
