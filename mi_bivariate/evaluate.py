@@ -126,7 +126,7 @@ class EvalConfig:
     seed: int = 0
     renderer: str = "reference"
     novel_resolution: int = 64
-    reference_directions: Tuple[int, int, int] = (1024, 2048, 1024)
+    reference_directions: Tuple[int, int, int] = (1024, 2048, 3072)
     noise: float = 0.0
     prior: Optional[str] = None
 

@@ -57,7 +57,7 @@ from mi_bivariate.errors import InputError
 from mi_bivariate.render import SphereRender, coverage_mask, make_camera, sphere_geometry
 
 #: Directions per pixel and strategy (cosine, lobe, environment) by default.
-DEFAULT_DIRECTIONS: Tuple[int, int, int] = (1024, 2048, 1024)
+DEFAULT_DIRECTIONS: Tuple[int, int, int] = (1024, 2048, 3072)
 #: Radius of the sphere's silhouette as a fraction of the image size (as render_sphere's default).
 RADIUS_FRACTION = 0.45
 #: Lanes (pixel x direction) per Dr.Jit kernel launch.

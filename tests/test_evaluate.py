@@ -142,14 +142,28 @@ def test_resume_after_kill_and_truncation(resumed):
     assert ev.EvalConfig(**{**TINY.to_dict(), "seed": 1, "grid": (8, 8)}).hash() != TINY.hash()
 
 
-def _close(a, b, rtol: float) -> bool:
+def _close(a, b, rtol: float, atol: float = 0.0, path: str = "") -> bool:
     if isinstance(a, dict):
-        return a.keys() == b.keys() and all(_close(a[k], b[k], rtol) for k in a)
+        return a.keys() == b.keys() and all(_close(a[k], b[k], rtol, atol, f"{path}/{k}") for k in a)
     if isinstance(a, list):
-        return len(a) == len(b) and all(_close(x, y, rtol) for x, y in zip(a, b))
+        return len(a) == len(b) and all(_close(x, y, rtol, atol, path) for x, y in zip(a, b))
     if isinstance(a, float):
-        return a == b or abs(a - b) <= rtol * max(abs(a), abs(b))
+        ok = a == b or abs(a - b) <= rtol * max(abs(a), abs(b)) + atol
+        if not ok:
+            print(f"differs at {path}: {a!r} vs {b!r}")
+        return ok
     return a == b
+
+
+def _without_rounding_ratios(record: dict) -> dict:
+    """Drop relight ratios whose floor is float rounding (the Lambertian's exact reduction renders
+    like its truth to ~1e-7): rounding / rounding depends on the summation order."""
+    r = json.loads(json.dumps(record))
+    for e in r["inputs"].values():
+        for v in e["images"].values():
+            if v.get("floor", 1.0) < 1e-5:
+                v.pop("ratio", None)
+    return r
 
 
 def test_jobs_and_dask_reproduce_in_process(resumed, tmp_path):
@@ -169,7 +183,9 @@ def test_jobs_and_dask_reproduce_in_process(resumed, tmp_path):
                                    figures=False)
     resumed_by = {r["material"]: r for r in resumed["records"]}
     for r in dasked + serial:
-        assert _close(_numbers(r), _numbers(resumed_by[r["material"]]), rtol=1e-4)
+        # Image errors at float rounding level (~1e-7) are compared absolutely.
+        assert _close(_without_rounding_ratios(_numbers(r)),
+                      _without_rounding_ratios(_numbers(resumed_by[r["material"]])), rtol=1e-4, atol=1e-6)
 
 
 def test_baseline_fit_recovers_its_own_model():
