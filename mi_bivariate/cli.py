@@ -262,7 +262,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_data(p)
     p.set_defaults(func=cmd_render)
 
-    p = sub.add_parser("reduce", help="reduce a MERL .binary to a bivariate table (prints the Eq. 1 error)")
+    p = sub.add_parser("reduce", help="reduce a MERL .binary to a bivariate table (prints the exact and grid floors)")
     p.add_argument("merl", help="MERL .binary file")
     p.add_argument("--out", default=None, help="output .npz (default: beside the input)")
     p.add_argument("--grid", type=int, nargs=2, default=(32, 32), metavar=("N_T", "N_S"),

@@ -149,15 +149,15 @@ def run_demo(out_dir: Path = Path("out/demo"), material: Optional[str] = None,
     numbers["total_s"] = time.perf_counter() - t_start
 
     print()
-    print(f"  material                          {label}")
+    print(f"  material                                {label}")
     print(f"  relight error (novel probe, rel. RMSE)  {numbers['relight_error']:.4f}")
     print(f"  relight floor (exact reduction's table) {numbers['relight_floor']:.4f}"
           f"   ratio {numbers['relight_ratio']:.2f}")
     print(f"  BRDF error, Eq. 1 on observed cells     {numbers['brdf_error_recovered_eq1_observed']:.4f}"
           f"   ({numbers['observed_cell_fraction']:.0%} of the cells)")
     print(f"  exact floor (Eq. 1, phi_d average)      {numbers['exact_floor']:.4f}")
-    print(f"  grid floor (Eq. 1, {n_t}x{n_s} table)        {numbers['grid_floor']:.4f}")
+    print(f"  {f'grid floor (Eq. 1, {n_t}x{n_s} table)':<40}{numbers['grid_floor']:.4f}")
     print(f"  BRDF error, Eq. 1 on all cells          {numbers['brdf_error_recovered_eq1']:.4f}")
-    print(f"  total time                        {numbers['total_s']:.1f} s")
+    print(f"  total time                              {numbers['total_s']:.1f} s")
     print(f"  figure: {figure}    outputs: {out_dir}/")
     return 0

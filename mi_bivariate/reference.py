@@ -48,13 +48,16 @@ Cost (measured, 2-core VM shared with other jobs, one Dr.Jit thread): see
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
-from typing import Any, Dict, Optional, Sequence, Tuple
+from typing import Any, Dict, Sequence, Tuple
 
 import numpy as np
 
+from mi_bivariate import metrics
 from mi_bivariate.errors import InputError
-from mi_bivariate.render import SphereRender, coverage_mask, make_camera, sphere_geometry
+from mi_bivariate.render import SphereRender, bsdf_dict, coverage_mask, make_camera, sphere_geometry
+from mi_bivariate.variants import ensure_variant
 
 #: Directions per pixel and strategy (cosine, lobe, environment) by default.
 DEFAULT_DIRECTIONS: Tuple[int, int, int] = (1024, 2048, 3072)
@@ -221,13 +224,8 @@ def render_reference(bsdf: Any, probe: Any, resolution: int = 64, seed: int = 0,
         pixels whose centre lies on the sphere), ``normals``, ``mask`` (pixels
         fully covered, as ``render_sphere``), ``geometry``.
     """
-    import time
-
     import drjit as dr
     import mitsuba as mi
-
-    from mi_bivariate import render
-    from mi_bivariate.variants import ensure_variant
 
     ensure_variant()
     directions = tuple(int(k) for k in directions)
@@ -236,7 +234,7 @@ def render_reference(bsdf: Any, probe: Any, resolution: int = 64, seed: int = 0,
     if int(resolution) < 2 or int(subpixels) < 1:
         raise InputError("resolution", f"resolution must be >= 2 and subpixels >= 1, got {resolution}, {subpixels}")
     t0 = time.perf_counter()
-    plugin = bsdf if hasattr(bsdf, "sampler") else mi.load_dict(render.bsdf_dict(bsdf))
+    plugin = bsdf if hasattr(bsdf, "sampler") else mi.load_dict(bsdf_dict(bsdf))
     emitter = probe.emitter()
     normals, pixels, mask, geometry, cam = pixel_rays(resolution, subpixels, radius_fraction)
     p, s2 = normals.shape[:2]
@@ -280,12 +278,10 @@ def quadrature_noise(bsdf: Any, probe: Any, resolution: int = 64, directions: Se
     the directions (includes any bias the two seeds share). ``seconds``: one
     render's time.
     """
-    from mi_bivariate import metrics, render
-    from mi_bivariate.variants import ensure_variant
     import mitsuba as mi
 
     ensure_variant()
-    plugin = mi.load_dict(render.bsdf_dict(bsdf))
+    plugin = bsdf if hasattr(bsdf, "sampler") else mi.load_dict(bsdf_dict(bsdf))
     a = render_reference(plugin, probe, resolution, seeds[0], directions)
     b = render_reference(plugin, probe, resolution, seeds[1], directions)
     out = {"seed_rms": metrics.image_relative_rmse(a.image, b.image, a.mask) / math.sqrt(2.0),

@@ -37,7 +37,6 @@ def test_lambertian_under_constant_light_is_exact():
     # Cosine sampling alone: every sample is exactly albedo * L.
     out = reference.render_reference(table, light, resolution=16, directions=(256, 0, 0))
     np.testing.assert_allclose(out.image[out.mask], np.broadcast_to(expected, (out.mask.sum(), 3)), rtol=1e-5)
-    assert np.all(out.image[~reference.pixel_rays(16)[2].copy() & ~out.mask] >= 0.0)
     # All three strategies (balance heuristic): unbiased, small quadrature error.
     mixed = reference.render_reference(table, light, resolution=16, directions=(512, 1024, 512))
     assert metrics.image_relative_rmse(mixed.image, out.image, out.mask) < 3e-3
