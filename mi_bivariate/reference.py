@@ -81,11 +81,13 @@ class ReferenceRender(SphereRender):
         directions: directions per pixel for each of :data:`STRATEGIES`.
         subpixels: sub-pixel grid per axis.
         seconds: wall time of the quadrature.
+        cpu_seconds: CPU time of the process meanwhile (all threads; the fair cost on a shared machine).
     """
 
     directions: Tuple[int, int, int] = DEFAULT_DIRECTIONS
     subpixels: int = 1
     seconds: float = 0.0
+    cpu_seconds: float = 0.0
 
 
 def pixel_rays(resolution: int, subpixels: int = 1, radius_fraction: float = RADIUS_FRACTION
@@ -233,7 +235,7 @@ def render_reference(bsdf: Any, probe: Any, resolution: int = 64, seed: int = 0,
         raise InputError("directions", f"need 3 non-negative counts (cosine, lobe, environment), got {directions}")
     if int(resolution) < 2 or int(subpixels) < 1:
         raise InputError("resolution", f"resolution must be >= 2 and subpixels >= 1, got {resolution}, {subpixels}")
-    t0 = time.perf_counter()
+    t0, cpu0 = time.perf_counter(), time.process_time()
     plugin = bsdf if hasattr(bsdf, "sampler") else mi.load_dict(bsdf_dict(bsdf))
     emitter = probe.emitter()
     normals, pixels, mask, geometry, cam = pixel_rays(resolution, subpixels, radius_fraction)
@@ -259,7 +261,7 @@ def render_reference(bsdf: Any, probe: Any, resolution: int = 64, seed: int = 0,
     dr.eval()
     return ReferenceRender(image=image, normals=normal_image, mask=mask, geometry=geometry, camera=cam,
                            spp=sum(directions), seed=int(seed), directions=directions, subpixels=int(subpixels),
-                           seconds=time.perf_counter() - t0)
+                           seconds=time.perf_counter() - t0, cpu_seconds=time.process_time() - cpu0)
 
 
 def scaled_directions(factor: float, base: Sequence[int] = DEFAULT_DIRECTIONS) -> Tuple[int, int, int]:
@@ -276,7 +278,7 @@ def quadrature_noise(bsdf: Any, probe: Any, resolution: int = 64, directions: Se
     With ``reference_factor > 1``, ``vs_large``: the relative RMS
     difference of the first image against one with ``reference_factor`` x
     the directions (includes any bias the two seeds share). ``seconds``: one
-    render's time.
+    render's wall time, ``cpu_seconds`` its CPU time.
     """
     import mitsuba as mi
 
@@ -285,7 +287,8 @@ def quadrature_noise(bsdf: Any, probe: Any, resolution: int = 64, directions: Se
     a = render_reference(plugin, probe, resolution, seeds[0], directions)
     b = render_reference(plugin, probe, resolution, seeds[1], directions)
     out = {"seed_rms": metrics.image_relative_rmse(a.image, b.image, a.mask) / math.sqrt(2.0),
-           "seconds": a.seconds, "directions": list(a.directions), "resolution": int(resolution)}
+           "seconds": a.seconds, "cpu_seconds": a.cpu_seconds, "directions": list(a.directions),
+           "resolution": int(resolution)}
     if reference_factor > 1.0:
         big = render_reference(plugin, probe, resolution, seeds[0] + 1000,
                                scaled_directions(reference_factor, directions))

@@ -57,17 +57,17 @@ def test_reference_agrees_with_mitsuba(glossy_merl, sky):
     # The same BSDF plugin path-traced by Mitsuba (box filter: the reference averages 3 x 3 sub-pixels).
     res = 16
     ref = reference.render_reference(glossy_merl, sky, resolution=res, directions=SMALL, subpixels=3)
-    shots = [render.render_sphere(glossy_merl, sky, resolution=res, spp=1024, seed=s) for s in (0, 1)]
+    shots = [render.render_sphere(glossy_merl, sky, resolution=res, spp=4096, seed=s) for s in (0, 1)]
     mask = ref.mask & shots[0].mask
     mean = 0.5 * (shots[0].image + shots[1].image)
     mitsuba_noise = metrics.image_relative_rmse(shots[0].image, shots[1].image, mask) / 2.0   # of the mean
     diff = metrics.image_relative_rmse(ref.image, mean, mask)
     assert diff < 1.5 * mitsuba_noise + 0.005, (diff, mitsuba_noise)
-    # Sensitive: a 3% brighter reference would not pass.
-    assert metrics.image_relative_rmse(1.03 * ref.image, mean, mask) > 1.5 * mitsuba_noise + 0.005 or \
-        mitsuba_noise > 0.01
+    # Summed over the sphere, Mitsuba's noise averages out: each channel agrees to 1%
+    # (measured 0.1-0.3%), which a 3% brighter reference would fail.
     ratio = ref.image[mask].sum(axis=0) / mean[mask].sum(axis=0)
     np.testing.assert_allclose(ratio, 1.0, atol=0.01)
+    assert np.all(np.abs(1.03 * ratio - 1.0) > 0.01)
 
 
 def test_camera_noise_model():
