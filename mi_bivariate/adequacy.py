@@ -28,6 +28,11 @@ Two conditions, both reported by :func:`analyse`:
 The report also maps how densely each st node is observed
 (:func:`observation_map`), with the specular (theta_h ~ 0), retro-reflective
 (theta_d ~ 0) and grazing (theta_d ~ pi/2) regions summarised.
+:func:`node_observation_strength` and :func:`observed_nodes` decide which
+nodes count as *observed* (enough distinct rows and enough signal); the
+evaluation scores Eq. 1 over the MERL cells those nodes determine
+(:func:`mi_bivariate.metrics.observed_cells`), and a solver may use the same
+numbers as a per-node confidence.
 
 Calibration on the shared probes (M ~ 2000 sphere normals, K = 8000, 32x32;
 numerical rank at 1e-3 of 1024 nodes; detail at 3 degrees):

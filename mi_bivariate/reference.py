@@ -199,9 +199,12 @@ def _chunk(bsdf: Any, emitter: Any, probe: Any, data: np.ndarray, directions: Tu
         value = bsdf.eval(ctx, si, wo) * probe.eval_dr(world)
         ok = (cos_o > 0.0) & (denom > 0.0)
         contrib = dr.select(ok, value / dr.maximum(denom, 1e-30), 0.0)
+        # One kernel for all three channels: evaluating the sums one at a time would re-run the
+        # whole trace (sampling, BSDF, envmap) per channel.
+        sums = [dr.block_sum(mi.Float64(contrib[c]), n_j) for c in range(3)]
+        dr.eval(*sums)
         for c in range(3):
-            s = dr.block_sum(mi.Float64(contrib[c]), n_j)
-            total[:, c] += np.asarray(s.numpy(), np.float64)
+            total[:, c] += np.asarray(sums[c].numpy(), np.float64)
     return total
 
 
