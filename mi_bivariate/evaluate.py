@@ -162,6 +162,8 @@ class EvalConfig:
             raise InputError("--noise", f"noise level must be a finite number >= 0, got {self.noise}")
         if self.prior is not None and not Path(self.prior).is_file():
             raise InputError(self.prior, "prior file not found")
+        if int(self.novel_resolution) < 4:
+            raise InputError("--novel-resolution", f"must be >= 4 pixels, got {self.novel_resolution}")
         if len(self.reference_directions) != 3 or min(self.reference_directions) < 0:
             raise InputError("reference_directions", "need 3 non-negative counts (cosine, lobe, environment)")
 
