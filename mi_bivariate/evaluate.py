@@ -149,9 +149,6 @@ class EvalConfig:
         d["input_probes"], d["novel_probes"] = list(self.input_probes), list(self.novel_probes)
         d["grid"], d["baselines"] = list(self.grid), list(self.baselines)
         d["reference_directions"] = list(self.reference_directions)
-        if self.prior is not None:
-            # The prior's bytes decide the numbers, not its file name.
-            d["prior_sha256"] = _file_digest(self.prior)
         return d
 
     def validate(self) -> None:
@@ -169,7 +166,8 @@ class EvalConfig:
 
     def hash(self) -> str:
         """16 hex digits of SHA-256 over the canonical JSON of the config and protocol version."""
-        text = json.dumps({"protocol": PROTOCOL_VERSION, "solver": _solver_identity(), **self.to_dict()},
+        extra = {} if self.prior is None else {"prior_sha256": _file_digest(self.prior)}   # bytes, not name
+        text = json.dumps({"protocol": PROTOCOL_VERSION, "solver": _solver_identity(), **self.to_dict(), **extra},
                           sort_keys=True)
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
