@@ -28,6 +28,11 @@ Two conditions, both reported by :func:`analyse`:
 The report also maps how densely each st node is observed
 (:func:`observation_map`), with the specular (theta_h ~ 0), retro-reflective
 (theta_d ~ 0) and grazing (theta_d ~ pi/2) regions summarised.
+:func:`node_observation_strength` and :func:`observed_nodes` decide which
+nodes count as *observed* (enough distinct rows and enough signal); the
+evaluation scores Eq. 1 over the MERL cells those nodes determine
+(:func:`mi_bivariate.metrics.observed_cells`), and a solver may use the same
+numbers as a per-node confidence.
 
 Calibration on the shared probes (M ~ 2000 sphere normals, K = 8000, 32x32;
 numerical rank at 1e-3 of 1024 nodes; detail at 3 degrees):
@@ -121,6 +126,56 @@ def observation_map(L: np.ndarray, n_t: int, n_s: int) -> np.ndarray:
     totals = lum.sum(axis=1, keepdims=True)
     share = np.divide(lum, totals, out=np.zeros_like(lum), where=totals > 0)
     return share.sum(axis=0).reshape(n_t, n_s)
+
+
+#: A node is *observed* when at least this many rows (Kish effective number, share-weighted) see it ...
+OBSERVED_MIN_EFFECTIVE = 8.0
+#: ... and together they carry at least this many pixels' worth of its signal (sum of shares).
+OBSERVED_MIN_SIGNAL = 0.5
+
+
+def node_observation_strength(L: np.ndarray, n_t: int, n_s: int) -> Tuple[np.ndarray, np.ndarray]:
+    """How well each st node is observed: ``(effective_rows, signal)``, each ``(n_t, n_s) float64``.
+
+    With ``q_mj`` node j's share of row m (the row's luminance weights
+    normalised to sum to one, as in :func:`observation_map`):
+
+    - ``signal_j = sum_m q_mj``: how many pixels' worth of signal constrain
+      the node (:func:`observation_map`);
+    - ``effective_rows_j = (sum_m q_mj)^2 / sum_m q_mj^2``: Kish's effective
+      number of rows seeing the node, each row weighted by the node's share
+      of it (1 when a single row dominates, M when all rows share it equally).
+
+    Neither alone suffices: the Kish number is blind to scale (a node with a
+    1e-9 share in every row has M effective rows) and the signal sum is
+    blind to concentration (one pixel that is all node j, e.g. a mirror
+    reflection of a single texel, gives signal 1 from a single row). See
+    :func:`observed_nodes` for the thresholds.
+
+    Args:
+        L: ``(M, n_t * n_s, 3)`` or ``(M, n_t * n_s)`` lighting matrix.
+    """
+    lum = _luminance(L)
+    if lum.shape[1] != n_t * n_s:
+        raise InputError(None, f"lighting matrix has {lum.shape[1]} columns, expected {n_t}x{n_s}")
+    totals = lum.sum(axis=1, keepdims=True)
+    share = np.divide(lum, totals, out=np.zeros_like(lum), where=totals > 0)
+    signal = share.sum(axis=0)
+    square = np.einsum("mj,mj->j", share, share)
+    effective = np.divide(signal * signal, square, out=np.zeros_like(signal), where=square > 0)
+    return effective.reshape(n_t, n_s), signal.reshape(n_t, n_s)
+
+
+def observed_nodes(L: np.ndarray, n_t: int, n_s: int, min_effective: float = OBSERVED_MIN_EFFECTIVE,
+                   min_signal: float = OBSERVED_MIN_SIGNAL) -> np.ndarray:
+    """``(n_t, n_s) bool``: nodes with ``effective_rows >= min_effective`` and ``signal >= min_signal``.
+
+    See :func:`node_observation_strength`. Defaults: 8 effective rows and
+    half a pixel's worth of signal. The metrics take this mask as a plain
+    boolean array, so a saved per-node confidence can replace it.
+    """
+    effective, signal = node_observation_strength(L, n_t, n_s)
+    return (effective >= float(min_effective)) & (signal >= float(min_signal))
 
 
 def region_masks(n_t: int, n_s: int) -> Dict[str, np.ndarray]:

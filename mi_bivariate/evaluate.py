@@ -3,16 +3,32 @@
 Per material (a MERL ``.binary``, a MERL-NBRDF name or an analytic spec) and
 per input probe:
 
-1. render the input image of the full 3D BRDF with the ``merl`` plugin;
+1. render the input image of the full 3D BRDF (``merl`` plugin, trilinear)
+   with the converged reference renderer (:mod:`mi_bivariate.reference`,
+   deterministic hemisphere quadrature; ``renderer="path"`` path-traces
+   instead), clean unless ``noise`` adds the camera noise of
+   :mod:`mi_bivariate.noise`;
 2. :func:`~mi_bivariate.recover.recover` the bivariate BRDF from it;
-3. re-render the recovery (``bivariate`` plugin) under every novel probe next
-   to the ground truth (``merl`` plugin) and the ideal bivariate reduction;
+3. render under every novel probe, with the *same* renderer and the same
+   quadrature seed: the recovery (``bivariate`` plugin), the exact reduction's
+   ``n_t x n_s`` table and the 3D truth; the *relight floor* is the reduction's
+   image error against the truth, and the recovery's error is reported with
+   its ratio to that floor (:func:`mi_bivariate.metrics.relight_errors`);
 4. fit the parametric baselines (:mod:`mi_bivariate.baselines`) to the same
    observations through the same lighting matrix;
-5. record the BRDF errors of :func:`mi_bivariate.metrics.brdf_errors` (Eq. 1,
-   cosine-weighted, log-space) for the recovery, the bivariate floor and the
-   baselines, image errors under each novel probe, the adequacy diagnostics
-   and timings.
+5. record the BRDF errors of :class:`mi_bivariate.metrics.BRDFErrors` (Eq. 1
+   over all cells, over the cells the input observes
+   (:func:`mi_bivariate.adequacy.observed_nodes` and
+   :func:`mi_bivariate.metrics.observed_cells`) and over f > 1e-3;
+   cosine-weighted; log-space; per region) for the recovery, the grid table
+   and the baselines; the *exact floor* and the *grid floor*
+   (:func:`mi_bivariate.bivariate.floors`); the adequacy diagnostics and
+   timings.
+
+Reference renders of the truth and of the reduction's table depend on the
+material and the probe only, not on the solver: they are cached in
+``references/`` (one ``.npz`` per material, probe and render settings), so a
+rerun after a solver change renders only the recoveries.
 
 Results are one JSON line per finished material in ``results.jsonl``,
 appended, flushed and fsynced by the parent process only, so an interrupted
@@ -53,7 +69,7 @@ from mi_bivariate.errors import InputError, InputWarning
 PathLike = Union[str, os.PathLike]
 
 #: Bumped when the protocol changes in a way that changes numbers (part of the config hash).
-PROTOCOL_VERSION = 1
+PROTOCOL_VERSION = 2
 DEFAULT_INPUT_PROBES: Tuple[str, ...] = ("grace_latlong_1k", "uffizi_256")
 DEFAULT_NOVEL_PROBES: Tuple[str, ...] = ("grace_256", "pisa_256", "venice_sunset_1k",
                                          "pedestrian_overpass_1k", "royal_esplanade_1k")
@@ -65,6 +81,10 @@ QUICK_ANALYTIC = ("ggx:diffuse=0.25,0.12,0.05,specular=0.6,alpha=0.12,ior=1.5",
 INCIDENT_VIEWS = (30.0, 60.0)
 RESULTS_FILE = "results.jsonl"
 SUMMARY_FILE = "summary.csv"
+#: Folder (under the output folder) of cached reference renders of truths and exact reductions.
+REFERENCE_DIR = "references"
+#: Seed offset of the input noise (``EvalConfig.noise``).
+NOISE_SEED_OFFSET = 7919
 
 
 @dataclass(frozen=True)
@@ -81,6 +101,16 @@ class EvalConfig:
         baselines: parametric families to fit (:data:`mi_bivariate.baselines.FAMILIES`).
         baseline_nfev: least-squares evaluations of a baseline's final run.
         seed: seeds renders (input: seed, novel probe k: seed + 1 + k) and recovery.
+        renderer: ``"reference"`` (deterministic quadrature, :mod:`mi_bivariate.reference`;
+            ``spp`` and ``novel_spp`` unused) or ``"path"`` (Mitsuba path tracing at ``spp`` /
+            ``novel_spp``; noisy, for comparison).
+        novel_resolution: image width = height of the renders under the novel probes.
+        reference_directions: directions per pixel of the reference renderer (cosine, lobe,
+            environment; :data:`mi_bivariate.reference.DEFAULT_DIRECTIONS`).
+        noise: camera noise level of the input images (:func:`mi_bivariate.noise.add_camera_noise`:
+            relative standard deviation at the mean signal; 0 = clean).
+        prior: a prior file (:meth:`mi_bivariate.prior.Prior.load`) passed to ``recover``
+            (``None``: the packaged default).
     """
 
     input_probes: Tuple[str, ...] = DEFAULT_INPUT_PROBES
@@ -95,6 +125,11 @@ class EvalConfig:
     baselines: Tuple[str, ...] = ("ggx", "ward")
     baseline_nfev: int = 40
     seed: int = 0
+    renderer: str = "reference"
+    novel_resolution: int = 64
+    reference_directions: Tuple[int, int, int] = (1024, 2048, 3072)
+    noise: float = 0.0
+    prior: Optional[str] = None
 
     @classmethod
     def quick(cls, shared_data: bool = True, **overrides) -> "EvalConfig":
@@ -103,7 +138,8 @@ class EvalConfig:
         Without the shared data (``shared_data=False``) the probes are synthetic.
         """
         base = dict(resolution=48, spp=16, novel_spp=8, n_normals=1000, n_dirs=3000, grid=(12, 12),
-                    baseline_nfev=8, novel_probes=("pisa_256",))
+                    baseline_nfev=8, novel_probes=("pisa_256",), novel_resolution=32,
+                    reference_directions=(256, 512, 256))
         if not shared_data:
             base.update(input_probes=("synthetic:1", "synthetic:3"), novel_probes=("synthetic:7",))
         base.update(overrides)
@@ -113,13 +149,35 @@ class EvalConfig:
         d = asdict(self)
         d["input_probes"], d["novel_probes"] = list(self.input_probes), list(self.novel_probes)
         d["grid"], d["baselines"] = list(self.grid), list(self.baselines)
+        d["reference_directions"] = list(self.reference_directions)
         return d
+
+    def validate(self) -> None:
+        """Raise :class:`InputError` for settings no run can use (before any work starts)."""
+        if self.renderer not in ("reference", "path"):
+            raise InputError("renderer", f"unknown renderer {self.renderer!r}", "use 'reference' or 'path'")
+        if not (math.isfinite(self.noise) and self.noise >= 0.0):
+            raise InputError("--noise", f"noise level must be a finite number >= 0, got {self.noise}")
+        if self.prior is not None and not Path(self.prior).is_file():
+            raise InputError(self.prior, "prior file not found")
+        if int(self.novel_resolution) < 4:
+            raise InputError("--novel-resolution", f"must be >= 4 pixels, got {self.novel_resolution}")
+        if len(self.reference_directions) != 3 or min(self.reference_directions) < 0:
+            raise InputError("reference_directions", "need 3 non-negative counts (cosine, lobe, environment)")
 
     def hash(self) -> str:
         """16 hex digits of SHA-256 over the canonical JSON of the config and protocol version."""
-        text = json.dumps({"protocol": PROTOCOL_VERSION, "solver": _solver_identity(), **self.to_dict()},
+        extra = {} if self.prior is None else {"prior_sha256": _file_digest(self.prior)}   # bytes, not name
+        text = json.dumps({"protocol": PROTOCOL_VERSION, "solver": _solver_identity(), **self.to_dict(), **extra},
                           sort_keys=True)
         return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def _file_digest(path: PathLike) -> str:
+    try:
+        return hashlib.sha256(Path(path).read_bytes()).hexdigest()[:16]
+    except OSError:
+        return "missing"
 
 
 def _solver_identity() -> dict:
@@ -280,12 +338,16 @@ def probe_label(spec: str) -> str:
 
 @dataclass
 class MaterialTask:
-    """What a worker needs for one material (picklable)."""
+    """What a worker needs for one material (picklable).
+
+    ``cache_dir``: folder of cached reference renders (:data:`REFERENCE_DIR`); ``None``: no cache.
+    """
 
     material: MaterialSpec
     config: EvalConfig
     data_dir: Optional[str] = None
     threads: Optional[int] = None
+    cache_dir: Optional[str] = None
 
 
 def _f16(image: np.ndarray) -> np.ndarray:
@@ -324,6 +386,110 @@ def _incident_curves(truth: Any) -> Dict[str, np.ndarray]:
     return out
 
 
+@dataclass
+class _Shot:
+    """A rendered sphere as the protocol uses it."""
+
+    image: np.ndarray
+    mask: np.ndarray
+    geometry: Any
+
+
+class _Renderer:
+    """The protocol's renders: one renderer for every image that is scored, with a cache.
+
+    Renders of the truth and of the exact reduction (``cache_key`` given)
+    are cached as ``<cache_dir>/<key hash>.npz`` (image, mask, geometry).
+    """
+
+    def __init__(self, cfg: EvalConfig, material: MaterialSpec, cache_dir: Optional[str]):
+        self.cfg = cfg
+        self.cache_dir = Path(cache_dir) if cache_dir else None
+        identity = {"label": material.label, "kind": material.kind, "spec": material.spec}
+        if material.kind == "merl":
+            try:
+                st = os.stat(material.spec)
+                identity["file"] = [st.st_size, st.st_mtime_ns]
+            except OSError:
+                pass
+        self.identity = identity
+        self.seconds = 0.0
+        self.renders = 0
+        self.cached = 0
+
+    def _settings(self, resolution: int, seed: int, spp: int) -> dict:
+        from mi_bivariate import reference
+
+        if self.cfg.renderer == "reference":
+            return {"renderer": "reference", "version": reference.REFERENCE_VERSION, "resolution": int(resolution),
+                    "seed": int(seed), "directions": list(self.cfg.reference_directions)}
+        return {"renderer": "path", "resolution": int(resolution), "seed": int(seed), "spp": int(spp)}
+
+    def render(self, bsdf: Any, probe: Any, probe_spec: str, resolution: int, seed: int, spp: int,
+               cache_key: Optional[str] = None) -> _Shot:
+        """Render ``bsdf`` (a plugin object or anything render.bsdf_dict takes) under ``probe``."""
+        from mi_bivariate import reference, render
+        from mi_bivariate.geometry import SphereGeometry
+
+        settings = self._settings(resolution, seed, spp)
+        path = None
+        if cache_key is not None and self.cache_dir is not None:
+            key = json.dumps({"material": self.identity, "what": cache_key, "probe": probe_spec,
+                              "probe_sha": _probe_digest(probe), **settings}, sort_keys=True)
+            path = self.cache_dir / f"{hashlib.sha256(key.encode()).hexdigest()[:24]}.npz"
+            if path.is_file():
+                try:
+                    with np.load(path, allow_pickle=False) as npz:
+                        g = npz["geometry"]
+                        shot = _Shot(np.asarray(npz["image"], np.float32), np.asarray(npz["mask"], bool),
+                                     SphereGeometry(float(g[0]), float(g[1]), float(g[2]),
+                                                    np.asarray(npz["camera_to_world"], np.float64)))
+                    self.cached += 1
+                    return shot
+                except (OSError, ValueError, KeyError, EOFError):
+                    pass                               # unreadable: render again and overwrite
+        t0 = time.perf_counter()
+        if self.cfg.renderer == "reference":
+            out = reference.render_reference(bsdf, probe, resolution=resolution, seed=seed,
+                                             directions=self.cfg.reference_directions)
+        else:
+            source = render.bsdf_dict(bsdf) if not hasattr(bsdf, "sampler") else bsdf
+            out = render.render_sphere(source, probe, resolution=resolution, spp=spp, seed=seed)
+        self.seconds += time.perf_counter() - t0
+        self.renders += 1
+        shot = _Shot(np.asarray(out.image, np.float32), np.asarray(out.mask, bool), out.geometry)
+        if path is not None:
+            g = shot.geometry
+            with contextlib.suppress(OSError):
+                path.parent.mkdir(parents=True, exist_ok=True)
+                save_artifacts(path, {"image": shot.image, "mask": shot.mask,
+                                      "geometry": np.array([g.cx, g.cy, g.radius]),
+                                      "camera_to_world": np.asarray(g.camera_to_world, np.float64)})
+        return shot
+
+
+def _probe_digest(probe: Any) -> str:
+    """Identity of a probe's pixels and orientation (cache keys)."""
+    digest = getattr(probe, "_mi_bivariate_digest", None)
+    if digest is None:
+        h = hashlib.sha256(np.ascontiguousarray(probe.data).tobytes())
+        h.update(np.ascontiguousarray(probe.to_world, np.float64).tobytes())
+        digest = h.hexdigest()[:16]
+        with contextlib.suppress(AttributeError, TypeError):
+            object.__setattr__(probe, "_mi_bivariate_digest", digest)
+    return digest
+
+
+def _plugin(source: Any, renderer: str) -> Any:
+    """A loaded BSDF plugin (reference renderer: built once, used for every probe) or a BSDF dict."""
+    import mitsuba as mi
+
+    from mi_bivariate import render
+
+    bsdf = render.bsdf_dict(source)
+    return mi.load_dict(bsdf) if renderer == "reference" else bsdf
+
+
 def evaluate_material(task: MaterialTask) -> Tuple[dict, Dict[str, np.ndarray]]:
     """Run the protocol of the module docstring for one material.
 
@@ -331,18 +497,26 @@ def evaluate_material(task: MaterialTask) -> Tuple[dict, Dict[str, np.ndarray]]:
         ``(record, arrays)``: the JSON record (one line of ``results.jsonl``)
         and the artifact arrays (``materials/<slug>.npz``).
     """
-    from mi_bivariate import baselines, metrics, render
+    from mi_bivariate import adequacy, baselines, bivariate, metrics
     from mi_bivariate.bivariate import BivariateBRDF
+    from mi_bivariate.noise import add_camera_noise
     from mi_bivariate.recover import recover
     from mi_bivariate.variants import ensure_variant
 
     ensure_variant()
     cfg, data_dir = task.config, task.data_dir
+    cfg.validate()
     t_start = time.perf_counter()
+    cpu_start = time.process_time()
     timings: Dict[str, float] = {}
     # Probes first: their EXR reads need worker threads (see _io_threads).
     inputs = [load_probe(p, data_dir) for p in cfg.input_probes]
     novels = [load_probe(p, data_dir) for p in cfg.novel_probes]
+    prior = None
+    if cfg.prior is not None:
+        from mi_bivariate.prior import Prior
+
+        prior = Prior.load(cfg.prior)
     if task.threads is not None:
         import drjit as dr
 
@@ -354,24 +528,30 @@ def evaluate_material(task: MaterialTask) -> Tuple[dict, Dict[str, np.ndarray]]:
     floor = BivariateBRDF.reduce(truth, n_t=n_t, n_s=n_s)
     timings["truth"] = time.perf_counter() - t0
     t0 = time.perf_counter()
+    floor_values = bivariate.floors(truth, n_t, n_s)
     brdf_errors = metrics.BRDFErrors(truth)
     floor_errors = brdf_errors(floor)
     timings["brdf_errors"] = time.perf_counter() - t0
 
     arrays: Dict[str, np.ndarray] = {"floor": floor.table}
     arrays.update(_incident_curves(truth))
-    truth_bsdf = render.bsdf_dict(truth)
-    res = cfg.resolution
+    renderer = _Renderer(cfg, task.material, task.cache_dir)
+    truth_bsdf = _plugin(truth, cfg.renderer)
+    floor_bsdf = _plugin(floor, cfg.renderer)
+    res, res_novel = cfg.resolution, cfg.novel_resolution
+    grid_key = f"grid_table_{n_t}x{n_s}"
 
     t0 = time.perf_counter()
-    truth_novel, floor_images = {}, {}
-    floor_bsdf = render.bsdf_dict(floor)
+    truth_novel: Dict[str, _Shot] = {}
+    floor_novel: Dict[str, np.ndarray] = {}
+    floor_images: Dict[str, dict] = {}
     for k, (name, probe) in enumerate(zip(cfg.novel_probes, novels)):
         label = probe_label(name)
-        shot = render.render_sphere(truth_bsdf, probe, resolution=res, spp=cfg.novel_spp, seed=cfg.seed + 1 + k)
-        floor_shot = render.render_sphere(floor_bsdf, probe, resolution=res, spp=cfg.novel_spp,
-                                          seed=cfg.seed + 1 + k)
+        seed = cfg.seed + 1 + k
+        shot = renderer.render(truth_bsdf, probe, name, res_novel, seed, cfg.novel_spp, cache_key="truth")
+        floor_shot = renderer.render(floor_bsdf, probe, name, res_novel, seed, cfg.novel_spp, cache_key=grid_key)
         truth_novel[label] = shot
+        floor_novel[label] = floor_shot.image
         floor_images[label] = _image_errors(floor_shot.image, shot.image, shot.mask)
         arrays[f"truth__{label}"] = _f16(shot.image)
         arrays[f"floor_render__{label}"] = _f16(floor_shot.image)
@@ -383,31 +563,40 @@ def evaluate_material(task: MaterialTask) -> Tuple[dict, Dict[str, np.ndarray]]:
         label = probe_label(name)
         entry: Dict[str, Any] = {}
         t0 = time.perf_counter()
-        shot = render.render_sphere(truth_bsdf, probe, resolution=res, spp=cfg.spp, seed=cfg.seed)
+        shot = renderer.render(truth_bsdf, probe, name, res, cfg.seed, cfg.spp, cache_key="truth")
+        image = shot.image
+        if cfg.noise > 0.0:
+            image = add_camera_noise(image, cfg.noise, seed=cfg.seed + NOISE_SEED_OFFSET)
         t_render = time.perf_counter() - t0
-        rec = recover(shot.image, probe, shot.geometry, n_normals=cfg.n_normals, n_dirs=cfg.n_dirs,
-                      grid=cfg.grid, alpha=cfg.alpha, seed=cfg.seed, keep_inputs=False)
+        rec = recover(image, probe, shot.geometry, n_normals=cfg.n_normals, n_dirs=cfg.n_dirs,
+                      grid=cfg.grid, alpha=cfg.alpha, prior=prior, seed=cfg.seed, keep_inputs=False)
         entry["timings"] = {"render_input": t_render, **rec.timings}
         t0 = time.perf_counter()
-        entry["recovered"] = brdf_errors(rec.brdf)
+        effective, signal = adequacy.node_observation_strength(rec.lighting_matrix, n_t, n_s)
+        observed = (effective >= adequacy.OBSERVED_MIN_EFFECTIVE) & (signal >= adequacy.OBSERVED_MIN_SIGNAL)
+        entry["observed"] = {"nodes": int(observed.sum()), "node_fraction": float(observed.mean()),
+                             "min_effective": adequacy.OBSERVED_MIN_EFFECTIVE,
+                             "min_signal": adequacy.OBSERVED_MIN_SIGNAL}
+        entry["recovered"] = brdf_errors(rec.brdf, observed_nodes=observed)
+        entry["grid_floor_observed"] = brdf_errors(floor, observed_nodes=observed)["eq1_observed"]
         entry["timings"]["brdf_errors"] = time.perf_counter() - t0
         entry["relative_residual"] = rec.relative_residual()
         entry["prior_winner"] = list(rec.solution.winner)
         entry["alpha"] = float(rec.solution.alpha)
         entry["observations"] = int(len(rec.observations.values))
         entry["adequacy"] = _adequacy_summary(rec.adequacy)
-        arrays[f"input__{label}"] = _f16(shot.image)
+        arrays[f"input__{label}"] = _f16(image)
         arrays[f"recovered__{label}"] = rec.brdf.table
         arrays[f"observation_map__{label}"] = np.asarray(rec.adequacy.observation_map, np.float32)
+        arrays[f"observed_nodes__{label}"] = observed
 
         t0 = time.perf_counter()
         images = {}
-        rec_bsdf = render.bsdf_dict(rec.brdf)
+        rec_bsdf = _plugin(rec.brdf, cfg.renderer)
         for k, novel_name in enumerate(cfg.novel_probes):
             nl = probe_label(novel_name)
-            img = render.render_sphere(rec_bsdf, novels[k], resolution=res, spp=cfg.novel_spp,
-                                       seed=cfg.seed + 1 + k).image
-            images[nl] = _image_errors(img, truth_novel[nl].image, truth_novel[nl].mask)
+            img = renderer.render(rec_bsdf, novels[k], novel_name, res_novel, cfg.seed + 1 + k, cfg.novel_spp).image
+            images[nl] = metrics.relight_errors(img, floor_novel[nl], truth_novel[nl].image, truth_novel[nl].mask)
             arrays[f"recovered_render__{label}__{nl}"] = _f16(img)
         entry["images"] = images
         entry["timings"]["render_novel"] = time.perf_counter() - t0
@@ -419,13 +608,19 @@ def evaluate_material(task: MaterialTask) -> Tuple[dict, Dict[str, np.ndarray]]:
         t0 = time.perf_counter()
         entry["baselines"] = {}
         for fam, fit in fits.items():
-            entry["baselines"][fam] = {**fit.summary(), "errors": brdf_errors(fit.brdf)}
+            entry["baselines"][fam] = {**fit.summary(), "errors": brdf_errors(fit.brdf, observed_nodes=observed)}
             arrays[f"baseline__{label}__{fam}"] = fit.table.table
         entry["timings"]["baselines_errors"] = time.perf_counter() - t0
         del rec
         per_input[label] = entry
 
+    # Render counts go with the timings: a cache hit changes the work, not the numbers.
+    timings["render_seconds"] = renderer.seconds
+    timings["renders_rendered"] = float(renderer.renders)
+    timings["renders_from_cache"] = float(renderer.cached)
     timings["total"] = time.perf_counter() - t_start
+    # CPU seconds of this process (all its threads): the fair cost on a machine shared with other jobs.
+    timings["cpu_total"] = time.process_time() - cpu_start
     record = {
         "material": task.material.label,
         "kind": task.material.kind,
@@ -433,8 +628,11 @@ def evaluate_material(task: MaterialTask) -> Tuple[dict, Dict[str, np.ndarray]]:
         "slug": task.material.slug,
         "config_hash": cfg.hash(),
         "floor": floor_errors,
+        "floors": floor_values,
         "floor_images": floor_images,
+        "relight_floor": {k: v["rel_rmse"] for k, v in floor_images.items()},
         "inputs": per_input,
+        "renderer": cfg.renderer,
         "timings": timings,
         "threads": task.threads,
     }
@@ -558,6 +756,24 @@ def summary_rows(records: Sequence[dict]) -> List[dict]:
             row["image_rel_rmse_mean"] = float(np.mean(rmse)) if rmse else float("nan")
             row["image_psnr_mean"] = float(np.mean(psnr)) if psnr else float("nan")
             row["floor_image_rel_rmse_mean"] = float(np.mean(floor_rmse)) if floor_rmse else float("nan")
+            for key in ("exact_floor", "grid_floor", "exact_floor_min", "grid_floor_min"):
+                if key in r.get("floors", {}):
+                    row[key] = r["floors"][key]
+            if "eq1_observed" in e["recovered"]:
+                row["recovered_eq1_observed"] = e["recovered"]["eq1_observed"]
+                row["grid_floor_observed"] = e.get("grid_floor_observed", float("nan"))
+                row["observed_fraction"] = e["recovered"]["observed_fraction"]
+            for region, v in e["recovered"].get("regions", {}).items():
+                row[f"recovered_eq1_{region}"] = v["eq1"]
+                row[f"recovered_share_{region}"] = v["share"]
+            ratios = [v["ratio"] for v in e["images"].values() if "ratio" in v]
+            if ratios:
+                row["relight_rmse_median"] = float(np.median(rmse))
+                row["relight_floor_median"] = float(np.median([v["floor"] for v in e["images"].values()]))
+                row["relight_ratio_median"] = float(np.median(ratios))
+                for novel, v in e["images"].items():
+                    row[f"relight_{novel}"] = v["rel_rmse"]
+                    row[f"relight_floor_{novel}"] = v["floor"]
             row["relative_residual"] = e["relative_residual"]
             row["rank_fraction"] = e["adequacy"]["rank_fraction"]
             row["adequate"] = e["adequacy"]["adequate"]
@@ -764,6 +980,7 @@ def run_evaluation(materials: Sequence[Union[str, MaterialSpec]], out_dir: PathL
 
     ensure_variant()
     config = config or EvalConfig()
+    config.validate()
     if jobs < 1:
         raise InputError("--jobs", f"must be >= 1, got {jobs}")
     specs = [m if isinstance(m, MaterialSpec) else None for m in materials]
@@ -811,7 +1028,8 @@ def _run_locked(specs: List[MaterialSpec], out: Path, config: EvalConfig, jobs: 
     done = {r["material"] for r in read_records(results, h)}
     if threads is None and dask is None and jobs > 1:
         threads = threads_per_job(jobs)
-    tasks = [MaterialTask(m, config, None if data_dir is None else str(data_dir), threads)
+    tasks = [MaterialTask(m, config, None if data_dir is None else str(data_dir), threads,
+                          cache_dir=str(out / REFERENCE_DIR))
              for m in specs if m.label not in done]
     with atomic_path(out / "config.json") as tmp:
         tmp.write_text(json.dumps({"config_hash": h, **config.to_dict()}, indent=2))
@@ -1021,6 +1239,18 @@ def _fmt(v: Any, digits: int = 3) -> str:
     return str(v)
 
 
+#: The results page's per-material table (:func:`markdown_table`): floors, where the image looks, relighting.
+HEADLINE_COLUMNS = (("material", "material"), ("input_probe", "input"),
+                    ("exact_floor", "exact floor"), ("grid_floor", "grid floor"),
+                    ("recovered_eq1", "rec. Eq.1"), ("recovered_eq1_observed", "rec. Eq.1 obs."),
+                    ("grid_floor_observed", "grid floor obs."), ("observed_fraction", "obs. cells"),
+                    ("recovered_eq1_min", "rec. Eq.1>1e-3"), ("recovered_cosine", "rec. cos"),
+                    ("recovered_log", "rec. log"),
+                    ("recovered_eq1_specular", "Eq.1 spec."), ("recovered_eq1_retro", "Eq.1 retro"),
+                    ("recovered_eq1_grazing", "Eq.1 grazing"), ("recovered_eq1_rest", "Eq.1 rest"),
+                    ("relight_rmse_median", "relight"), ("relight_floor_median", "relight floor"),
+                    ("relight_ratio_median", "ratio"))
+
 SUMMARY_COLUMNS = (("material", "material"), ("input_probe", "input"),
                    ("floor_log", "floor log"), ("recovered_log", "rec. log"),
                    ("ggx_log", "GGX log"), ("ward_log", "Ward log"),
@@ -1050,9 +1280,12 @@ def format_summary(records: Sequence[dict]) -> str:
     for probe in dict.fromkeys(r["input_probe"] for r in rows):
         sel = [r for r in rows if r["input_probe"] == probe]
         parts = []
-        for key, label in (("floor_log", "floor log"), ("recovered_log", "recovered log"),
-                           ("ggx_log", "GGX log"), ("ward_log", "Ward log"),
-                           ("recovered_eq1_min", "recovered Eq.1>1e-3"), ("image_rel_rmse_mean", "image RMSE")):
+        for key, label in (("exact_floor", "exact floor"), ("grid_floor", "grid floor"),
+                           ("recovered_eq1_observed", "recovered Eq.1 observed"),
+                           ("recovered_log", "recovered log"), ("ggx_log", "GGX log"), ("ward_log", "Ward log"),
+                           ("recovered_eq1_min", "recovered Eq.1>1e-3"),
+                           ("relight_rmse_median", "relight"), ("relight_floor_median", "relight floor"),
+                           ("relight_ratio_median", "relight/floor")):
             vals = [r[key] for r in sel if key in r and math.isfinite(r[key])]
             if vals:
                 parts.append(f"{label} {np.median(vals):.3f}")

@@ -2,13 +2,30 @@
 
 BRDF errors compare a bivariate table against a 3D MERL table on the MERL
 grid; see :func:`mi_bivariate.bivariate.reduction_error` for Eq. 1 itself.
+
+Where the image looks: Eq. 1 over all cells is dominated by the few cells
+where the truth is near zero (1e-6..1e-3 1/sr at grazing angles), which no
+image constrains. :class:`BRDFErrors` therefore also reports Eq. 1 over the
+*observed* cells (:func:`observed_cells`, from a boolean mask of observed st
+nodes such as :func:`mi_bivariate.adequacy.observed_nodes`), over the cells
+with f > 1e-3 1/sr, and per region of the st domain (:data:`REGIONS`).
 """
 
 from __future__ import annotations
 
-from typing import Optional
+import math
+from typing import Dict, Optional, Tuple
 
 import numpy as np
+
+#: Regions of the (theta_h, theta_d) domain for the error breakdown, in degrees, in order of
+#: precedence: a cell belongs to the first region whose bound it meets; "rest" is every other cell.
+REGIONS: Tuple[Tuple[str, str, float, float], ...] = (
+    ("specular", "theta_h", 0.0, 2.0),
+    ("retro", "theta_d", 0.0, 10.0),
+    ("grazing", "theta_d", 75.0, 90.0),
+)
+REGION_NAMES: Tuple[str, ...] = tuple(r[0] for r in REGIONS) + ("rest",)
 
 
 def image_relative_rmse(image: np.ndarray, reference: np.ndarray, mask: Optional[np.ndarray] = None) -> float:
@@ -167,6 +184,49 @@ def estimate_on_merl_grid(estimate) -> np.ndarray:
     raise TypeError(f"cannot evaluate a {type(estimate).__name__} on the MERL grid")
 
 
+def region_of(theta_h: np.ndarray, theta_d: np.ndarray) -> np.ndarray:
+    """Index into :data:`REGION_NAMES` of each (theta_h, theta_d) (radians, broadcast): int array."""
+    th, td = np.broadcast_arrays(np.degrees(np.asarray(theta_h, np.float64)),
+                                 np.degrees(np.asarray(theta_d, np.float64)))
+    out = np.full(th.shape, len(REGIONS), np.int64)
+    for k in range(len(REGIONS) - 1, -1, -1):      # first match wins: assign in reverse order
+        _, axis, lo, hi = REGIONS[k]
+        a = th if axis == "theta_h" else td
+        out = np.where((a >= lo) & (a < hi) if hi < 90.0 else (a >= lo), k, out)
+    return out
+
+
+def observed_cells(observed_nodes: np.ndarray, theta_h: Optional[np.ndarray] = None,
+                   theta_d: Optional[np.ndarray] = None) -> np.ndarray:
+    """Which (theta_h, theta_d) points an st table's observed nodes fully determine.
+
+    A point is observed when every node of its bilinear st stencil (the
+    nodes ``floor`` and ``ceil`` of its fractional node coordinate on each
+    axis; one node on an axis where it sits exactly on a node) is observed.
+
+    Args:
+        observed_nodes: ``(n_t, n_s) bool``.
+        theta_h, theta_d: radians (broadcast); default the MERL nodes, giving ``(90, 90) bool``.
+    """
+    from mi_bivariate.coordinates import st_from_half_diff
+    from mi_bivariate.merl import node_angles
+
+    nodes = np.asarray(observed_nodes, bool)
+    if nodes.ndim != 2 or min(nodes.shape) < 2:
+        raise ValueError(f"observed_nodes must be (n_t >= 2, n_s >= 2) bool, got shape {nodes.shape}")
+    if theta_h is None or theta_d is None:
+        mh, md, _ = node_angles()
+        theta_h, theta_d = mh[:, None], md[None, :]
+    s, t = st_from_half_diff(np.asarray(theta_h, np.float64), np.asarray(theta_d, np.float64))
+    s, t = np.broadcast_arrays(np.asarray(s), np.asarray(t))
+    n_t, n_s = nodes.shape
+    u = np.clip(t, 0.0, 1.0) * (n_t - 1)
+    v = np.clip(s, 0.0, 1.0) * (n_s - 1)
+    i0, i1 = np.floor(u).astype(np.int64), np.minimum(np.ceil(u).astype(np.int64), n_t - 1)
+    j0, j1 = np.floor(v).astype(np.int64), np.minimum(np.ceil(v).astype(np.int64), n_s - 1)
+    return nodes[i0, j0] & nodes[i0, j1] & nodes[i1, j0] & nodes[i1, j1]
+
+
 class BRDFErrors:
     """The BRDF errors of estimates against one 3D truth; the truth's cells are prepared once.
 
@@ -181,6 +241,16 @@ class BRDFErrors:
       the relative L2 error of f under the measure ``cos(theta_i) cos(theta_o) dw_i dw_o``
       (what a render under uniform light integrates); dominated by large values.
     - ``log``: :func:`log_rms`, RMS of ``ln(1 + f)`` differences over the cells.
+    - ``regions``: per region of :data:`REGION_NAMES`, ``{"eq1", "share", "cells"}``:
+      Eq. 1 over the region's cells, the region's share of the summed
+      squared relative errors (where Eq. 1 comes from) and its cell count.
+
+    With ``observed_nodes`` (an ``(n_t, n_s) bool`` mask of st nodes, e.g.
+    :func:`mi_bivariate.adequacy.observed_nodes`) also:
+
+    - ``eq1_observed``: Eq. 1 over the cells whose (theta_h, theta_d) is
+      observed (:func:`observed_cells`);
+    - ``observed_fraction``: the share of cells that are.
 
     Args:
         truth: a :class:`~mi_bivariate.merl.MERLBRDF`.
@@ -197,6 +267,7 @@ class BRDFErrors:
         self.min_value = float(min_value)
         theta_h, theta_d, phi_d = node_angles()
         self.angles = (theta_h[self.index[0]], theta_d[self.index[1]], phi_d[self.index[2]])
+        self.region = region_of(self.angles[0], self.angles[1])
 
     def estimate_at_cells(self, estimate) -> np.ndarray:
         """``(n_cells, 3)`` float64 values of an estimate (see :func:`estimate_on_merl_grid`) at the cells."""
@@ -214,21 +285,53 @@ class BRDFErrors:
                 return np.asarray(estimate.eval(*self.angles), np.float64)
         raise TypeError(f"cannot evaluate a {type(estimate).__name__} on the MERL grid")
 
-    def __call__(self, estimate) -> dict:
+    def __call__(self, estimate, observed_nodes: Optional[np.ndarray] = None) -> dict:
         f, f_hat = self.f, self.estimate_at_cells(estimate)
         eq1_cells = f > self.min_value
-        return {
+        out = {
             "eq1": relative_rms(f, f_hat, eq1_cells),
             "eq1_rgb": [relative_rms(f[:, c], f_hat[:, c], eq1_cells[:, c]) for c in range(3)],
             "eq1_min": relative_rms(f, f_hat, f > max(self.min_value, 1e-3)),
             "cosine": weighted_relative_l2(f, f_hat, self.weights),
             "log": log_rms(f, f_hat, np.ones_like(f, bool)),
         }
+        with np.errstate(invalid="ignore", divide="ignore"):
+            rel2 = np.where(eq1_cells & (f > 0), ((f_hat - f) / np.where(f > 0, f, 1.0)) ** 2, 0.0)
+        total = float(rel2.sum())
+        regions: Dict[str, dict] = {}
+        for k, name in enumerate(REGION_NAMES):
+            sel = (self.region == k)[:, None] & eq1_cells
+            regions[name] = {"eq1": relative_rms(f, f_hat, sel),
+                             "share": float(rel2[sel].sum() / total) if total > 0 else float("nan"),
+                             "cells": int(sel.sum())}
+        out["regions"] = regions
+        if observed_nodes is not None:
+            cells_obs = observed_cells(observed_nodes)[self.index[0], self.index[1]]
+            out["eq1_observed"] = relative_rms(f, f_hat, eq1_cells & cells_obs[:, None])
+            out["observed_fraction"] = float(cells_obs.mean()) if cells_obs.size else float("nan")
+        return out
 
 
-def brdf_errors(truth, estimate, min_value: float = 0.0) -> dict:
+def brdf_errors(truth, estimate, min_value: float = 0.0, observed_nodes: Optional[np.ndarray] = None) -> dict:
     """The BRDF errors of ``estimate`` against the 3D ``truth``; see :class:`BRDFErrors`.
 
     For several estimates of one truth, build a :class:`BRDFErrors` once.
     """
-    return BRDFErrors(truth, min_value)(estimate)
+    return BRDFErrors(truth, min_value)(estimate, observed_nodes)
+
+
+def relight_errors(image: np.ndarray, floor_image: np.ndarray, truth_image: np.ndarray,
+                   mask: np.ndarray) -> Dict[str, float]:
+    """Relighting under one novel probe: the recovery's error, its floor and their ratio.
+
+    ``rel_rmse``: :func:`image_relative_rmse` of the recovered BRDF's image
+    against the 3D truth's; ``floor``: the same for the exact reduction's
+    table (the best any bivariate table on the grid can do); ``ratio``:
+    ``rel_rmse / floor`` (1 = as good as the exact reduction). All three
+    images must come from the same renderer.
+    """
+    err = image_relative_rmse(image, truth_image, mask)
+    floor = image_relative_rmse(floor_image, truth_image, mask)
+    return {"rel_rmse": err, "floor": floor,
+            "ratio": err / floor if floor > 0 else (math.inf if err > 0 else 1.0),
+            "psnr": image_psnr(image, truth_image, mask)}

@@ -40,6 +40,8 @@ def save_figure(fig: Any, path: PathLike, dpi: int = 110) -> Path:
 
 
 def _exposure(image: np.ndarray, mask: Optional[np.ndarray] = None) -> float:
+    if mask is not None and mask.shape != image.shape[:2]:     # e.g. input and novel renders differ in size
+        mask = np.any(image > 0, axis=-1)
     values = image[mask] if mask is not None else image.reshape(-1, 3)
     lum = values @ np.array([0.2126, 0.7152, 0.0722])
     lum = lum[np.isfinite(lum) & (lum > 0)]

@@ -1,55 +1,150 @@
-"""Print the numeric parts of docs/results.md from an evaluation folder (Markdown snippets).
+"""The generated part of docs/results.md, from one evaluation folder.
 
-Usage: python scripts/results_tables.py [OUT_DIR]   (default out/evaluate)
+Usage:
+    python scripts/results_tables.py [OUT_DIR] [--page docs/results.md] [--figures docs/figures]
+
+Prints the Markdown (per-material table, medians, relighting per novel probe, baselines, timing)
+for the records of OUT_DIR's configuration (default out/evaluate). With ``--page`` it replaces
+the text between ``<!-- results:begin -->`` and ``<!-- results:end -->`` in that page
+(atomically); with ``--figures`` it draws the evaluation figures into that folder.
 """
-import json, math, sys
-import numpy as np
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
 from pathlib import Path
+
+import numpy as np
+
 from mi_bivariate import evaluate as ev
-out = Path(sys.argv[1]) if len(sys.argv) > 1 else Path('out/evaluate')
-cfg = json.loads((out/'config.json').read_text())
-H = cfg['config_hash']; recs = ev.read_records(out/'results.jsonl', H)
-rows = ev.summary_rows(recs)
-probes = list(dict.fromkeys(r['input_probe'] for r in rows))
-def vals(key, p): return [r[key] for r in rows if r['input_probe']==p and key in r and math.isfinite(r[key])]
-def med(key, p): v=vals(key,p); return float(np.median(v)) if v else float('nan')
-print(f'N={len(recs)} config {H}')
-print("\n### medians\n")
-print('| input probe | metric | bivariate floor | recovered (bivariate) | GGX fit (3D) | Ward fit (3D) |')
-print('|---|---|---:|---:|---:|---:|')
-names={'eq1':'Eq. 1','eq1_min':'Eq. 1, f > 1e-3','cosine':'cosine-weighted','log':'log-space'}
-for p in probes:
-    for m in ('eq1','eq1_min','cosine','log'):
-        print(f"| {p} | {names[m]} | {med('floor_'+m,p):.3g} | {med('recovered_'+m,p):.3g} | {med('ggx_'+m,p):.3g} | {med('ward_'+m,p):.3g} |")
-print("\n### wins\n")
-print('| input probe | metric | recovered < GGX | recovered < Ward | recovered within 2x floor |')
-print('|---|---|---:|---:|---:|')
-for p in probes:
-    sel=[r for r in rows if r['input_probe']==p]
-    for m in ('eq1','eq1_min','cosine','log'):
-        print(f"| {p} | {names[m]} | {sum(r['recovered_'+m] < r['ggx_'+m] for r in sel)}/{len(sel)} | {sum(r['recovered_'+m] < r['ward_'+m] for r in sel)}/{len(sel)} | {sum(r['recovered_'+m] < 2*r['floor_'+m] for r in sel)}/{len(sel)} |")
-for p in probes:
-    sel=[r for r in rows if r['input_probe']==p]
-    print(p, 'GGX beats bivariate (log):', [r['material'] for r in sel if r['ggx_log'] < r['recovered_log']])
-print("\n### images per novel probe (median relative RMSE; floor = ideal bivariate reduction)\n")
-novels = list(recs[0]['floor_images'])
-print('| input probe | ' + ' | '.join(novels) + ' |'); print('|---|' + '---:|'*len(novels))
-for p in probes:
-    print(f'| {p} | ' + ' | '.join(f"{np.median([r['inputs'][p]['images'][n]['rel_rmse'] for r in recs]):.3f} ({np.median([r['inputs'][p]['images'][n]['psnr'] for r in recs]):.1f} dB)" for n in novels) + ' |')
-print('| floor | ' + ' | '.join(f"{np.median([r['floor_images'][n]['rel_rmse'] for r in recs]):.3f}" for n in novels) + ' |')
-print("\n### adequacy\n")
-for p in probes:
-    a=[r['inputs'][p]['adequacy'] for r in recs]
-    print(p, 'rank_fraction median', np.median([x['rank_fraction'] for x in a]), 'adequate', sum(x['adequate'] for x in a), 'reasons', set(sum([x['reasons'] for x in a], [])), 'regions', a[0]['regions'])
-print("\n### timing\n")
-tot = {}
-for r in recs:
-    for k,v in r['timings'].items():
-        if k!='total': tot['(per material) '+k]=tot.get('(per material) '+k,0)+v
-    for p,e in r['inputs'].items():
-        for k,v in e['timings'].items(): tot[k]=tot.get(k,0)+v
-s=sum(tot.values())
-for k,v in sorted(tot.items(), key=lambda x:-x[1]): print(f"| {k} | {v/len(recs):.1f} | {100*v/s:.0f}% |")
-print('mean total per material', np.mean([r['timings']['total'] for r in recs]))
-print("\n### per material\n")
-print(ev.markdown_table(recs))
+from mi_bivariate.adequacy import OBSERVED_MIN_EFFECTIVE, OBSERVED_MIN_SIGNAL
+from mi_bivariate.atomic import atomic_path
+
+BEGIN, END = "<!-- results:begin -->", "<!-- results:end -->"
+METRICS = (("eq1", "Eq. 1, all cells"), ("eq1_observed", "Eq. 1, observed cells"),
+           ("eq1_min", "Eq. 1, f > 1e-3"), ("cosine", "cosine-weighted"), ("log", "log-space"))
+
+
+def _median(values) -> float:
+    v = [x for x in values if isinstance(x, (int, float)) and math.isfinite(x)]
+    return float(np.median(v)) if v else float("nan")
+
+
+def _f(v: float) -> str:
+    return ev._fmt(v)
+
+
+def generate(out: Path) -> str:
+    config = json.loads((out / "config.json").read_text())
+    h = config["config_hash"]
+    recs = ev.read_records(out / ev.RESULTS_FILE, h)
+    if not recs:
+        raise SystemExit(f"no records of configuration {h} in {out / ev.RESULTS_FILE}")
+    rows = ev.summary_rows(recs)
+    probes = list(dict.fromkeys(r["input_probe"] for r in rows))
+    novels = list(recs[0]["floor_images"])
+    lines = [f"Configuration `{h}`: {len(recs)} materials x {len(probes)} input probes; renderer "
+             f"`{config.get('renderer', 'path')}`, input {config['resolution']} px, novel-probe renders "
+             f"{config.get('novel_resolution', config['resolution'])} px, grid {config['grid'][0]} x "
+             f"{config['grid'][1]}, input noise {config.get('noise', 0.0)}. "
+             f"Observed nodes: >= {OBSERVED_MIN_EFFECTIVE:g} effective rows and >= {OBSERVED_MIN_SIGNAL:g} "
+             "pixels' worth of signal.", ""]
+
+    lines += ["### Medians over materials", "",
+              "| input probe | exact floor | grid floor | rec. Eq. 1 | rec. Eq. 1 observed | grid floor observed "
+              "| observed cells | rec. Eq. 1 > 1e-3 | rec. cosine | rec. log | relight | relight floor | ratio |",
+              "|---|" + "---:|" * 12]
+    for p in probes:
+        sel = [r for r in rows if r["input_probe"] == p]
+        keys = ("exact_floor", "grid_floor", "recovered_eq1", "recovered_eq1_observed", "grid_floor_observed",
+                "observed_fraction", "recovered_eq1_min", "recovered_cosine", "recovered_log",
+                "relight_rmse_median", "relight_floor_median", "relight_ratio_median")
+        lines.append(f"| {p} | " + " | ".join(_f(_median(r.get(k) for r in sel)) for k in keys) + " |")
+
+    lines += ["", "### Relighting under each novel probe (median relative RMSE: recovered / relight floor / "
+              "ratio)", "", "| input probe | " + " | ".join(novels) + " |", "|---|" + "---:|" * len(novels)]
+    for p in probes:
+        cells = []
+        for n in novels:
+            e = [r["inputs"][p]["images"][n] for r in recs if p in r["inputs"]]
+            cells.append(f"{_f(_median(x['rel_rmse'] for x in e))} / {_f(_median(x.get('floor') for x in e))} / "
+                         f"{_f(_median(x.get('ratio') for x in e))}")
+        lines.append(f"| {p} | " + " | ".join(cells) + " |")
+
+    lines += ["", "### Where Eq. 1 comes from (recovered; median over materials: Eq. 1 of the region / share "
+              "of the summed squared relative error)", "",
+              "| input probe | specular (theta_h < 2 deg) | retro (theta_d < 10 deg) | grazing (theta_d > 75 deg) "
+              "| rest |", "|---|---:|---:|---:|---:|"]
+    for p in probes:
+        sel = [r for r in rows if r["input_probe"] == p]
+        lines.append(f"| {p} | " + " | ".join(
+            f"{_f(_median(r.get(f'recovered_eq1_{g}') for r in sel))} / "
+            f"{_f(_median(r.get(f'recovered_share_{g}') for r in sel))}"
+            for g in ("specular", "retro", "grazing", "rest")) + " |")
+
+    lines += ["", "### Baselines (median over materials; the same observations and lighting matrix)", "",
+              "| input probe | metric | grid floor | recovered | GGX fit (3D) | Ward fit (3D) |",
+              "|---|---|---:|---:|---:|---:|"]
+    for p in probes:
+        for m, name in METRICS:
+            e = [r["inputs"][p] for r in recs if p in r["inputs"]]
+            floor = _median(r["floor"].get(m) for r in recs) if m != "eq1_observed" else \
+                _median(x.get("grid_floor_observed") for x in e)
+            lines.append(f"| {p} | {name} | {_f(floor)} | {_f(_median(x['recovered'].get(m) for x in e))} | "
+                         + " | ".join(_f(_median(x.get("baselines", {}).get(fam, {}).get("errors", {}).get(m)
+                                                 for x in e)) for fam in ("ggx", "ward")) + " |")
+
+    lines += ["", "### Per material", "", ev.markdown_table(recs, ev.HEADLINE_COLUMNS), ""]
+
+    lines += ["### Time (seconds per material, mean over materials; wall time of one worker)", "",
+              "| stage | s | share |", "|---|---:|---:|"]
+    tot = {}
+    for r in recs:
+        for k, v in r["timings"].items():
+            if k not in ("total", "cpu_total", "render_seconds", "renders_rendered", "renders_from_cache"):
+                tot[f"(material) {k}"] = tot.get(f"(material) {k}", 0.0) + v
+        for e in r["inputs"].values():
+            for k, v in e["timings"].items():
+                tot[k] = tot.get(k, 0.0) + v
+    s = sum(tot.values())
+    for k, v in sorted(tot.items(), key=lambda x: -x[1]):
+        lines.append(f"| {k} | {v / len(recs):.1f} | {100 * v / s:.0f}% |")
+    rendered = sum(r["timings"].get("renders_rendered", 0) for r in recs)
+    cached = sum(r["timings"].get("renders_from_cache", 0) for r in recs)
+    cpu = _median(r["timings"].get("cpu_total") for r in recs)
+    lines += ["", f"Mean total per material {np.mean([r['timings']['total'] for r in recs]):.1f} s wall, "
+              f"median {cpu:.1f} CPU-s; "
+              f"reference renders {rendered:.0f} rendered, {cached:.0f} from the cache, "
+              f"{np.mean([r['timings'].get('render_seconds', 0.0) for r in recs]):.1f} s of rendering per "
+              "material."]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("out", nargs="?", default="out/evaluate", help="evaluation folder")
+    parser.add_argument("--page", default=None, help="Markdown page whose marked section is replaced")
+    parser.add_argument("--figures", default=None, help="draw the figures into this folder")
+    args = parser.parse_args(argv)
+    out = Path(args.out)
+    text = generate(out)
+    if args.page:
+        page = Path(args.page)
+        old = page.read_text()
+        if BEGIN not in old or END not in old:
+            raise SystemExit(f"{page}: no {BEGIN} ... {END} section to replace")
+        head, rest = old.split(BEGIN, 1)
+        _, tail = rest.split(END, 1)
+        with atomic_path(page) as tmp:
+            tmp.write_text(head + BEGIN + "\n" + text + END + tail)
+    if args.figures:
+        ev.make_figures(out, fig_dir=args.figures, dpi=100)
+    sys.stdout.write(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -93,3 +93,92 @@ def test_image_metrics_by_hand():
         math.sqrt(0.25 * 3 / 6) / math.sqrt((4 * 3 + 1 * 3) / 6))
     assert metrics.image_psnr(img, ref, mask) == pytest.approx(10 * math.log10(4.0 / (0.25 * 3 / 6)))
     assert metrics.image_psnr(ref, ref) == math.inf
+
+
+# ------------------------------------------------ where the image looks (issue 8)
+
+def _merl_angles_deg():
+    n = np.arange(90)
+    return (n / 90.0) ** 2 * 90.0, n / 90.0 * 90.0          # theta_h, theta_d of the MERL nodes (degrees)
+
+
+def test_region_of_by_hand():
+    deg = math.radians
+    theta_h = np.array([deg(1.0), deg(1.0), deg(30.0), deg(30.0), deg(30.0), deg(2.0)])
+    theta_d = np.array([deg(5.0), deg(80.0), deg(5.0), deg(80.0), deg(40.0), deg(40.0)])
+    names = [metrics.REGION_NAMES[k] for k in metrics.region_of(theta_h, theta_d)]
+    # Specular wins over retro and grazing; 2 degrees is already outside the specular region.
+    assert names == ["specular", "specular", "retro", "grazing", "rest", "rest"]
+
+
+def test_observed_cells_by_hand():
+    nodes = np.ones((3, 3), bool)
+    nodes[0, 0] = False                                    # node (t = 0, s = 0) unobserved
+    cells = metrics.observed_cells(nodes)
+    # MERL node i has t = i / 90 (and s = j / 90); a 3-node axis has nodes at 0, 1/2, 1. Cells with
+    # t < 1/2 and s < 1/2 use node (0, 0) in their stencil; t = 1/2 (i = 45) sits on node 1 alone.
+    expected = np.ones((90, 90), bool)
+    expected[:45, :45] = False
+    np.testing.assert_array_equal(cells, expected)
+    assert metrics.observed_cells(np.ones((2, 2), bool)).all()
+    assert not metrics.observed_cells(np.zeros((4, 5), bool)).any()
+
+
+def test_region_breakdown_and_observed_eq1_by_hand(lambertian_truth):
+    from mi_bivariate.merl import MERLBRDF, geometric_mask
+
+    th_deg, _ = _merl_angles_deg()
+    spec = th_deg < 2.0                                    # MERL theta_h rows in the specular region
+    table = np.array(lambertian_truth.table, np.float64)
+    table[spec] *= 2.0                                     # truth doubled there: relative error 0.5
+    truth = MERLBRDF(table, name="doubled peak")
+    estimate = BivariateBRDF(np.broadcast_to(np.array([0.5, 0.3, 0.2]) / math.pi, (8, 8, 3)))
+    valid = geometric_mask()
+    n_spec = int(valid[spec].sum()) * 3
+    n_all = int(valid.sum()) * 3
+    e = metrics.brdf_errors(truth, estimate, observed_nodes=np.ones((8, 8), bool))
+    assert e["regions"]["specular"]["eq1"] == pytest.approx(0.5, rel=1e-6)
+    assert e["regions"]["specular"]["cells"] == n_spec
+    assert e["regions"]["specular"]["share"] == pytest.approx(1.0)
+    for name in ("retro", "grazing", "rest"):
+        assert e["regions"][name]["eq1"] == pytest.approx(0.0, abs=1e-6)
+        assert e["regions"][name]["share"] == pytest.approx(0.0, abs=1e-9)
+    assert sum(r["cells"] for r in e["regions"].values()) == n_all
+    assert e["eq1"] == pytest.approx(0.5 * math.sqrt(n_spec / n_all), rel=1e-6)
+    # Every node observed: the observed-cell Eq. 1 is Eq. 1.
+    assert e["eq1_observed"] == pytest.approx(e["eq1"], rel=1e-9) and e["observed_fraction"] == 1.0
+    # Unobserve the t = 0 row of nodes: the cells with t = i / 90 < 1/7 drop out. The specular
+    # region ends at t = sqrt(2 / 90) = 0.149, so only its MERL row i = 13 (t = 0.144) stays.
+    nodes = np.ones((8, 8), bool)
+    nodes[0, :] = False
+    e2 = metrics.brdf_errors(truth, estimate, observed_nodes=nodes)
+    t_rows = np.arange(90) / 90.0
+    kept = t_rows >= 1.0 / 7.0
+    n_obs = int(valid[kept].sum()) * 3
+    n_spec_obs = int(valid[kept & spec].sum()) * 3
+    assert n_spec_obs == int(valid[13].sum()) * 3
+    assert e2["eq1_observed"] == pytest.approx(0.5 * math.sqrt(n_spec_obs / n_obs), rel=1e-6)
+    assert e2["observed_fraction"] == pytest.approx(valid[kept].sum() / valid.sum(), rel=1e-9)
+
+
+def test_node_observation_strength_by_hand():
+    from mi_bivariate import adequacy
+
+    L = np.array([[1.0, 1.0, 0.0, 0.0],
+                  [3.0, 1.0, 0.0, 0.0],
+                  [0.0, 0.0, 0.0, 2.0]])                   # one channel, 3 rows, 2 x 2 nodes
+    effective, signal = adequacy.node_observation_strength(L, 2, 2)
+    # Shares: row 0 (0.5, 0.5), row 1 (0.75, 0.25), row 2 (0, 0, 0, 1).
+    np.testing.assert_allclose(signal, [[1.25, 0.75], [0.0, 1.0]])
+    np.testing.assert_allclose(effective, [[1.25 ** 2 / (0.25 + 0.5625), 0.75 ** 2 / (0.25 + 0.0625)],
+                                           [0.0, 1.0]])
+    np.testing.assert_array_equal(adequacy.observed_nodes(L, 2, 2, min_effective=1.5, min_signal=0.5),
+                                  [[True, True], [False, False]])
+
+
+def test_relight_errors_by_hand():
+    truth = np.ones((2, 2, 3))
+    mask = np.ones((2, 2), bool)
+    r = metrics.relight_errors(1.1 * truth, 1.05 * truth, truth, mask)
+    assert r["rel_rmse"] == pytest.approx(0.1) and r["floor"] == pytest.approx(0.05)
+    assert r["ratio"] == pytest.approx(2.0)
