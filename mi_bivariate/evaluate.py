@@ -69,7 +69,7 @@ from mi_bivariate.errors import InputError, InputWarning
 PathLike = Union[str, os.PathLike]
 
 #: Bumped when the protocol changes in a way that changes numbers (part of the config hash).
-PROTOCOL_VERSION = 2
+PROTOCOL_VERSION = 3
 DEFAULT_INPUT_PROBES: Tuple[str, ...] = ("grace_latlong_1k", "uffizi_256")
 DEFAULT_NOVEL_PROBES: Tuple[str, ...] = ("grace_256", "pisa_256", "venice_sunset_1k",
                                          "pedestrian_overpass_1k", "royal_esplanade_1k")
@@ -110,7 +110,14 @@ class EvalConfig:
         noise: camera noise level of the input images (:func:`mi_bivariate.noise.add_camera_noise`:
             relative standard deviation at the mean signal; 0 = clean).
         prior: a prior file (:meth:`mi_bivariate.prior.Prior.load`) passed to ``recover``
-            (``None``: the packaged default).
+            (``None``: the packaged default, or leave-one-out priors, see below).
+        leave_one_out: for a shared MERL-NBRDF material and ``prior=None``, learn both
+            priors (smoothness and basis) from the other 72 shared materials, so that no
+            number comes from a prior that saw the material
+            (:func:`mi_bivariate.training_set.leave_one_out_priors`).
+
+    An input probe spec ``"a+b"`` renders the material under both probes and recovers
+    from the two images together (several images, one solve).
     """
 
     input_probes: Tuple[str, ...] = DEFAULT_INPUT_PROBES
@@ -130,6 +137,7 @@ class EvalConfig:
     reference_directions: Tuple[int, int, int] = (1024, 2048, 3072)
     noise: float = 0.0
     prior: Optional[str] = None
+    leave_one_out: bool = True
 
     @classmethod
     def quick(cls, shared_data: bool = True, **overrides) -> "EvalConfig":
@@ -139,7 +147,7 @@ class EvalConfig:
         """
         base = dict(resolution=48, spp=16, novel_spp=8, n_normals=1000, n_dirs=3000, grid=(12, 12),
                     baseline_nfev=8, novel_probes=("pisa_256",), novel_resolution=32,
-                    reference_directions=(256, 512, 256))
+                    reference_directions=(256, 512, 256), leave_one_out=False)
         if not shared_data:
             base.update(input_probes=("synthetic:1", "synthetic:3"), novel_probes=("synthetic:7",))
         base.update(overrides)
@@ -188,8 +196,12 @@ def _solver_identity() -> dict:
     """
     from mi_bivariate import prior, solve
 
+    from mi_bivariate import basis_prior
+
     digest = hashlib.sha256(Path(prior.DEFAULT_PRIOR_PATH).read_bytes()).hexdigest()[:16]
-    return {"default_prior_sha256": digest, "default_alpha": solve.DEFAULT_ALPHA}
+    basis = _file_digest(basis_prior.DEFAULT_BASIS_PRIOR_PATH)
+    return {"default_prior_sha256": digest, "default_basis_prior_sha256": basis,
+            "default_alpha": solve.DEFAULT_ALPHA, "solver": "mis+noise-aware+basis v1"}
 
 
 # ------------------------------------------------------------------ materials
@@ -510,13 +522,18 @@ def evaluate_material(task: MaterialTask) -> Tuple[dict, Dict[str, np.ndarray]]:
     cpu_start = time.process_time()
     timings: Dict[str, float] = {}
     # Probes first: their EXR reads need worker threads (see _io_threads).
-    inputs = [load_probe(p, data_dir) for p in cfg.input_probes]
+    inputs = [[load_probe(p, data_dir) for p in name.split("+")] for name in cfg.input_probes]
     novels = [load_probe(p, data_dir) for p in cfg.novel_probes]
-    prior = None
+    prior, basis_prior, prior_source = None, "default", "packaged (73 shared MERL-NBRDF materials)"
     if cfg.prior is not None:
         from mi_bivariate.prior import Prior
 
-        prior = Prior.load(cfg.prior)
+        prior, prior_source = Prior.load(cfg.prior), f"file {cfg.prior}"
+    elif cfg.leave_one_out and task.material.kind == "nbrdf":
+        from mi_bivariate import training_set
+
+        prior, basis_prior = training_set.leave_one_out_priors(task.material.spec, *cfg.grid, data_dir=data_dir)
+        prior_source = f"leave-one-out: the other {len(basis_prior.materials)} shared MERL-NBRDF materials"
     if task.threads is not None:
         import drjit as dr
 
@@ -559,17 +576,24 @@ def evaluate_material(task: MaterialTask) -> Tuple[dict, Dict[str, np.ndarray]]:
     timings["render_truth_novel"] = time.perf_counter() - t0
 
     per_input: Dict[str, dict] = {}
-    for name, probe in zip(cfg.input_probes, inputs):
-        label = probe_label(name)
+    for name, probe_list in zip(cfg.input_probes, inputs):
+        label = "+".join(probe_label(p) for p in name.split("+"))
         entry: Dict[str, Any] = {}
         t0 = time.perf_counter()
-        shot = renderer.render(truth_bsdf, probe, name, res, cfg.seed, cfg.spp, cache_key="truth")
-        image = shot.image
-        if cfg.noise > 0.0:
-            image = add_camera_noise(image, cfg.noise, seed=cfg.seed + NOISE_SEED_OFFSET)
+        images, geometries = [], []
+        for part, probe in zip(name.split("+"), probe_list):
+            shot = renderer.render(truth_bsdf, probe, part, res, cfg.seed, cfg.spp, cache_key="truth")
+            image = shot.image
+            if cfg.noise > 0.0:
+                image = add_camera_noise(image, cfg.noise, seed=cfg.seed + NOISE_SEED_OFFSET)
+            images.append(image)
+            geometries.append(shot.geometry)
         t_render = time.perf_counter() - t0
-        rec = recover(image, probe, shot.geometry, n_normals=cfg.n_normals, n_dirs=cfg.n_dirs,
-                      grid=cfg.grid, alpha=cfg.alpha, prior=prior, seed=cfg.seed, keep_inputs=False)
+        rec = recover(images, probe_list, geometries, n_normals=cfg.n_normals, n_dirs=cfg.n_dirs,
+                      grid=cfg.grid, alpha=cfg.alpha, prior=prior, basis_prior=basis_prior, seed=cfg.seed,
+                      keep_inputs=False)
+        image = images[0]
+        entry["prior"] = prior_source
         entry["timings"] = {"render_input": t_render, **rec.timings}
         t0 = time.perf_counter()
         effective, signal = adequacy.node_observation_strength(rec.lighting_matrix, n_t, n_s)
@@ -578,11 +602,17 @@ def evaluate_material(task: MaterialTask) -> Tuple[dict, Dict[str, np.ndarray]]:
                              "min_effective": adequacy.OBSERVED_MIN_EFFECTIVE,
                              "min_signal": adequacy.OBSERVED_MIN_SIGNAL}
         entry["recovered"] = brdf_errors(rec.brdf, observed_nodes=observed)
+        # The recovery's own per-node confidence: nodes whose value the image set (resolution > 0.5).
+        confident = np.min(rec.solution.resolution, axis=-1) > 0.5
+        entry["confident"] = {"nodes": int(confident.sum()), "node_fraction": float(confident.mean()),
+                              "eq1": brdf_errors(rec.brdf, observed_nodes=confident)["eq1_observed"],
+                              "floor_eq1": brdf_errors(floor, observed_nodes=confident)["eq1_observed"]}
         entry["grid_floor_observed"] = brdf_errors(floor, observed_nodes=observed)["eq1_observed"]
         entry["timings"]["brdf_errors"] = time.perf_counter() - t0
         entry["relative_residual"] = rec.relative_residual()
         entry["prior_winner"] = list(rec.solution.winner)
         entry["alpha"] = float(rec.solution.alpha)
+        entry["noise_model"] = rec.brdf.provenance.get("noise")
         entry["observations"] = int(len(rec.observations.values))
         entry["adequacy"] = _adequacy_summary(rec.adequacy)
         arrays[f"input__{label}"] = _f16(image)
@@ -992,7 +1022,8 @@ def run_evaluation(materials: Sequence[Union[str, MaterialSpec]], out_dir: PathL
     # Fail early (in the parent, with a one-line error) on a missing probe or data folder,
     # a damaged MERL file or an unreachable scheduler: before the output folder exists.
     for p in tuple(config.input_probes) + tuple(config.novel_probes):
-        load_probe(p, data_dir)
+        for part in p.split("+"):
+            load_probe(part, data_dir)
     from mi_bivariate.merl import MERLBRDF
 
     for m in specs:
