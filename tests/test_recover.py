@@ -71,10 +71,17 @@ def test_lambertian_sphere_round_trip(any_probe):
 
 
 def test_glossy_bivariate_sphere_round_trip(any_probe):
-    """A glossy bivariate BRDF rendered in Mitsuba: table close where observed, novel-light image close."""
+    """A glossy bivariate BRDF, converged input (the reference renderer, < 0.5% noise, through the
+    ``merl`` plugin): table close where observed, novel-light image close.
+
+    (A 512-spp path-traced input has ~5% per-pixel noise in the highlight; the noise-aware solve
+    then rightly smooths more, and the node error is ~6%: an accuracy check needs a clean input.)
+    """
+    from mi_bivariate.reference import render_reference
+
     truth = analytic.BivariateLobe(diffuse=(0.4, 0.3, 0.2), specular=(1.5, 1.5, 1.5), width=0.3, f0=1.0)
     merl = analytic.to_merl(truth)
-    shot = render.render_sphere(render.bsdf_dict(merl), any_probe, resolution=128, spp=512, seed=1)
+    shot = render_reference(render.bsdf_dict(merl), any_probe, resolution=128, seed=1)
     result = recover(shot.image, any_probe, shot.geometry, n_normals=4000, n_dirs=32000)
     print(f"bivariate lobe: Eq. 1 over all cells {reduction_error(merl, result.brdf):.3f}")
     floor = BivariateBRDF.reduce(truth)
