@@ -83,6 +83,8 @@ def estimate_camera_noise(image: np.ndarray, mask: Optional[np.ndarray] = None,
         raise InputError(source, f"only {level.size} usable pixels to estimate the noise from",
                          "give the noise model (a, b) explicitly")
     edges = np.unique(np.quantile(level, np.linspace(0.0, 1.0, BINS + 1)))
+    if len(edges) < 2:  # a uniform image: no signal dependence to fit
+        return 0.0, float(np.quantile(d**2, QUANTILE)) / _CHI2_QUANTILE / 6.0
     centres, variances, counts = [], [], []
     for lo, hi in zip(edges[:-1], edges[1:]):
         sel = (level >= lo) & (level <= hi)

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import os
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
@@ -22,7 +23,7 @@ import numpy as np
 from mi_bivariate import adequacy, capture, lighting, prior as prior_mod, solve as solve_mod
 from mi_bivariate.basis_prior import BasisPrior, default_basis_prior
 from mi_bivariate.bivariate import BivariateBRDF
-from mi_bivariate.errors import InputError
+from mi_bivariate.errors import InputError, InputWarning
 from mi_bivariate.geometry import SphereGeometry
 from mi_bivariate.images import load_image, load_mask
 from mi_bivariate.noise import estimate_camera_noise
@@ -270,7 +271,12 @@ def _estimate_noise(image: np.ndarray, source: str) -> Tuple[np.ndarray, np.ndar
     inner = lit.copy()
     for _ in range(2):
         inner[1:-1, 1:-1] &= inner[:-2, 1:-1] & inner[2:, 1:-1] & inner[1:-1, :-2] & inner[1:-1, 2:]
-    pairs = [estimate_camera_noise(image[..., c], inner, source) for c in range(3)]
+    try:
+        pairs = [estimate_camera_noise(image[..., c], inner, source) for c in range(3)]
+    except InputError as exc:
+        warnings.warn(f"{source}: {exc.problem}; assuming a clean image (only the model error)",
+                      InputWarning, stacklevel=3)
+        return None
     return np.array([p[0] for p in pairs]), np.array([p[1] for p in pairs])
 
 

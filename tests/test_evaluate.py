@@ -183,9 +183,12 @@ def test_jobs_and_dask_reproduce_in_process(resumed, tmp_path):
                                    figures=False)
     resumed_by = {r["material"]: r for r in resumed["records"]}
     for r in dasked + serial:
-        # Image errors at float rounding level (~1e-7) are compared absolutely.
+        # Image errors are compared absolutely at 1e-5: float32 rounding of L (its summation
+        # order differs with the thread count) moves a relight error of ~4e-3 by ~2e-6 through
+        # the two-stage solve (noise estimate, basis prior); the same thread count is bitwise
+        # identical (above).
         assert _close(_without_rounding_ratios(_numbers(r)),
-                      _without_rounding_ratios(_numbers(resumed_by[r["material"]])), rtol=1e-4, atol=1e-6)
+                      _without_rounding_ratios(_numbers(resumed_by[r["material"]])), rtol=1e-4, atol=1e-5)
 
 
 def test_baseline_fit_recovers_its_own_model():
