@@ -157,6 +157,7 @@ def cmd_recover(args: argparse.Namespace) -> int:
     from mi_bivariate import recover as rec
     from mi_bivariate import spherefit
     from mi_bivariate.images import load_image, load_mask
+    from mi_bivariate.threads import blas_threads
     from mi_bivariate.variants import ensure_variant
 
     ensure_variant(args.variant)
@@ -166,11 +167,13 @@ def cmd_recover(args: argparse.Namespace) -> int:
     sphere = None if args.sphere in (None, "auto") else args.sphere
     fit = spherefit.fit_sphere(image, mask, sphere=sphere, source=str(args.image))
     print(fit.summary())
-    result = rec.recover(
-        image, probe, fit.geometry, masks=mask, n_normals=args.normals, n_dirs=args.dirs,
-        grid=tuple(args.grid), alpha=args.alpha, seed=args.seed, max_view_angle_deg=args.max_view_angle,
-        saturation=args.saturation)
-    paths = rec.write_outputs(result, args.out, merl=args.merl, report=not args.no_report)
+    with blas_threads():  # no BLAS oversubscription on a shared machine (mi_bivariate.threads)
+        result = rec.recover(
+            image, probe, fit.geometry, masks=mask, n_normals=args.normals, n_dirs=args.dirs,
+            grid=tuple(args.grid), alpha=args.alpha, seed=args.seed, max_view_angle_deg=args.max_view_angle,
+            saturation=args.saturation)
+    paths = rec.write_outputs(result, args.out, merl=args.merl, report=not args.no_report,
+                              report_render=args.report_render)
     print(result.summary())
     for p in paths:
         print(f"wrote {p}")
@@ -282,6 +285,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="brdf.npz", help="output .npz (EXR view and PNG report beside it)")
     p.add_argument("--merl", action="store_true", help="also write a MERL .binary")
     p.add_argument("--no-report", action="store_true", help="skip the PNG report")
+    p.add_argument("--report-render", action="store_true",
+                   help="path-trace the report's re-render (seconds) instead of predicting it as L f")
     p.add_argument("--normals", type=int, default=8000, help="number of normals M")
     p.add_argument("--dirs", type=int, default=32000, help="light directions per normal K")
     p.add_argument("--grid", type=int, nargs=2, default=(32, 32), metavar=("N_T", "N_S"))

@@ -261,8 +261,12 @@ def recover_from_files(image_paths: Sequence[PathLike], probe: Union[Probe, Sequ
     return recover(images, probe, geometry, masks=masks, **kwargs)
 
 
-def write_outputs(result: Recovery, out: PathLike, merl: bool = False, report: bool = True) -> List[Path]:
+def write_outputs(result: Recovery, out: PathLike, merl: bool = False, report: bool = True,
+                  report_render: bool = False) -> List[Path]:
     """Write the table (``.npz``), its EXR view, optionally a MERL ``.binary`` and a PNG report.
+
+    The report's re-render is the model's prediction ``L f`` unless ``report_render``
+    asks for a path-traced one (:func:`mi_bivariate.report.write_recovery_report`).
 
     Every file is written atomically; returns the paths written.
     """
@@ -282,6 +286,6 @@ def write_outputs(result: Recovery, out: PathLike, merl: bool = False, report: b
         from mi_bivariate import report as report_mod
 
         png = out.with_name(out.stem + "_report.png")
-        report_mod.write_recovery_report(result, png)
+        report_mod.write_recovery_report(result, png, path_trace=report_render)
         written.append(png)
     return written
