@@ -30,11 +30,17 @@ def _pyplot():
     return plt
 
 
-def save_figure(fig: Any, path: PathLike, dpi: int = 110) -> Path:
-    """Save a matplotlib figure atomically (format from the suffix) and close it."""
+def save_figure(fig: Any, path: PathLike, dpi: int = 110, tight: bool = True) -> Path:
+    """Save a matplotlib figure atomically (format from the suffix) and close it.
+
+    ``tight=False`` skips ``bbox_inches="tight"`` (an extra draw of the whole
+    figure) for figures already laid out by ``tight_layout``.
+    """
     path = Path(path)
+    fmt = path.suffix.lstrip(".") or "png"
+    extra = {"pil_kwargs": {"compress_level": 1}} if fmt == "png" else {}  # fast zlib: 3x faster, ~1.3x bigger
     with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=dpi, bbox_inches="tight", format=path.suffix.lstrip(".") or "png")
+        fig.savefig(tmp, dpi=dpi, bbox_inches="tight" if tight else None, format=fmt, **extra)
     _pyplot().close(fig)
     return path
 
@@ -203,16 +209,19 @@ def write_recovery_report(result: Any, path: PathLike, rerender: Optional[np.nda
     axes[1, 1].set_ylabel("t = sqrt(2 theta_h / pi)", fontsize=8)
     fig.colorbar(im, ax=axes[1, 1], fraction=0.046, pad=0.02)
     lum = np.array([0.2126, 0.7152, 0.0722])
-    axes[1, 2].loglog(obs.values @ lum, result.predicted @ lum, ".", ms=1.5, alpha=0.5)
-    lo = max(float(np.min(obs.values @ lum)), 1e-6)
-    hi = float(np.max(obs.values @ lum))
+    # log10 values on linear axes: the same picture as log axes without their
+    # mathtext tick labels (the slowest part of drawing this figure).
+    seen = np.log10(np.maximum(obs.values @ lum, 1e-6))
+    fit = np.log10(np.maximum(result.predicted @ lum, 1e-6))
+    axes[1, 2].plot(seen, fit, ".", ms=1.5, alpha=0.5)
+    lo, hi = float(np.min(seen)), float(np.max(seen))
     axes[1, 2].plot([lo, hi], [lo, hi], "k-", lw=0.8)
-    axes[1, 2].set_xlabel("observed pixel (luminance)", fontsize=8)
-    axes[1, 2].set_ylabel("predicted L f", fontsize=8)
+    axes[1, 2].set_xlabel("log10 observed pixel (luminance)", fontsize=8)
+    axes[1, 2].set_ylabel("log10 predicted L f", fontsize=8)
     axes[1, 2].set_title(f"fit: relative residual {result.relative_residual():.4f}", fontsize=9)
     fig.suptitle(result.adequacy.summary(), fontsize=9)
     fig.tight_layout()
-    return save_figure(fig, path)
+    return save_figure(fig, path, tight=False)
 
 
 def write_demo_figure(path: PathLike, shot: Any, novel_rec: Any, novel_truth: Any, rec: Any, truth: Any,

@@ -56,7 +56,7 @@ class SynthesisSettings:
     """
 
     spp: int = 16
-    learning_rate: float = 0.02
+    learning_rate: float = 0.05
     smoothness: float = 1e-3
     sampling: str = "table"
     max_depth: int = 2
