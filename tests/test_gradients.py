@@ -19,7 +19,7 @@ the gradient to float32 rounding.
 from __future__ import annotations
 
 import math
-from typing import Callable, List, Sequence, Tuple
+from typing import List, Sequence, Tuple
 
 import drjit as dr
 import mitsuba as mi
