@@ -365,7 +365,11 @@ def scaling(args: argparse.Namespace) -> None:
         for v in values:
             spec = {**base, factor: v}
             cmd = [sys.executable, __file__, "--point", json.dumps(spec)]
-            proc = subprocess.run(cmd, capture_output=True, text=True, timeout=args.point_timeout)
+            try:
+                proc = subprocess.run(cmd, capture_output=True, text=True, timeout=args.point_timeout)
+            except subprocess.TimeoutExpired:
+                print(f"| {factor} | {v} | timed out after {args.point_timeout:.0f} s |", flush=True)
+                continue
             if proc.returncode != 0:
                 print(f"| {factor} | {v} | failed: {proc.stderr.strip().splitlines()[-1] if proc.stderr else proc.returncode} |")
                 continue
