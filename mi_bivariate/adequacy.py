@@ -61,6 +61,7 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 import numpy as np
 
 from mi_bivariate.errors import InputError, InputWarning
+from mi_bivariate.threads import blas_threads
 
 #: Singular values below this fraction of the largest do not count towards the rank.
 RANK_TOL = 1e-3
@@ -81,12 +82,54 @@ _LUMINANCE = np.array([0.212671, 0.715160, 0.072169])
 
 
 def _luminance(L: np.ndarray) -> np.ndarray:
+    """Luminance of ``(M, N, 3)`` (or a channel ``(M, N)``) as ``(M, N) float64``.
+
+    Accumulated channel by channel in float64 (no ``(M, N, 3) float64`` copy):
+    the same numbers as ``L.astype(float64) @ _LUMINANCE`` up to rounding order.
+    """
     L = np.asarray(L)
     if L.ndim == 3 and L.shape[2] == 3:
-        return L.astype(np.float64) @ _LUMINANCE
+        lum = L[..., 0] * np.float64(_LUMINANCE[0])
+        lum += L[..., 1] * np.float64(_LUMINANCE[1])
+        lum += L[..., 2] * np.float64(_LUMINANCE[2])
+        return lum
     if L.ndim == 2:
         return L.astype(np.float64)
     raise InputError(None, f"lighting matrix must be (M, N, 3) or (M, N), got shape {L.shape}")
+
+
+def _gram(lum: np.ndarray) -> np.ndarray:
+    """``lum.T @ lum``, ``(N, N) float64``, upper triangle only (BLAS ``dsyrk``: half the flops)."""
+    from scipy.linalg import blas
+
+    return blas.dsyrk(1.0, np.asarray(lum, np.float64).T, trans=0, lower=0)
+
+
+def _spectrum_from_gram(gram: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """:func:`singular_spectrum` from the upper triangle of the luminance Gram matrix."""
+    from scipy.linalg import eigvalsh
+
+    norms = np.sqrt(np.clip(np.diag(gram), 0.0, None))
+    observed = norms > 1e-12 * max(float(norms.max()) if norms.size else 0.0, 1e-300)
+    if not np.any(observed):
+        return np.zeros(0), observed
+    inv = 1.0 / norms[observed]
+    # Column normalisation of L is a diagonal scaling of its Gram matrix.
+    a = gram[np.ix_(observed, observed)] * inv[:, None] * inv[None, :]
+    # The Gram matrix is N x N whatever M is; its eigenvalues are sigma^2,
+    # accurate to ~1e-8 relative sigma in float64, far below RANK_TOL.
+    eig = eigvalsh(a, lower=False, driver="evd", check_finite=False, overwrite_a=True)[::-1]
+    sigma = np.sqrt(np.clip(eig, 0.0, None))
+    return sigma / sigma[0], observed
+
+
+def _observation_map(lum: np.ndarray, n_t: int, n_s: int) -> np.ndarray:
+    if lum.shape[1] != n_t * n_s:
+        raise InputError(None, f"lighting matrix has {lum.shape[1]} columns, expected {n_t}x{n_s}")
+    totals = lum.sum(axis=1)
+    inv = np.divide(1.0, totals, out=np.zeros_like(totals), where=totals > 0)
+    # sum_m lum[m, n] / totals[m]: one matrix-vector product, no (M, N) share array.
+    return (inv @ lum).reshape(n_t, n_s)
 
 
 def singular_spectrum(L: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
@@ -99,17 +142,7 @@ def singular_spectrum(L: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
         ``(sigma, observed)``: descending ``sigma / sigma_max`` over the observed
         columns, and the ``(N,) bool`` mask of observed columns (non-zero).
     """
-    lum = _luminance(L)
-    norms = np.linalg.norm(lum, axis=0)
-    observed = norms > 1e-12 * max(float(norms.max()), 1e-300)
-    if not np.any(observed):
-        return np.zeros(0), observed
-    a = lum[:, observed] / norms[observed]
-    # The Gram matrix is N x N whatever M is; its eigenvalues are sigma^2,
-    # accurate to ~1e-8 relative sigma in float64, far below RANK_TOL.
-    eig = np.linalg.eigvalsh(a.T @ a)[::-1]
-    sigma = np.sqrt(np.clip(eig, 0.0, None))
-    return sigma / sigma[0], observed
+    return _spectrum_from_gram(_gram(_luminance(L)))
 
 
 def observation_map(L: np.ndarray, n_t: int, n_s: int) -> np.ndarray:
@@ -120,12 +153,7 @@ def observation_map(L: np.ndarray, n_t: int, n_s: int) -> np.ndarray:
     over rows, a node's value is how many pixels' worth of signal constrain it.
     The map sums to M.
     """
-    lum = _luminance(L)
-    if lum.shape[1] != n_t * n_s:
-        raise InputError(None, f"lighting matrix has {lum.shape[1]} columns, expected {n_t}x{n_s}")
-    totals = lum.sum(axis=1, keepdims=True)
-    share = np.divide(lum, totals, out=np.zeros_like(lum), where=totals > 0)
-    return share.sum(axis=0).reshape(n_t, n_s)
+    return _observation_map(_luminance(L), n_t, n_s)
 
 
 #: A node is *observed* when at least this many rows (Kish effective number, share-weighted) see it ...
@@ -296,8 +324,11 @@ def analyse(L: np.ndarray, n_t: int = 32, n_s: int = 32, probes: Optional[Sequen
             best probe counts, since its rows constrain the specular region).
         warn: issue an :class:`InputWarning` when inadequate.
     """
-    sigma, observed = singular_spectrum(L)
-    omap = observation_map(L, n_t, n_s)
+    with blas_threads():
+        lum = _luminance(L)  # one pass over L for both the spectrum and the coverage
+        omap = _observation_map(lum, n_t, n_s)
+        sigma, observed = _spectrum_from_gram(_gram(lum))
+        del lum
     if len(sigma):
         p = sigma / sigma.sum()
         p = p[p > 0]

@@ -302,6 +302,7 @@ def cmd_recover(args: argparse.Namespace) -> int:
     from mi_bivariate import recover as rec
     from mi_bivariate import spherefit
     from mi_bivariate.images import load_image, load_mask
+    from mi_bivariate.threads import blas_threads
     from mi_bivariate.variants import ensure_variant
 
     from mi_bivariate.atomic import check_outputs
@@ -329,17 +330,19 @@ def cmd_recover(args: argparse.Namespace) -> int:
     fit = spherefit.fit_sphere(image, mask, sphere=sphere, source=str(args.image))
     print(fit.summary())
     try:
-        result = rec.recover(
-            image, probe, fit.geometry, masks=mask, n_normals=args.normals, n_dirs=args.dirs,
-            grid=tuple(args.grid), alpha=args.alpha, seed=args.seed, max_view_angle_deg=args.max_view_angle,
-            saturation=args.saturation)
+        with blas_threads():  # no BLAS oversubscription on a shared machine (mi_bivariate.threads)
+            result = rec.recover(
+                image, probe, fit.geometry, masks=mask, n_normals=args.normals, n_dirs=args.dirs,
+                grid=tuple(args.grid), alpha=args.alpha, seed=args.seed, max_view_angle_deg=args.max_view_angle,
+                saturation=args.saturation)
     except InputError as exc:
         # The library names its arguments ("image", "lighting matrix L"); name the user's files.
         names = {"image": args.image, "lighting matrix L": args.probe}
         if exc.source in names:
             raise InputError(names[exc.source], exc.problem, exc.hint) from None
         raise
-    paths = rec.write_outputs(result, args.out, merl=args.merl, report=not args.no_report)
+    paths = rec.write_outputs(result, args.out, merl=args.merl, report=not args.no_report,
+                              report_render=args.report_render)
     print(result.summary())
     for p in paths:
         print(f"wrote {p}")
@@ -467,6 +470,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="brdf.npz", help="output .npz (EXR view and PNG report beside it)")
     p.add_argument("--merl", action="store_true", help="also write a MERL .binary")
     p.add_argument("--no-report", action="store_true", help="skip the PNG report")
+    p.add_argument("--report-render", action="store_true",
+                   help="path-trace the report's re-render (seconds) instead of predicting it as L f")
     p.add_argument("--normals", type=int, default=8000, help="number of normals M")
     p.add_argument("--dirs", type=int, default=32000, help="light directions per normal K")
     p.add_argument("--grid", type=int, nargs=2, default=(32, 32), metavar=("N_T", "N_S"))

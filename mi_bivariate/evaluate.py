@@ -1157,105 +1157,13 @@ def make_figures(out_dir: PathLike, records: Optional[Sequence[dict]] = None,
 
 def analysis_by_synthesis(material: Union[str, MaterialSpec], input_probe: str = DEFAULT_INPUT_PROBES[0],
                           config: Optional[EvalConfig] = None, data_dir: Optional[PathLike] = None,
-                          time_factor: float = 10.0, spp: int = 8, learning_rate: float = 0.05,
-                          eval_every: int = 5, max_iterations: int = 100000) -> dict:
-    """Optimise the same table by differentiable rendering, for comparison with the linear solve.
+                          time_factor: float = 10.0, **kwargs: Any) -> dict:
+    """The linear solve against differentiable rendering on one material: see
+    :func:`mi_bivariate.synthesis.analysis_by_synthesis` (this is a thin wrapper)."""
+    from mi_bivariate import synthesis
 
-    The input image is rendered and the table recovered exactly as in
-    :func:`evaluate_material`. Then a table on the same st grid, started at
-    the recovery's Lambertian start (constant, the image's best constant
-    albedo), is optimised with ``mi.ad.Adam`` through the ``bivariate`` plugin
-    and the ``prb`` integrator (``max_depth`` 2), rendering the same view at
-    ``spp`` samples per pixel with a new seed per iteration. The variable is
-    ``log f`` (positivity); the loss is the mean squared pixel error over the
-    sphere relative to the image's mean square. Every ``eval_every``
-    iterations the BRDF errors against the 3D truth are measured (the clock
-    is paused meanwhile). It records when Eq. 1 and the log-space error first
-    reach the linear method's, and stops when both have or after
-    ``time_factor`` x the linear method's time (observations + lighting
-    matrix + adequacy + solve).
-
-    Returns:
-        A JSON-friendly dict with both methods' times and errors and the trace.
-    """
-    import drjit as dr
-    import mitsuba as mi
-
-    from mi_bivariate import metrics, render
-    from mi_bivariate.bivariate import BivariateBRDF
-    from mi_bivariate.recover import recover
-    from mi_bivariate.variants import ensure_variant
-
-    ensure_variant()
-    config = config or EvalConfig()
-    spec = material if isinstance(material, MaterialSpec) else resolve_materials([material], data_dir)[0]
-    truth = load_truth(spec, data_dir)
-    probe = load_probe(input_probe, data_dir)
-    res = config.resolution
-    shot = render.render_sphere(render.bsdf_dict(truth), probe, resolution=res, spp=config.spp, seed=config.seed)
-    rec = recover(shot.image, probe, shot.geometry, n_normals=config.n_normals, n_dirs=config.n_dirs,
-                  grid=config.grid, alpha=config.alpha, seed=config.seed, keep_inputs=False)
-    linear_s = sum(rec.timings.get(k, 0.0) for k in ("observations", "lighting matrix", "adequacy", "solve"))
-    brdf_errors = metrics.BRDFErrors(truth)
-    linear_errors = brdf_errors(rec.brdf)
-    target = linear_errors["eq1"]
-
-    n_t, n_s = config.grid
-    start = np.broadcast_to(np.maximum(np.asarray(rec.solution.lambertian, np.float32), 1e-4), (n_t, n_s, 3))
-    cam = render.make_camera("orthographic", res, radius_fraction=0.45)
-    scene_dict = render.sphere_scene_dict({"type": "bivariate", "table": mi.Bitmap(np.ascontiguousarray(start)),
-                                           "sampling": "cosine"}, probe, cam, normals=False)
-    scene_dict["integrator"] = {"type": "prb", "max_depth": 2, "hide_emitters": True}
-    scene = render.load_scene(scene_dict)
-    params = mi.traverse(scene)
-    key = next(k for k in params.keys() if k.endswith("bsdf.table"))
-    mask = mi.TensorXf(np.repeat(shot.mask[..., None], 3, axis=2).astype(np.float32))
-    reference = mi.TensorXf(np.where(shot.mask[..., None], shot.image, 0.0).astype(np.float32))
-    norm = float(np.mean(shot.image[shot.mask] ** 2))
-    n_mask = float(shot.mask.sum() * 3)
-
-    opt = mi.ad.Adam(lr=learning_rate)
-    opt["log_table"] = mi.TensorXf(np.log(np.ascontiguousarray(start)))
-    trace = []
-    clock = 0.0
-    reached_at = reached_log_at = None
-    it = 0
-    while it < max_iterations:
-        t0 = time.perf_counter()
-        params[key] = dr.exp(opt["log_table"])
-        params.update()
-        image = mi.render(scene, params, spp=spp, seed=1000 + it)
-        loss = dr.sum((image - reference) ** 2 * mask) / (n_mask * norm)
-        dr.backward(loss)
-        # Paths through degenerate configurations can give NaN gradients; drop them rather
-        # than let one poison the table.
-        grad = dr.grad(opt["log_table"])
-        dr.set_grad(opt["log_table"], dr.select(dr.isfinite(grad), grad, 0.0))
-        opt.step()
-        opt["log_table"] = dr.clip(opt["log_table"], -14.0, 9.0)     # f in [1e-6, 8e3] 1/sr
-        dr.eval(opt["log_table"])
-        clock += time.perf_counter() - t0
-        it += 1
-        if it % eval_every == 0 or clock >= time_factor * linear_s:
-            table = np.nan_to_num(np.exp(np.asarray(opt["log_table"].numpy(), np.float64)), nan=0.0)
-            errors = brdf_errors(BivariateBRDF(np.maximum(table, 0.0)))
-            trace.append({"iteration": it, "time_s": clock, "loss": float(loss.array[0]),
-                          "eq1": errors["eq1"], "eq1_min": errors["eq1_min"], "log": errors["log"],
-                          "cosine": errors["cosine"]})
-            if reached_at is None and errors["eq1"] <= target:
-                reached_at = clock
-            if reached_log_at is None and errors["log"] <= linear_errors["log"]:
-                reached_log_at = clock
-            if (reached_at is not None and reached_log_at is not None) or clock >= time_factor * linear_s:
-                break
-    last = trace[-1] if trace else {}
-    return {"material": spec.label, "input_probe": probe_label(input_probe), "config_hash": config.hash(),
-            "linear": {"time_s": linear_s, **{k: v for k, v in linear_errors.items() if k != "eq1_rgb"}},
-            "abs": {"iterations": it, "time_s": clock, "spp": spp, "learning_rate": learning_rate,
-                    "reached_linear_eq1": reached_at is not None, "time_to_linear_eq1_s": reached_at,
-                    "reached_linear_log": reached_log_at is not None, "time_to_linear_log_s": reached_log_at,
-                    "final": {k: last.get(k) for k in ("eq1", "eq1_min", "log", "cosine")}},
-            "trace": trace}
+    return synthesis.analysis_by_synthesis(material, input_probe, config=config, data_dir=data_dir,
+                                           time_factor=time_factor, **kwargs)
 
 
 # ------------------------------------------------------------------ reporting

@@ -370,8 +370,12 @@ def output_paths(out: PathLike, merl: bool = False, report: bool = True) -> List
     return paths
 
 
-def write_outputs(result: Recovery, out: PathLike, merl: bool = False, report: bool = True) -> List[Path]:
+def write_outputs(result: Recovery, out: PathLike, merl: bool = False, report: bool = True,
+                  report_render: bool = False) -> List[Path]:
     """Write the table (``.npz``), its EXR view, optionally a MERL ``.binary`` and a PNG report.
+
+    The report's re-render is the model's prediction ``L f`` unless ``report_render``
+    asks for a path-traced one (:func:`mi_bivariate.report.write_recovery_report`).
 
     All or none: every file is written to a temporary first and they are
     renamed into place together (:func:`mi_bivariate.atomic.atomic_paths`).
@@ -388,5 +392,5 @@ def write_outputs(result: Recovery, out: PathLike, merl: bool = False, report: b
         if report:
             from mi_bivariate import report as report_mod
 
-            report_mod.write_recovery_report(result, temps[-1])
+            report_mod.write_recovery_report(result, temps[-1], path_trace=report_render)
     return paths

@@ -71,3 +71,37 @@ def test_shared_probes(sphere_obs, data_dir, name, adequate):
     else:
         assert report.detail[0] < 0.5 * adequacy.MIN_DETAIL
         assert "detail" in str(caught[0].message)
+
+
+def _reference_spectrum(L):
+    """The pre-Gram implementation: SVD of the column-normalised M x N luminance (independent truth)."""
+    lum = L.astype(np.float64) @ np.array([0.212671, 0.715160, 0.072169])
+    norms = np.linalg.norm(lum, axis=0)
+    observed = norms > 1e-12 * norms.max()
+    sigma = np.linalg.svd(lum[:, observed] / norms[observed], compute_uv=False)
+    return sigma / sigma[0], observed, lum
+
+
+def test_gram_spectrum_matches_svd(data_dir):
+    """The N x N Gram route gives the SVD's spectrum, rank, effective rank, condition and coverage."""
+    from mi_bivariate.probes import shared_probe
+
+    geo = SphereGeometry(128.0, 128.0, 120.0)
+    normals, mask = geo.normals(256, 256)
+    image = np.where(mask[..., None], 0.2 + normals[..., 2:], 0.0).repeat(3, axis=2).astype(np.float32)
+    obs = capture.observations_from_sphere(image, geo, n_normals=3000)
+    L = lighting.lighting_matrix(obs, shared_probe("grace_latlong_1k", data_dir), n_t=16, n_s=16, n_dirs=4000)
+    ref_sigma, ref_observed, lum = _reference_spectrum(L)
+    report = adequacy.analyse(L, 16, 16, warn=False)
+    assert np.array_equal(adequacy.singular_spectrum(L)[1], ref_observed)
+    # Eigenvalues of the Gram matrix carry an absolute error ~eps * sigma_max^2, so sigma
+    # an absolute error ~sqrt(eps) ~ 1e-8 relative to the largest: far below RANK_TOL.
+    assert report.singular_values.shape == ref_sigma.shape
+    assert np.allclose(report.singular_values, ref_sigma, rtol=1e-6, atol=1e-7)
+    assert report.numerical_rank == int(np.count_nonzero(ref_sigma > adequacy.RANK_TOL))
+    p = ref_sigma / ref_sigma.sum()
+    assert report.effective_rank == pytest.approx(float(np.exp(-np.sum(p * np.log(p)))), rel=1e-9)
+    assert report.condition_number == pytest.approx(1.0 / ref_sigma[-1], rel=1e-4)
+    totals = lum.sum(axis=1, keepdims=True)
+    share = np.divide(lum, totals, out=np.zeros_like(lum), where=totals > 0)
+    assert np.allclose(report.observation_map, share.sum(axis=0).reshape(16, 16), rtol=1e-12, atol=1e-12)

@@ -1,0 +1,137 @@
+"""Linear solve against analysis by synthesis: relight error against wall time, per material.
+
+For each material: the input sphere (128 px, 128 spp) under grace_latlong_1k; the linear route
+(:func:`mi_bivariate.recover.recover`, timed stages observations + lighting matrix + adequacy +
+solve) and analysis by synthesis (:func:`mi_bivariate.synthesis.analysis_by_synthesis`: Adam on
+log f through ``prb`` with table importance sampling, from the Lambertian fit) for ``--time-factor``
+x the linear route's time. Both tables are rendered under pisa_256 exactly as the 3D truth is
+(128 px, 64 spp, same seed) and compared (relative RMSE); the clock stops while errors are measured.
+One setting of the optimiser for every material (chosen on gold-metallic-paint3's training loss).
+
+Prints one table (time-to-equal-error ratios) and writes the records (JSON lines) and the figure
+``docs/figures/abs_vs_solve.png`` (relight error against wall time).
+
+    MI_BIVARIATE_DATA=/work/shared/data python benchmarks/bench_synthesis.py \
+        [--materials gold-metallic-paint3 blue-acrylic red-phenolic] [--time-factor 20] [--out out/abs]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+from pathlib import Path
+from typing import List, Sequence
+
+ROOT = Path(__file__).resolve().parents[1]
+MATERIALS = ("gold-metallic-paint3", "blue-acrylic", "red-phenolic")
+
+
+def machine() -> str:
+    cpu = "unknown CPU"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    load = ", ".join(f"{v:.1f}" for v in os.getloadavg())
+    return f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}; load average {load}"
+
+
+def ratio_row(r: dict) -> str:
+    lin, a = r["linear"], r["abs"]
+    best, t_best = a["best_relight"], a["best_relight_time_s"]
+    if lin["relight"] <= best:
+        # The linear route is at least as good as AbS's best: it got there in its own time.
+        ratio = f"{t_best / lin['time_s']:.1f}x (AbS best at {t_best:.1f} s)"
+    else:
+        ratio = "AbS better"
+    reached = a["time_to_linear_relight_s"]
+    equal = (f"{reached / lin['time_s']:.1f}x" if reached is not None
+             else f"> {a['time_s'] / lin['time_s']:.0f}x (not reached in {a['time_s']:.0f} s)")
+    return (f"| {r['material']} | {lin['time_s']:.2f} | {lin['relight']:.4f} | {a['start_relight']:.4f} | "
+            f"{best:.4f} | {a['iterations']} | {a['time_s']:.1f} | {ratio} | {equal} | "
+            f"{a['loss_first']:.3f} -> {a['loss_last']:.3f} |")
+
+
+def plot(records: Sequence[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from mi_bivariate.atomic import atomic_path
+
+    fig, axes = plt.subplots(1, len(records), figsize=(5.0 * len(records), 4.0), squeeze=False)
+    for ax, r in zip(axes[0], records):
+        trace = r["trace"]
+        t = [max(row["time_s"], 1e-2) for row in trace]
+        ax.plot(t, [row["relight"] for row in trace], "-o", ms=2.5, label="analysis by synthesis (Adam + prb)")
+        lin = r["linear"]
+        ax.plot([lin["time_s"]], [lin["relight"]], "r*", ms=12, label="linear solve (recover)")
+        ax.axhline(lin["relight"], color="r", lw=0.8, ls="--")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("wall time (s), clock paused for evaluation")
+        ax.set_ylabel(f"relight error under {r['novel_probe']} (rel. RMSE)")
+        ax.set_title(r["material"], fontsize=10)
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.suptitle(f"input {records[0]['input_probe']}; same renders for truth and tables", fontsize=9)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
+
+
+def main(argv: Sequence[str] = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--materials", nargs="+", default=list(MATERIALS))
+    parser.add_argument("--time-factor", type=float, default=20.0,
+                        help="AbS budget in multiples of the linear route's time")
+    parser.add_argument("--budget", type=float, default=None, help="AbS budget in seconds (overrides)")
+    parser.add_argument("--eval-every", type=int, default=10)
+    parser.add_argument("--quick", action="store_true", help="the evaluation's quick config (48 px, 12 x 12)")
+    parser.add_argument("--out", default=str(ROOT / "out" / "abs"))
+    parser.add_argument("--figure", default=str(ROOT / "docs" / "figures" / "abs_vs_solve.png"))
+    parser.add_argument("--replot", action="store_true", help="only redraw the figure from --out's records")
+    args = parser.parse_args(argv)
+
+    from mi_bivariate import evaluate as ev
+    from mi_bivariate import synthesis
+
+    out = Path(args.out)
+    path = out / "abs_vs_solve.jsonl"
+    records: List[dict] = []
+    if args.replot:
+        records = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    else:
+        print(f"Machine: {machine()}")
+        config = ev.EvalConfig.quick(shared_data=True) if args.quick else ev.EvalConfig()
+        out.mkdir(parents=True, exist_ok=True)
+        for material in args.materials:
+            r = synthesis.analysis_by_synthesis(material, "grace_latlong_1k", config=config,
+                                                time_factor=args.time_factor, budget_s=args.budget,
+                                                eval_every=args.eval_every)
+            records.append(r)
+            ev.append_record(path, r)
+            print(f"{material}: linear {r['linear']['time_s']:.2f} s relight {r['linear']['relight']:.4f}; "
+                  f"AbS best {r['abs']['best_relight']:.4f} at {r['abs']['best_relight_time_s']:.1f} s "
+                  f"of {r['abs']['time_s']:.1f} s", flush=True)
+        print(f"\nMachine after the run: {machine()}")
+    print("\n| material | linear time (s) | linear relight | AbS start relight | AbS best relight | AbS iterations "
+          "| AbS time (s) | linear reaches AbS best | AbS reaches linear | AbS loss first -> last (10-it mean) |")
+    print("| --- | ---: | ---: | ---: | ---: | ---: | ---: | --- | --- | --- |")
+    for r in records:
+        print(ratio_row(r))
+    plot(records, Path(args.figure))
+    print(f"\nrecords: {path}; figure: {args.figure}")
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])

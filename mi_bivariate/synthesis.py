@@ -1,0 +1,281 @@
+"""Analysis by synthesis: the bivariate table fitted by differentiable rendering.
+
+The baseline against which the linear route (observations -> lighting matrix
+-> constrained solve, :func:`mi_bivariate.recover.recover`) is measured. The
+same ``(n_t, n_s, 3)`` table is optimised with ``mi.ad.Adam`` through the
+``bivariate`` plugin and the ``prb`` integrator so that a render of the
+sphere matches the input image:
+
+- variable: ``log f`` (positivity without clamping; the step is relative);
+- start: the Lambertian fit, the best constant table for the image
+  (``f_c = <L 1, y> / ||L 1||^2`` per channel from the same lighting matrix
+  the linear solve uses), like the solve's own start;
+- loss: mean squared pixel error over the sphere relative to the image's
+  mean square, plus ``smoothness`` times the mean squared first difference of
+  ``log f`` along both st axes (the role of the solve's smoothness prior:
+  cells the image barely constrains follow their neighbours instead of
+  drifting on gradient noise);
+- estimator: ``spp`` samples per pixel per iteration, a new seed per
+  iteration, the table's own importance sampling (``sampling="table"``,
+  rebuilt from the current table at every update), ``max_depth`` 2 (direct
+  illumination by the probe, as in the image model).
+
+The plugin's table gradients under ``prb`` with table importance sampling
+are checked against central finite differences in ``tests/test_gradients.py``.
+
+Errors are measured as in the evaluation: the relative RMSE of a render under
+a novel probe against the 3D truth rendered the same way (same resolution,
+spp and seed), and the BRDF errors of :class:`mi_bivariate.metrics.BRDFErrors`.
+The clock stops while errors are measured.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import asdict, dataclass
+from typing import Any, Callable, Dict, List, Optional, Union
+
+import numpy as np
+
+PathLike = Union[str, os.PathLike]
+
+
+@dataclass(frozen=True)
+class SynthesisSettings:
+    """Settings of :func:`optimise_table` (one setting for every material: not tuned per material).
+
+    Attributes:
+        spp: samples per pixel of each iteration's render.
+        learning_rate: Adam step on ``log f`` (a relative step of about this size per iteration).
+        smoothness: weight of the ``log f`` first-difference penalty.
+        sampling: the plugin's ``sampling`` property (``"table"`` or ``"cosine"``).
+        max_depth: ``prb``'s path depth (2: direct illumination).
+        log_bounds: ``log f`` is kept in this range (1/sr).
+        seed: seed of the first iteration (iteration ``i`` uses ``seed + i``).
+    """
+
+    spp: int = 16
+    learning_rate: float = 0.05
+    smoothness: float = 1e-3
+    sampling: str = "table"
+    max_depth: int = 2
+    log_bounds: tuple = (-14.0, 9.0)
+    seed: int = 1000
+
+
+def lambertian_start(L: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """The best constant BRDF per channel: ``<L 1, y> / ||L 1||^2``, ``(3,) float64`` in 1/sr (>= 0).
+
+    Args:
+        L: ``(M, N, 3)`` lighting matrix.
+        values: ``(M, 3)`` observed pixels.
+    """
+    row_sums = np.asarray(L, np.float64).sum(axis=1)  # (M, 3): L applied to the all-ones table
+    y = np.asarray(values, np.float64)
+    num = np.einsum("mc,mc->c", row_sums, y)
+    den = np.einsum("mc,mc->c", row_sums, row_sums)
+    return np.maximum(np.divide(num, den, out=np.zeros(3), where=den > 0), 0.0)
+
+
+def optimise_table(image: np.ndarray, mask: np.ndarray, probe: Any, start: np.ndarray,
+                   settings: SynthesisSettings = SynthesisSettings(), budget_s: float = 60.0,
+                   max_iterations: int = 100000, eval_every: int = 10,
+                   on_checkpoint: Optional[Callable[[int, float, float, np.ndarray], bool]] = None) -> Dict[str, Any]:
+    """Fit a bivariate table to one image of the unit sphere by Adam through ``prb``.
+
+    Args:
+        image: ``(R, R, 3)`` linear input render (orthographic camera of
+            :func:`mi_bivariate.render.render_sphere`, radius fraction 0.45).
+        mask: ``(R, R) bool`` sphere pixels.
+        probe: the :class:`~mi_bivariate.probes.Probe` lighting the image.
+        start: ``(n_t, n_s, 3)`` positive starting table (1/sr).
+        settings: see :class:`SynthesisSettings`.
+        budget_s: optimisation wall time (the clock excludes checkpoints).
+        max_iterations: iteration cap.
+        eval_every: call ``on_checkpoint`` every this many iterations (and at the end).
+        on_checkpoint: ``(iteration, clock_s, loss, table) -> stop?``; its time is not counted.
+
+    Returns:
+        ``{"iterations", "time_s", "losses" (per iteration), "table" (final, (n_t, n_s, 3))}``.
+    """
+    import drjit as dr
+    import mitsuba as mi
+
+    from mi_bivariate import render
+
+    start = np.ascontiguousarray(np.maximum(np.asarray(start, np.float32), 1e-6))
+    res = image.shape[0]
+    cam = render.make_camera("orthographic", res, radius_fraction=0.45)
+    scene_dict = render.sphere_scene_dict({"type": "bivariate", "table": mi.Bitmap(start),
+                                           "sampling": settings.sampling}, probe, cam, normals=False)
+    scene_dict["integrator"] = {"type": "prb", "max_depth": settings.max_depth, "hide_emitters": True}
+    scene = render.load_scene(scene_dict)
+    params = mi.traverse(scene)
+    key = next(k for k in params.keys() if k.endswith("bsdf.table"))
+    params.keep(key)
+
+    m3 = np.repeat(mask[..., None], 3, axis=2)
+    weight = mi.TensorXf(m3.astype(np.float32))
+    reference = mi.TensorXf(np.where(m3, image, 0.0).astype(np.float32))
+    norm = float(np.mean(np.asarray(image, np.float64)[mask] ** 2)) * float(m3.sum())
+    n_t, n_s = start.shape[:2]
+    n_diff = float(3 * ((n_t - 1) * n_s + n_t * (n_s - 1)))
+    lo, hi = settings.log_bounds
+
+    opt = mi.ad.Adam(lr=settings.learning_rate)
+    opt["log_table"] = mi.TensorXf(np.log(start))
+    losses: List[float] = []
+    clock = 0.0
+    it = 0
+
+    def table_now() -> np.ndarray:
+        return np.exp(np.asarray(opt["log_table"].numpy(), np.float64))
+
+    while it < max_iterations:
+        t0 = time.perf_counter()
+        log_table = opt["log_table"]
+        params[key] = dr.exp(log_table)
+        params.update()
+        rendered = mi.render(scene, params, spp=settings.spp, seed=settings.seed + it)
+        data = dr.sum((rendered - reference) ** 2 * weight, axis=None) / norm
+        loss = data
+        if settings.smoothness > 0.0:
+            g = log_table
+            dt = g[1:, :, :] - g[:-1, :, :]
+            ds = g[:, 1:, :] - g[:, :-1, :]
+            loss = data + settings.smoothness * (dr.sum(dt * dt, axis=None) + dr.sum(ds * ds, axis=None)) / n_diff
+        dr.backward(loss)
+        grad = dr.grad(opt["log_table"])
+        # A path through a degenerate configuration can give a NaN; drop it rather than poison the table.
+        dr.set_grad(opt["log_table"], dr.select(dr.isfinite(grad), grad, 0.0))
+        opt.step()
+        opt["log_table"] = dr.clip(opt["log_table"], lo, hi)
+        dr.eval(opt["log_table"])
+        losses.append(float(data.array[0]))
+        clock += time.perf_counter() - t0
+        it += 1
+        done = clock >= budget_s or it >= max_iterations
+        if on_checkpoint is not None and (it % eval_every == 0 or done):
+            if on_checkpoint(it, clock, losses[-1], table_now()):
+                break
+        if done:
+            break
+    return {"iterations": it, "time_s": clock, "losses": losses, "table": table_now()}
+
+
+def relight_error(table_or_brdf: Any, probe: Any, reference: Any, spp: int, seed: int) -> float:
+    """Relative RMSE of a render of ``table_or_brdf`` under ``probe`` against ``reference`` (a SphereRender)."""
+    from mi_bivariate import metrics, render
+
+    brdf = bivariate_brdf(table_or_brdf) if isinstance(table_or_brdf, np.ndarray) else table_or_brdf
+    img = render.render_sphere(render.bsdf_dict(brdf), probe, resolution=reference.image.shape[0], spp=spp,
+                               seed=seed).image
+    return metrics.image_relative_rmse(img, reference.image, reference.mask)
+
+
+def analysis_by_synthesis(material: Any, input_probe: str = "grace_latlong_1k", config: Any = None,
+                          data_dir: Optional[PathLike] = None, time_factor: float = 10.0,
+                          spp: Optional[int] = None, learning_rate: Optional[float] = None,
+                          eval_every: int = 10, max_iterations: int = 100000,
+                          novel_probe: str = "pisa_256", settings: Optional[SynthesisSettings] = None,
+                          budget_s: Optional[float] = None) -> dict:
+    """The linear solve and analysis by synthesis on the same image, errors against wall time.
+
+    The input image is rendered and the table recovered exactly as in
+    :func:`mi_bivariate.evaluate.evaluate_material` (config resolution, spp,
+    normals, directions, grid, seed). Then :func:`optimise_table` starts from
+    the Lambertian fit and runs for ``budget_s`` (default ``time_factor`` x
+    the linear route's time: observations + lighting matrix + adequacy +
+    solve). Every ``eval_every`` iterations the table's relight error under
+    ``novel_probe`` and its BRDF errors are measured (clock paused).
+
+    Returns:
+        A JSON-friendly dict: ``linear`` (time, BRDF errors, ``relight``),
+        ``abs`` (iterations, time, settings, best and final errors, when the
+        linear errors were first reached), ``speedup`` (AbS time to its best
+        relight error / the linear route's time, when the linear route is at
+        least as good) and ``trace``.
+    """
+    from mi_bivariate import evaluate as ev
+    from mi_bivariate import metrics, render
+    from mi_bivariate.recover import recover
+    from mi_bivariate.variants import ensure_variant
+
+    ensure_variant()
+    config = config or ev.EvalConfig()
+    settings = settings or SynthesisSettings()
+    overrides = {k: v for k, v in (("spp", spp), ("learning_rate", learning_rate)) if v is not None}
+    if overrides:
+        settings = SynthesisSettings(**{**asdict(settings), **overrides})
+    spec = material if isinstance(material, ev.MaterialSpec) else ev.resolve_materials([material], data_dir)[0]
+    truth = ev.load_truth(spec, data_dir)
+    probe = ev.load_probe(input_probe, data_dir)
+    novel = ev.load_probe(novel_probe, data_dir)
+    res = config.resolution
+    truth_bsdf = render.bsdf_dict(truth)
+    shot = render.render_sphere(truth_bsdf, probe, resolution=res, spp=config.spp, seed=config.seed)
+    relight_seed = config.seed + 1
+    truth_novel = render.render_sphere(truth_bsdf, novel, resolution=res, spp=config.novel_spp, seed=relight_seed)
+
+    rec = recover(shot.image, probe, shot.geometry, n_normals=config.n_normals, n_dirs=config.n_dirs,
+                  grid=config.grid, alpha=config.alpha, seed=config.seed, keep_inputs=False)
+    linear_s = sum(rec.timings.get(k, 0.0) for k in ("observations", "lighting matrix", "adequacy", "solve"))
+    brdf_errors = metrics.BRDFErrors(truth)
+    linear_errors = {k: v for k, v in brdf_errors(rec.brdf).items() if k != "eq1_rgb"}
+    linear_relight = relight_error(rec.brdf, novel, truth_novel, config.novel_spp, relight_seed)
+
+    n_t, n_s = config.grid
+    lam = lambertian_start(rec.lighting_matrix, rec.observations.values)
+    start = np.broadcast_to(np.maximum(lam, 1e-4), (n_t, n_s, 3)).astype(np.float32)
+    del rec
+
+    trace: List[dict] = []
+
+    def checkpoint(it: int, clock: float, loss: float, table: np.ndarray) -> bool:
+        brdf = bivariate_brdf(table)
+        e = brdf_errors(brdf)
+        trace.append({"iteration": it, "time_s": clock, "loss": loss,
+                      "relight": relight_error(brdf, novel, truth_novel, config.novel_spp, relight_seed),
+                      **{k: e[k] for k in ("eq1", "eq1_min", "log", "cosine")}})
+        return False
+
+    budget = float(budget_s) if budget_s is not None else time_factor * linear_s
+    start_relight = relight_error(start, novel, truth_novel, config.novel_spp, relight_seed)
+    e0 = brdf_errors(bivariate_brdf(start))
+    trace.append({"iteration": 0, "time_s": 0.0, "loss": None, "relight": start_relight,
+                  **{k: e0[k] for k in ("eq1", "eq1_min", "log", "cosine")}})
+    run = optimise_table(shot.image, shot.mask, probe, start, settings, budget_s=budget,
+                         max_iterations=max_iterations, eval_every=eval_every, on_checkpoint=checkpoint)
+
+    best = min(trace, key=lambda r: r["relight"])
+    first = lambda key, target: next((r["time_s"] for r in trace if r[key] <= target), None)  # noqa: E731
+    reached_eq1 = first("eq1", linear_errors["eq1"])
+    reached_log = first("log", linear_errors["log"])
+    reached_relight = first("relight", linear_relight)
+    speedup = best["time_s"] / linear_s if linear_relight <= best["relight"] and linear_s > 0 else None
+    last = trace[-1]
+    return {"material": spec.label, "input_probe": ev.probe_label(input_probe), "novel_probe": ev.probe_label(novel_probe),
+            "config_hash": config.hash(),
+            "linear": {"time_s": linear_s, "relight": linear_relight, **linear_errors},
+            "abs": {"iterations": run["iterations"], "time_s": run["time_s"], "budget_s": budget,
+                    "settings": {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(settings).items()},
+                    "spp": settings.spp, "learning_rate": settings.learning_rate,
+                    "start_relight": start_relight,
+                    "best_relight": best["relight"], "best_relight_time_s": best["time_s"],
+                    "reached_linear_eq1": reached_eq1 is not None, "time_to_linear_eq1_s": reached_eq1,
+                    "reached_linear_log": reached_log is not None, "time_to_linear_log_s": reached_log,
+                    "reached_linear_relight": reached_relight is not None,
+                    "time_to_linear_relight_s": reached_relight,
+                    "loss_first": run["losses"][0] if run["losses"] else None,
+                    "loss_last": float(np.mean(run["losses"][-10:])) if run["losses"] else None,
+                    "final": {k: last.get(k) for k in ("eq1", "eq1_min", "log", "cosine", "relight")}},
+            "speedup": speedup,
+            "trace": trace}
+
+
+def bivariate_brdf(table: np.ndarray) -> Any:
+    """A :class:`~mi_bivariate.bivariate.BivariateBRDF` of a (clipped, NaN-free) table."""
+    from mi_bivariate.bivariate import BivariateBRDF
+
+    return BivariateBRDF(np.maximum(np.nan_to_num(np.asarray(table, np.float64), nan=0.0), 0.0))
