@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 import warnings
@@ -144,6 +145,28 @@ def _parse_sphere(text: str):
     if not r > 0:
         raise argparse.ArgumentTypeError(f"--sphere radius must be positive, got {r}")
     return cx, cy, r
+
+
+def _parse_alpha(text: str):
+    if text.strip().lower() == "gcv":
+        return "gcv"
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number or 'gcv', got {text!r}") from None
+
+
+def _parse_noise(text: str):
+    value = text.strip().lower()
+    if value in ("auto", "none"):
+        return None if value == "none" else "auto"
+    try:
+        a, b = (float(v) for v in value.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected auto, none or A,B, got {text!r}") from None
+    if not (math.isfinite(a) and math.isfinite(b) and a >= 0 and b >= 0):
+        raise argparse.ArgumentTypeError(f"A and B must be finite and >= 0, got {text!r}")
+    return (a, b)
 
 
 def _add_variant(p: argparse.ArgumentParser) -> None:
@@ -311,13 +334,14 @@ def cmd_recover(args: argparse.Namespace) -> int:
     _check_seed(args.seed)
     _check_float("--max-view-angle", args.max_view_angle, 0.0, 90.0, lo_open=True)
     _check_float("--saturation", args.saturation, 0.0, float("inf"), lo_open=True)
-    _check_float("--alpha", args.alpha, float("-inf"), float("inf"))  # the sign is the library's check
+    if args.alpha != "gcv":
+        _check_float("--alpha", args.alpha, float("-inf"), float("inf"))  # the sign is the library's check
     if args.threads is not None and not 1 <= args.threads <= 1024:
         raise InputError("--threads", f"must be from 1 to 1024, got {args.threads}")
     _check_out_file(args.out)
     outputs = rec.output_paths(args.out, merl=args.merl, report=not args.no_report)
     _SOURCE_NAMES.update({"image": str(args.image), "lighting matrix L": str(args.probe)})
-    check_outputs(outputs, _existing_files(args.image, args.probe, args.mask))
+    check_outputs(outputs, _existing_files(args.image, args.probe, args.mask, args.prior))
     ensure_variant(args.variant)
     if args.threads is not None:
         import drjit as dr
@@ -329,12 +353,22 @@ def cmd_recover(args: argparse.Namespace) -> int:
     sphere = None if args.sphere in (None, "auto") else args.sphere
     fit = spherefit.fit_sphere(image, mask, sphere=sphere, source=str(args.image))
     print(fit.summary())
+    smooth_prior, basis_prior = None, "default"
+    if args.prior is not None:
+        from mi_bivariate.basis_prior import BasisPrior
+        from mi_bivariate.prior import Prior
+        from mi_bivariate.training_set import basis_path_for
+
+        smooth_prior = Prior.load(args.prior)
+        basis_file = basis_path_for(args.prior)
+        basis_prior = BasisPrior.load(basis_file) if basis_file.is_file() else None
     try:
         with blas_threads():  # no BLAS oversubscription on a shared machine (mi_bivariate.threads)
             result = rec.recover(
                 image, probe, fit.geometry, masks=mask, n_normals=args.normals, n_dirs=args.dirs,
                 grid=tuple(args.grid), alpha=args.alpha, seed=args.seed, max_view_angle_deg=args.max_view_angle,
-                saturation=args.saturation)
+                saturation=args.saturation, noise=args.noise, sampling=args.sampling,
+                prior=smooth_prior, basis_prior=None if args.no_basis_prior else basis_prior)
     except InputError as exc:
         # The library names its arguments ("image", "lighting matrix L"); name the user's files.
         names = {"image": args.image, "lighting matrix L": args.probe}
@@ -475,7 +509,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--normals", type=int, default=8000, help="number of normals M")
     p.add_argument("--dirs", type=int, default=32000, help="light directions per normal K")
     p.add_argument("--grid", type=int, nargs=2, default=(32, 32), metavar=("N_T", "N_S"))
-    p.add_argument("--alpha", type=float, default=None, help="regularisation weight (default: the documented one)")
+    p.add_argument("--alpha", type=_parse_alpha, default=None,
+                   help="smoothness weight: a number (default 1e-2, see docs/recovery.md) or 'gcv'")
+    p.add_argument("--noise", type=_parse_noise, default="auto", metavar="auto|none|A,B",
+                   help="camera noise, variance A*I+B in image units: estimated from the image (auto, default), "
+                        "none (clean input) or given")
+    p.add_argument("--prior", default=None, metavar="FILE",
+                   help="smoothness prior from learn-prior (its _basis.npz beside it is the basis prior)")
+    p.add_argument("--no-basis-prior", action="store_true", help="smoothness prior alone (the paper's Eq. 6)")
+    p.add_argument("--sampling", choices=("mis", "uniform"), default="mis",
+                   help="light directions of the lighting matrix (default mis)")
     p.add_argument("--max-view-angle", type=float, default=80.0, help="drop normals further from the view (deg)")
     p.add_argument("--saturation", type=float, default=None, help="drop pixels with any channel >= this value")
     p.add_argument("--seed", type=int, default=0)

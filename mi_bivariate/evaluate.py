@@ -602,8 +602,8 @@ def evaluate_material(task: MaterialTask) -> Tuple[dict, Dict[str, np.ndarray]]:
                              "min_effective": adequacy.OBSERVED_MIN_EFFECTIVE,
                              "min_signal": adequacy.OBSERVED_MIN_SIGNAL}
         entry["recovered"] = brdf_errors(rec.brdf, observed_nodes=observed)
-        # The recovery's own per-node confidence: nodes whose value the image set (resolution > 0.5).
-        confident = np.min(rec.solution.resolution, axis=-1) > 0.5
+        # The recovery's own per-node confidence: nodes whose uncertainty the image more than halved.
+        confident = np.min(rec.solution.measured, axis=-1) > 0.5
         entry["confident"] = {"nodes": int(confident.sum()), "node_fraction": float(confident.mean()),
                               "eq1": brdf_errors(rec.brdf, observed_nodes=confident)["eq1_observed"],
                               "floor_eq1": brdf_errors(floor, observed_nodes=confident)["eq1_observed"]}

@@ -78,8 +78,8 @@ class Recovery:
             f"{' '.join(f'{a:.3g}' for a in self.solution.alphas)}, prior pair per channel {winners}, "
             f"basis prior {'on' if self.brdf.provenance.get('basis_prior') else 'off'}, "
             f"relative residual {self.relative_residual():.4f}",
-            f"confidence: {100 * float(np.mean(self.solution.resolution > 0.5)):.0f}% of the nodes set "
-            f"mostly by the image (resolution > 0.5), the rest by the priors",
+            f"confidence: the image measured {100 * float(np.mean(np.min(self.solution.measured, -1) > 0.5)):.0f}% "
+            f"of the nodes (their uncertainty more than halved), the priors supplied the rest",
             f"timings: {stages}",
         ])
 
@@ -209,6 +209,7 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
     predicted = np.einsum("mnc,nc->mc", L, table.reshape(n_t * n_s, 3), optimize=True)
     level = np.where(data.level > 0, data.level, 1.0)
     confidence = {
+        "measured": solution.measured,
         "resolution": solution.resolution,
         "posterior_std": solution.posterior_std,
         "observation_weight": (np.stack([np.diag(g) for g in data.gram], axis=-1) * level**2).reshape(n_t, n_s, 3),
@@ -224,9 +225,9 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
                                                     for v in noise_models],
         "probes": [getattr(p, "source", "?") for p in probe_list],
         "visibility": bool(any(o is not None for o in occluders)),
-        "confidence": "resolution: share of each node's value set by the image (diag of the model "
-                      "resolution matrix); posterior_std: 1/sr; observation_weight: diag(L^T W L) "
-                      "times the table level^2",
+        "confidence": "measured: 1 - posterior variance / the priors' own variance (1: the image set the "
+                      "node, 0: the priors did); resolution: diag of the model resolution matrix; "
+                      "posterior_std: 1/sr; observation_weight: diag(L^T W L) times the table level^2",
     })
     return Recovery(brdf=brdf, observations=observations, lighting_matrix=L, solution=solution,
                     adequacy=report, predicted=predicted,

@@ -165,8 +165,9 @@ def write_recovery_report(result: Any, path: PathLike, rerender: Optional[np.nda
     """PNG report of a :class:`~mi_bivariate.recover.Recovery`.
 
     Panels: input image, a re-render of the recovered BRDF under the input
-    probe and the difference, recovered table, st coverage (adequacy), model
-    prediction ``L f`` against the observations.
+    probe and the difference, recovered table, per-node confidence (which
+    nodes the image measured, which the priors supplied), model prediction
+    ``L f`` against the observations.
 
     The re-render is ``rerender`` when given; else, with ``path_trace``, a
     Mitsuba path-traced render (128 spp, seconds); else (default) the model's
@@ -203,10 +204,16 @@ def write_recovery_report(result: Any, path: PathLike, rerender: Optional[np.nda
         if not ax.images:
             ax.set_axis_off()
     plot_table(axes[1, 0], result.brdf, "recovered table (mean RGB)")
-    coverage = np.asarray(result.adequacy.observation_map)
-    im = axes[1, 1].imshow(np.log10(np.maximum(coverage / max(coverage.max(), 1e-30), 1e-6)), origin="lower",
-                           extent=(0, 1, 0, 1), cmap="cividis", aspect="auto")
-    axes[1, 1].set_title("st coverage (log10 relative weight)", fontsize=9)
+    # Which nodes the photo measured and which the priors supplied: how much of each node's
+    # uncertainty under the priors alone the image removed (1: all, 0: none), worst channel.
+    confidence = np.min(np.asarray(result.solution.measured), axis=-1)
+    im = axes[1, 1].imshow(confidence, origin="lower", extent=(0, 1, 0, 1), cmap="magma", vmin=0.0, vmax=1.0,
+                           aspect="auto")
+    axes[1, 1].contour(np.linspace(0, 1, confidence.shape[1]), np.linspace(0, 1, confidence.shape[0]),
+                       confidence, levels=[0.5], colors="w", linewidths=0.8)
+    axes[1, 1].set_title(f"measured by the image (1) or supplied by the priors (0)\n"
+                         f"{100 * float(np.mean(confidence > 0.5)):.0f}% of the nodes > 0.5 (white line)",
+                         fontsize=9)
     axes[1, 1].set_xlabel("s = 2 theta_d / pi", fontsize=8)
     axes[1, 1].set_ylabel("t = sqrt(2 theta_h / pi)", fontsize=8)
     fig.colorbar(im, ax=axes[1, 1], fraction=0.046, pad=0.02)
