@@ -14,9 +14,10 @@ from typing import Any
 __version__ = "0.1.0"
 
 _SUBMODULES = (
-    "adequacy", "analytic", "atomic", "bivariate", "capture", "cli", "coordinates", "demo", "errors",
-    "evaluate", "geometry", "images", "lighting", "merl", "nbrdf", "npzio", "prior", "probes", "recover", "render",
-    "report", "solve", "variants",
+    "adequacy", "alignment", "analytic", "atomic", "baselines", "basis_prior", "bivariate", "capture", "cli",
+    "coordinates", "demo", "errors", "evaluate", "geometry", "images", "lighting", "merl", "mesh", "metrics",
+    "nbrdf", "noise", "npzio", "prior", "probes", "recover", "reference", "render", "report", "solve",
+    "spherefit", "synthesis", "threads", "training_set", "variants",
 )
 
 
