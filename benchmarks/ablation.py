@@ -26,7 +26,7 @@ import numpy as np
 
 from mi_bivariate import capture, lighting, merl as merl_mod, nbrdf, probes, solve, training_set
 from mi_bivariate.geometry import SphereGeometry
-from mi_bivariate.lighting import _PACKETS, _row_packets, hemisphere_offsets
+from mi_bivariate.lighting import _row_packets, hemisphere_offsets
 from mi_bivariate.variants import ensure_variant
 
 NOVEL = ("grace_256", "pisa_256", "pedestrian_overpass_1k")

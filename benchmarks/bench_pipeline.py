@@ -14,11 +14,9 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
-import platform
 import statistics
 import time
-from pathlib import Path
+from _machine import machine as _machine  # benchmarks/_machine.py
 
 BASE = {"M": 2000, "K": 8000, "nodes": 256}
 
@@ -32,18 +30,8 @@ def machine() -> str:
     import drjit as dr
     import mitsuba as mi
 
-    cpu = "unknown CPU"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
-    return (f"{cpu}, {os.cpu_count()} cores, {platform.system()} {platform.release()}, Python "
-            f"{platform.python_version()}, Mitsuba {mi.__version__} ({mi.variant()}), Dr.Jit {dr.__version__}, "
-            f"{dr.thread_count()} Dr.Jit threads; 1-min load average at start {load:.1f}")
+    return _machine(f"Mitsuba {mi.__version__} ({mi.variant()}), Dr.Jit {dr.__version__}, "
+                    f"{dr.thread_count()} Dr.Jit threads")
 
 
 def run_point(truth, probe, M: int, K: int, nodes: int, resolution: int, spp: int) -> dict:

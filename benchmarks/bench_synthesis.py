@@ -19,27 +19,17 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import sys
 from pathlib import Path
 from typing import List, Sequence
+from _machine import machine as _machine  # benchmarks/_machine.py
 
 ROOT = Path(__file__).resolve().parents[1]
 MATERIALS = ("gold-metallic-paint3", "blue-acrylic", "red-phenolic")
 
 
 def machine() -> str:
-    cpu = "unknown CPU"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    load = ", ".join(f"{v:.1f}" for v in os.getloadavg())
-    return f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}; load average {load}"
+    return _machine()
 
 
 def ratio_row(r: dict) -> str:

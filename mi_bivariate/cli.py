@@ -436,8 +436,6 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
                                 figure_formats=formats, threads=args.threads)
     print(ev.format_summary(records))
     if args.abs:
-        import json
-
         out = Path(args.out) / "analysis_by_synthesis.jsonl"
         for record in records[:args.abs]:
             result = ev.analysis_by_synthesis(record["spec"], config.input_probes[0], config=config, data_dir=data,

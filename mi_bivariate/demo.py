@@ -21,13 +21,13 @@ from __future__ import annotations
 import json
 import time
 from pathlib import Path
-from typing import Optional, Tuple
+from typing import Optional
 
 import numpy as np
 
 from mi_bivariate import adequacy, analytic, metrics, nbrdf, probes, reference, render
-from mi_bivariate.atomic import atomic_path, atomic_paths
-from mi_bivariate.bivariate import BivariateBRDF, floors, reduction_error
+from mi_bivariate.atomic import atomic_paths
+from mi_bivariate.bivariate import BivariateBRDF, floors
 from mi_bivariate.errors import InputError
 from mi_bivariate.recover import recover
 

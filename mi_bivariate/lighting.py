@@ -229,6 +229,34 @@ def _spatial_order(normals: np.ndarray, bits: int = 10) -> np.ndarray:
     return np.argsort(key, kind="stable")
 
 
+def _lattice_lanes(data: Any, m: int, n_points: int):
+    """One lane per (lattice point, row) of a chunk of ``m`` rows: the row frame and the
+    row's Cranley-Patterson-shifted Fibonacci lattice point ``(u1, u2)`` in [0, 1)^2.
+
+    Lane order: lattice point, then row. The chunk's rows are neighbouring normals
+    (:func:`_spatial_order`), so consecutive lanes read nearby envmap texels and splat
+    into a small, cache-resident part of the target.
+
+    Returns:
+        ``(row, x_axis, y_axis, normal, sin_v, cos_v, u1, u2, p3)`` with ``p3`` the row's
+        fourth packet (shift, surface position).
+    """
+    import drjit as dr
+    import mitsuba as mi
+
+    idx = dr.arange(mi.UInt32, m * n_points)
+    k = idx // m
+    row = idx - k * m
+    p0, p1, p2, p3 = (dr.gather(mi.Vector4f, data, row * _PACKETS + q) for q in range(4))
+    x_axis, y_axis = mi.Vector3f(p0.x, p0.y, p0.z), mi.Vector3f(p1.x, p1.y, p1.z)
+    normal = mi.Vector3f(p2.x, p2.y, p2.z)
+    u1 = mi.Float(k) * (1.0 / n_points) + (0.5 / n_points) + p2.w
+    u1 = u1 - dr.floor(u1)
+    u2 = mi.Float(k * _GOLDEN_U32) * 2.0**-32 + p3.x
+    u2 = u2 - dr.floor(u2)
+    return row, x_axis, y_axis, normal, p0.w, p1.w, u1, u2, p3
+
+
 def _lighting_chunk(packets: np.ndarray, probe: Any, n_t: int, n_s: int, n_dirs: int,
                     occluder: Any = None) -> np.ndarray:
     """Rows of L for one chunk: one fused kernel, ``(m, n_t * n_s, 3) float32``.
@@ -243,23 +271,8 @@ def _lighting_chunk(packets: np.ndarray, probe: Any, n_t: int, n_s: int, n_dirs:
     m = len(packets)
     n_pairs = direction_pairs(n_dirs)
     data = mi.Float(packets.reshape(-1))
-
-    # Lane order: lattice point, then row. The chunk's rows are neighbouring
-    # normals (_spatial_order()), so consecutive lanes read nearby envmap
-    # texels and splat into a small, cache-resident part of the target.
-    idx = dr.arange(mi.UInt32, m * n_pairs)
-    k = idx // m
-    row = idx - k * m
-    p0, p1, p2, p3 = (dr.gather(mi.Vector4f, data, row * _PACKETS + q) for q in range(4))
-    x_axis, y_axis = mi.Vector3f(p0.x, p0.y, p0.z), mi.Vector3f(p1.x, p1.y, p1.z)
-    normal = mi.Vector3f(p2.x, p2.y, p2.z)
-    sin_v, cos_v = p0.w, p1.w
-
     # Shifted Fibonacci lattice (see light_directions()).
-    u1 = mi.Float(k) * (1.0 / n_pairs) + (0.5 / n_pairs) + p2.w
-    u1 = u1 - dr.floor(u1)
-    u2 = mi.Float(k * _GOLDEN_U32) * 2.0**-32 + p3.x
-    u2 = u2 - dr.floor(u2)
+    row, x_axis, y_axis, normal, sin_v, cos_v, u1, u2, p3 = _lattice_lanes(data, m, n_pairs)
     r = dr.safe_sqrt(1.0 - u1 * u1)
     sin_phi, cos_phi = dr.sincos(math.pi * u2)
     lx, ly, lz = r * cos_phi, r * sin_phi, u1
@@ -335,18 +348,7 @@ def _mis_lanes(data: Any, m: int, probe: Any, strategy: str, counts: dict, seed_
     import drjit as dr
     import mitsuba as mi
 
-    n_k = counts[strategy]
-    idx = dr.arange(mi.UInt32, m * n_k)
-    k = idx // m
-    row = idx - k * m
-    p0, p1, p2, p3 = (dr.gather(mi.Vector4f, data, row * _PACKETS + q) for q in range(4))
-    x_axis, y_axis = mi.Vector3f(p0.x, p0.y, p0.z), mi.Vector3f(p1.x, p1.y, p1.z)
-    normal = mi.Vector3f(p2.x, p2.y, p2.z)
-    sin_v, cos_v = p0.w, p1.w
-    u1 = mi.Float(k) * (1.0 / n_k) + (0.5 / n_k) + p2.w
-    u1 = u1 - dr.floor(u1)
-    u2 = mi.Float(k * _GOLDEN_U32) * 2.0**-32 + p3.x
-    u2 = u2 - dr.floor(u2)
+    row, x_axis, y_axis, normal, sin_v, cos_v, u1, u2, _ = _lattice_lanes(data, m, counts[strategy])
     emitter = probe.emitter()
     it = dr.zeros(mi.Interaction3f)
     if strategy == "uniform":

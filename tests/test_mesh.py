@@ -121,7 +121,7 @@ def test_visibility_kernel_matches_a_reference(torus_view):
     sub = obs.subset(rows)
     brdf = BivariateBRDF.reduce(BivariateLobe(diffuse=0.3, specular=3.0, width=0.2))
     k = 2000
-    L = lighting.lighting_matrix(sub, probe, n_dirs=k, occluder=torus_view.shape, seed=3)
+    L = lighting.lighting_matrix(sub, probe, n_dirs=k, occluder=torus_view.shape, seed=3, sampling="uniform")
     predicted = np.einsum("mnc,nc->mc", L, brdf.table.reshape(-1, 3))
 
     import mitsuba as mi
