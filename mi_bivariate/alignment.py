@@ -104,6 +104,7 @@ class _YawResidual:
         self.prior = prior_mod.default_prior().resampled(self.n_t, self.n_s) if brdf is None else None
         self.values = obs.values.astype(np.float64)
         self.norm = float(np.linalg.norm(self.values))
+        self.sigma = solve_mod.row_sigma(self.values, form="constant")
         self.cache: Dict[float, float] = {}
 
     def __call__(self, yaw_deg: float) -> float:
@@ -113,7 +114,9 @@ class _YawResidual:
             L = lighting.texel_lighting_matrix(self.obs, probe, n_t=self.n_t, n_s=self.n_s,
                                                downsample=self.downsample)
             if self.table is None:
-                table = solve_mod.solve(L, self.obs.values, self.prior, alpha=self.alpha).table
+                # The residual below is unweighted, so the fit is too (each row counts alike).
+                table = solve_mod.solve(L, self.obs.values, self.prior, alpha=self.alpha, sigma=self.sigma,
+                                        mean=None).table
                 predicted = np.einsum("mnc,nc->mc", L, table.reshape(-1, 3).astype(np.float64))
             else:
                 basis = np.einsum("mnc,nc->mc", L, self.table)

@@ -17,7 +17,10 @@ from mi_bivariate.render import bsdf_dict, render_sphere
 from test_mesh import sky_probe
 
 TRUTH = BivariateBRDF.reduce(BivariateLobe(diffuse=(0.3, 0.2, 0.1), specular=2.0, width=0.25))
-FAST = dict(n_normals=700, n_dirs=6000)
+# noise=None: these tests judge poses, probes and visibility by how well one table fits every
+# image (the residual, against negative controls). The default noise="auto" reads the 128-spp
+# inputs' Monte Carlo noise and rightly fits less of it, which raises exactly that residual.
+FAST = dict(n_normals=700, n_dirs=6000, noise=None)
 
 
 _NOVEL = {}

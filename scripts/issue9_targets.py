@@ -1,0 +1,73 @@
+"""The issue-9 targets from an evaluation folder (results.jsonl): one table, medians over materials.
+
+    python scripts/issue9_targets.py out/evaluate [--noisy out/evaluate_noise]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+
+def load(folder: str) -> dict:
+    records = {}
+    for line in (Path(folder) / "results.jsonl").read_text().splitlines():
+        if line.strip():
+            r = json.loads(line)
+            records[r["material"]] = r
+    return records
+
+
+def relight(entry: dict) -> float:
+    return float(np.median([v["rel_rmse"] for v in entry["images"].values()]))
+
+
+def ratio(entry: dict) -> float:
+    return float(np.median([v["ratio"] for v in entry["images"].values() if "ratio" in v]))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("folder")
+    parser.add_argument("--noisy", default=None, help="an evaluation of the same materials with --noise")
+    parser.add_argument("--single", default="grace_latlong_1k")
+    parser.add_argument("--other", default="uffizi_256")
+    args = parser.parse_args()
+    records = load(args.folder)
+    both = f"{args.single}+{args.other}"
+    rows = []
+    for name, r in sorted(records.items()):
+        e = r["inputs"]
+        exact = r["floors"]["exact_floor"]
+        row = {"material": name, "ratio 1 image": ratio(e[args.single]),
+               "eq1 observed / exact floor": e[args.single]["recovered"]["eq1_observed"] / exact,
+               "eq1 f>1e-3 / exact floor (f>1e-3)": e[args.single]["recovered"]["eq1_min"] / r["floors"]["exact_floor_min"]}
+        if both in e:
+            row["ratio 2 images"] = ratio(e[both])
+            row["2 images beat the better single"] = relight(e[both]) < min(relight(e[args.single]), relight(e[args.other]))
+        rows.append(row)
+    keys = list(rows[0])
+    print("| " + " | ".join(keys) + " |\n|" + "---|" * len(keys))
+    for row in rows:
+        print("| " + " | ".join(f"{v:.2f}" if isinstance(v, float) else str(v) for v in row.values()) + " |")
+    print(f"\n{len(rows)} materials. Medians:")
+    for k in keys[1:]:
+        values = [row[k] for row in rows if k in row]
+        if values and isinstance(values[0], bool):
+            print(f"- {k}: {sum(values)}/{len(values)} ({100 * np.mean(values):.0f}%)")
+        elif values:
+            print(f"- {k}: {np.median(values):.2f}")
+    if args.noisy:
+        noisy = load(args.noisy)
+        pairs = [(relight(noisy[m]["inputs"][args.single]), relight(records[m]["inputs"][args.single]))
+                 for m in noisy if m in records]
+        print(f"- noisy / clean relight error ({len(pairs)} materials): median "
+              f"{np.median([a / b for a, b in pairs]):.2f}; medians {np.median([a for a, _ in pairs]):.4f} / "
+              f"{np.median([b for _, b in pairs]):.4f}")
+
+
+if __name__ == "__main__":
+    main()
