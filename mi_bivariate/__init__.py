@@ -9,16 +9,13 @@ is the library's front door.
 from __future__ import annotations
 
 import importlib
+import pkgutil
 from typing import Any
 
 __version__ = "0.1.0"
 
-_SUBMODULES = (
-    "adequacy", "alignment", "analytic", "atomic", "baselines", "basis_prior", "bivariate", "capture", "cli",
-    "coordinates", "demo", "errors", "evaluate", "geometry", "images", "lighting", "merl", "mesh", "metrics",
-    "nbrdf", "noise", "npzio", "prior", "probes", "recover", "reference", "render", "report", "solve",
-    "spherefit", "synthesis", "threads", "training_set", "variants",
-)
+#: Every module and sub-package of the package, found on disk so the list cannot drift.
+_SUBMODULES = tuple(sorted(m.name for m in pkgutil.iter_modules(__path__) if not m.name.startswith("_")))
 
 
 def __getattr__(name: str) -> Any:

@@ -16,11 +16,11 @@ import contextlib
 import os
 import tempfile
 from pathlib import Path
-from typing import Iterable, Iterator, List, Optional, Sequence, Union
+from typing import Iterable, Iterator, List, Optional, Sequence
 
 from mi_bivariate.errors import InputError
+from mi_bivariate.common import PathLike
 
-PathLike = Union[str, os.PathLike]
 
 
 def _write_error(path: Path, exc: OSError) -> InputError:

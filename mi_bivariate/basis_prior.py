@@ -35,15 +35,15 @@ import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Mapping, Optional, Sequence, Tuple, Union
+from typing import Mapping, Optional, Sequence, Tuple
 
 import numpy as np
+from mi_bivariate.common import PathLike
 
 from .atomic import atomic_path
 from .errors import InputError
 from .npzio import read_npz
 
-PathLike = Union[str, os.PathLike]
 FORMAT = "mi_bivariate.basis_prior"
 FORMAT_VERSION = 1
 #: Relative offset of the log map: values EPS times below a table's median count as ~0.

@@ -18,7 +18,7 @@ import json
 import math
 import os
 from pathlib import Path
-from typing import Any, Optional, Union
+from typing import Any, Optional
 
 import numpy as np
 
@@ -28,8 +28,8 @@ from mi_bivariate.errors import InputError
 from mi_bivariate.images import write_exr
 from mi_bivariate.npzio import read_npz
 from mi_bivariate.merl import MERL_SHAPE, MERLBRDF, above_horizon, node_angles
+from mi_bivariate.common import PathLike
 
-PathLike = Union[str, os.PathLike]
 
 FORMAT = "mi_bivariate.BivariateBRDF"
 FORMAT_VERSION = 1

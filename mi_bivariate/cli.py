@@ -14,9 +14,9 @@ import os
 import sys
 import warnings
 from pathlib import Path
-from typing import Callable, Dict, List, Optional, Sequence
+from typing import Dict, List, Optional, Sequence
 
-from mi_bivariate.errors import InputError, InputWarning
+from mi_bivariate.errors import InputError
 
 # Limits on user numbers, checked before anything is allocated. Each is far above
 # the documented defaults and below what a 16 GB machine (or Dr.Jit's 32-bit

@@ -9,9 +9,9 @@ the class.
 from __future__ import annotations
 
 import os
-from typing import Optional, Union
+from typing import Optional
+from mi_bivariate.common import PathLike
 
-PathLike = Union[str, os.PathLike]
 
 
 class InputError(ValueError):

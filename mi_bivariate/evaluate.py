@@ -65,8 +65,8 @@ import numpy as np
 
 from mi_bivariate.atomic import atomic_path
 from mi_bivariate.errors import InputError, InputWarning
+from mi_bivariate.common import PathLike
 
-PathLike = Union[str, os.PathLike]
 
 #: Bumped when the protocol changes in a way that changes numbers (part of the config hash).
 PROTOCOL_VERSION = 3

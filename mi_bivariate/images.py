@@ -24,14 +24,14 @@ import shlex
 import sys
 import warnings
 from pathlib import Path
-from typing import Dict, Optional, Tuple, Union
+from typing import Dict, Optional, Tuple
 
 import numpy as np
 
 from mi_bivariate.atomic import atomic_path
 from mi_bivariate.errors import InputError, InputWarning
+from mi_bivariate.common import PathLike
 
-PathLike = Union[str, os.PathLike]
 HDR_SUFFIXES = (".exr", ".hdr", ".rgbe", ".pic", ".pfm")
 LDR_SUFFIXES = (".png", ".jpg", ".jpeg")
 

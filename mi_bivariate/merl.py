@@ -28,8 +28,8 @@ import numpy as np
 from mi_bivariate.atomic import atomic_path
 from mi_bivariate.coordinates import fold_phi_d
 from mi_bivariate.errors import InputError
+from mi_bivariate.common import PathLike
 
-PathLike = Union[str, os.PathLike]
 
 MERL_SHAPE: Tuple[int, int, int] = (90, 90, 180)
 MERL_SCALE: Tuple[float, float, float] = (1.0 / 1500.0, 1.15 / 1500.0, 1.66 / 1500.0)

@@ -31,7 +31,6 @@ background, or a near surface with a far one, are left out.
 from __future__ import annotations
 
 import math
-import os
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -42,8 +41,8 @@ import numpy as np
 from mi_bivariate.capture import Observations, observations_from_normal_map
 from mi_bivariate.errors import InputError, InputWarning
 from mi_bivariate.geometry import Intrinsics
+from mi_bivariate.common import PathLike
 
-PathLike = Union[str, os.PathLike]
 
 #: Mesh file types read through trimesh.
 MESH_SUFFIXES = (".obj", ".ply", ".stl", ".glb", ".gltf", ".off")

@@ -14,14 +14,14 @@ from __future__ import annotations
 import functools
 import os
 from pathlib import Path
-from typing import Dict, Optional, Tuple, Union
+from typing import Dict, Optional, Tuple
 
 import numpy as np
 
 from mi_bivariate.errors import InputError
 from mi_bivariate.merl import MERL_SHAPE, MERLBRDF, geometric_mask, node_angles
+from mi_bivariate.common import PathLike
 
-PathLike = Union[str, os.PathLike]
 
 NBRDF_MATERIALS: Tuple[str, ...] = (
     "alum-bronze", "black-fabric", "blue-acrylic", "brass", "colonial-maple-223",

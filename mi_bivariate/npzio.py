@@ -12,16 +12,15 @@ and strings only: no objects, complex numbers or datetimes). Only then does
 from __future__ import annotations
 
 import math
-import os
 import zipfile
 from pathlib import Path
-from typing import Dict, Optional, Sequence, Union
+from typing import Dict, Optional, Sequence
 
 import numpy as np
 
 from mi_bivariate.errors import InputError
+from mi_bivariate.common import PathLike
 
-PathLike = Union[str, os.PathLike]
 
 #: Largest uncompressed array read from an archive (bytes): 1 GiB.
 MAX_MEMBER_BYTES = 1 << 30

@@ -63,6 +63,7 @@ from pathlib import Path
 from typing import Any, Dict, Mapping, Optional, Sequence, Tuple, Union
 
 import numpy as np
+from mi_bivariate.common import PathLike
 import scipy.sparse as sp
 
 from .atomic import atomic_path
@@ -88,7 +89,6 @@ DEFAULT_FLOOR = 1e-2
 #: an unchanged novel-lighting error (benchmarks/tune_alpha.py, docs/results.md).
 DEFAULT_CEILING: Optional[float] = 100.0
 
-PathLike = Union[str, os.PathLike]
 SigmaPair = Tuple[np.ndarray, np.ndarray]
 
 

@@ -51,8 +51,8 @@ import numpy as np
 
 from mi_bivariate.images import read_image, write_exr
 from mi_bivariate.errors import InputError
+from mi_bivariate.common import PathLike
 
-PathLike = Union[str, os.PathLike]
 
 #: Readable probe file types (extension -> description).
 PROBE_FORMATS: Dict[str, str] = {

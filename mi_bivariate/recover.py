@@ -11,7 +11,6 @@ regularised solve (:mod:`solve`, Eq. 6 with the learnt :mod:`prior`)
 
 from __future__ import annotations
 
-import os
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -28,8 +27,8 @@ from mi_bivariate.geometry import SphereGeometry
 from mi_bivariate.images import load_image, load_mask
 from mi_bivariate.noise import estimate_camera_noise
 from mi_bivariate.probes import Probe
+from mi_bivariate.common import PathLike
 
-PathLike = Union[str, os.PathLike]
 
 
 @dataclass

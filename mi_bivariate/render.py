@@ -36,11 +36,9 @@ from typing import Any, Dict, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
-from mi_bivariate.atomic import atomic_path
 from mi_bivariate.errors import InputError
 from mi_bivariate.geometry import SphereGeometry
 
-PathLike = Union[str, os.PathLike]
 
 #: Distance of the orthographic camera from the sphere's centre (any value > 1 works).
 ORTHO_DISTANCE = 5.0

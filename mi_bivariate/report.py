@@ -7,9 +7,8 @@ recovered and reference renders are directly comparable.
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
-from typing import Any, Dict, Optional, Sequence, Tuple, Union
+from typing import Any, Dict, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -17,8 +16,8 @@ from mi_bivariate.atomic import atomic_path
 from mi_bivariate.bivariate import BivariateBRDF
 from mi_bivariate.coordinates import half_diff_from_dirs
 from mi_bivariate.images import tonemap
+from mi_bivariate.common import PathLike
 
-PathLike = Union[str, os.PathLike]
 
 
 def _pyplot():

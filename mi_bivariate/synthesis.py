@@ -31,14 +31,13 @@ The clock stops while errors are measured.
 
 from __future__ import annotations
 
-import os
 import time
 from dataclasses import asdict, dataclass
-from typing import Any, Callable, Dict, List, Optional, Union
+from typing import Any, Callable, Dict, List, Optional
 
 import numpy as np
+from mi_bivariate.common import PathLike
 
-PathLike = Union[str, os.PathLike]
 
 
 @dataclass(frozen=True)

@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Dict, Iterable, Optional, Sequence, Tuple, Union
 
 import numpy as np
+from mi_bivariate.common import PathLike
 
 from .atomic import atomic_path
 from .basis_prior import BasisPrior
@@ -29,7 +30,6 @@ from .merl import MERLBRDF, merl_files_in
 from .nbrdf import ALL_NBRDF_MATERIALS, NBRDF_FILE, NBRDF_TRAIN_FILE, data_dir as nbrdf_data_dir, nbrdf_merl
 from .prior import Prior
 
-PathLike = Union[str, os.PathLike]
 
 
 def cache_dir() -> Path:
