@@ -36,12 +36,12 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import dataclass, field, replace
-from typing import Any, Dict, Optional, Sequence, Tuple
+from typing import Dict, Optional, Sequence, Tuple
 
 import numpy as np
 
 from mi_bivariate.errors import InputError, InputWarning
-from mi_bivariate.geometry import PerspectiveSphereGeometry, SphereGeometry
+from mi_bivariate.geometry import Geometry, SphereGeometry, check_rotation
 
 DROP_REASONS: Tuple[str, ...] = ("view_angle", "outside_image", "silhouette", "outside_mask",
                                  "duplicate", "nonfinite", "negative", "saturated")
@@ -173,14 +173,6 @@ def _check_mask(mask: Optional[np.ndarray], shape: Tuple[int, int], source: str)
     return mask.astype(bool)
 
 
-def _check_rotation(matrix: np.ndarray, source: str) -> np.ndarray:
-    matrix = np.asarray(matrix, dtype=np.float64)
-    if matrix.shape != (3, 3) or not np.all(np.isfinite(matrix)) \
-            or not np.allclose(matrix @ matrix.T, np.eye(3), atol=1e-6) or np.linalg.det(matrix) < 0:
-        raise InputError(source, "camera_to_world is not a (3, 3) rotation matrix")
-    return matrix
-
-
 def _plateau_warning(values: np.ndarray, source: str) -> None:
     """Warn when many pixels sit exactly at the image maximum (a clipped image)."""
     finite = values[np.all(np.isfinite(values), axis=1)]
@@ -266,7 +258,7 @@ def observations_from_sphere(image: np.ndarray, geometry: SphereGeometry, n_norm
     image = _check_image(image, source)
     height, width = image.shape[:2]
     mask = _check_mask(mask, (height, width), source)
-    rot = _check_rotation(geometry.camera_to_world, source)
+    rot = check_rotation(geometry.camera_to_world, source)
     cx, cy, radius = float(geometry.cx), float(geometry.cy), float(geometry.radius)
     if not all(math.isfinite(v) for v in (cx, cy, radius)) or radius <= 0.0:
         raise InputError(source, f"invalid sphere: centre ({cx:g}, {cy:g}), radius {radius:g} px")
@@ -408,39 +400,43 @@ def observations_from_normal_map(image: np.ndarray, normals: np.ndarray, mask: n
     return obs
 
 
-def image_observations(image: np.ndarray, geometry: Any, *, n_normals: int = 8000,
+def image_observations(image: np.ndarray, geometry: Geometry, *, n_normals: int = 8000,
                        max_view_angle_deg: float = 80.0, saturation: Optional[float] = None,
-                       mask: Optional[np.ndarray] = None, seed: int = 0,
+                       mask: Optional[np.ndarray] = None, seed: int = 0, probe_index: int = 0,
                        source: str = "image") -> Observations:
-    """Observations of one image for any supported geometry.
+    """Observations of one image for any :class:`~mi_bivariate.geometry.Geometry`.
 
-    ``geometry`` is a :class:`SphereGeometry` (orthographic sphere), a
+    A :class:`SphereGeometry` (orthographic sphere) takes the lattice route of
+    :func:`observations_from_sphere`. Any other geometry, a
     :class:`PerspectiveSphereGeometry` (pinhole photo of a sphere: exact
     per-pixel normals and views, fully covered pixels only) or a
-    :class:`mi_bivariate.mesh.MeshView` (any mesh with a posed camera).
+    :class:`mi_bivariate.mesh.MeshView` (any mesh with a posed camera), gives
+    its :meth:`~mi_bivariate.geometry.Geometry.surface_maps` to
+    :func:`observations_from_normal_map`; rows keep the surface points, when the
+    geometry has them, for visibility.
     """
     common = dict(n_normals=n_normals, max_view_angle_deg=max_view_angle_deg, saturation=saturation, seed=seed,
-                  source=source)
+                  probe_index=probe_index, source=source)
     if isinstance(geometry, SphereGeometry):
         return observations_from_sphere(image, geometry, mask=mask, **common)
-    if isinstance(geometry, PerspectiveSphereGeometry):
-        image = np.asarray(image)
-        if image.ndim != 3:
-            raise InputError(source, f"expected an (H, W, 3) RGB image, got shape {image.shape}")
-        normals, views, usable = geometry.normals_and_views(image.shape[1], image.shape[0], coverage="full")
-        if mask is not None:
-            mask = np.asarray(mask)
-            if mask.shape != usable.shape:
-                raise InputError(source, f"mask has shape {mask.shape} but the image is "
-                                         f"{image.shape[0]}x{image.shape[1]}")
-            usable = usable & mask.astype(bool)
-        if not usable.any():
-            raise InputError(source, "no pixel lies fully inside the sphere's silhouette")
-        return observations_from_normal_map(image, normals, usable, views, **common)
-    if callable(getattr(geometry, "observations", None)):
-        return geometry.observations(image, mask=mask, **common)
-    raise InputError(source, f"unsupported geometry {type(geometry).__name__}",
-                     "use SphereGeometry, PerspectiveSphereGeometry or mesh.MeshView")
+    if not isinstance(geometry, Geometry):
+        raise InputError(source, f"unsupported geometry {type(geometry).__name__}",
+                         "use SphereGeometry, PerspectiveSphereGeometry or mesh.MeshView")
+    image = np.asarray(image)
+    if image.ndim != 3:
+        raise InputError(source, f"expected an (H, W, 3) RGB image, got shape {image.shape}")
+    maps = geometry.surface_maps(image.shape[1], image.shape[0], source)
+    usable = maps.mask
+    if mask is not None:
+        mask = np.asarray(mask)
+        if mask.shape != usable.shape:
+            raise InputError(source, f"mask has shape {mask.shape} but the image is "
+                                     f"{image.shape[0]}x{image.shape[1]}")
+        usable = usable & mask.astype(bool)
+    if not usable.any():
+        raise InputError(source, geometry.no_pixels, geometry.no_pixels_hint)
+    return observations_from_normal_map(image, maps.normals, usable, maps.views, positions=maps.positions,
+                                        geometric_normals=maps.geometric_normals, **common)
 
 
 def stack(observations: Sequence[Observations],

@@ -48,6 +48,8 @@ from pathlib import Path
 from typing import Any, Dict, Optional, Sequence, Tuple, Union
 
 import numpy as np
+import drjit as dr
+import mitsuba as mi
 
 from mi_bivariate.images import read_image, write_exr
 from mi_bivariate.errors import InputError
@@ -428,11 +430,6 @@ class Probe:
 
     def emitter_dict(self) -> dict:
         """Mitsuba ``envmap`` emitter dictionary (data passed as a ``mi.Bitmap``)."""
-        import mitsuba as mi
-
-        from mi_bivariate.variants import ensure_variant
-
-        ensure_variant()
         return {
             "type": "envmap",
             "bitmap": mi.Bitmap(np.array(self.data)),  # nanobind wants a writable array
@@ -441,11 +438,7 @@ class Probe:
 
     def emitter(self) -> Any:
         """The loaded ``envmap`` emitter for the active variant (cached)."""
-        import mitsuba as mi
-
-        from mi_bivariate.variants import ensure_variant
-
-        variant = ensure_variant()
+        variant = mi.variant()
         if variant not in self._emitters:
             self._emitters[variant] = mi.load_dict(self.emitter_dict())
         return self._emitters[variant]
@@ -456,9 +449,6 @@ class Probe:
         Calls the envmap emitter's own ``eval`` (which looks up ``-si.wi``), so
         the values are bit-identical to what a render sees.
         """
-        import drjit as dr
-        import mitsuba as mi
-
         emitter = self.emitter()
         si = dr.zeros(mi.SurfaceInteraction3f)
         si.wi = -directions
@@ -466,8 +456,6 @@ class Probe:
 
     def eval(self, directions: np.ndarray) -> np.ndarray:
         """Radiance towards world ``directions`` ``(N, 3)`` (normalised here): ``(N, 3) float32``."""
-        import mitsuba as mi
-
         d = np.asarray(directions, dtype=np.float64)
         if d.ndim != 2 or d.shape[1] != 3:
             raise ValueError(f"directions must have shape (N, 3), got {d.shape}")

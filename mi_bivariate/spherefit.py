@@ -37,7 +37,7 @@ from typing import Any, Optional, Sequence, Tuple, Union
 import numpy as np
 
 from mi_bivariate.errors import InputError, InputWarning
-from mi_bivariate.geometry import Intrinsics, PerspectiveSphereGeometry, SphereGeometry
+from mi_bivariate.geometry import orthonormal_pair, Intrinsics, PerspectiveSphereGeometry, SphereGeometry
 
 #: Confidence thresholds: RMS boundary distance (pixels), inlier fraction,
 #: fraction of the circle's outline observed, smallest radius (pixels).
@@ -508,11 +508,9 @@ def fit_cone(points: np.ndarray, intrinsics: Intrinsics, circle: Tuple[float, fl
         ``(axis (3,) unit camera-frame centre direction, half_angle radians,
         residuals (N,) pixels, inliers (N,) bool)``.
     """
-    from mi_bivariate.geometry import _orthonormal_pair
-
     rays = intrinsics.rays(points[:, 0], points[:, 1])
     a0 = intrinsics.rays(circle[0], circle[1])
-    e1, e2 = _orthonormal_pair(a0)
+    e1, e2 = orthonormal_pair(a0)
 
     def cone(p):
         a = a0 + p[0] * e1 + p[1] * e2

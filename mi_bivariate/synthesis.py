@@ -105,7 +105,7 @@ def optimise_table(image: np.ndarray, mask: np.ndarray, probe: Any, start: np.nd
 
     start = np.ascontiguousarray(np.maximum(np.asarray(start, np.float32), 1e-6))
     res = image.shape[0]
-    cam = render.make_camera("orthographic", res, radius_fraction=0.45)
+    cam = render.SphereCamera.create("orthographic", res, radius_fraction=0.45)
     scene_dict = render.sphere_scene_dict({"type": "bivariate", "table": mi.Bitmap(start),
                                            "sampling": settings.sampling}, probe, cam, normals=False)
     scene_dict["integrator"] = {"type": "prb", "max_depth": settings.max_depth, "hide_emitters": True}

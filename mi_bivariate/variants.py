@@ -4,6 +4,14 @@ The toolkit runs on ``llvm_ad_rgb`` by default and on ``cuda_ad_rgb`` where a
 GPU exists (same code). ``MI_BIVARIATE_VARIANT`` overrides the default. Python
 BSDF plugins are registered per variant, so every switch goes through
 :func:`ensure_variant`.
+
+Only the front doors select the variant: the CLI's commands,
+:func:`mi_bivariate.recover.recover`, the rendering entry points
+(``render``, ``reference``, ``mesh.render_mesh``), the demo and the
+evaluation's workers. Code below them (data-model methods such as
+``BivariateBRDF.to_bitmap`` or ``Probe.emitter``) uses whatever variant is
+selected and never changes it; without one, Mitsuba itself raises
+``No variant was set!``.
 """
 
 from __future__ import annotations
@@ -11,7 +19,10 @@ from __future__ import annotations
 import os
 from typing import Optional
 
+import mitsuba as mi
+
 from mi_bivariate.errors import InputError
+from mi_bivariate.plugins import register
 
 DEFAULT_VARIANT = "llvm_ad_rgb"
 SUPPORTED_VARIANTS = ("llvm_ad_rgb", "cuda_ad_rgb", "scalar_rgb")
@@ -31,8 +42,6 @@ def ensure_variant(variant: Optional[str] = None) -> str:
         InputError: (a ``ValueError``) naming ``--variant`` or
             ``MI_BIVARIATE_VARIANT`` for an unsupported or unavailable variant.
     """
-    import mitsuba as mi
-
     current = mi.variant()
     source = "--variant"
     if variant is None:
@@ -48,7 +57,6 @@ def ensure_variant(variant: Optional[str] = None) -> str:
                          f"available: {', '.join(v for v in mi.variants() if v in SUPPORTED_VARIANTS)}")
     if current != variant:
         mi.set_variant(variant)
-    from mi_bivariate.plugins import register
-
     register()
     return variant
+
