@@ -566,7 +566,7 @@ def lighting_matrix(obs: Observations, probes: Union[Any, Sequence[Any]], n_t: i
     """
     from mi_bivariate.variants import ensure_variant
 
-    ensure_variant()
+    ensure_variant(vectorised=True)
     probes = _as_probe_list(probes)
     _check_inputs(obs, probes, n_t, n_s, n_dirs)
     if sampling not in SAMPLINGS:
@@ -624,7 +624,7 @@ def texel_lighting_matrix(obs: Observations, probes: Union[Any, Sequence[Any]], 
 
     from mi_bivariate.variants import ensure_variant
 
-    ensure_variant()
+    ensure_variant(vectorised=True)
     probes = _as_probe_list(probes)
     _check_inputs(obs, probes, n_t, n_s, 2)
     if downsample < 1:

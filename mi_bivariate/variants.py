@@ -28,12 +28,15 @@ DEFAULT_VARIANT = "llvm_ad_rgb"
 SUPPORTED_VARIANTS = ("llvm_ad_rgb", "cuda_ad_rgb", "scalar_rgb")
 
 
-def ensure_variant(variant: Optional[str] = None) -> str:
+def ensure_variant(variant: Optional[str] = None, vectorised: bool = False) -> str:
     """Select a Mitsuba variant (if needed) and register the plugins for it.
 
     Args:
         variant: a variant name; ``None`` keeps an already selected supported
             variant, else uses ``$MI_BIVARIATE_VARIANT`` or ``llvm_ad_rgb``.
+        vectorised: the caller needs a JIT (wide) variant, as the lighting
+            matrix does: with ``variant=None`` an active ``scalar_rgb`` is
+            replaced by the default; naming ``scalar_rgb`` is an error.
 
     Returns:
         The active variant name.
@@ -45,16 +48,17 @@ def ensure_variant(variant: Optional[str] = None) -> str:
     current = mi.variant()
     source = "--variant"
     if variant is None:
-        if current in SUPPORTED_VARIANTS:
+        if current in SUPPORTED_VARIANTS and not (vectorised and current == "scalar_rgb"):
             variant = current
         else:
             variant = os.environ.get("MI_BIVARIATE_VARIANT") or DEFAULT_VARIANT
             source = "MI_BIVARIATE_VARIANT"
-    if variant not in SUPPORTED_VARIANTS:
-        raise InputError(source, f"unsupported Mitsuba variant {variant!r}", f"use one of {', '.join(SUPPORTED_VARIANTS)}")
+    choices = [v for v in SUPPORTED_VARIANTS if not (vectorised and v == "scalar_rgb")]
+    if variant not in choices:
+        raise InputError(source, f"unsupported Mitsuba variant {variant!r}", f"use one of {', '.join(choices)}")
     if variant not in mi.variants():
         raise InputError(source, f"Mitsuba variant {variant!r} is not available in this build",
-                         f"available: {', '.join(v for v in mi.variants() if v in SUPPORTED_VARIANTS)}")
+                         f"available: {', '.join(v for v in mi.variants() if v in choices)}")
     if current != variant:
         mi.set_variant(variant)
     register()
