@@ -53,7 +53,7 @@ import mitsuba as mi
 
 from mi_bivariate.images import read_image, write_exr
 from mi_bivariate.errors import InputError
-from mi_bivariate.common import PathLike
+from mi_bivariate.common import PathLike, luminance
 
 
 #: Readable probe file types (extension -> description).
@@ -95,8 +95,6 @@ GRACE_LATLONG_ROTATION: np.ndarray = np.array([
     [math.sin(math.radians(275.0)), 0.0, math.cos(math.radians(275.0))],
 ])
 
-#: Rec. 709 luminance weights, as Mitsuba's ``luminance()``.
-LUMINANCE_WEIGHTS = np.array([0.212671, 0.715160, 0.072169])
 
 _TO_WORLD_KEY = "mi_bivariate_to_world"
 _EVAL_CHUNK = 1 << 22
@@ -500,10 +498,6 @@ def _bilinear_disk_lookup(image: np.ndarray, a: np.ndarray, b: np.ndarray) -> np
     bottom = img[y0 + 1, x0] * (1 - wx) + img[y0 + 1, x0 + 1] * wx
     return (top * (1 - wy) + bottom * wy).astype(np.float32)
 
-
-def luminance(rgb: np.ndarray) -> np.ndarray:
-    """Rec. 709 luminance of ``(..., 3)`` linear RGB."""
-    return np.asarray(rgb, dtype=np.float64) @ LUMINANCE_WEIGHTS
 
 
 def log_luminance_correlation(reference: Probe, other: Probe, width: int = 64,

@@ -14,6 +14,7 @@ from typing import Any, Optional, Tuple
 
 import numpy as np
 
+from mi_bivariate.common import LUMINANCE_WEIGHTS
 from mi_bivariate.errors import InputError
 
 #: The smallest sphere radius (pixels) looked for, and trusted.
@@ -31,18 +32,16 @@ REFINE_PASSES = 2
 #: Scale (pixels) of the Gaussian smoothing before edge detection.
 EDGE_SIGMA_PX = 1.0
 
-_LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
-
 
 # ------------------------------------------------------------------ inputs
 
-def luminance(image: np.ndarray, source: str = "image") -> np.ndarray:
+def luminance_map(image: np.ndarray, source: str = "image") -> np.ndarray:
     """Linear luminance ``(H, W) float64`` of an ``(H, W)``, ``(H, W, 1|3|4)`` image; NaN where not finite."""
     image = np.asarray(image)
     if not np.issubdtype(image.dtype, np.number) or np.iscomplexobj(image):
         raise InputError(source, f"image has non-numeric dtype {image.dtype}")
     if image.ndim == 3 and image.shape[2] in (1, 3, 4):
-        image = image[..., 0] if image.shape[2] == 1 else image[..., :3].astype(np.float64) @ _LUMINANCE
+        image = image[..., 0] if image.shape[2] == 1 else image[..., :3].astype(np.float64) @ LUMINANCE_WEIGHTS
     elif image.ndim != 2:
         raise InputError(source, f"expected an (H, W) or (H, W, 3) image, got shape {image.shape}")
     lum = np.asarray(image, dtype=np.float64)
@@ -273,7 +272,7 @@ def segment_sphere(image: np.ndarray, mask: Optional[np.ndarray] = None, source:
     Raises:
         InputError: no finite pixel, empty mask, or no circular region found.
     """
-    lum = luminance(image, source)
+    lum = luminance_map(image, source)
     height, width = lum.shape
     if mask is not None:
         mask = _check_mask(mask, (height, width), source)

@@ -39,7 +39,7 @@ import numpy as np
 from mi_bivariate.errors import InputError, InputWarning
 from mi_bivariate.geometry import Intrinsics, PerspectiveSphereGeometry, SphereGeometry, orthonormal_pair
 from mi_bivariate.silhouette import (MIN_RADIUS_PX, REFINE_PASSES, arc_fraction, crack_points, disc_mask, kasa_circle,
-                                     luminance, refine_boundary, segment_sphere)
+                                     luminance_map, refine_boundary, segment_sphere)
 
 #: Confidence thresholds: RMS boundary distance (pixels), inlier fraction,
 #: fraction of the circle's outline observed (and silhouette.MIN_RADIUS_PX).
@@ -235,7 +235,7 @@ def fit_sphere(image: Optional[np.ndarray] = None, mask: Optional[np.ndarray] = 
         raise InputError(source, f"sphere radius must be a positive number, got {radius!r}")
     if image is None and mask is None and sphere is None:
         raise InputError(source, "nothing to fit: give an image, a mask or an explicit sphere")
-    lum = None if image is None else luminance(image, source)
+    lum = None if image is None else luminance_map(image, source)
     shape = lum.shape if lum is not None else (None if mask is None else np.shape(mask)[:2])
 
     if sphere is not None:

@@ -33,10 +33,10 @@ import numpy as np
 import drjit as dr
 import mitsuba as mi
 
+from mi_bivariate.common import luminance
 from mi_bivariate.errors import InputError
 
 #: Luminance weights (Rec. 709) used to turn RGB tables into one density.
-LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 
 #: Mixture weight of cosine sampling is clamped to this range, so neither
 #: strategy is ever switched off (robust to tables that are mostly one or
@@ -315,7 +315,3 @@ def bitmap_to_array(bitmap: Any, source: str) -> np.ndarray:
         raise InputError(source, f"'table' bitmap must be RGB, got {array.shape[-1]} channel(s)")
     return array
 
-
-def luminance(table: np.ndarray) -> np.ndarray:
-    """RGB ``(..., 3)`` -> luminance ``(...)`` (float64)."""
-    return np.asarray(table, dtype=np.float64) @ LUMINANCE
