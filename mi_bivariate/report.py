@@ -17,6 +17,7 @@ from mi_bivariate.bivariate import BivariateBRDF
 from mi_bivariate.coordinates import half_diff_from_dirs
 from mi_bivariate.images import tonemap
 from mi_bivariate.common import PathLike
+from mi_bivariate import render
 
 
 
@@ -180,7 +181,6 @@ def write_recovery_report(result: Any, path: PathLike, rerender: Optional[np.nda
     label = "recovered BRDF re-rendered (same probe)"
     if rerender is None and image is not None and result.geometries:
         if path_trace:
-            from mi_bivariate import render
 
             geo = result.geometries[0]
             rerender = render.render_like(render.bsdf_dict(result.brdf), result.probes[0], geo,

@@ -32,7 +32,7 @@ def test_readme_names_resolve():
 
 
 def test_readme_python_example_runs(tmp_path, monkeypatch):
-    """The README's first Python block, on a small rendered sphere (file names swapped for real ones)."""
+    """The README's Python blocks, on a small rendered sphere (file names swapped for real ones)."""
     from mi_bivariate import analytic, render
     from mi_bivariate.demo import synthetic_environment
     from mi_bivariate.images import write_exr
@@ -45,12 +45,15 @@ def test_readme_python_example_runs(tmp_path, monkeypatch):
     merl = analytic.to_merl(analytic.Lambertian(np.array([0.6, 0.4, 0.3])))
     shot = render.render_sphere(render.bsdf_dict(merl), probe, resolution=64, spp=16, seed=0)
     write_exr(tmp_path / "photo.exr", shot.image)
-    block = re.search(r"```python\n(.*?)```", (ROOT / "README.md").read_text(), re.S).group(1)
-    block = block.replace("mb.recover.recover(image, probe, fit.geometry)",
-                          "mb.recover.recover(image, probe, fit.geometry, n_normals=500, n_dirs=2000)")
+    blocks = re.findall(r"```python\n(.*?)```", (ROOT / "README.md").read_text(), re.S)
+    assert len(blocks) >= 2
+    code = "\n".join(blocks).replace("mb.recover.recover(image, probe, fit.geometry)",
+                                     "mb.recover.recover(image, probe, fit.geometry, n_normals=500, n_dirs=2000)")
     monkeypatch.chdir(tmp_path)
-    exec(compile(block, "README.md", "exec"), {})
+    namespace: dict = {}
+    exec(compile(code, "README.md", "exec"), namespace)  # every Python block, in order, as a reader runs them
     assert (tmp_path / "brdf.npz").is_file() and (tmp_path / "brdf.binary").is_file()
+    assert "table" in namespace["params"]
 
 
 def _fresh_python(code: str, cwd: Path) -> subprocess.CompletedProcess:
