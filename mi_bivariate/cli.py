@@ -505,8 +505,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("demo", help="render a measured material, recover it, re-render it under a novel probe")
     p.add_argument("--out", default="out/demo", help="output folder")
-    p.add_argument("--material", default=None, help="MERL-NBRDF name (default: gold-metallic-paint3; "
-                                                    "an analytic material without shared data)")
+    p.add_argument("--material", default=None,
+                   help="MERL-NBRDF name, MERL .binary or analytic spec (default: gold-metallic-paint3; "
+                        "an analytic material without shared data)")
     p.add_argument("--input-probe", default="grace_latlong_1k", help="probe lighting the input image")
     p.add_argument("--novel-probe", default="pisa_256", help="probe for the validation render")
     p.add_argument("--spp", type=int, default=256, help="samples per pixel of every render")
