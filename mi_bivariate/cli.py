@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Dict, List, Optional, Sequence
 
 from mi_bivariate.errors import InputError
+from mi_bivariate.sources import have_shared_data, load_brdf, load_probe
 
 # Limits on user numbers, checked before anything is allocated. Each is far above
 # the documented defaults and below what a 16 GB machine (or Dr.Jit's 32-bit
@@ -219,34 +220,6 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 # --------------------------------------------------------------------------- render
 
-def _load_brdf_source(spec: str, data: Optional[str], interpolation: str = "nearest"):
-    """A BRDF from a CLI spec: a MERL .binary, a bivariate .npz, an NBRDF name or an analytic spec."""
-    from mi_bivariate import analytic, bivariate, merl, nbrdf
-
-    path = Path(spec)
-    if path.suffix == ".binary":
-        return merl.MERLBRDF.read(path)
-    if path.suffix == ".npz":
-        return bivariate.BivariateBRDF.load(path)
-    if spec in nbrdf.NBRDF_MATERIALS:
-        return nbrdf.nbrdf_merl(spec, data_dir=data)
-    if ":" in spec or spec in ("lambertian", "ggx", "oren-nayar", "bivariate-lobe"):
-        return analytic.to_merl(analytic.analytic_from_spec(spec))
-    if path.exists():
-        raise InputError(path, "unknown BRDF file type", "use a MERL .binary or a bivariate .npz")
-    raise InputError(spec, "not a file, an NBRDF material name or an analytic spec",
-                     f"NBRDF names: {', '.join(nbrdf.NBRDF_MATERIALS)}")
-
-
-def _load_probe(spec: str, data: Optional[str]):
-    from mi_bivariate import probes
-
-    path = Path(spec)
-    if path.suffix:
-        return probes.Probe.load(path)
-    return probes.shared_probe(spec, data_dir=data)
-
-
 def cmd_render(args: argparse.Namespace) -> int:
     from mi_bivariate import render
     from mi_bivariate.variants import ensure_variant
@@ -259,8 +232,8 @@ def cmd_render(args: argparse.Namespace) -> int:
     out = Path(args.out)
     check_outputs([out, out.with_suffix(".png")], _existing_files(args.brdf, args.probe))
     ensure_variant(args.variant)
-    brdf = _load_brdf_source(args.brdf, args.data)
-    probe = _load_probe(args.probe, args.data)
+    brdf = load_brdf(args.brdf, args.data)
+    probe = load_probe(args.probe, args.data)
     result = render.render_sphere(render.bsdf_dict(brdf), probe, resolution=args.resolution, spp=args.spp,
                                   camera=args.camera, seed=args.seed)
     with atomic_paths([out, out.with_suffix(".png")]) as (exr, png):
@@ -347,7 +320,7 @@ def cmd_recover(args: argparse.Namespace) -> int:
         import drjit as dr
 
         dr.set_thread_count(args.threads)
-    probe = _load_probe(args.probe, args.data)
+    probe = load_probe(args.probe, args.data)
     image = load_image(args.image)
     mask = load_mask(args.mask, image.shape) if args.mask else None
     sphere = None if args.sphere in (None, "auto") else args.sphere
@@ -402,6 +375,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from mi_bivariate import evaluate as ev
+    from mi_bivariate import synthesis
     from mi_bivariate.variants import ensure_variant
 
     _check_recovery_sizes(args.normals or 8000, args.dirs or 32000, args.grid or (32, 32))
@@ -428,7 +402,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         "noise": args.noise, "renderer": args.renderer, "novel_resolution": args.novel_resolution,
         "prior": args.prior,
     }.items() if v is not None}
-    config = (ev.EvalConfig.quick(shared_data=ev.have_shared_data(data), **overrides) if args.quick
+    config = (ev.EvalConfig.quick(shared_data=have_shared_data(data), **overrides) if args.quick
               else ev.EvalConfig(**overrides))
     formats = ("png", "pdf") if args.pdf else ("png",)
     records = ev.run_evaluation(materials, args.out, config=config, jobs=args.jobs, dask=args.dask,
@@ -438,8 +412,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if args.abs:
         out = Path(args.out) / "analysis_by_synthesis.jsonl"
         for record in records[:args.abs]:
-            result = ev.analysis_by_synthesis(record["spec"], config.input_probes[0], config=config, data_dir=data,
-                                              time_factor=args.abs_time_factor)
+            result = synthesis.analysis_by_synthesis(record["spec"], config.input_probes[0], config=config,
+                                                     data_dir=data, time_factor=args.abs_time_factor)
             ev.append_record(out, result)
             a, lin = result["abs"], result["linear"]
             print(f"analysis by synthesis, {record['material']}: linear solve Eq. 1 {lin['eq1']:.4g} in "
@@ -531,8 +505,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("demo", help="render a measured material, recover it, re-render it under a novel probe")
     p.add_argument("--out", default="out/demo", help="output folder")
-    p.add_argument("--material", default=None, help="MERL-NBRDF name (default: gold-metallic-paint3; "
-                                                    "an analytic material without shared data)")
+    p.add_argument("--material", default=None,
+                   help="MERL-NBRDF name, MERL .binary or analytic spec (default: gold-metallic-paint3; "
+                        "an analytic material without shared data)")
     p.add_argument("--input-probe", default="grace_latlong_1k", help="probe lighting the input image")
     p.add_argument("--novel-probe", default="pisa_256", help="probe for the validation render")
     p.add_argument("--spp", type=int, default=256, help="samples per pixel of every render")

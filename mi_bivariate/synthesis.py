@@ -36,7 +36,10 @@ from dataclasses import asdict, dataclass
 from typing import Any, Callable, Dict, List, Optional
 
 import numpy as np
+
 from mi_bivariate.common import PathLike
+from mi_bivariate.evaluate.config import EvalConfig
+from mi_bivariate.sources import MaterialSpec, load_probe, load_truth, probe_label, resolve_materials
 
 
 
@@ -196,21 +199,20 @@ def analysis_by_synthesis(material: Any, input_probe: str = "grace_latlong_1k", 
         relight error / the linear route's time, when the linear route is at
         least as good) and ``trace``.
     """
-    from mi_bivariate import evaluate as ev
     from mi_bivariate import metrics, render
     from mi_bivariate.recover import recover
     from mi_bivariate.variants import ensure_variant
 
     ensure_variant()
-    config = config or ev.EvalConfig()
+    config = config or EvalConfig()
     settings = settings or SynthesisSettings()
     overrides = {k: v for k, v in (("spp", spp), ("learning_rate", learning_rate)) if v is not None}
     if overrides:
         settings = SynthesisSettings(**{**asdict(settings), **overrides})
-    spec = material if isinstance(material, ev.MaterialSpec) else ev.resolve_materials([material], data_dir)[0]
-    truth = ev.load_truth(spec, data_dir)
-    probe = ev.load_probe(input_probe, data_dir)
-    novel = ev.load_probe(novel_probe, data_dir)
+    spec = material if isinstance(material, MaterialSpec) else resolve_materials([material], data_dir)[0]
+    truth = load_truth(spec, data_dir)
+    probe = load_probe(input_probe, data_dir, cache=True)
+    novel = load_probe(novel_probe, data_dir, cache=True)
     res = config.resolution
     truth_bsdf = render.bsdf_dict(truth)
     shot = render.render_sphere(truth_bsdf, probe, resolution=res, spp=config.spp, seed=config.seed)
@@ -254,7 +256,7 @@ def analysis_by_synthesis(material: Any, input_probe: str = "grace_latlong_1k", 
     reached_relight = first("relight", linear_relight)
     speedup = best["time_s"] / linear_s if linear_relight <= best["relight"] and linear_s > 0 else None
     last = trace[-1]
-    return {"material": spec.label, "input_probe": ev.probe_label(input_probe), "novel_probe": ev.probe_label(novel_probe),
+    return {"material": spec.label, "input_probe": probe_label(input_probe), "novel_probe": probe_label(novel_probe),
             "config_hash": config.hash(),
             "linear": {"time_s": linear_s, "relight": linear_relight, **linear_errors},
             "abs": {"iterations": run["iterations"], "time_s": run["time_s"], "budget_s": budget,
