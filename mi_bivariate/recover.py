@@ -28,6 +28,7 @@ from mi_bivariate.images import load_image, load_mask
 from mi_bivariate.noise import estimate_camera_noise
 from mi_bivariate.probes import Probe
 from mi_bivariate.common import PathLike
+from mi_bivariate.threads import blas_threads
 
 
 
@@ -196,16 +197,18 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
         prior = prior.resampled(n_t, n_s)
     basis = _basis_prior(basis_prior, n_t, n_s)
     noise_models = _noise_list(noise, images)
-    sigma = solve_mod.row_sigma(observations.values, observations.image_index, noise=noise_models)
-    data = solve_mod.prepare_data_term(L, observations.values, sigma)
-    solution = solve_mod.solve_prepared(data, prior, alpha)
-    if basis is not None:
-        mean, std = basis.predict(solution.table, solution.resolution, solution.posterior_std)
-        solution = solve_mod.solve_prepared(data, prior, alpha, mean=mean, mean_std=std)
-    timings["solve"] = time.perf_counter() - t0
-
-    table = solution.table
-    predicted = np.einsum("mnc,nc->mc", L, table.reshape(n_t * n_s, 3), optimize=True)
+    with blas_threads():  # no BLAS oversubscription on a shared machine (mi_bivariate.threads)
+        sigma = solve_mod.row_sigma(observations.values, observations.image_index, noise=noise_models)
+        data = solve_mod.prepare_data_term(L, observations.values, sigma)
+        timings["normal equations"] = time.perf_counter() - t0
+        solution = solve_mod.solve_prepared(data, prior, alpha)
+        if basis is not None:
+            # Stage 2: the first estimate and its confidence give the basis prior's prediction.
+            mean, std = basis.predict(solution.table, solution.resolution, solution.posterior_std)
+            solution = solve_mod.solve_prepared(data, prior, alpha, mean=mean, mean_std=std)
+        timings["solve"] = time.perf_counter() - t0 - timings["normal equations"]
+        table = solution.table
+        predicted = np.einsum("mnc,nc->mc", L, table.reshape(n_t * n_s, 3), optimize=True)
     level = np.where(data.level > 0, data.level, 1.0)
     confidence = {
         "measured": solution.measured,

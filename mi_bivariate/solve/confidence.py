@@ -49,7 +49,7 @@ class Confidence:
                  precision: Optional[np.ndarray], grid: Tuple[int, int]):
         self._data = data
         self._penalty = penalty
-        self._lam = np.asarray(lam, np.float64)
+        self._lam = np.array(lam, np.float64)
         self._precision = precision
         self._grid = grid
         self._factors: List[Optional[Tuple[Tuple[np.ndarray, bool], np.ndarray]]] = [None, None, None]
@@ -59,6 +59,10 @@ class Confidence:
     def keep_factor(self, k: int, factor: Optional[Tuple[np.ndarray, bool]], x: np.ndarray) -> None:
         """Remember ``X_k`` and ``cho_factor(X_k)`` (from the NNLS solve) until :meth:`release_factors`."""
         self._factors[k] = None if factor is None else (factor, x)
+
+    def set_weight(self, k: int, lam: float) -> None:
+        """The penalty's weight of channel ``k`` (known once its alpha is chosen)."""
+        self._lam[k] = lam
 
     def release_factors(self) -> None:
         self._factors = [None, None, None]

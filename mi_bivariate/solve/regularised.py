@@ -22,7 +22,7 @@ from mi_bivariate.solve.common import check_alpha, grid_shape, penalty_weight
 from mi_bivariate.solve.confidence import Confidence
 from mi_bivariate.solve.data_term import DataTerm, prepare_data_term
 from mi_bivariate.solve.gcv import gcv_curve
-from mi_bivariate.solve.nnls import nnls_gram
+from mi_bivariate.solve.nnls import NNLSResult, nnls_gram
 
 
 @dataclass
@@ -114,46 +114,48 @@ class SolveResult:
         return "\n".join(lines)
 
 
-def _solve_pair(data: DataTerm, regulariser, alpha: Optional[float], n_t: int, n_s: int,
-                start: np.ndarray, mean: Optional[np.ndarray] = None,
-                mean_std: Optional[np.ndarray] = None) -> PairSolution:
-    """One weight pair, every channel: alpha (GCV unless given), NNLS; confidence on demand.
+@dataclass
+class _ChannelSolve:
+    """One prior variant, one channel: the NNLS answer and what led to it."""
+    result: NNLSResult
+    system: np.ndarray     #: X, (N, N)
+    alpha: float
+    gcv: float
+    lam: float
+    data_term: float
 
-    ``mean``, ``mean_std`` ``(N, 3)`` (1/sr): a diagonal Gaussian prior on the table
-    (the basis prior), added as ``(1/M) sum_n ((f_n - mean_n) / mean_std_n)^2``.
+
+def _solve_channel(data: DataTerm, penalty: np.ndarray, alpha: Optional[float], k: int, start: np.ndarray,
+                   precision: Optional[np.ndarray], mean: Optional[np.ndarray]) -> _ChannelSolve:
+    """Alpha (GCV unless given) and the constrained solve of one variant and channel.
+
+    ``precision``, ``mean`` ``(N, 3)``: the diagonal Gaussian table prior (the basis prior),
+    added as ``(1/M) sum_n ((f_n - mean_n) / mean_std_n)^2`` with ``precision = 1 / (M std^2)``.
     """
-    t0 = time.perf_counter()
-    n, m = data.n_nodes, data.n_rows
-    penalty = (regulariser.T @ regulariser).toarray()
-    precision = None if mean is None else 1.0 / (m * np.maximum(mean_std, 1e-30) ** 2)
-    table = np.empty((n, 3))
-    alphas, scores, lams = np.empty(3), np.full(3, np.nan), np.empty(3)
-    results = []
-    for k in range(3):
-        extra = None if precision is None else (precision[:, k], precision[:, k] * mean[:, k])
-        if alpha is None:
-            curve = gcv_curve(data, penalty, k, extra=extra)
-            alphas[k], scores[k] = curve.alpha, curve.score
-        else:
-            alphas[k] = alpha
-        lams[k] = penalty_weight(alphas[k], n, data.level[k])
-        x = lams[k] * penalty
-        x += data.gram[k]
-        rhs = data.rhs[k]
-        if extra is not None:
-            x[np.diag_indices(n)] += extra[0]
-            rhs = rhs + extra[1]
-        res = nnls_gram(x, rhs, passive=np.full(n, start[k] > 0) if mean is None else mean[:, k] > 0)
-        table[:, k] = res.x
-        results.append((res, x))
-    confidence = Confidence(data, penalty, lams, precision, (n_t, n_s))
-    for k, (res, x) in enumerate(results):
-        confidence.keep_factor(k, res.factor, x)
-        res.factor = None
-    results = [res for res, _ in results]
-    f = table
-    data_term = np.array([data.yy[k] - 2 * f[:, k] @ data.rhs[k] + f[:, k] @ data.gram[k] @ f[:, k]
-                          for k in range(3)])
+    n = data.n_nodes
+    extra = None if precision is None else (precision[:, k], precision[:, k] * mean[:, k])
+    score = np.nan
+    if alpha is None:
+        curve = gcv_curve(data, penalty, k, extra=extra)
+        alpha, score = curve.alpha, curve.score
+    lam = penalty_weight(alpha, n, data.level[k])
+    x = lam * penalty
+    x += data.gram[k]
+    rhs = data.rhs[k]
+    if extra is not None:
+        x[np.diag_indices(n)] += extra[0]
+        rhs = rhs + extra[1]
+    res = nnls_gram(x, rhs, passive=np.full(n, start[k] > 0) if mean is None else mean[:, k] > 0)
+    f = res.x
+    data_term = data.yy[k] - 2 * f @ data.rhs[k] + f @ data.gram[k] @ f
+    return _ChannelSolve(res, x, float(alpha), float(score), lam, float(data_term))
+
+
+def _pair_solution(data: DataTerm, regulariser, channels: List[_ChannelSolve], confidence: Confidence,
+                   grid: Tuple[int, int], seconds: float) -> PairSolution:
+    """Assemble one variant's three channels, with its residuals."""
+    n = data.n_nodes
+    f = np.stack([c.result.x for c in channels], axis=-1)
     level = np.where(data.level > 0, data.level, 1.0)
     prior_term = np.sum((regulariser @ f) ** 2, axis=0) / (n * level**2)
     predicted = np.einsum("mnc,nc->mc", data.lighting, f.astype(data.lighting.dtype), optimize=True)
@@ -162,12 +164,12 @@ def _solve_pair(data: DataTerm, regulariser, alpha: Optional[float], n_t: int, n
     with np.errstate(divide="ignore", invalid="ignore"):
         rel = np.where(norm_i > 0, r / np.where(norm_i > 0, norm_i, 1.0), np.where(r == 0, 0.0, np.inf))
     return PairSolution(
-        table=table.reshape(n_t, n_s, 3).astype(np.float32), alpha=alphas, gcv=scores,
-        data_term=np.maximum(data_term, 0.0), prior_term=prior_term, relative_residual=rel,
-        iterations=np.array([res.iterations for res in results]),
-        kkt_violation=np.array([res.kkt_violation for res in results]),
-        method=tuple(res.method for res in results), time_s=time.perf_counter() - t0,
-        confidence=confidence)
+        table=f.reshape(*grid, 3).astype(np.float32), alpha=np.array([c.alpha for c in channels]),
+        gcv=np.array([c.gcv for c in channels]),
+        data_term=np.maximum(np.array([c.data_term for c in channels]), 0.0), prior_term=prior_term,
+        relative_residual=rel, iterations=np.array([c.result.iterations for c in channels]),
+        kkt_violation=np.array([c.result.kkt_violation for c in channels]),
+        method=tuple(c.result.method for c in channels), time_s=seconds, confidence=confidence)
 
 
 def solve_prepared(data: DataTerm, prior: Optional[Prior] = None, alpha=None, *,
@@ -176,9 +178,10 @@ def solve_prepared(data: DataTerm, prior: Optional[Prior] = None, alpha=None, *,
                    mean_std: Optional[np.ndarray] = None) -> SolveResult:
     """:func:`solve` on a prepared :class:`~mi_bivariate.solve.data_term.DataTerm`.
 
-    The kept pair's posterior (resolution, posterior spread) per channel is computed
-    here from the NNLS solve's own factorisation; the other pair's, and ``measured``,
-    on first access.
+    Channel by channel: every prior variant is solved, the kept one is chosen, and its
+    posterior (resolution, posterior spread) is computed from the NNLS solve's own
+    factorisation; the other variants' confidence, and ``measured``, on first access.
+    At most one channel's systems and factors (2 per variant) are held at a time.
     """
     t0 = time.perf_counter()
     prior = default_prior() if prior is None else prior
@@ -190,27 +193,45 @@ def solve_prepared(data: DataTerm, prior: Optional[Prior] = None, alpha=None, *,
         raise InputError("pairs", "need at least one weight pair")
     if (mean is None) != (mean_std is None):
         raise InputError("mean", "mean and mean_std go together")
+    precision = None
     if mean is not None:
         mean = np.asarray(mean, np.float64).reshape(data.n_nodes, 3)
         mean_std = np.asarray(mean_std, np.float64).reshape(data.n_nodes, 3)
         if not (np.all(np.isfinite(mean)) and np.all(np.isfinite(mean_std)) and np.all(mean_std > 0)):
             raise InputError("mean", "the table prior's mean and std must be finite (std > 0)")
-    solutions = {p: _solve_pair(data, prior.regulariser(p), alpha, n_t, n_s, data.level, mean, mean_std)
+        precision = 1.0 / (data.n_rows * np.maximum(mean_std, 1e-30) ** 2)
+    regularisers = {p: prior.regulariser(p) for p in pairs}
+    penalties = {p: (r.T @ r).toarray() for p, r in regularisers.items()}
+    channels: Dict[str, List[_ChannelSolve]] = {p: [] for p in pairs}
+    seconds = {p: 0.0 for p in pairs}
+    confidences = {p: Confidence(data, penalties[p], np.zeros(3), precision, (n_t, n_s)) for p in pairs}
+    winner = []
+    for k in range(3):
+        for p in pairs:
+            t1 = time.perf_counter()
+            channels[p].append(_solve_channel(data, penalties[p], alpha, k, data.level, precision, mean))
+            seconds[p] += time.perf_counter() - t1
+        if alpha is None:
+            # The pair whose prior explains the image better in the cross-validation sense.
+            w = min(pairs, key=lambda p: (channels[p][k].gcv, p != pairs[0]))
+        else:
+            # The paper's rule: the lower data residual.
+            w = min(pairs, key=lambda p: (max(channels[p][k].data_term, 0.0), p != pairs[0]))
+        winner.append(w)
+        for p in pairs:
+            c = channels[p][k]
+            confidences[p].set_weight(k, c.lam)
+            if p == w:  # while its factorisation is at hand
+                confidences[p].keep_factor(k, c.result.factor, c.system)
+                confidences[p].channel("resolution", k)
+            c.result.factor, c.system = None, None
+    solutions = {p: _pair_solution(data, regularisers[p], channels[p], confidences[p], (n_t, n_s), seconds[p])
                  for p in pairs}
-    if alpha is None:
-        # The pair whose prior explains the image better in the cross-validation sense.
-        winner = tuple(min(solutions, key=lambda p: (solutions[p].gcv[k], p != pairs[0])) for k in range(3))
-    else:
-        # The paper's rule: the lower data residual.
-        winner = tuple(min(solutions, key=lambda p: (solutions[p].data_term[k], p != pairs[0])) for k in range(3))
-    for k, w in enumerate(winner):  # while the NNLS factorisations are at hand
-        solutions[w].confidence.channel("resolution", k)
-    for s in solutions.values():
-        s.confidence.release_factors()
+    winner = tuple(winner)
     table = np.stack([solutions[w].table[:, :, k] for k, w in enumerate(winner)], axis=-1)
     rel = np.array([solutions[w].relative_residual[k] for k, w in enumerate(winner)])
     alphas = np.array([solutions[w].alpha[k] for k, w in enumerate(winner)])
-    timings = {"normal_equations": data.time_s, **{p: s.time_s for p, s in solutions.items()}}
+    timings = {"normal_equations": data.time_s, **seconds}
     timings["total"] = data.time_s + time.perf_counter() - t0
     return SolveResult(table, winner, alphas, rel, solutions, data.level.copy(), data.level.copy(),
                        "gcv" if alpha is None else "given", timings)
