@@ -19,7 +19,9 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
-from mi_bivariate import adequacy, capture, lighting, prior as prior_mod, solve as solve_mod
+from mi_bivariate import adequacy, alignment as alignment_mod, capture, lighting, prior as prior_mod
+from mi_bivariate import solve as solve_mod, spherefit
+from mi_bivariate.atomic import atomic_paths
 from mi_bivariate.basis_prior import BasisPrior, default_basis_prior
 from mi_bivariate.bivariate import BivariateBRDF
 from mi_bivariate.errors import InputError, InputWarning
@@ -327,8 +329,6 @@ def recover_from_photo(image: np.ndarray, probe: Probe, *, intrinsics: Any = Non
     Returns:
         The :class:`Recovery`, with ``sphere_fit`` (and ``alignment``) set.
     """
-    from mi_bivariate import spherefit
-
     fit = spherefit.fit_sphere(image, mask, sphere=sphere, intrinsics=intrinsics,
                                camera_to_world=camera_to_world, source=source)
     if isinstance(saturation, str):
@@ -338,8 +338,6 @@ def recover_from_photo(image: np.ndarray, probe: Probe, *, intrinsics: Any = Non
         saturation = _auto_saturation(image, region)
     alignment = None
     if estimate_yaw:
-        from mi_bivariate import alignment as alignment_mod
-
         alignment = alignment_mod.estimate_yaw(image, probe, fit.geometry, saturation=saturation,
                                                **(yaw_kwargs or {}))
         probe = alignment.probe
@@ -384,8 +382,6 @@ def write_outputs(result: Recovery, out: PathLike, merl: bool = False, report: b
     renamed into place together (:func:`mi_bivariate.atomic.atomic_paths`).
     Returns the paths written.
     """
-    from mi_bivariate.atomic import atomic_paths
-
     paths = output_paths(out, merl=merl, report=report)
     with atomic_paths(paths) as temps:
         result.brdf.save(temps[0])

@@ -35,8 +35,15 @@ import time
 from dataclasses import asdict, dataclass
 from typing import Any, Callable, Dict, List, Optional
 
+import drjit as dr
+import mitsuba as mi
 import numpy as np
+
+from mi_bivariate import metrics, render
+from mi_bivariate.bivariate import BivariateBRDF
 from mi_bivariate.common import PathLike
+from mi_bivariate.recover import recover
+from mi_bivariate.variants import ensure_variant
 
 
 
@@ -98,11 +105,6 @@ def optimise_table(image: np.ndarray, mask: np.ndarray, probe: Any, start: np.nd
     Returns:
         ``{"iterations", "time_s", "losses" (per iteration), "table" (final, (n_t, n_s, 3))}``.
     """
-    import drjit as dr
-    import mitsuba as mi
-
-    from mi_bivariate import render
-
     start = np.ascontiguousarray(np.maximum(np.asarray(start, np.float32), 1e-6))
     res = image.shape[0]
     cam = render.make_camera("orthographic", res, radius_fraction=0.45)
@@ -165,8 +167,6 @@ def optimise_table(image: np.ndarray, mask: np.ndarray, probe: Any, start: np.nd
 
 def relight_error(table_or_brdf: Any, probe: Any, reference: Any, spp: int, seed: int) -> float:
     """Relative RMSE of a render of ``table_or_brdf`` under ``probe`` against ``reference`` (a SphereRender)."""
-    from mi_bivariate import metrics, render
-
     brdf = bivariate_brdf(table_or_brdf) if isinstance(table_or_brdf, np.ndarray) else table_or_brdf
     img = render.render_sphere(render.bsdf_dict(brdf), probe, resolution=reference.image.shape[0], spp=spp,
                                seed=seed).image
@@ -196,10 +196,8 @@ def analysis_by_synthesis(material: Any, input_probe: str = "grace_latlong_1k", 
         relight error / the linear route's time, when the linear route is at
         least as good) and ``trace``.
     """
+    # evaluate is the layer above (it calls this module): imported here, not at the top.
     from mi_bivariate import evaluate as ev
-    from mi_bivariate import metrics, render
-    from mi_bivariate.recover import recover
-    from mi_bivariate.variants import ensure_variant
 
     ensure_variant()
     config = config or ev.EvalConfig()
@@ -275,6 +273,4 @@ def analysis_by_synthesis(material: Any, input_probe: str = "grace_latlong_1k", 
 
 def bivariate_brdf(table: np.ndarray) -> Any:
     """A :class:`~mi_bivariate.bivariate.BivariateBRDF` of a (clipped, NaN-free) table."""
-    from mi_bivariate.bivariate import BivariateBRDF
-
     return BivariateBRDF(np.maximum(np.nan_to_num(np.asarray(table, np.float64), nan=0.0), 0.0))

@@ -57,6 +57,7 @@ from __future__ import annotations
 import sys
 from typing import Any, List, Optional, Sequence, Tuple, Union
 
+import mitsuba as mi
 import numpy as np
 
 from mi_bivariate.capture import Observations
@@ -115,8 +116,6 @@ def _chunk_rows(n_nodes: int, chunk: Optional[int]) -> int:
 
 def _occluder_scene(occluder: Any) -> Any:
     """A ``mi.Scene`` from a scene or an object with a ``scene()`` method (e.g. a mesh shape)."""
-    import mitsuba as mi
-
     if occluder is None or isinstance(occluder, mi.Scene):
         return occluder
     if callable(getattr(occluder, "scene", None)):
@@ -242,8 +241,6 @@ def texel_lighting_matrix(obs: Observations, probes: Union[Any, Sequence[Any]], 
     Returns:
         ``(M, n_t * n_s, 3) float32``, laid out as :func:`lighting_matrix`.
     """
-    import mitsuba as mi
-
     ensure_variant()
     probes = _as_probe_list(probes)
     _check_inputs(obs, probes, n_t, n_s, 2)

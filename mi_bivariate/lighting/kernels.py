@@ -13,6 +13,8 @@ from __future__ import annotations
 import math
 from typing import Any, Optional, Tuple
 
+import drjit as dr
+import mitsuba as mi
 import numpy as np
 
 from mi_bivariate.lighting.directions import _GOLDEN_U32, _TWO_PI, direction_pairs, row_frames
@@ -69,9 +71,6 @@ def _lattice_lanes(data: Any, m: int, n_points: int):
         ``(row, x_axis, y_axis, normal, sin_v, cos_v, u1, u2, p3)`` with ``p3`` the row's
         fourth packet (shift, surface position).
     """
-    import drjit as dr
-    import mitsuba as mi
-
     idx = dr.arange(mi.UInt32, m * n_points)
     k = idx // m
     row = idx - k * m
@@ -93,9 +92,6 @@ def _lighting_chunk(packets: np.ndarray, probe: Any, n_t: int, n_s: int, n_dirs:
     ``occluder`` scene, two shadow rays), one set of Rusinkiewicz angles and
     one bilinear splat.
     """
-    import drjit as dr
-    import mitsuba as mi
-
     m = len(packets)
     n_pairs = direction_pairs(n_dirs)
     data = mi.Float(packets.reshape(-1))
@@ -135,9 +131,6 @@ def _splat(m: int, row: Any, lx: Any, ly: Any, lz: Any, sin_v: Any, cos_v: Any, 
     ``wo = (sin_v, 0, cos_v)``. Returns ``(m, n_t * n_s, 3) float32``, or
     accumulates into ``target`` (``m * n_t * n_s * 4`` floats) and returns ``None``.
     """
-    import drjit as dr
-    import mitsuba as mi
-
     # Rusinkiewicz angles; theta_d is half the angle between wi and wo. atan2
     # of a sine and a cosine keeps float32 precision at the specular peak,
     # where acos would smear theta_h over half a t-cell (see coordinates.py).
@@ -176,9 +169,6 @@ def _splat(m: int, row: Any, lx: Any, ly: Any, lz: Any, sin_v: Any, cos_v: Any, 
 
 def _texel_chunk(packets: np.ndarray, texels: Tuple[Any, Any, int], n_t: int, n_s: int) -> np.ndarray:
     """Rows of the texel-quadrature L for one chunk, ``(m, n_t * n_s, 3) float32``."""
-    import drjit as dr
-    import mitsuba as mi
-
     directions, radiance_weight, n_texels = texels
     m = len(packets)
     data = mi.Float(packets.reshape(-1))

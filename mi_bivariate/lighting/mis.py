@@ -12,6 +12,8 @@ from __future__ import annotations
 import math
 from typing import Any, Optional
 
+import drjit as dr
+import mitsuba as mi
 import numpy as np
 
 from mi_bivariate.lighting.directions import _TWO_PI
@@ -43,8 +45,6 @@ def _peak_pdf(lx: Any, ly: Any, lz: Any, sin_v: Any, cos_v: Any) -> Any:
     ``phi_h`` uniform: ``p(h) = 1 / (T pi t 2 pi sin theta_h)``; the light is ``h``'s
     mirror of the view, ``p(l) = p(h) / (4 (v . h))``.
     """
-    import drjit as dr
-
     hx, hy, hz = lx + sin_v, ly, lz + cos_v
     norm = dr.sqrt(hx * hx + hy * hy + hz * hz)
     sin_h = dr.sqrt(hx * hx + hy * hy) / norm
@@ -64,9 +64,6 @@ def _mis_lanes(data: Any, m: int, probe: Any, strategy: str, counts: dict, seed_
     draws a shifted Fibonacci lattice (per-row Cranley-Patterson shift), so every
     strategy is stratified.
     """
-    import drjit as dr
-    import mitsuba as mi
-
     row, x_axis, y_axis, normal, sin_v, cos_v, u1, u2, _ = _lattice_lanes(data, m, counts[strategy])
     emitter = probe.emitter()
     it = dr.zeros(mi.Interaction3f)
@@ -117,9 +114,6 @@ def _mis_chunk(packets: np.ndarray, probe: Any, n_t: int, n_s: int, n_dirs: int,
     unbiased for any table and its variance is that of the best strategy for
     each part of the integrand.
     """
-    import drjit as dr
-    import mitsuba as mi
-
     m = len(packets)
     counts = strategy_counts(n_dirs, fractions)
     data = mi.Float(packets.reshape(-1))

@@ -52,13 +52,14 @@ class Confidence:
         self._lam = np.array(lam, np.float64)
         self._precision = precision
         self._grid = grid
-        self._factors: List[Optional[Tuple[Tuple[np.ndarray, bool], np.ndarray]]] = [None, None, None]
+        self._factors: List[Optional[Tuple[Optional[Tuple[np.ndarray, bool]], np.ndarray]]] = [None, None, None]
         self._values: Dict[Tuple[str, int], np.ndarray] = {}
         self._post_var: Dict[int, np.ndarray] = {}
 
     def keep_factor(self, k: int, factor: Optional[Tuple[np.ndarray, bool]], x: np.ndarray) -> None:
-        """Remember ``X_k`` and ``cho_factor(X_k)`` (from the NNLS solve) until :meth:`release_factors`."""
-        self._factors[k] = None if factor is None else (factor, x)
+        """Remember ``X_k`` and ``cho_factor(X_k)`` (from the NNLS solve; ``None`` if it ended with a
+        smaller passive set) until :meth:`release_factors`."""
+        self._factors[k] = (factor, x)
 
     def set_weight(self, k: int, lam: float) -> None:
         """The penalty's weight of channel ``k`` (known once its alpha is chosen)."""
