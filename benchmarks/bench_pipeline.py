@@ -48,7 +48,8 @@ def run_point(truth, probe, M: int, K: int, nodes: int, resolution: int, spp: in
     t_rerender = time.perf_counter() - t0
     return {"render input": t_render, "observations": rec.timings.get("observations", 0.0),
             "lighting matrix": rec.timings.get("lighting matrix", 0.0),
-            "adequacy": rec.timings.get("adequacy", 0.0), "solve": rec.timings.get("solve", 0.0),
+            "adequacy": rec.timings.get("adequacy", 0.0),
+            "solve": rec.timings.get("normal equations", 0.0) + rec.timings.get("solve", 0.0),
             "re-render": t_rerender}
 
 

@@ -59,8 +59,11 @@ from dataclasses import dataclass, field
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
+from scipy.linalg import blas, eigvalsh
 
+from mi_bivariate.capture import hemisphere_lattice
 from mi_bivariate.errors import InputError, InputWarning
+from mi_bivariate.probes import luminance
 from mi_bivariate.threads import blas_threads
 
 #: Singular values below this fraction of the largest do not count towards the rank.
@@ -100,15 +103,11 @@ def _luminance(L: np.ndarray) -> np.ndarray:
 
 def _gram(lum: np.ndarray) -> np.ndarray:
     """``lum.T @ lum``, ``(N, N) float64``, upper triangle only (BLAS ``dsyrk``: half the flops)."""
-    from scipy.linalg import blas
-
     return blas.dsyrk(1.0, np.asarray(lum, np.float64).T, trans=0, lower=0)
 
 
 def _spectrum_from_gram(gram: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
     """:func:`singular_spectrum` from the upper triangle of the luminance Gram matrix."""
-    from scipy.linalg import eigvalsh
-
     norms = np.sqrt(np.clip(np.diag(gram), 0.0, None))
     observed = norms > 1e-12 * max(float(norms.max()) if norms.size else 0.0, 1e-300)
     if not np.any(observed):
@@ -225,9 +224,6 @@ def environment_detail(probe: Any, scale_deg: float = DETAIL_SCALE_DEG, n_points
     ||log E - mean||``. Logarithms (floored at 1e-3 of the mean) keep a
     bright sun from deciding alone. 0: no detail finer than the scale.
     """
-    from mi_bivariate.capture import hemisphere_lattice
-    from mi_bivariate.probes import luminance
-
     def divisor_at_most(width: int, factor: float) -> int:
         return max(f for f in range(1, max(1, int(factor)) + 1) if width % f == 0)
 

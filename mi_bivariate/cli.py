@@ -134,6 +134,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--sampling", choices=("mis", "uniform"), default="mis",
                    help="light directions of the lighting matrix (default mis)")
     p.add_argument("--max-view-angle", type=float, default=80.0, help="drop normals further from the view (deg)")
+    p.add_argument("--footprint", type=float, default=None, metavar="DEG",
+                   help="pixel-footprint model: rows whose pixel spans more than DEG degrees of normals average "
+                        "sub-pixel normals (default: centre normals, the paper's model)")
     p.add_argument("--saturation", type=float, default=None, help="drop pixels with any channel >= this value")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=None,

@@ -236,6 +236,7 @@ def cmd_recover(args: argparse.Namespace) -> int:
     _check_recovery_sizes(args.normals, args.dirs, args.grid)
     _check_seed(args.seed)
     _check_float("--max-view-angle", args.max_view_angle, 0.0, 90.0, lo_open=True)
+    _check_float("--footprint", args.footprint, 0.0, 90.0, lo_open=True)
     _check_float("--saturation", args.saturation, 0.0, float("inf"), lo_open=True)
     if args.alpha != "gcv":
         _check_float("--alpha", args.alpha, float("-inf"), float("inf"))  # the sign is the library's check
@@ -266,7 +267,7 @@ def cmd_recover(args: argparse.Namespace) -> int:
             result = rec.recover(
                 image, probe, fit.geometry, masks=mask, n_normals=args.normals, n_dirs=args.dirs,
                 grid=tuple(args.grid), alpha=args.alpha, seed=args.seed, max_view_angle_deg=args.max_view_angle,
-                saturation=args.saturation, noise=args.noise, sampling=args.sampling,
+                footprint=args.footprint, saturation=args.saturation, noise=args.noise, sampling=args.sampling,
                 prior=smooth_prior, basis_prior=None if args.no_basis_prior else basis_prior)
     except InputError as exc:
         # The library names its arguments ("image", "lighting matrix L"); name the user's files.

@@ -19,15 +19,19 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
-from mi_bivariate import adequacy, capture, lighting, prior as prior_mod, solve as solve_mod
+from mi_bivariate import adequacy, alignment as alignment_mod, capture, lighting, prior as prior_mod
+from mi_bivariate import report as report_mod, solve as solve_mod, spherefit
+from mi_bivariate.atomic import atomic_paths
 from mi_bivariate.basis_prior import BasisPrior, default_basis_prior
 from mi_bivariate.bivariate import BivariateBRDF
 from mi_bivariate.errors import InputError, InputWarning
-from mi_bivariate.geometry import SphereGeometry
+from mi_bivariate.geometry import Geometry
 from mi_bivariate.images import load_image, load_mask
 from mi_bivariate.noise import estimate_camera_noise
 from mi_bivariate.probes import Probe
 from mi_bivariate.common import PathLike
+from mi_bivariate.threads import blas_threads
+from mi_bivariate.variants import ensure_variant
 
 
 
@@ -53,7 +57,7 @@ class Recovery:
     adequacy: adequacy.AdequacyReport
     predicted: np.ndarray
     images: List[np.ndarray] = field(default_factory=list)
-    geometries: List[SphereGeometry] = field(default_factory=list)
+    geometries: List[Geometry] = field(default_factory=list)
     probes: List[Probe] = field(default_factory=list)
     timings: Dict[str, float] = field(default_factory=dict)
     sphere_fit: Optional[Any] = None
@@ -93,7 +97,7 @@ def _as_list(value, n: int, name: str) -> list:
 
 def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
             probe: Union[Probe, Sequence[Probe]],
-            geometry: Union[SphereGeometry, Sequence[SphereGeometry]],
+            geometry: Union[Geometry, Sequence[Geometry]],
             *,
             masks: Optional[Union[np.ndarray, Sequence[Optional[np.ndarray]]]] = None,
             n_normals: int = 8000,
@@ -105,6 +109,7 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
             noise: Any = "auto",
             sampling: str = "mis",
             max_view_angle_deg: float = 80.0,
+            footprint: Optional[float] = None,
             saturation: Optional[float] = None,
             seed: int = 0,
             keep_inputs: bool = True,
@@ -116,9 +121,9 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
             or other probes; all rows stack into one system).
         probe: the probe lighting each image (one for all, or one per image),
             in Mitsuba's envmap frame (y up).
-        geometry: what each image shows: a sphere (:class:`SphereGeometry`,
-            :class:`PerspectiveSphereGeometry`, pixels and camera pose; see
-            :mod:`geometry`) or a known mesh with its camera
+        geometry: what each image shows, a :class:`~mi_bivariate.geometry.Geometry`:
+            a sphere (:class:`SphereGeometry`, :class:`PerspectiveSphereGeometry`,
+            pixels and camera pose) or a known mesh with its camera
             (:class:`mi_bivariate.mesh.MeshView`). Poses may differ per image.
         masks: optional ``(H, W) bool`` usable-pixel masks.
         n_normals: normals M per image (uniform over the visible hemisphere).
@@ -145,12 +150,18 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
         sampling: light-direction sampling of the lighting matrix
             (:func:`lighting.lighting_matrix`: ``"mis"`` or ``"uniform"``).
         max_view_angle_deg: drop normals further than this from the view.
+        footprint: the pixel-footprint model for orthographic spheres
+            (:func:`capture.observations_from_sphere`): ``None`` (default, the
+            paper's centre normals) or the largest normal spread, degrees, one
+            sub-pixel sample stands for (e.g. ``2.0``, with
+            ``max_view_angle_deg`` up to 88; see ``benchmarks/bench_footprint.py``).
         saturation: drop pixels with any channel at or above this value.
         seed: seeds normal selection and light directions.
         visibility: for mesh views, trace shadow rays against the mesh so
             that directions it blocks itself contribute nothing (the paper
             ignores this; it matters for non-convex shapes).
     """
+    ensure_variant(vectorised=True)  # a front door: the lighting matrix needs a JIT variant
     if isinstance(images, np.ndarray) and images.ndim == 3:
         images = [images]
     images = list(images)
@@ -171,15 +182,14 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
     parts = []
     for k, (image, geo, mask) in enumerate(zip(images, geometries, mask_list)):
         obs = capture.image_observations(image, geo, n_normals=n_normals, max_view_angle_deg=max_view_angle_deg,
-                                 saturation=saturation, mask=mask, seed=seed + k,
-                                 source=f"image {k}" if n > 1 else "image")
+                                         saturation=saturation, mask=mask, seed=seed + k, footprint=footprint,
+                                         source=f"image {k}" if n > 1 else "image")
         parts.append(obs.with_probe_index(k))
     observations = capture.stack(parts)
     timings["observations"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    occluders = [geo.occluder() if visibility and callable(getattr(geo, "occluder", None)) else None
-                 for geo in geometries]
+    occluders = [geo.occluder() if visibility else None for geo in geometries]
     L = lighting.lighting_matrix(observations, probe_list, n_t=n_t, n_s=n_s, n_dirs=n_dirs, seed=seed,
                                  occluder=occluders if any(o is not None for o in occluders) else None,
                                  sampling=sampling)
@@ -196,16 +206,18 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
         prior = prior.resampled(n_t, n_s)
     basis = _basis_prior(basis_prior, n_t, n_s)
     noise_models = _noise_list(noise, images)
-    sigma = solve_mod.row_sigma(observations.values, observations.image_index, noise=noise_models)
-    data = solve_mod.prepare_data_term(L, observations.values, sigma)
-    solution = solve_mod.solve_prepared(data, prior, alpha)
-    if basis is not None:
-        mean, std = basis.predict(solution.table, solution.resolution, solution.posterior_std)
-        solution = solve_mod.solve_prepared(data, prior, alpha, mean=mean, mean_std=std)
-    timings["solve"] = time.perf_counter() - t0
-
-    table = solution.table
-    predicted = np.einsum("mnc,nc->mc", L, table.reshape(n_t * n_s, 3), optimize=True)
+    with blas_threads():  # no BLAS oversubscription on a shared machine (mi_bivariate.threads)
+        sigma = solve_mod.row_sigma(observations.values, observations.image_index, noise=noise_models)
+        data = solve_mod.prepare_data_term(L, observations.values, sigma)
+        timings["normal equations"] = time.perf_counter() - t0
+        solution = solve_mod.solve_prepared(data, prior, alpha)
+        if basis is not None:
+            # Stage 2: the first estimate and its confidence give the basis prior's prediction.
+            mean, std = basis.predict(solution.table, solution.resolution, solution.posterior_std)
+            solution = solve_mod.solve_prepared(data, prior, alpha, mean=mean, mean_std=std)
+        timings["solve"] = time.perf_counter() - t0 - timings["normal equations"]
+        table = solution.table
+        predicted = np.einsum("mnc,nc->mc", L, table.reshape(n_t * n_s, 3), optimize=True)
     level = np.where(data.level > 0, data.level, 1.0)
     confidence = {
         "measured": solution.measured,
@@ -324,8 +336,6 @@ def recover_from_photo(image: np.ndarray, probe: Probe, *, intrinsics: Any = Non
     Returns:
         The :class:`Recovery`, with ``sphere_fit`` (and ``alignment``) set.
     """
-    from mi_bivariate import spherefit
-
     fit = spherefit.fit_sphere(image, mask, sphere=sphere, intrinsics=intrinsics,
                                camera_to_world=camera_to_world, source=source)
     if isinstance(saturation, str):
@@ -335,8 +345,6 @@ def recover_from_photo(image: np.ndarray, probe: Probe, *, intrinsics: Any = Non
         saturation = _auto_saturation(image, region)
     alignment = None
     if estimate_yaw:
-        from mi_bivariate import alignment as alignment_mod
-
         alignment = alignment_mod.estimate_yaw(image, probe, fit.geometry, saturation=saturation,
                                                **(yaw_kwargs or {}))
         probe = alignment.probe
@@ -347,7 +355,7 @@ def recover_from_photo(image: np.ndarray, probe: Probe, *, intrinsics: Any = Non
 
 
 def recover_from_files(image_paths: Sequence[PathLike], probe: Union[Probe, Sequence[Probe]],
-                       geometry: Union[SphereGeometry, Sequence[SphereGeometry]],
+                       geometry: Union[Geometry, Sequence[Geometry]],
                        mask: Optional[PathLike] = None, **kwargs) -> Recovery:
     """:func:`recover` on image files (EXR/HDR/PFM); ``mask`` applies to every image."""
     images = [load_image(p) for p in image_paths]
@@ -381,8 +389,6 @@ def write_outputs(result: Recovery, out: PathLike, merl: bool = False, report: b
     renamed into place together (:func:`mi_bivariate.atomic.atomic_paths`).
     Returns the paths written.
     """
-    from mi_bivariate.atomic import atomic_paths
-
     paths = output_paths(out, merl=merl, report=report)
     with atomic_paths(paths) as temps:
         result.brdf.save(temps[0])
@@ -390,7 +396,5 @@ def write_outputs(result: Recovery, out: PathLike, merl: bool = False, report: b
         if merl:
             result.brdf.to_merl().write(temps[2])
         if report:
-            from mi_bivariate import report as report_mod
-
             report_mod.write_recovery_report(result, temps[-1], path_trace=report_render)
     return paths

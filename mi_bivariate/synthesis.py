@@ -35,11 +35,18 @@ import time
 from dataclasses import asdict, dataclass
 from typing import Any, Callable, Dict, List, Optional
 
+import drjit as dr
+import mitsuba as mi
 import numpy as np
 
+from mi_bivariate import metrics, render
+from mi_bivariate.bivariate import BivariateBRDF
 from mi_bivariate.common import PathLike
 from mi_bivariate.evaluate.config import EvalConfig
+from mi_bivariate.geometry import SphereCamera
+from mi_bivariate.recover import recover
 from mi_bivariate.sources import MaterialSpec, load_probe, load_truth, probe_label, resolve_materials
+from mi_bivariate.variants import ensure_variant
 
 
 
@@ -101,14 +108,9 @@ def optimise_table(image: np.ndarray, mask: np.ndarray, probe: Any, start: np.nd
     Returns:
         ``{"iterations", "time_s", "losses" (per iteration), "table" (final, (n_t, n_s, 3))}``.
     """
-    import drjit as dr
-    import mitsuba as mi
-
-    from mi_bivariate import render
-
     start = np.ascontiguousarray(np.maximum(np.asarray(start, np.float32), 1e-6))
     res = image.shape[0]
-    cam = render.SphereCamera.create("orthographic", res, radius_fraction=0.45)
+    cam = SphereCamera.create("orthographic", res, radius_fraction=0.45)
     scene_dict = render.sphere_scene_dict({"type": "bivariate", "table": mi.Bitmap(start),
                                            "sampling": settings.sampling}, probe, cam, normals=False)
     scene_dict["integrator"] = {"type": "prb", "max_depth": settings.max_depth, "hide_emitters": True}
@@ -168,8 +170,6 @@ def optimise_table(image: np.ndarray, mask: np.ndarray, probe: Any, start: np.nd
 
 def relight_error(table_or_brdf: Any, probe: Any, reference: Any, spp: int, seed: int) -> float:
     """Relative RMSE of a render of ``table_or_brdf`` under ``probe`` against ``reference`` (a SphereRender)."""
-    from mi_bivariate import metrics, render
-
     brdf = bivariate_brdf(table_or_brdf) if isinstance(table_or_brdf, np.ndarray) else table_or_brdf
     img = render.render_sphere(render.bsdf_dict(brdf), probe, resolution=reference.image.shape[0], spp=spp,
                                seed=seed).image
@@ -199,10 +199,6 @@ def analysis_by_synthesis(material: Any, input_probe: str = "grace_latlong_1k", 
         relight error / the linear route's time, when the linear route is at
         least as good) and ``trace``.
     """
-    from mi_bivariate import metrics, render
-    from mi_bivariate.recover import recover
-    from mi_bivariate.variants import ensure_variant
-
     ensure_variant()
     config = config or EvalConfig()
     settings = settings or SynthesisSettings()
@@ -221,7 +217,7 @@ def analysis_by_synthesis(material: Any, input_probe: str = "grace_latlong_1k", 
 
     rec = recover(shot.image, probe, shot.geometry, n_normals=config.n_normals, n_dirs=config.n_dirs,
                   grid=config.grid, alpha=config.alpha, seed=config.seed, keep_inputs=False)
-    linear_s = sum(rec.timings.get(k, 0.0) for k in ("observations", "lighting matrix", "adequacy", "solve"))
+    linear_s = sum(rec.timings.get(k, 0.0) for k in ("observations", "lighting matrix", "adequacy", "normal equations", "solve"))
     brdf_errors = metrics.BRDFErrors(truth)
     linear_errors = {k: v for k, v in brdf_errors(rec.brdf).items() if k != "eq1_rgb"}
     linear_relight = relight_error(rec.brdf, novel, truth_novel, config.novel_spp, relight_seed)
@@ -277,6 +273,4 @@ def analysis_by_synthesis(material: Any, input_probe: str = "grace_latlong_1k", 
 
 def bivariate_brdf(table: np.ndarray) -> Any:
     """A :class:`~mi_bivariate.bivariate.BivariateBRDF` of a (clipped, NaN-free) table."""
-    from mi_bivariate.bivariate import BivariateBRDF
-
     return BivariateBRDF(np.maximum(np.nan_to_num(np.asarray(table, np.float64), nan=0.0), 0.0))

@@ -1,4 +1,8 @@
-"""The constrained, regularised solve of Eq. 6.
+"""FROZEN COPY of mi_bivariate/solve.py as of commit 1f248dd (solver v2), the reference the
+faster solve package is checked against (tests/test_solve_reference.py, benchmarks/bench_speed.py).
+Do not edit: it is the old code path.
+
+Original docstring: the constrained, regularised solve of Eq. 6.
 
 Per colour channel k the table f (``N = n_t n_s`` nodes, column ``it * n_s + is``)
 minimises
@@ -46,8 +50,8 @@ import numpy as np
 import scipy.linalg as sla
 import scipy.optimize as sopt
 
-from .errors import InputError
-from .prior import PAIRS, Prior, default_prior
+from mi_bivariate.errors import InputError
+from mi_bivariate.prior import PAIRS, Prior, default_prior
 
 #: Default weight alpha of the normalised smoothness term (see the module docstring).
 #: Chosen on 8 of the 50 *training* MERL-NBRDF materials (never on a scored one) with the

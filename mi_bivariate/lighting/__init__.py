@@ -1,0 +1,298 @@
+"""The lighting matrix L of Eq. 5: pixel values are ``I = L f``.
+
+A pixel that sees normal ``n`` from view ``v`` integrates the environment
+over the normal's upper hemisphere (Eq. 3)::
+
+    I(v, n) = int_Omega E(u) f(s(u, v), t(u, v)) cos(theta_u) du
+            ~ 2 pi / K  sum_k E(u_k) cos(theta_k) sum_{(i,j) in N_k} alpha^k_ij f_ij   (Eq. 4)
+
+with ``K`` light directions ``u_k`` uniformly distributed (in solid angle) on
+the hemisphere, ``E`` the environment radiance looked up exactly as Mitsuba's
+``envmap`` emitter does (:meth:`Probe.eval_dr`), and ``alpha^k_ij`` the
+bilinear weights of the four st nodes around ``(s, t)(u_k, v)``. Directions
+mirrored about the view/normal plane land on the same ``(s, t)``: the
+hemisphere folds by itself. Row ``m`` of ``L`` holds these weights for normal
+``m``; column ``it * n_s + is`` is st node ``(t_it, s_is)`` (the C order of a
+``(n_t, n_s, 3)`` table); the last axis is the colour channel.
+
+Light directions (:func:`light_directions`): a spherical Fibonacci lattice,
+uniform in solid angle, on the half of the normal's hemisphere on one side of
+the view/normal plane, shifted per row by a seeded random offset (a
+Cranley-Patterson rotation, which decorrelates the quadrature error between
+rows), plus the mirror image of every direction across that plane. A
+direction and its mirror image have the same (s, t): the fold of Fig. 4.
+
+Layout: :mod:`.directions` (the lattice, numpy), :mod:`.kernels` (the Dr.Jit
+kernels and the splat), :mod:`.mis` (the default sampling), this front door
+(:func:`lighting_matrix`, :func:`texel_lighting_matrix`: input checks, chunking,
+visibility).
+
+Implementation: one fused Dr.Jit kernel per chunk of normals (directions,
+two envmap lookups per mirrored pair, Rusinkiewicz angles, bilinear weights)
+scatters RGB padded to a 4-wide packet into ``[rows, n_t * n_s, 4]`` with
+``ReduceMode.Expand`` (per-thread copies of the target, no atomics; see the
+field notes: ``Auto`` silently picks ``Local`` on big targets, 7x slower).
+Visibility (``occluder``): the paper assumes every light direction of the
+normal's hemisphere reaches the surface, which holds for a convex object
+only. Given the object as a Mitsuba scene, rows that know their surface
+position (:attr:`Observations.positions`, e.g. ray-cast from a mesh) trace
+a shadow ray per light direction inside the same kernel (``scene.ray_test``
+from the point, offset along the geometric normal exactly as Mitsuba's
+``spawn_ray`` does for a render's shadow rays), and blocked directions
+contribute nothing. With ``max_depth=2`` renders (no interreflection) the
+model is then exact for any shape.
+
+Rows are ordered along a space-filling curve of their normals and lanes run
+over (direction, row), so consecutive lanes read nearby envmap texels and
+splat into a cache-resident target. Memory: the ``(M, n_t * n_s, 3)
+float32`` result (94 MB at M = 8000, 32 x 32) plus, per chunk, a
+:data:`CHUNK_BYTES` target per thread and its packed copy; the kernel itself
+stores no per-direction arrays. Measured at M = 8000, K = 32000: peak RSS
+grows by ~200 MB. Accumulation order across threads varies, so results agree
+between runs to float32 rounding (~1e-7 relative), not bit for bit.
+"""
+
+from __future__ import annotations
+
+import sys
+from typing import Any, List, Optional, Sequence, Tuple, Union
+
+import mitsuba as mi
+import numpy as np
+
+from mi_bivariate.capture import Observations
+from mi_bivariate.errors import InputError
+from mi_bivariate.lighting.directions import (direction_pairs, hemisphere_offsets, light_directions,
+                                              row_frames)
+from mi_bivariate.lighting.kernels import _lighting_chunk, _row_packets, _spatial_order, _texel_chunk
+from mi_bivariate.lighting.mis import (MIS_FRACTIONS, PEAK_T_MAX, SAMPLINGS, _mis_chunk,
+                                       _mis_lanes,  # noqa: F401  (benchmarks/ablation.py)
+                                       strategy_counts)
+from mi_bivariate.variants import ensure_variant
+
+__all__ = ["CHUNK_BYTES", "MIS_FRACTIONS", "PEAK_T_MAX", "PROGRESS_PAIRS", "SAMPLINGS", "direction_pairs",
+           "hemisphere_offsets", "light_directions", "lighting_matrix", "row_frames", "strategy_counts",
+           "texel_lighting_matrix"]
+
+#: Size of one chunk's scatter target (one thread's copy).
+CHUNK_BYTES = 2 * 2**20
+
+#: Show a progress bar when a job has more (normal, direction) pairs than this.
+PROGRESS_PAIRS = 5 * 10**8
+
+
+def _as_probe_list(probes: Any) -> List[Any]:
+    if isinstance(probes, (list, tuple)):
+        return list(probes)
+    return [probes]
+
+
+def _check_inputs(obs: Observations, probes: List[Any], n_t: int, n_s: int, n_dirs: int) -> None:
+    if n_t < 2 or n_s < 2:
+        raise InputError(None, f"st grid {n_t}x{n_s} is too small", "each axis needs at least 2 nodes")
+    if n_dirs < 2:
+        raise InputError(None, f"n_dirs must be at least 2, got {n_dirs}")
+    if len(obs) == 0:
+        raise InputError(None, "no observations")
+    if not probes:
+        raise InputError(None, "no probe given")
+    top = int(obs.probe_index.max())
+    if top >= len(probes) or int(obs.probe_index.min()) < 0:
+        raise InputError(None, f"observations refer to probe {top} but {len(probes)} probe(s) were given")
+    if not (np.all(np.isfinite(obs.normals)) and np.all(np.isfinite(obs.views))):
+        raise InputError(None, "observations have non-finite normals or views")
+    if np.any(np.sum(obs.normals * obs.views, axis=1) <= 0.0):
+        raise InputError(None, "some observed normals face away from their view (n . v <= 0)")
+
+
+def _chunk_rows(n_nodes: int, chunk: Optional[int]) -> int:
+    if chunk is not None:
+        return max(1, int(chunk))
+    # Each thread's copy of the scatter target (16 B per node and row) should
+    # stay in a 2 MB L2 cache.
+    return max(16, CHUNK_BYTES // (n_nodes * 16))
+
+
+
+def _occluder_scene(occluder: Any) -> Any:
+    """A ``mi.Scene`` from a scene or an object with a ``scene()`` method (e.g. a mesh shape)."""
+    if occluder is None or isinstance(occluder, mi.Scene):
+        return occluder
+    if callable(getattr(occluder, "scene", None)):
+        return occluder.scene()
+    raise InputError(None, f"occluder must be a Mitsuba scene or have a scene() method, got {type(occluder).__name__}")
+
+
+def _occluder_per_row(obs: Observations, occluder: Any) -> Tuple[List[Any], np.ndarray]:
+    """Distinct occluder scenes and, per row, the index of its scene (-1: no shadow rays).
+
+    ``occluder`` is one scene (or ``scene()`` owner) for every row, or a
+    sequence indexed by :attr:`Observations.image_index` (``None`` entries:
+    no visibility for that image's rows).
+    """
+    m = len(obs)
+    if occluder is None:
+        return [], np.full(m, -1, dtype=np.int64)
+    per_image = list(occluder) if isinstance(occluder, (list, tuple)) else None
+    if per_image is None:
+        return [_occluder_scene(occluder)], np.zeros(m, dtype=np.int64)
+    top = int(obs.image_index.max())
+    if top >= len(per_image):
+        raise InputError(None, f"observations come from image {top} but {len(per_image)} occluder(s) were given")
+    scenes: List[Any] = []
+    index_of_image = []
+    for item in per_image:
+        scene = _occluder_scene(item)
+        if scene is None:
+            index_of_image.append(-1)
+            continue
+        known = [i for i, s in enumerate(scenes) if s is scene]
+        if not known:
+            scenes.append(scene)
+        index_of_image.append(known[0] if known else len(scenes) - 1)
+    return scenes, np.asarray(index_of_image, dtype=np.int64)[obs.image_index]
+
+
+def lighting_matrix(obs: Observations, probes: Union[Any, Sequence[Any]], n_t: int = 32, n_s: int = 32,
+                    n_dirs: int = 32000, seed: int = 0, chunk: Optional[int] = None,
+                    progress: Optional[bool] = None, occluder: Any = None,
+                    sampling: str = "mis") -> np.ndarray:
+    """The lighting matrix of Eqs. 4-5.
+
+    Args:
+        obs: observations (normals, views, which probe lit each row).
+        probes: a :class:`~mi_bivariate.probes.Probe` or a list indexed by
+            ``obs.probe_index``.
+        n_t, n_s: st grid size.
+        n_dirs: light directions K per normal.
+        seed: seeds the per-row shifts of the direction lattice.
+        chunk: normals per kernel (default: sized to :data:`CHUNK_BYTES`).
+        progress: show a tqdm bar over chunks (default: for big jobs on a tty).
+        occluder: the observed object for visibility: a ``mi.Scene`` (or an
+            object with ``scene()``, such as :class:`mi_bivariate.mesh.MeshShape`),
+            or a sequence of them (or ``None``) indexed by ``obs.image_index``.
+            Rows with a finite :attr:`Observations.positions` then get a shadow
+            ray per light direction; blocked directions contribute nothing.
+            ``None`` (default): every direction of the hemisphere is lit
+            (the paper's model; exact for convex objects).
+        sampling: how the K directions are drawn. ``"mis"`` (default):
+            a balance-heuristic mixture of uniform, environment and
+            specular-peak sampling (:func:`_mis_chunk`); ``"uniform"``: the
+            paper's uniform hemisphere lattice in mirrored pairs
+            (:func:`light_directions`). Under a real probe with small bright
+            sources (grace_latlong_1k) and a glossy table, ``"uniform"`` at
+            K = 32768 predicts pixels with 10-15% per-pixel quadrature noise,
+            which the solve then fits; see ``docs/recovery.md``.
+
+    Returns:
+        ``(M, n_t * n_s, 3) float32``; column ``it * n_s + is``.
+    """
+    ensure_variant(vectorised=True)
+    probes = _as_probe_list(probes)
+    _check_inputs(obs, probes, n_t, n_s, n_dirs)
+    if sampling not in SAMPLINGS:
+        raise InputError(None, f"unknown sampling {sampling!r}", f"use one of {', '.join(SAMPLINGS)}")
+    chunk_fn = _mis_chunk if sampling == "mis" else _lighting_chunk
+    m_total, n_nodes = len(obs), n_t * n_s
+    scenes, scene_of_row = _occluder_per_row(obs, occluder)
+    if scenes and not obs.has_positions:
+        raise InputError(None, "an occluder was given but the observations have no surface positions",
+                         "build them from a mesh (mi_bivariate.mesh) or pass positions to "
+                         "observations_from_normal_map")
+    packets = _row_packets(obs.normals, obs.views, hemisphere_offsets(m_total, seed),
+                           obs.positions, obs.geometric_normals)
+    rows_per_chunk = _chunk_rows(n_nodes, chunk)
+
+    jobs = []
+    order = _spatial_order(obs.normals)
+    for p in np.unique(obs.probe_index):
+        for o in np.unique(scene_of_row):
+            rows = order[(obs.probe_index[order] == p) & (scene_of_row[order] == o)]
+            jobs += [(int(p), int(o), rows[i:i + rows_per_chunk]) for i in range(0, len(rows), rows_per_chunk)]
+    if progress is None:
+        progress = len(jobs) > 1 and m_total * n_dirs > PROGRESS_PAIRS and sys.stderr.isatty()
+    if progress:
+        from tqdm import tqdm
+
+        jobs = tqdm(jobs, desc="lighting matrix", unit="chunk")
+
+    L = np.empty((m_total, n_nodes, 3), dtype=np.float32)
+    for p, o, rows in jobs:
+        L[rows] = chunk_fn(packets[rows], probes[p], n_t, n_s, n_dirs, scenes[o] if o >= 0 else None)
+    if obs.has_footprints:
+        _footprint_rows(L, obs, probes, n_t, n_s, n_dirs, seed, chunk, sampling)
+    return L
+
+
+def _footprint_rows(L: np.ndarray, obs: Observations, probes: List[Any], n_t: int, n_s: int, n_dirs: int,
+                    seed: int, chunk: Optional[int], sampling: str) -> None:
+    """Replace the rows that have a pixel footprint by the mean of their footprint normals' rows (in place).
+
+    The footprint normals (:attr:`Observations.footprint_normals`) become rows
+    of their own, with their pixel's view and probe, in blocks of whole
+    pixels so that memory stays at one block's ``(P, N, 3)``; their direction
+    offsets are seeded apart from the centre rows'.
+    """
+    rows = obs.footprint_rows
+    starts = np.flatnonzero(np.r_[True, rows[1:] != rows[:-1]])
+    ends = np.r_[starts[1:], len(rows)]
+    per_block = max(1, _chunk_rows(n_t * n_s, chunk) * 4)
+    first = 0
+    while first < len(starts):
+        last = first + 1                              # whole pixels, up to per_block footprint normals
+        while last < len(starts) and ends[last] - starts[first] <= per_block:
+            last += 1
+        lo, hi = starts[first], ends[last - 1]
+        owner = rows[lo:hi]
+        sub = Observations(normals=obs.footprint_normals[lo:hi], views=obs.views[owner], values=obs.values[owner],
+                           probe_index=obs.probe_index[owner])
+        L_sub = lighting_matrix(sub, probes, n_t=n_t, n_s=n_s, n_dirs=n_dirs, seed=seed + 1 + first,
+                                chunk=chunk, progress=False, sampling=sampling)
+        counts = (ends[first:last] - starts[first:last]).astype(np.float32)
+        L[rows[starts[first:last]]] = np.add.reduceat(L_sub, starts[first:last] - lo, axis=0) / counts[:, None, None]
+        first = last
+
+
+def texel_lighting_matrix(obs: Observations, probes: Union[Any, Sequence[Any]], n_t: int = 32,
+                          n_s: int = 32, downsample: int = 8, chunk: Optional[int] = None) -> np.ndarray:
+    """The lighting matrix by environment-texel quadrature.
+
+    Every texel of the probe, area-downsampled by ``downsample``
+    (:meth:`Probe.downsampled`; the largest factor up to ``downsample`` that
+    divides the width), is one light direction (its Mitsuba texel
+    position) with its solid angle and stored radiance; a row sums the
+    texels in its normal's upper hemisphere. Deterministic and faster than
+    :func:`lighting_matrix` for coarse maps, but it smooths the environment
+    and samples the hemisphere unevenly, so sharp lobes suffer. Measured
+    (``benchmarks/bench_recovery.py``, grace_latlong_1k, per-pixel relative
+    RMS of ``L @ f`` against sampled K = 128000): a 128 x 64 texel map gives
+    9e-4 on a diffuse table and 2.5e-2 on a 0.05 rad lobe (sampled K = 32000:
+    4e-3 and 2e-2) at 0.3x the time; 64 x 32 texels: 1.8e-3 and 1.4e-1.
+
+    Returns:
+        ``(M, n_t * n_s, 3) float32``, laid out as :func:`lighting_matrix`.
+    """
+    ensure_variant(vectorised=True)
+    probes = _as_probe_list(probes)
+    _check_inputs(obs, probes, n_t, n_s, 2)
+    if downsample < 1:
+        raise InputError(None, f"downsample must be >= 1, got {downsample}")
+    m_total, n_nodes = len(obs), n_t * n_s
+    packets = _row_packets(obs.normals, obs.views, np.zeros((m_total, 2), dtype=np.float32))
+    rows_per_chunk = _chunk_rows(n_nodes, chunk)
+    order = _spatial_order(obs.normals)
+    L = np.empty((m_total, n_nodes, 3), dtype=np.float32)
+    for p in np.unique(obs.probe_index):
+        probe = probes[int(p)]
+        factor = max(f for f in range(1, downsample + 1) if probe.width % f == 0)
+        coarse = probe.downsampled(factor)
+        directions, solid_angle = coarse.texel_directions()
+        radiance = coarse.data.reshape(-1, 3).astype(np.float64) * solid_angle[:, None]
+        texels = (mi.Vector3f(*directions.astype(np.float32).T),
+                  mi.Color3f(*radiance.astype(np.float32).T), len(solid_angle))
+        rows = order[obs.probe_index[order] == p]
+        for i in range(0, len(rows), rows_per_chunk):
+            sel = rows[i:i + rows_per_chunk]
+            L[sel] = _texel_chunk(packets[sel], texels, n_t, n_s)
+    return L
+

@@ -1,0 +1,185 @@
+"""The Dr.Jit kernels of the lighting matrix: one fused kernel per chunk of rows.
+
+One lane per (lattice point, row); per lane the light direction(s), the envmap
+lookup(s), the Rusinkiewicz angles and a bilinear splat of RGB, padded to a 4-wide
+packet, into ``[rows, n_t * n_s, 4]`` with ``ReduceMode.Expand`` (per-thread copies of
+the target, no atomics). The chunk functions return the ``(m, n_t * n_s, 3)`` RGB
+view of that target (not copied): :func:`mi_bivariate.lighting.lighting_matrix`
+writes it straight into L.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Optional, Tuple
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from mi_bivariate.lighting.directions import _GOLDEN_U32, _TWO_PI, direction_pairs, row_frames
+
+#: 4-wide float32 packets per row in the kernels' input (see :func:`_row_packets`).
+_PACKETS = 5
+
+
+def _row_packets(normals: np.ndarray, views: np.ndarray, offsets: np.ndarray,
+                 positions: Optional[np.ndarray] = None,
+                 geometric_normals: Optional[np.ndarray] = None) -> np.ndarray:
+    """Per-row kernel inputs, 20 float32 per row (five 4-wide packets):
+    ``[x, sin theta_v | y, cos theta_v | n, shift_1 | shift_2, p | n_g, shadow]``
+    with ``p`` the surface position, ``n_g`` the geometric normal and
+    ``shadow`` 1 where the row traces shadow rays (finite position), else 0."""
+    x, y, wo = row_frames(normals, views)
+    n = normals / np.linalg.norm(normals, axis=1, keepdims=True)
+    out = np.zeros((len(n), 4 * _PACKETS), dtype=np.float32)
+    out[:, 0:3], out[:, 3] = x, wo[:, 0]
+    out[:, 4:7], out[:, 7] = y, wo[:, 2]
+    out[:, 8:11], out[:, 11] = n, offsets[:, 0]
+    out[:, 12] = offsets[:, 1]
+    out[:, 16:19] = n
+    if positions is not None:
+        known = np.all(np.isfinite(positions), axis=1)
+        out[known, 13:16] = positions[known]
+        out[known, 19] = 1.0
+        if geometric_normals is not None:
+            out[known, 16:19] = geometric_normals[known]
+    return out
+
+
+def _spatial_order(normals: np.ndarray, bits: int = 10) -> np.ndarray:
+    """Row order along a Morton curve over the octahedral map of the normals."""
+    n = normals / np.abs(normals).sum(axis=1, keepdims=True)
+    oct_xy = np.where(n[:, 2:] >= 0.0, n[:, :2], (1.0 - np.abs(n[:, ::-1][:, 1:])) * np.sign(n[:, :2]))
+    q = np.clip((oct_xy + 1.0) * 0.5 * (2**bits - 1), 0, 2**bits - 1).astype(np.uint64)
+    key = np.zeros(len(n), dtype=np.uint64)
+    for b in range(bits):
+        key |= ((q[:, 0] >> np.uint64(b)) & np.uint64(1)) << np.uint64(2 * b)
+        key |= ((q[:, 1] >> np.uint64(b)) & np.uint64(1)) << np.uint64(2 * b + 1)
+    return np.argsort(key, kind="stable")
+
+
+def _lattice_lanes(data: Any, m: int, n_points: int):
+    """One lane per (lattice point, row) of a chunk of ``m`` rows: the row frame and the
+    row's Cranley-Patterson-shifted Fibonacci lattice point ``(u1, u2)`` in [0, 1)^2.
+
+    Lane order: lattice point, then row. The chunk's rows are neighbouring normals
+    (:func:`_spatial_order`), so consecutive lanes read nearby envmap texels and splat
+    into a small, cache-resident part of the target.
+
+    Returns:
+        ``(row, x_axis, y_axis, normal, sin_v, cos_v, u1, u2, p3)`` with ``p3`` the row's
+        fourth packet (shift, surface position).
+    """
+    idx = dr.arange(mi.UInt32, m * n_points)
+    k = idx // m
+    row = idx - k * m
+    p0, p1, p2, p3 = (dr.gather(mi.Vector4f, data, row * _PACKETS + q) for q in range(4))
+    x_axis, y_axis = mi.Vector3f(p0.x, p0.y, p0.z), mi.Vector3f(p1.x, p1.y, p1.z)
+    normal = mi.Vector3f(p2.x, p2.y, p2.z)
+    u1 = mi.Float(k) * (1.0 / n_points) + (0.5 / n_points) + p2.w
+    u1 = u1 - dr.floor(u1)
+    u2 = mi.Float(k * _GOLDEN_U32) * 2.0**-32 + p3.x
+    u2 = u2 - dr.floor(u2)
+    return row, x_axis, y_axis, normal, p0.w, p1.w, u1, u2, p3
+
+
+def _lighting_chunk(packets: np.ndarray, probe: Any, n_t: int, n_s: int, n_dirs: int,
+                    occluder: Any = None) -> np.ndarray:
+    """Rows of L for one chunk: one fused kernel, ``(m, n_t * n_s, 3) float32``.
+
+    One lane per mirrored direction pair: two envmap lookups (and, with an
+    ``occluder`` scene, two shadow rays), one set of Rusinkiewicz angles and
+    one bilinear splat.
+    """
+    m = len(packets)
+    n_pairs = direction_pairs(n_dirs)
+    data = mi.Float(packets.reshape(-1))
+    # Shifted Fibonacci lattice (see light_directions()).
+    row, x_axis, y_axis, normal, sin_v, cos_v, u1, u2, p3 = _lattice_lanes(data, m, n_pairs)
+    r = dr.safe_sqrt(1.0 - u1 * u1)
+    sin_phi, cos_phi = dr.sincos(math.pi * u2)
+    lx, ly, lz = r * cos_phi, r * sin_phi, u1
+
+    base = x_axis * lx + normal * lz
+    d_plus, d_minus = base + y_axis * ly, base - y_axis * ly
+    if occluder is None:
+        radiance = probe.eval_dr(d_plus) + probe.eval_dr(d_minus)
+    else:
+        p4 = dr.gather(mi.Vector4f, data, row * _PACKETS + 4)
+        shadow = p4.w > 0.5
+        si = dr.zeros(mi.SurfaceInteraction3f)
+        si.p = mi.Point3f(p3.y, p3.z, p3.w)
+        si.n = mi.Normal3f(p4.x, p4.y, p4.z)
+        # spawn_ray offsets along the geometric normal on the side of the
+        # direction, as a render's shadow rays do: a direction above the
+        # shading horizon but below the face goes into the object.
+        lit_plus = ~(shadow & occluder.ray_test(si.spawn_ray(d_plus), active=shadow))
+        lit_minus = ~(shadow & occluder.ray_test(si.spawn_ray(d_minus), active=shadow))
+        radiance = dr.select(lit_plus, probe.eval_dr(d_plus), 0.0) + \
+            dr.select(lit_minus, probe.eval_dr(d_minus), 0.0)
+    weight = lz * (_TWO_PI / (2 * n_pairs))
+    return _splat(m, row, lx, ly, lz, sin_v, cos_v, radiance * weight, n_t, n_s)
+
+
+
+def _splat(m: int, row: Any, lx: Any, ly: Any, lz: Any, sin_v: Any, cos_v: Any, value: Any,
+           n_t: int, n_s: int, active: Any = True, target: Any = None) -> Optional[np.ndarray]:
+    """Bilinear splat of ``value`` (``mi.Color3f``) at the st point of each lane.
+
+    ``(lx, ly, lz)`` is the light direction in the row frame, whose view is
+    ``wo = (sin_v, 0, cos_v)``. Returns ``(m, n_t * n_s, 3) float32``, or
+    accumulates into ``target`` (``m * n_t * n_s * 4`` floats) and returns ``None``.
+    """
+    # Rusinkiewicz angles; theta_d is half the angle between wi and wo. atan2
+    # of a sine and a cosine keeps float32 precision at the specular peak,
+    # where acos would smear theta_h over half a t-cell (see coordinates.py).
+    hx, hz = lx + sin_v, lz + cos_v
+    theta_h = dr.atan2(dr.sqrt(hx * hx + ly * ly), hz)
+    dot = lx * sin_v + lz * cos_v
+    cx, cy, cz = ly * cos_v, lz * sin_v - lx * cos_v, ly * sin_v
+    theta_d = 0.5 * dr.atan2(dr.sqrt(cx * cx + cy * cy + cz * cz), dot)
+    s = theta_d * (2.0 / math.pi)
+    t = dr.sqrt(theta_h * (2.0 / math.pi))
+
+    fs = dr.clip(s, 0.0, 1.0) * (n_s - 1)
+    ft = dr.clip(t, 0.0, 1.0) * (n_t - 1)
+    i_s = dr.minimum(mi.UInt32(fs), n_s - 2)
+    i_t = dr.minimum(mi.UInt32(ft), n_t - 2)
+    ws = fs - mi.Float(i_s)
+    wt = ft - mi.Float(i_t)
+
+    n_nodes = n_t * n_s
+    rgb = mi.Vector4f(value[0], value[1], value[2], 0.0)
+    given = target is not None
+    if not given:
+        target = dr.zeros(mi.Float, m * n_nodes * 4)
+    node = row * n_nodes + i_t * n_s + i_s
+    # 4-wide packets with ReduceMode.Expand: per-thread copies of the target,
+    # no atomics (Auto silently picks Local for big targets: 7x slower).
+    for offset, w in ((0, (1.0 - wt) * (1.0 - ws)), (1, (1.0 - wt) * ws),
+                      (n_s, wt * (1.0 - ws)), (n_s + 1, wt * ws)):
+        dr.scatter_reduce(dr.ReduceOp.Add, target, rgb * w, node + offset, active=active,
+                          mode=dr.ReduceMode.Expand)
+    if given:
+        return None
+    out = target.numpy().reshape(m, n_nodes, 4)
+    return out[:, :, :3]  # a view: the caller copies it into L once
+
+
+def _texel_chunk(packets: np.ndarray, texels: Tuple[Any, Any, int], n_t: int, n_s: int) -> np.ndarray:
+    """Rows of the texel-quadrature L for one chunk, ``(m, n_t * n_s, 3) float32``."""
+    directions, radiance_weight, n_texels = texels
+    m = len(packets)
+    data = mi.Float(packets.reshape(-1))
+    idx = dr.arange(mi.UInt32, m * n_texels)
+    texel = idx // m
+    row = idx - texel * m
+    p0, p1, p2 = (dr.gather(mi.Vector4f, data, row * _PACKETS + q) for q in range(3))
+    d = dr.gather(mi.Vector3f, directions, texel)
+    lx = p0.x * d.x + p0.y * d.y + p0.z * d.z
+    ly = p1.x * d.x + p1.y * d.y + p1.z * d.z
+    lz = p2.x * d.x + p2.y * d.y + p2.z * d.z
+    value = dr.gather(mi.Color3f, radiance_weight, texel) * lz
+    return _splat(m, row, lx, ly, lz, p0.w, p1.w, value, n_t, n_s, active=lz > 0.0)
+

@@ -1,0 +1,136 @@
+"""Multiple importance sampling of the light directions (the default ``"mis"`` sampling).
+
+Three stratified strategies share the K directions of a row (:data:`MIS_FRACTIONS`):
+uniform over the hemisphere (the paper's), the environment's own importance sampling
+(Mitsuba's ``envmap.sample_direction``) and half vectors around the normal as dense as
+the grid's t nodes (the specular peak); every direction is weighted by the balance
+heuristic over all three densities (Veach's multi-sample estimator).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Optional
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from mi_bivariate.lighting.directions import _TWO_PI
+from mi_bivariate.lighting.kernels import _PACKETS, _lattice_lanes, _splat
+
+#: Light-direction sampling of :func:`lighting_matrix`: the fraction of the K
+#: directions drawn by each strategy of the ``"mis"`` mixture (see :func:`_mis_chunk`).
+MIS_FRACTIONS = {"uniform": 0.25, "environment": 0.5, "peak": 0.25}
+#: The ``"peak"`` strategy draws half vectors with t = sqrt(2 theta_h / pi) uniform in
+#: ``[0, PEAK_T_MAX]`` (theta_h up to 22.5 degrees): as dense as the st grid's t nodes.
+PEAK_T_MAX = 0.5
+SAMPLINGS = ("mis", "uniform")
+
+
+def strategy_counts(n_dirs: int, fractions: Optional[dict] = None) -> dict:
+    """Directions per strategy of the ``"mis"`` sampling (they add up to ``n_dirs``)."""
+    fractions = MIS_FRACTIONS if fractions is None else fractions
+    names = [k for k in ("uniform", "environment", "peak") if fractions.get(k, 0.0) > 0.0]
+    total = sum(fractions[k] for k in names)
+    counts = {k: max(1, int(round(n_dirs * fractions[k] / total))) for k in names}
+    counts[names[0]] += max(0, int(n_dirs) - sum(counts.values()))
+    return counts
+
+
+def _peak_pdf(lx: Any, ly: Any, lz: Any, sin_v: Any, cos_v: Any) -> Any:
+    """Solid-angle density of the ``"peak"`` strategy at local light direction ``l``.
+
+    Half vectors ``h`` have ``t = sqrt(2 theta_h / pi)`` uniform on ``[0, T]`` and
+    ``phi_h`` uniform: ``p(h) = 1 / (T pi t 2 pi sin theta_h)``; the light is ``h``'s
+    mirror of the view, ``p(l) = p(h) / (4 (v . h))``.
+    """
+    hx, hy, hz = lx + sin_v, ly, lz + cos_v
+    norm = dr.sqrt(hx * hx + hy * hy + hz * hz)
+    sin_h = dr.sqrt(hx * hx + hy * hy) / norm
+    theta_h = dr.atan2(sin_h, hz / norm)
+    t = dr.sqrt(theta_h * (2.0 / math.pi))
+    v_dot_h = (sin_v * hx + cos_v * hz) / norm
+    pdf = 1.0 / (PEAK_T_MAX * math.pi * t * _TWO_PI * sin_h * 4.0 * v_dot_h)
+    return dr.select((t < PEAK_T_MAX) & (sin_h > 0.0) & (v_dot_h > 0.0), pdf, 0.0)
+
+
+def _mis_lanes(data: Any, m: int, probe: Any, strategy: str, counts: dict, seed_shift: Any = None):
+    """The lanes of one sampling strategy for ``m`` rows: ``(row, lx, ly, lz, d, weight)``.
+
+    ``d`` is the world light direction, ``(lx, ly, lz)`` its row-frame coordinates and
+    ``weight = cos theta_u / sum_j K_j p_j(u)`` the balance-heuristic weight of the
+    mixture (Veach's multi-sample estimator), 0 below the horizon. Each strategy
+    draws a shifted Fibonacci lattice (per-row Cranley-Patterson shift), so every
+    strategy is stratified.
+    """
+    row, x_axis, y_axis, normal, sin_v, cos_v, u1, u2, _ = _lattice_lanes(data, m, counts[strategy])
+    emitter = probe.emitter()
+    it = dr.zeros(mi.Interaction3f)
+    if strategy == "uniform":
+        r = dr.safe_sqrt(1.0 - u1 * u1)
+        sin_phi, cos_phi = dr.sincos(_TWO_PI * u2)
+        lx, ly, lz = r * cos_phi, r * sin_phi, u1
+        d = x_axis * lx + y_axis * ly + normal * lz
+    elif strategy == "environment":
+        ds, _ = emitter.sample_direction(it, mi.Point2f(u1, u2))
+        d = ds.d
+        lx, ly, lz = dr.dot(d, x_axis), dr.dot(d, y_axis), dr.dot(d, normal)
+    elif strategy == "peak":
+        theta_h = (0.5 * math.pi) * dr.square(PEAK_T_MAX * u1)
+        sin_h, cos_h = dr.sincos(theta_h)
+        sin_p, cos_p = dr.sincos(_TWO_PI * u2)
+        hx, hy, hz = sin_h * cos_p, sin_h * sin_p, cos_h
+        v_dot_h = sin_v * hx + cos_v * hz
+        lx, ly, lz = 2.0 * v_dot_h * hx - sin_v, 2.0 * v_dot_h * hy, 2.0 * v_dot_h * hz - cos_v
+        d = x_axis * lx + y_axis * ly + normal * lz
+    else:
+        raise ValueError(strategy)
+    density = mi.Float(0.0)
+    if counts.get("uniform"):
+        density += counts["uniform"] * (1.0 / _TWO_PI)
+    if counts.get("environment"):
+        ds = dr.zeros(mi.DirectionSample3f)
+        ds.d = d
+        density += counts["environment"] * emitter.pdf_direction(it, ds)
+    if counts.get("peak"):
+        density += counts["peak"] * _peak_pdf(lx, ly, lz, sin_v, cos_v)
+    above = (lz > 0.0) & (density > 0.0)
+    weight = dr.select(above, lz / density, 0.0)
+    return row, lx, ly, lz, d, weight, sin_v, cos_v, above
+
+
+def _mis_chunk(packets: np.ndarray, probe: Any, n_t: int, n_s: int, n_dirs: int,
+               occluder: Any = None, fractions: Optional[dict] = None) -> np.ndarray:
+    """Rows of L for one chunk by multiple importance sampling, ``(m, n_t * n_s, 3) float32``.
+
+    Three stratified strategies share the K directions (:data:`MIS_FRACTIONS`):
+    uniform over the hemisphere (the paper's), the environment's own
+    importance sampling (Mitsuba's ``envmap.sample_direction``, luminance
+    times sin theta: the small bright sources of a real probe), and half
+    vectors around the normal as dense as the grid's t nodes (the specular
+    peak, where a sharp table varies fastest). Every direction is weighted by
+    the balance heuristic over all three densities, so the estimator stays
+    unbiased for any table and its variance is that of the best strategy for
+    each part of the integrand.
+    """
+    m = len(packets)
+    counts = strategy_counts(n_dirs, fractions)
+    data = mi.Float(packets.reshape(-1))
+    target = dr.zeros(mi.Float, m * n_t * n_s * 4)
+    for strategy in counts:
+        row, lx, ly, lz, d, weight, sin_v, cos_v, above = _mis_lanes(data, m, probe, strategy, counts)
+        radiance = probe.eval_dr(d)
+        if occluder is not None:
+            p3 = dr.gather(mi.Vector4f, data, row * _PACKETS + 3)
+            p4 = dr.gather(mi.Vector4f, data, row * _PACKETS + 4)
+            shadow = p4.w > 0.5
+            si = dr.zeros(mi.SurfaceInteraction3f)
+            si.p = mi.Point3f(p3.y, p3.z, p3.w)
+            si.n = mi.Normal3f(p4.x, p4.y, p4.z)
+            lit = ~(shadow & occluder.ray_test(si.spawn_ray(d), active=shadow & above))
+            radiance = dr.select(lit, radiance, 0.0)
+        _splat(m, row, lx, ly, lz, sin_v, cos_v, radiance * weight, n_t, n_s, active=above, target=target)
+    out = target.numpy().reshape(m, n_t * n_s, 4)
+    return out[:, :, :3]  # a view: the caller copies it into L once
+

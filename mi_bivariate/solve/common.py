@@ -1,0 +1,199 @@
+"""Shared pieces of the solve: constants, input checks, and symmetric positive definite algebra.
+
+The linear algebra here is what every algorithm of the package needs from one
+Cholesky factorisation ``X = U^T U`` of an ``N x N`` float64 system:
+:func:`cholesky` (``None`` when ``X`` is not numerically positive definite),
+:func:`inverse_from_cholesky` (LAPACK ``potri``: ``X^-1`` from ``U`` in 2/3 N^3
+flops, a third of solving against the identity) and :func:`banded_inverse_diagonal`
+(the diagonal of the inverse of a banded matrix in ``O(N b^2)``, Takahashi's
+recurrence, for the smoothness prior's sparse normal matrix).
+"""
+
+from __future__ import annotations
+
+from typing import Optional, Tuple
+
+import numpy as np
+import scipy.linalg as sla
+from scipy.linalg import lapack
+
+from mi_bivariate.errors import InputError
+from mi_bivariate.prior import Prior
+
+#: Default weight alpha of the normalised smoothness term (see :mod:`mi_bivariate.solve`).
+#: Chosen on 8 of the 50 *training* MERL-NBRDF materials (never on a scored one) with the
+#: default model-error form and the basis prior, by the median over materials of the
+#: relight error under three novel probes divided by the exact reduction's
+#: (benchmarks/ablation.py, docs/recovery.md): 1.27 at 1e-2 (GCV per recovery: 1.91,
+#: it over-fits the model error, which is correlated between neighbouring pixels).
+DEFAULT_ALPHA = 1e-2
+#: Largest accepted KKT violation (relative natural residual, see :func:`~mi_bivariate.solve.kkt_violation`).
+KKT_TOLERANCE = 1e-9
+
+
+def validate_problem(L: np.ndarray, I: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """Check ``L (M, N, 3)`` and ``I (M, 3)``: shapes, dtypes, finiteness, ``M, N > 0``."""
+    L = np.asarray(L)
+    I = np.asarray(I)
+    if L.ndim != 3 or L.shape[2] != 3:
+        raise InputError("lighting matrix L", f"expected shape (M, N, 3), got {L.shape}")
+    if I.ndim != 2 or I.shape[1] != 3:
+        raise InputError("observations I", f"expected shape (M, 3), got {I.shape}")
+    if L.shape[0] != I.shape[0]:
+        raise InputError("lighting matrix L", f"has {L.shape[0]} rows but there are {I.shape[0]} observations")
+    if L.shape[0] == 0:
+        raise InputError("observations I", "no observations (M = 0)",
+                         "check the mask, the view-angle limit and saturation")
+    if L.shape[1] == 0:
+        raise InputError("lighting matrix L", "has no columns (N = 0)")
+    for name, arr in (("lighting matrix L", L), ("observations I", I)):
+        if not np.issubdtype(arr.dtype, np.floating) and not np.issubdtype(arr.dtype, np.integer):
+            raise InputError(name, f"has non-numeric dtype {arr.dtype}")
+        bad = int(np.count_nonzero(~np.isfinite(arr)))
+        if bad:
+            raise InputError(name, f"has {bad} NaN or infinite entries")
+    return L, I
+
+
+def grid_shape(n_nodes: int, prior: Prior, n_t: Optional[int], n_s: Optional[int]) -> Tuple[int, int]:
+    """The st grid ``(n_t, n_s)`` of ``n_nodes`` columns: given, the prior's, or square."""
+    if n_t is None and n_s is None:
+        if prior.n_t * prior.n_s == n_nodes:
+            return prior.n_t, prior.n_s
+        root = int(round(np.sqrt(n_nodes)))
+        if root * root == n_nodes:
+            return root, root
+        raise InputError("lighting matrix L", f"{n_nodes} columns is not a square grid",
+                         "pass n_t and n_s")
+    if n_t is None or n_s is None or n_t * n_s != n_nodes:
+        raise InputError("lighting matrix L", f"{n_nodes} columns do not match the grid {n_t} x {n_s}")
+    return int(n_t), int(n_s)
+
+
+def check_alpha(alpha) -> Optional[float]:
+    """``None`` for "choose by GCV" (``"gcv"``), :data:`DEFAULT_ALPHA` for ``None``, else a finite alpha >= 0."""
+    if alpha is None:
+        return DEFAULT_ALPHA
+    if isinstance(alpha, str) and alpha == "gcv":
+        return None
+    try:
+        alpha = float(alpha)
+    except (TypeError, ValueError):
+        raise InputError("alpha", f"must be a number or 'gcv', got {alpha!r}") from None
+    if not np.isfinite(alpha) or alpha < 0:
+        raise InputError("alpha", f"must be finite and >= 0, got {alpha}")
+    return alpha
+
+
+def penalty_weight(alpha: float, n_nodes: int, level: float) -> float:
+    """lambda = alpha / (N level^2): the prior term's weight in the normal equations."""
+    level = level if level > 0 else 1.0
+    return alpha / (n_nodes * level * level)
+
+
+def cholesky(x: np.ndarray) -> Optional[Tuple[np.ndarray, bool]]:
+    """``scipy.linalg.cho_factor`` of a float64 SPD matrix, or ``None`` if it is not (numerically) SPD."""
+    try:
+        factor = sla.cho_factor(x, check_finite=False)
+    except np.linalg.LinAlgError:
+        return None
+    if not np.all(np.isfinite(np.diag(factor[0]))):
+        return None
+    return factor
+
+
+def inverse_from_cholesky(factor: Tuple[np.ndarray, bool], full: bool = True) -> np.ndarray:
+    """``X^-1`` from ``cho_factor(X)``, by LAPACK ``potri``.
+
+    ``full=False`` returns only the factor's triangle of the inverse (zeros elsewhere),
+    which is all that :func:`inverse_diagonals` needs.
+    """
+    c, lower = factor
+    inv, info = lapack.dpotri(c, lower=lower)
+    if info != 0:
+        raise np.linalg.LinAlgError(f"potri failed (info {info})")
+    # potri fills one triangle; the other holds the factor's leftovers.
+    tri = np.tril(inv) if lower else np.triu(inv)
+    if not full:
+        return tri
+    return tri + tri.T - np.diag(np.diag(tri))
+
+
+def inverse_diagonals(x: np.ndarray, gram: np.ndarray,
+                      factor: Optional[Tuple[np.ndarray, bool]] = None) -> Tuple[np.ndarray, np.ndarray]:
+    """``diag(X^-1)`` and ``diag(X^-1 gram)`` (gram symmetric) from one factorisation of ``X``.
+
+    With ``T`` one triangle of ``X^-1`` (its diagonal included) and ``P = T * gram``
+    elementwise: ``diag(X^-1 gram)_i = sum_j P_ij + sum_j P_ji - P_ii``. Falls back to
+    the pseudo-inverse when ``X`` is singular.
+    """
+    factor = cholesky(x) if factor is None else factor
+    tri = None
+    if factor is not None:
+        try:
+            tri = inverse_from_cholesky(factor, full=False)
+        except np.linalg.LinAlgError:
+            tri = None
+    if tri is None:
+        inv = np.linalg.pinv(x)
+        return np.diag(inv).copy(), np.einsum("ij,ij->i", inv, gram)
+    prod = tri * gram
+    return np.diag(tri).copy(), prod.sum(axis=1) + prod.sum(axis=0) - np.diag(prod)
+
+
+def spd_inverse(x: np.ndarray, factor: Optional[Tuple[np.ndarray, bool]] = None) -> np.ndarray:
+    """``X^-1`` from one Cholesky factorisation (given or computed); pseudo-inverse if X is singular."""
+    factor = cholesky(x) if factor is None else factor
+    if factor is None:
+        return np.linalg.pinv(x)
+    try:
+        return inverse_from_cholesky(factor)
+    except np.linalg.LinAlgError:
+        return np.linalg.pinv(x)
+
+
+def bandwidth(x: np.ndarray) -> int:
+    """Largest ``|i - j|`` with ``x[i, j] != 0`` of a square matrix (0 for a diagonal one)."""
+    rows, cols = np.nonzero(x)
+    return int(np.abs(rows - cols).max(initial=0))
+
+
+def banded_inverse_diagonal(x: np.ndarray, band: int) -> Optional[np.ndarray]:
+    """``diag(X^-1)`` of an SPD matrix with ``x[i, j] = 0`` for ``|i - j| > band``, or ``None``.
+
+    Banded Cholesky ``X = U^T U`` (LAPACK ``pbtrf``, ``O(N b^2)``), then Takahashi's
+    recurrence for the entries of ``Z = X^-1`` inside the band, from the last row up:
+    ``Z_ij = -(1/U_ii) sum_{k in (i, i+b]} U_ik Z_kj`` (``j > i``) and
+    ``Z_ii = 1/U_ii^2 - (1/U_ii) sum_k U_ik Z_ki``. Only in-band entries of ``Z`` are
+    ever needed, so the cost is ``O(N b^2)`` instead of the dense inverse's ``O(N^3)``.
+    ``None`` when ``X`` is not numerically positive definite (the caller falls back).
+    """
+    n = x.shape[0]
+    b = max(int(band), 1)
+    ab = np.zeros((b + 1, n))
+    for d in range(b + 1):  # upper banded storage: ab[b - d, j] = x[j - d, j]
+        ab[b - d, d:] = np.diagonal(x, d)
+    try:
+        u, info = lapack.dpbtrf(ab, lower=0)
+    except ValueError:
+        return None
+    if info != 0:
+        return None
+    # Dense U rows within the band: U[i, i + d] = u[b - d, i + d].
+    u_rows = np.zeros((n, b + 1))
+    for d in range(b + 1):
+        u_rows[: n - d, d] = u[b - d, d:]
+    # A sliding (b + 1) x (b + 1) window of Z: rows and columns i .. i + b.
+    window = np.zeros((b + 1, b + 1))
+    diag = np.empty(n)
+    for i in range(n - 1, -1, -1):
+        window[1:, 1:] = window[:-1, :-1].copy()
+        uii = u_rows[i, 0]
+        width = min(n, i + b + 1) - i - 1
+        u_off = u_rows[i, 1:1 + width]
+        z_row = -(u_off @ window[1:1 + width, 1:1 + width]) / uii
+        window[0, 1:1 + width] = z_row
+        window[1:1 + width, 0] = z_row
+        window[0, 0] = 1.0 / (uii * uii) - (u_off @ z_row) / uii
+        diag[i] = window[0, 0]
+    return diag if np.all(np.isfinite(diag)) else None

@@ -1,0 +1,306 @@
+"""The front door of the solve: every channel and prior variant of Eq. 6, the kept table.
+
+:func:`solve` validates once (:func:`~mi_bivariate.solve.data_term.prepare_data_term`),
+then :func:`solve_prepared` solves each prior variant (weight pair) per channel with the
+algorithms of this package (alpha by :mod:`~mi_bivariate.solve.gcv` unless given, the
+constrained solve by :mod:`~mi_bivariate.solve.nnls`, the confidence by
+:mod:`~mi_bivariate.solve.confidence`) and keeps, per channel, the pair with the lower
+data residual (alpha given; paper Sect. 4) or the lower GCV score.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Dict, List, Optional, Sequence, Tuple
+
+import numpy as np
+
+from mi_bivariate.errors import InputError
+from mi_bivariate.prior import PAIRS, Prior, default_prior
+from mi_bivariate.solve.common import check_alpha, grid_shape, penalty_weight
+from mi_bivariate.solve.confidence import Confidence
+from mi_bivariate.solve.data_term import DataTerm, prepare_data_term
+from mi_bivariate.solve.gcv import gcv_curve
+from mi_bivariate.solve.nnls import NNLSResult, nnls_gram
+
+
+@dataclass
+class PairSolution:
+    """One weight pair's solution (all arrays per channel).
+
+    The confidence maps (:attr:`resolution`, :attr:`posterior_std`, :attr:`measured`) are
+    computed on first access (:class:`~mi_bivariate.solve.confidence.Confidence`).
+    """
+    table: np.ndarray              #: (n_t, n_s, 3) float32, 1/sr
+    alpha: np.ndarray              #: (3,) the alpha used per channel
+    gcv: np.ndarray                #: (3,) GCV score at that alpha (NaN when alpha was given)
+    data_term: np.ndarray          #: (3,) (1/M) ||(I - L f)/sigma||^2 (dimensionless)
+    prior_term: np.ndarray         #: (3,) (1/N) ||R f / level||^2, without alpha
+    relative_residual: np.ndarray  #: (3,) ||I - L f|| / ||I||
+    iterations: np.ndarray         #: (3,) int
+    kkt_violation: np.ndarray      #: (3,)
+    method: Tuple[str, str, str]
+    time_s: float
+    confidence: Confidence = field(repr=False)
+
+    @property
+    def resolution(self) -> np.ndarray:
+        """(n_t, n_s, 3) diag of X^-1 gram (the model resolution matrix)."""
+        return self.confidence.map("resolution")
+
+    @property
+    def posterior_std(self) -> np.ndarray:
+        """(n_t, n_s, 3) 1/sr, sqrt(diag(X^-1) / M) (unconstrained)."""
+        return self.confidence.map("posterior_std")
+
+    @property
+    def measured(self) -> np.ndarray:
+        """(n_t, n_s, 3) 1 - posterior var / prior-only var: 1 = the image set it."""
+        return self.confidence.map("measured")
+
+
+@dataclass
+class SolveResult:
+    """Result of :func:`solve`: the kept table and what led to it."""
+    table: np.ndarray                  #: (n_t, n_s, 3) float32, 1/sr, winner per channel
+    winner: Tuple[str, str, str]       #: "diffuse" or "gloss" per channel
+    alphas: np.ndarray                 #: (3,) alpha per channel (of the winner)
+    relative_residual: np.ndarray      #: (3,) of the winner
+    pairs: Dict[str, PairSolution]     #: every pair's solution
+    lambertian: np.ndarray             #: (3,) 1/sr, the Lambertian start (best constant table)
+    scale: np.ndarray                  #: (3,) the prior's scale (the Lambertian level)
+    alpha_rule: str = "gcv"            #: "gcv" or "given"
+    timings: Dict[str, float] = field(default_factory=dict)  #: seconds
+
+    @property
+    def alpha(self) -> float:
+        """The median of :attr:`alphas` (one number for summaries)."""
+        return float(np.median(self.alphas))
+
+    def _of_winner(self, name: str) -> np.ndarray:
+        shape = self.table.shape[:2]
+        return np.stack([self.pairs[w].confidence.channel(name, k).reshape(shape)
+                         for k, w in enumerate(self.winner)], axis=-1)
+
+    @property
+    def resolution(self) -> np.ndarray:
+        """(n_t, n_s, 3) per-node share of the data in the estimate (see :class:`PairSolution`)."""
+        return self._of_winner("resolution")
+
+    @property
+    def posterior_std(self) -> np.ndarray:
+        """(n_t, n_s, 3) 1/sr."""
+        return self._of_winner("posterior_std")
+
+    @property
+    def measured(self) -> np.ndarray:
+        """(n_t, n_s, 3) in [0, 1]: how much of each node's uncertainty the image removed."""
+        return self._of_winner("measured")
+
+    @property
+    def kkt_violation(self) -> np.ndarray:
+        """(3,) of the winner."""
+        return np.array([self.pairs[w].kkt_violation[k] for k, w in enumerate(self.winner)])
+
+    def summary(self) -> str:
+        lines = [f"alpha ({self.alpha_rule}) R/G/B {' '.join(f'{a:.3g}' for a in self.alphas)}  "
+                 f"total {self.timings.get('total', 0.0):.2f} s"]
+        for k, ch in enumerate("RGB"):
+            parts = [f"{p}: alpha {s.alpha[k]:.3g} gcv {s.gcv[k]:.4g} rel.res {s.relative_residual[k]:.4g} "
+                     f"it {s.iterations[k]} kkt {s.kkt_violation[k]:.1e} {s.method[k]}"
+                     for p, s in self.pairs.items()]
+            lines.append(f"{ch}: winner {self.winner[k]:7s} | " + " | ".join(parts))
+        return "\n".join(lines)
+
+
+@dataclass
+class _ChannelSolve:
+    """One prior variant, one channel: the NNLS answer and what led to it."""
+    result: NNLSResult
+    system: np.ndarray     #: X, (N, N)
+    alpha: float
+    gcv: float
+    lam: float
+    data_term: float
+
+
+def _solve_channel(data: DataTerm, penalty: np.ndarray, alpha: Optional[float], k: int, start: np.ndarray,
+                   precision: Optional[np.ndarray], mean: Optional[np.ndarray]) -> _ChannelSolve:
+    """Alpha (GCV unless given) and the constrained solve of one variant and channel.
+
+    ``precision``, ``mean`` ``(N, 3)``: the diagonal Gaussian table prior (the basis prior),
+    added as ``(1/M) sum_n ((f_n - mean_n) / mean_std_n)^2`` with ``precision = 1 / (M std^2)``.
+    """
+    n = data.n_nodes
+    extra = None if precision is None else (precision[:, k], precision[:, k] * mean[:, k])
+    score = np.nan
+    if alpha is None:
+        curve = gcv_curve(data, penalty, k, extra=extra)
+        alpha, score = curve.alpha, curve.score
+    lam = penalty_weight(alpha, n, data.level[k])
+    x = lam * penalty
+    x += data.gram[k]
+    rhs = data.rhs[k]
+    if extra is not None:
+        x[np.diag_indices(n)] += extra[0]
+        rhs = rhs + extra[1]
+    res = nnls_gram(x, rhs, passive=np.full(n, start[k] > 0) if mean is None else mean[:, k] > 0)
+    f = res.x
+    data_term = data.yy[k] - 2 * f @ data.rhs[k] + f @ data.gram[k] @ f
+    return _ChannelSolve(res, x, float(alpha), float(score), lam, float(data_term))
+
+
+def _pair_solution(data: DataTerm, regulariser, channels: List[_ChannelSolve], confidence: Confidence,
+                   grid: Tuple[int, int], seconds: float) -> PairSolution:
+    """Assemble one variant's three channels, with its residuals."""
+    n = data.n_nodes
+    f = np.stack([c.result.x for c in channels], axis=-1)
+    level = np.where(data.level > 0, data.level, 1.0)
+    prior_term = np.sum((regulariser @ f) ** 2, axis=0) / (n * level**2)
+    predicted = np.einsum("mnc,nc->mc", data.lighting, f.astype(data.lighting.dtype), optimize=True)
+    norm_i = np.linalg.norm(data.observations.astype(np.float64), axis=0)
+    r = np.linalg.norm(data.observations.astype(np.float64) - predicted, axis=0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rel = np.where(norm_i > 0, r / np.where(norm_i > 0, norm_i, 1.0), np.where(r == 0, 0.0, np.inf))
+    return PairSolution(
+        table=f.reshape(*grid, 3).astype(np.float32), alpha=np.array([c.alpha for c in channels]),
+        gcv=np.array([c.gcv for c in channels]),
+        data_term=np.maximum(np.array([c.data_term for c in channels]), 0.0), prior_term=prior_term,
+        relative_residual=rel, iterations=np.array([c.result.iterations for c in channels]),
+        kkt_violation=np.array([c.result.kkt_violation for c in channels]),
+        method=tuple(c.result.method for c in channels), time_s=seconds, confidence=confidence)
+
+
+def solve_prepared(data: DataTerm, prior: Optional[Prior] = None, alpha=None, *,
+                   n_t: Optional[int] = None, n_s: Optional[int] = None,
+                   pairs: Sequence[str] = PAIRS, mean: Optional[np.ndarray] = None,
+                   mean_std: Optional[np.ndarray] = None) -> SolveResult:
+    """:func:`solve` on a prepared :class:`~mi_bivariate.solve.data_term.DataTerm`.
+
+    Channel by channel: every prior variant is solved, the kept one is chosen, and its
+    posterior (resolution, posterior spread) is computed from the NNLS solve's own
+    factorisation; the other variants' confidence, and ``measured``, on first access.
+    At most one channel's systems and factors (2 per variant) are held at a time.
+    """
+    t0 = time.perf_counter()
+    prior = default_prior() if prior is None else prior
+    alpha = check_alpha(alpha)
+    n_t, n_s = grid_shape(data.n_nodes, prior, n_t, n_s)
+    if (prior.n_t, prior.n_s) != (n_t, n_s):
+        prior = prior.resampled(n_t, n_s)
+    if not pairs:
+        raise InputError("pairs", "need at least one weight pair")
+    if (mean is None) != (mean_std is None):
+        raise InputError("mean", "mean and mean_std go together")
+    precision = None
+    if mean is not None:
+        mean = np.asarray(mean, np.float64).reshape(data.n_nodes, 3)
+        mean_std = np.asarray(mean_std, np.float64).reshape(data.n_nodes, 3)
+        if not (np.all(np.isfinite(mean)) and np.all(np.isfinite(mean_std)) and np.all(mean_std > 0)):
+            raise InputError("mean", "the table prior's mean and std must be finite (std > 0)")
+        precision = 1.0 / (data.n_rows * np.maximum(mean_std, 1e-30) ** 2)
+    regularisers = {p: prior.regulariser(p) for p in pairs}
+    penalties = {p: (r.T @ r).toarray() for p, r in regularisers.items()}
+    channels: Dict[str, List[_ChannelSolve]] = {p: [] for p in pairs}
+    seconds = {p: 0.0 for p in pairs}
+    confidences = {p: Confidence(data, penalties[p], np.zeros(3), precision, (n_t, n_s)) for p in pairs}
+    winner = []
+    for k in range(3):
+        for p in pairs:
+            t1 = time.perf_counter()
+            channels[p].append(_solve_channel(data, penalties[p], alpha, k, data.level, precision, mean))
+            seconds[p] += time.perf_counter() - t1
+        if alpha is None:
+            # The pair whose prior explains the image better in the cross-validation sense.
+            w = min(pairs, key=lambda p: (channels[p][k].gcv, p != pairs[0]))
+        else:
+            # The paper's rule: the lower data residual.
+            w = min(pairs, key=lambda p: (max(channels[p][k].data_term, 0.0), p != pairs[0]))
+        winner.append(w)
+        for p in pairs:
+            c = channels[p][k]
+            confidences[p].set_weight(k, c.lam)
+            if p == w:  # while its factorisation is at hand
+                confidences[p].keep_factor(k, c.result.factor, c.system)
+                confidences[p].channel("resolution", k)
+            c.result.factor, c.system = None, None
+    solutions = {p: _pair_solution(data, regularisers[p], channels[p], confidences[p], (n_t, n_s), seconds[p])
+                 for p in pairs}
+    winner = tuple(winner)
+    table = np.stack([solutions[w].table[:, :, k] for k, w in enumerate(winner)], axis=-1)
+    rel = np.array([solutions[w].relative_residual[k] for k, w in enumerate(winner)])
+    alphas = np.array([solutions[w].alpha[k] for k, w in enumerate(winner)])
+    timings = {"normal_equations": data.time_s, **seconds}
+    timings["total"] = data.time_s + time.perf_counter() - t0
+    return SolveResult(table, winner, alphas, rel, solutions, data.level.copy(), data.level.copy(),
+                       "gcv" if alpha is None else "given", timings)
+
+
+def solve(L: np.ndarray, I: np.ndarray, prior: Optional[Prior] = None, alpha=None, *,
+          sigma: Optional[np.ndarray] = None, image_index: Optional[np.ndarray] = None,
+          n_t: Optional[int] = None, n_s: Optional[int] = None,
+          pairs: Sequence[str] = PAIRS, mean: Optional[np.ndarray] = None,
+          mean_std: Optional[np.ndarray] = None) -> SolveResult:
+    """Recover the bivariate table from ``I = L f`` (Eq. 6), per channel, every weight pair.
+
+    Minimises ``(1/M) ||(I - L f) / sigma||^2 + alpha (1/N) ||R f / level||^2``, f >= 0,
+    per channel, where ``sigma`` is each row's noise (:func:`row_sigma`), ``R`` the
+    prior's weighted differences and ``level`` the best constant table (so alpha is
+    dimensionless and a brighter image or probe changes nothing).
+
+    Args:
+        L: ``(M, N, 3)`` lighting matrix (float32 is fine; the solve is float64),
+            column ``it * n_s + is``.
+        I: ``(M, 3)`` observed pixel values (linear radiance).
+        prior: weight pairs; default :func:`mi_bivariate.prior.default_prior`, resampled
+            if its grid differs from ``(n_t, n_s)``.
+        alpha: the smoothness prior's weight: a number (default :data:`DEFAULT_ALPHA`),
+            and the pair with the lower data residual wins (the paper's rule); or
+            ``"gcv"``: chosen per channel and pair by generalised cross-validation
+            (:func:`gcv_curve`), and the pair with the lower GCV score wins.
+        sigma: ``(M, 3)`` per-row noise std (default: :func:`row_sigma` of ``I``).
+        image_index: ``(M,)`` image of each row (for the default ``sigma``).
+        n_t, n_s: grid; default the prior's when it matches N, else sqrt(N).
+        pairs: which pairs to solve with.
+        mean, mean_std: ``(n_t, n_s, 3)`` 1/sr, a per-node Gaussian prior on the
+            table (:meth:`mi_bivariate.basis_prior.BasisPrior.predict`), added as
+            ``(1/M) sum ((f - mean) / mean_std)^2``.
+
+    Raises:
+        InputError: shapes, NaN/inf, negative alpha, no observations, grid mismatch.
+    """
+    return solve_prepared(prepare_data_term(L, I, sigma, image_index), prior, alpha,
+                          n_t=n_t, n_s=n_s, pairs=pairs, mean=mean, mean_std=mean_std)
+
+
+@dataclass
+class SweepPoint:
+    alpha: float
+    result: SolveResult
+    table_error: Optional[np.ndarray]  #: (3,) ||f - f_true|| / ||f_true|| per channel, if truth given
+
+
+def alpha_sweep(L: np.ndarray, I: np.ndarray, alphas: Sequence[float], prior: Optional[Prior] = None, *,
+                truth: Optional[np.ndarray] = None, **kwargs) -> List[SweepPoint]:
+    """Solve for every alpha, building the normal equations once (for tuning alpha).
+
+    Args:
+        truth: optional ``(n_t, n_s, 3)`` reference table (e.g. the reduced ground truth);
+            each point then carries its per-channel relative RMS table error.
+        kwargs: passed to :func:`solve_prepared` (``n_t``, ``n_s``, ``pairs``).
+    """
+    data = prepare_data_term(L, I)
+    prior = default_prior() if prior is None else prior
+    points = []
+    for alpha in alphas:
+        result = solve_prepared(data, prior, alpha, **kwargs)
+        error = None
+        if truth is not None:
+            ref = np.asarray(truth, dtype=np.float64)
+            if ref.shape != result.table.shape:
+                raise InputError("truth", f"shape {ref.shape} differs from the table {result.table.shape}")
+            diff = (result.table - ref).reshape(-1, 3)
+            error = np.linalg.norm(diff, axis=0) / np.maximum(np.linalg.norm(ref.reshape(-1, 3), axis=0), 1e-300)
+        points.append(SweepPoint(float(alpha), result, error))
+    return points
