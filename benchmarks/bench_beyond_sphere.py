@@ -65,7 +65,9 @@ def bench_visibility(quick: bool) -> List[str]:
 
     from mi_bivariate import lighting, solve
     from mi_bivariate.bivariate import BivariateBRDF
-    from mi_bivariate.mesh import Camera, MeshShape, MeshView, render_mesh
+    from mi_bivariate import capture
+    from mi_bivariate.geometry import Camera
+    from mi_bivariate.mesh import MeshShape, MeshView, render_mesh
     from mi_bivariate.metrics import brdf_errors, image_relative_rmse
     from mi_bivariate.nbrdf import nbrdf_merl
     from mi_bivariate.probes import shared_probe
@@ -84,7 +86,7 @@ def bench_visibility(quick: bool) -> List[str]:
         truth = nbrdf_merl(name)
         tb = bsdf_dict(truth)
         image = render_mesh(tb, probe, view, spp=spp, seed=1)
-        obs = view.observations(image, n_normals=m)
+        obs = capture.image_observations(image, view, n_normals=m)
         ref = render_mesh(tb, novel, view, spp=spp, seed=7)
         for vis in (True, False):
             t0 = time.perf_counter()

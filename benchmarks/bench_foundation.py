@@ -81,11 +81,12 @@ def render_fn(bsdf: dict, probe, resolution: int, spp: int) -> Callable[[int], n
     """A function seed -> image for one scene (loaded once)."""
     import mitsuba as mi
 
-    from mi_bivariate.render import coverage_mask, make_camera, sphere_scene_dict
+    from mi_bivariate.geometry import SphereCamera
+    from mi_bivariate.render import sphere_scene_dict
 
-    camera = make_camera("orthographic", resolution)
+    camera = SphereCamera.create("orthographic", resolution)
     scene = mi.load_dict(sphere_scene_dict(bsdf, probe, camera, normals=False))
-    mask = coverage_mask(camera)
+    mask = camera.coverage_mask()
 
     def render(seed: int) -> np.ndarray:
         return np.array(mi.render(scene, spp=spp, seed=seed), np.float64)[..., :3][mask]

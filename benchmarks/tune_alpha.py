@@ -31,6 +31,7 @@ import numpy as np
 
 from mi_bivariate import capture, lighting, nbrdf, probes, render
 from mi_bivariate.bivariate import BivariateBRDF, reduction_error
+from mi_bivariate.geometry import SphereCamera
 from mi_bivariate.metrics import image_relative_rmse
 from mi_bivariate.prior import default_prior
 from mi_bivariate.solve import prepare_data_term, solve_prepared
@@ -68,7 +69,7 @@ def main() -> None:
         if shot_file.exists():
             with np.load(shot_file) as z:
                 image = z["image"]
-            geometry = render.sphere_geometry(render.make_camera("orthographic", args.resolution), 0.45)
+            geometry = SphereCamera.create("orthographic", args.resolution).sphere_geometry(0.45)
         else:
             shot = render.render_sphere(render.bsdf_dict(truth), probe_in, resolution=args.resolution,
                                         spp=args.spp, seed=0)

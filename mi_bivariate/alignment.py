@@ -40,6 +40,7 @@ import numpy as np
 
 from mi_bivariate import capture, lighting, prior as prior_mod, solve as solve_mod
 from mi_bivariate.errors import InputError
+from mi_bivariate.bivariate import BivariateBRDF
 
 #: Default grid of the per-candidate solve (coarse: only the residual's minimum matters).
 ALIGN_GRID = (16, 16)
@@ -83,8 +84,6 @@ def _wrap(angle_deg: float) -> float:
 
 def _reference_table(brdf: Any, n_t: int, n_s: int) -> np.ndarray:
     """``(n_t * n_s, 3)`` values of a known BRDF at the st nodes."""
-    from mi_bivariate.bivariate import BivariateBRDF
-
     if not isinstance(brdf, BivariateBRDF):
         brdf = BivariateBRDF.reduce(brdf, n_t=n_t, n_s=n_s)
     s = np.linspace(0.0, 1.0, n_s)

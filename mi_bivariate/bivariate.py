@@ -20,6 +20,7 @@ import os
 from pathlib import Path
 from typing import Any, Optional
 
+import mitsuba as mi
 import numpy as np
 
 from mi_bivariate.atomic import atomic_path
@@ -209,11 +210,6 @@ class BivariateBRDF:
 
     def to_bitmap(self):
         """``mi.Bitmap`` RGB float32, H = n_t, W = n_s: the form the ``bivariate`` plugin takes."""
-        import mitsuba as mi
-
-        from mi_bivariate.variants import ensure_variant
-
-        ensure_variant()
         return mi.Bitmap(np.ascontiguousarray(self.table, np.float32))
 
     def metadata(self) -> dict:

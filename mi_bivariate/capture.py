@@ -36,12 +36,12 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import dataclass, field, replace
-from typing import Any, Dict, Optional, Sequence, Tuple
+from typing import Dict, Optional, Sequence, Tuple
 
 import numpy as np
 
 from mi_bivariate.errors import InputError, InputWarning
-from mi_bivariate.geometry import PerspectiveSphereGeometry, SphereGeometry
+from mi_bivariate.geometry import Geometry, SphereGeometry, check_rotation
 
 DROP_REASONS: Tuple[str, ...] = ("view_angle", "outside_image", "silhouette", "outside_mask",
                                  "duplicate", "nonfinite", "negative", "saturated")
@@ -51,6 +51,9 @@ MIN_OBSERVATIONS = 256
 
 #: Warn when more than this fraction of in-sphere samples has bad values.
 BAD_VALUE_WARN_FRACTION = 0.05
+
+#: The finest sub-pixel grid of the pixel-footprint model (per side).
+FOOTPRINT_MAX_SIDE = 8
 
 _GOLDEN = (1.0 + math.sqrt(5.0)) / 2.0
 
@@ -76,6 +79,13 @@ class Observations:
         geometric_normals: ``(M, 3) float64`` unit geometric (face) normals at
             ``positions``, used to offset shadow rays exactly as Mitsuba does
             (``None``: the shading normals).
+        footprint_normals: ``(P, 3) float64`` unit world normals across the
+            pixel footprints of the rows that need more than their centre
+            normal (the pixel-footprint model, :func:`observations_from_sphere`
+            with ``footprint``): such a row's lighting-matrix row is the mean
+            of the rows of its footprint normals. ``None``: every row is its
+            centre normal (the paper's model).
+        footprint_rows: ``(P,) int64`` the row of each footprint normal, ascending.
     """
 
     normals: np.ndarray
@@ -87,6 +97,8 @@ class Observations:
     image_index: Optional[np.ndarray] = None
     positions: Optional[np.ndarray] = None
     geometric_normals: Optional[np.ndarray] = None
+    footprint_normals: Optional[np.ndarray] = None
+    footprint_rows: Optional[np.ndarray] = None
 
     def __post_init__(self) -> None:
         m = len(self.normals)
@@ -99,6 +111,13 @@ class Observations:
         for name in names:
             if len(getattr(self, name)) != m:
                 raise ValueError(f"Observations.{name} has {len(getattr(self, name))} rows, normals have {m}")
+        if (self.footprint_normals is None) != (self.footprint_rows is None):
+            raise ValueError("Observations.footprint_normals and footprint_rows go together")
+        if self.footprint_rows is not None:
+            rows = self.footprint_rows
+            if len(rows) != len(self.footprint_normals) or (len(rows) and (rows.min() < 0 or rows.max() >= m
+                                                                           or np.any(np.diff(rows) < 0))):
+                raise ValueError("Observations.footprint_rows must be ascending row indices, one per footprint normal")
 
     def __len__(self) -> int:
         return len(self.normals)
@@ -110,13 +129,27 @@ class Observations:
         return np.arccos(cos)
 
     def subset(self, rows: np.ndarray) -> "Observations":
-        """The observations at ``rows`` (index or boolean mask); ``dropped`` is kept."""
+        """The observations at ``rows`` (distinct indices or a boolean mask); ``dropped`` is kept."""
         def pick(a: Optional[np.ndarray]) -> Optional[np.ndarray]:
             return None if a is None else a[rows]
 
+        fp_normals = fp_rows = None
+        if self.footprint_rows is not None:
+            new_of_old = np.full(len(self), -1, dtype=np.int64)
+            new_of_old[np.arange(len(self))[rows]] = np.arange(len(self.normals[rows]))
+            new = new_of_old[self.footprint_rows]
+            keep = np.flatnonzero(new >= 0)
+            keep = keep[np.argsort(new[keep], kind="stable")]
+            fp_normals, fp_rows = self.footprint_normals[keep], new[keep]
         return Observations(self.normals[rows], self.views[rows], self.values[rows],
                             self.probe_index[rows], dict(self.dropped), self.pixels[rows],
-                            self.image_index[rows], pick(self.positions), pick(self.geometric_normals))
+                            self.image_index[rows], pick(self.positions), pick(self.geometric_normals),
+                            fp_normals, fp_rows)
+
+    @property
+    def has_footprints(self) -> bool:
+        """Whether some rows are modelled by their pixel footprint (see ``footprint_normals``)."""
+        return self.footprint_rows is not None and len(self.footprint_rows) > 0
 
     @property
     def has_positions(self) -> bool:
@@ -171,14 +204,6 @@ def _check_mask(mask: Optional[np.ndarray], shape: Tuple[int, int], source: str)
         raise InputError(source, f"mask has shape {mask.shape} but the image is {shape[0]}x{shape[1]}",
                          "pass an (H, W) boolean mask of the image's size")
     return mask.astype(bool)
-
-
-def _check_rotation(matrix: np.ndarray, source: str) -> np.ndarray:
-    matrix = np.asarray(matrix, dtype=np.float64)
-    if matrix.shape != (3, 3) or not np.all(np.isfinite(matrix)) \
-            or not np.allclose(matrix @ matrix.T, np.eye(3), atol=1e-6) or np.linalg.det(matrix) < 0:
-        raise InputError(source, "camera_to_world is not a (3, 3) rotation matrix")
-    return matrix
 
 
 def _plateau_warning(values: np.ndarray, source: str) -> None:
@@ -248,8 +273,20 @@ def _finish(image: np.ndarray, rows: np.ndarray, cols: np.ndarray, normals: np.n
 def observations_from_sphere(image: np.ndarray, geometry: SphereGeometry, n_normals: int = 8000,
                              max_view_angle_deg: float = 80.0, saturation: Optional[float] = None,
                              mask: Optional[np.ndarray] = None, seed: int = 0, probe_index: int = 0,
-                             source: str = "image") -> Observations:
+                             source: str = "image", footprint: Optional[float] = None) -> Observations:
     """Observations from an orthographic image of a sphere of known position.
+
+    A camera pixel integrates the radiance over its square footprint, whose
+    normals spread by about ``1 / (radius cos theta)`` radians at view angle
+    theta: 0.6 degrees at the centre of a 100 px-radius sphere, 5.7 at 80
+    degrees, 28 at 88. The paper's model (``footprint=None``) takes the
+    centre normal, which is exact for images of pixel centres and good away
+    from the rim. The pixel-footprint model (``footprint=DEG``) gives every
+    row whose footprint spreads more than ``DEG`` an ``s x s`` grid of
+    sub-pixel normals (``s = ceil(spread / DEG)``, at most
+    :data:`FOOTPRINT_MAX_SIDE`), whose lighting-matrix rows are averaged: the
+    model of an area-integrating camera, which makes rim pixels usable
+    (raise ``max_view_angle_deg`` towards 90 with it).
 
     Args:
         image: ``(H, W, 3)`` linear RGB.
@@ -262,11 +299,15 @@ def observations_from_sphere(image: np.ndarray, geometry: SphereGeometry, n_norm
         seed: seeds the lattice's azimuthal rotation.
         probe_index: probe lighting this image (see :func:`stack`).
         source: name of the image in messages.
+        footprint: ``None`` (centre normals) or the largest normal spread,
+            degrees, one sub-pixel sample may stand for (e.g. ``2.0``).
     """
     image = _check_image(image, source)
+    if footprint is not None and not (math.isfinite(footprint) and footprint > 0.0):
+        raise InputError(source, f"footprint must be a positive angle in degrees, got {footprint!r}")
     height, width = image.shape[:2]
     mask = _check_mask(mask, (height, width), source)
-    rot = _check_rotation(geometry.camera_to_world, source)
+    rot = check_rotation(geometry.camera_to_world, source)
     cx, cy, radius = float(geometry.cx), float(geometry.cy), float(geometry.radius)
     if not all(math.isfinite(v) for v in (cx, cy, radius)) or radius <= 0.0:
         raise InputError(source, f"invalid sphere: centre ({cx:g}, {cy:g}), radius {radius:g} px")
@@ -318,7 +359,46 @@ def observations_from_sphere(image: np.ndarray, geometry: SphereGeometry, n_norm
     if saturation is None:
         _, sphere_mask = geometry.normals(width, height)
         _plateau_warning(image[sphere_mask], source)
-    return _finish(image, rows, cols, normals, views, dropped, saturation, source, probe_index)
+    obs = _finish(image, rows, cols, normals, views, dropped, saturation, source, probe_index)
+    if footprint is not None:
+        obs.footprint_normals, obs.footprint_rows = _sphere_footprints(obs.pixels, cx, cy, radius, rot, footprint)
+    return obs
+
+
+def _sphere_footprints(pixels: np.ndarray, cx: float, cy: float, radius: float, rot: np.ndarray,
+                       footprint_deg: float) -> Tuple[np.ndarray, np.ndarray]:
+    """Sub-pixel normals of the pixels whose footprint's normals spread more than ``footprint_deg``.
+
+    The spread is twice the largest angle between the centre normal and a
+    corner's (every corner lies inside the silhouette: the pixels passed the
+    silhouette check). Returns ``(normals (P, 3) float64 world, rows (P,) int64)``.
+    """
+    rows, cols = pixels[:, 0].astype(np.float64), pixels[:, 1].astype(np.float64)
+
+    def normal(dx: np.ndarray, dy: np.ndarray) -> np.ndarray:  # camera-frame normal at pixel offset
+        x = (cols[:, None] + 0.5 + dx - cx) / radius
+        y = -(rows[:, None] + 0.5 + dy - cy) / radius
+        return np.stack([x, y, np.sqrt(np.clip(1.0 - x * x - y * y, 0.0, None))], axis=-1)
+
+    corners = np.array([[-0.5, -0.5], [0.5, -0.5], [-0.5, 0.5], [0.5, 0.5]])
+    centre = normal(np.zeros((1, 1)), np.zeros((1, 1)))
+    cos = np.sum(normal(corners[None, :, 0], corners[None, :, 1]) * centre, axis=-1).min(axis=1)
+    spread = 2.0 * np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    sides = np.clip(np.ceil(spread / footprint_deg), 1, FOOTPRINT_MAX_SIDE).astype(np.int64)
+    out_normals, out_rows = [], []
+    for side in np.unique(sides[sides > 1]):
+        sel = np.flatnonzero(sides == side)
+        offs = (np.arange(side) + 0.5) / side - 0.5
+        ox, oy = np.meshgrid(offs, offs)
+        n_cam = normal(ox.reshape(1, -1), oy.reshape(1, -1))[sel]  # (m, side^2, 3)
+        n_cam /= np.linalg.norm(n_cam, axis=-1, keepdims=True)
+        out_normals.append((n_cam @ rot.T).reshape(-1, 3))
+        out_rows.append(np.repeat(sel, side * side))
+    if not out_rows:
+        return np.zeros((0, 3)), np.zeros(0, dtype=np.int64)
+    normals, which = np.concatenate(out_normals), np.concatenate(out_rows)
+    order = np.argsort(which, kind="stable")
+    return normals[order], which[order].astype(np.int64)
 
 
 def observations_from_normal_map(image: np.ndarray, normals: np.ndarray, mask: np.ndarray,
@@ -408,39 +488,47 @@ def observations_from_normal_map(image: np.ndarray, normals: np.ndarray, mask: n
     return obs
 
 
-def image_observations(image: np.ndarray, geometry: Any, *, n_normals: int = 8000,
+def image_observations(image: np.ndarray, geometry: Geometry, *, n_normals: int = 8000,
                        max_view_angle_deg: float = 80.0, saturation: Optional[float] = None,
-                       mask: Optional[np.ndarray] = None, seed: int = 0,
-                       source: str = "image") -> Observations:
-    """Observations of one image for any supported geometry.
+                       mask: Optional[np.ndarray] = None, seed: int = 0, probe_index: int = 0,
+                       source: str = "image", footprint: Optional[float] = None) -> Observations:
+    """Observations of one image for any :class:`~mi_bivariate.geometry.Geometry`.
 
-    ``geometry`` is a :class:`SphereGeometry` (orthographic sphere), a
+    A :class:`SphereGeometry` (orthographic sphere) takes the lattice route of
+    :func:`observations_from_sphere`. Any other geometry, a
     :class:`PerspectiveSphereGeometry` (pinhole photo of a sphere: exact
     per-pixel normals and views, fully covered pixels only) or a
-    :class:`mi_bivariate.mesh.MeshView` (any mesh with a posed camera).
+    :class:`mi_bivariate.mesh.MeshView` (any mesh with a posed camera), gives
+    its :meth:`~mi_bivariate.geometry.Geometry.surface_maps` to
+    :func:`observations_from_normal_map`; rows keep the surface points, when the
+    geometry has them, for visibility. ``footprint``: the pixel-footprint model
+    of :func:`observations_from_sphere` (orthographic spheres only).
     """
     common = dict(n_normals=n_normals, max_view_angle_deg=max_view_angle_deg, saturation=saturation, seed=seed,
-                  source=source)
+                  probe_index=probe_index, source=source)
     if isinstance(geometry, SphereGeometry):
-        return observations_from_sphere(image, geometry, mask=mask, **common)
-    if isinstance(geometry, PerspectiveSphereGeometry):
-        image = np.asarray(image)
-        if image.ndim != 3:
-            raise InputError(source, f"expected an (H, W, 3) RGB image, got shape {image.shape}")
-        normals, views, usable = geometry.normals_and_views(image.shape[1], image.shape[0], coverage="full")
-        if mask is not None:
-            mask = np.asarray(mask)
-            if mask.shape != usable.shape:
-                raise InputError(source, f"mask has shape {mask.shape} but the image is "
-                                         f"{image.shape[0]}x{image.shape[1]}")
-            usable = usable & mask.astype(bool)
-        if not usable.any():
-            raise InputError(source, "no pixel lies fully inside the sphere's silhouette")
-        return observations_from_normal_map(image, normals, usable, views, **common)
-    if callable(getattr(geometry, "observations", None)):
-        return geometry.observations(image, mask=mask, **common)
-    raise InputError(source, f"unsupported geometry {type(geometry).__name__}",
-                     "use SphereGeometry, PerspectiveSphereGeometry or mesh.MeshView")
+        return observations_from_sphere(image, geometry, mask=mask, footprint=footprint, **common)
+    if footprint is not None:
+        raise InputError(source, f"the pixel-footprint model needs an orthographic sphere, not a "
+                                 f"{type(geometry).__name__}", "leave footprint=None")
+    if not isinstance(geometry, Geometry):
+        raise InputError(source, f"unsupported geometry {type(geometry).__name__}",
+                         "use SphereGeometry, PerspectiveSphereGeometry or mesh.MeshView")
+    image = np.asarray(image)
+    if image.ndim != 3:
+        raise InputError(source, f"expected an (H, W, 3) RGB image, got shape {image.shape}")
+    maps = geometry.surface_maps(image.shape[1], image.shape[0], source)
+    usable = maps.mask
+    if mask is not None:
+        mask = np.asarray(mask)
+        if mask.shape != usable.shape:
+            raise InputError(source, f"mask has shape {mask.shape} but the image is "
+                                     f"{image.shape[0]}x{image.shape[1]}")
+        usable = usable & mask.astype(bool)
+    if not usable.any():
+        raise InputError(source, geometry.no_pixels, geometry.no_pixels_hint)
+    return observations_from_normal_map(image, maps.normals, usable, maps.views, positions=maps.positions,
+                                        geometric_normals=maps.geometric_normals, **common)
 
 
 def stack(observations: Sequence[Observations],
@@ -483,4 +571,15 @@ def stack(observations: Sequence[Observations],
         image_index=np.concatenate([np.full(len(p), k, dtype=np.int32) for k, p in enumerate(parts)]),
         positions=surface("positions", "nan"),
         geometric_normals=surface("geometric_normals", "normals"),
+        **_stacked_footprints(parts),
     )
+
+
+def _stacked_footprints(parts: Sequence[Observations]) -> Dict[str, Optional[np.ndarray]]:
+    """The footprint arrays of stacked parts (rows offset by the parts before), or ``None``."""
+    if not any(p.footprint_rows is not None for p in parts):
+        return {"footprint_normals": None, "footprint_rows": None}
+    offsets = np.cumsum([0] + [len(p) for p in parts[:-1]])
+    normals = [p.footprint_normals for p in parts if p.footprint_rows is not None]
+    rows = [p.footprint_rows + o for p, o in zip(parts, offsets) if p.footprint_rows is not None]
+    return {"footprint_normals": np.concatenate(normals), "footprint_rows": np.concatenate(rows).astype(np.int64)}

@@ -8,35 +8,13 @@ single line ``mi-bivariate: error: FILE: problem`` and exit status 2.
 from __future__ import annotations
 
 import argparse
-import json
+import importlib
 import math
-import os
 import sys
 import warnings
-from pathlib import Path
-from typing import Dict, List, Optional, Sequence
+from typing import Dict, Optional, Sequence
 
 from mi_bivariate.errors import InputError
-
-# Limits on user numbers, checked before anything is allocated. Each is far above
-# the documented defaults and below what a 16 GB machine (or Dr.Jit's 32-bit
-# array sizes) can hold.
-#: Nodes per st axis, and nodes of the whole grid (the solve's normal equations are N x N).
-MAX_GRID_AXIS = 256
-MAX_GRID_NODES = 64 * 64
-#: Normals M and light directions K of a recovery.
-MAX_NORMALS = 1_000_000
-MAX_DIRS = 10_000_000
-#: Bytes of the lighting matrix (M x N x 3 float32).
-MAX_LIGHTING_BYTES = 4 << 30
-#: Lanes of one lighting kernel (rows of a chunk x direction pairs): Dr.Jit indexes with uint32.
-MAX_KERNEL_LANES = 1 << 31
-#: Render width/height, samples per pixel, and samples of one render (width x height x spp).
-MAX_RESOLUTION = 8192
-MAX_SPP = 1 << 16
-MAX_RENDER_SAMPLES = 1 << 28
-#: Sampler seeds are unsigned 32-bit integers.
-MAX_SEED = 2**32 - 1
 
 
 class _Parser(argparse.ArgumentParser):
@@ -44,95 +22,6 @@ class _Parser(argparse.ArgumentParser):
 
     def error(self, message: str):  # type: ignore[override]
         self.exit(2, f"mi-bivariate: error: {message} (see '{self.prog} --help')\n")
-
-
-def _check_max(flag: str, value: Optional[int], limit: int, hint: str = "") -> None:
-    if value is not None and value > limit:
-        raise InputError(flag, f"{value} is over the limit of {limit}", hint or None)
-
-
-def _check_seed(seed: Optional[int]) -> None:
-    if seed is not None and not 0 <= seed <= MAX_SEED:
-        raise InputError("--seed", f"must be an integer from 0 to {MAX_SEED}, got {seed}")
-
-
-def _check_grid(grid: Optional[Sequence[int]]) -> None:
-    if grid is None:
-        return
-    n_t, n_s = grid
-    for flag, n in (("--grid N_T", n_t), ("--grid N_S", n_s)):
-        _check_max(flag, n, MAX_GRID_AXIS)
-    if n_t > 0 and n_s > 0 and n_t * n_s > MAX_GRID_NODES:
-        raise InputError("--grid", f"{n_t} x {n_s} = {n_t * n_s} nodes is over the limit of {MAX_GRID_NODES}",
-                         "the solve's normal equations grow as the square of the node count")
-
-
-def _check_recovery_sizes(normals: Optional[int], dirs: Optional[int], grid: Optional[Sequence[int]]) -> None:
-    """Upper limits on M, K and the grid, and on the lighting matrix and kernel they imply.
-
-    Lower limits (M = 0, a one-node axis) are the library's checks, reported with its words.
-    """
-    from mi_bivariate import lighting
-
-    _check_grid(grid)
-    _check_max("--normals", normals, MAX_NORMALS)
-    _check_max("--dirs", dirs, MAX_DIRS)
-    if normals is None or dirs is None or grid is None or min(normals, dirs, *grid) < 1:
-        return
-    n_nodes = grid[0] * grid[1]
-    size = normals * n_nodes * 3 * 4
-    if size > MAX_LIGHTING_BYTES:
-        raise InputError("--normals", f"the lighting matrix of {normals} normals x {n_nodes} nodes would take "
-                         f"{size / 2**30:.1f} GiB, over the limit of {MAX_LIGHTING_BYTES / 2**30:.0f} GiB",
-                         "use fewer normals or a smaller grid")
-    lanes = min(normals, lighting._chunk_rows(n_nodes, None)) * lighting.direction_pairs(dirs)
-    if lanes > MAX_KERNEL_LANES:
-        raise InputError("--dirs", f"{dirs} directions with a {grid[0]} x {grid[1]} grid make a lighting kernel of "
-                         f"{lanes} lanes, over the limit of {MAX_KERNEL_LANES}", "use fewer directions")
-
-
-def _check_render_sizes(resolution: Optional[int], spp: Optional[int], flag: str = "--spp") -> None:
-    _check_max("--resolution", resolution, MAX_RESOLUTION)
-    _check_max(flag, spp, MAX_SPP)
-    if resolution and spp and resolution > 0 and spp > 0 and resolution * resolution * spp > MAX_RENDER_SAMPLES:
-        raise InputError(flag, f"{resolution} x {resolution} pixels x {spp} spp = {resolution * resolution * spp} "
-                         f"samples, over the limit of {MAX_RENDER_SAMPLES} for one render",
-                         "lower --spp or --resolution")
-
-
-def _check_float(flag: str, value: Optional[float], lo: float, hi: float, lo_open: bool = False) -> None:
-    import math
-
-    if value is None:
-        return
-    ok = math.isfinite(value) and (value > lo if lo_open else value >= lo) and value <= hi
-    if not ok:
-        interval = f"{'(' if lo_open else '['}{lo:g}, {hi:g}]"
-        raise InputError(flag, f"must be a finite number in {interval}, got {value}")
-
-
-def _existing_files(*specs: Optional[str]) -> List[Path]:
-    """The arguments that name existing files (inputs an output must not overwrite)."""
-    return [Path(s) for s in specs if s and Path(s).is_file()]
-
-
-def _check_out_file(out: Optional[str]) -> None:
-    """``--out`` naming an existing folder is refused (the command writes files, not into a folder)."""
-    if out and Path(out).is_dir():
-        raise InputError(out, "--out is a folder", "give a file name")
-
-
-#: Library names of inputs (``"image"``) -> the user's file names, for warnings (see :func:`_format_warning`).
-_SOURCE_NAMES: Dict[str, str] = {}
-
-
-def _check_out_folder(out: Path) -> None:
-    """An output folder must not be an existing file and must be creatable/writable."""
-    from mi_bivariate.atomic import check_outputs
-
-    if out.exists() and not out.is_dir():
-        raise InputError(out, "--out must be a folder, but this is a file", "choose another --out")
-    check_outputs([out / ".probe-write"])
 
 
 def _parse_sphere(text: str):
@@ -179,279 +68,6 @@ def _add_data(p: argparse.ArgumentParser) -> None:
                    help="shared data folder with probes/ and merl_nbrdf/ (default: $MI_BIVARIATE_DATA)")
 
 
-# --------------------------------------------------------------------------- info
-
-def cmd_info(args: argparse.Namespace) -> int:
-    import platform
-
-    import drjit as dr
-    import mitsuba as mi
-    import numpy as np
-    import scipy
-
-    from mi_bivariate import __version__
-    from mi_bivariate.variants import ensure_variant
-
-    variant = ensure_variant(args.variant)
-    info: Dict[str, object] = {
-        "mi_bivariate": __version__,
-        "python": platform.python_version(),
-        "mitsuba": mi.__version__,
-        "drjit": dr.__version__,
-        "numpy": np.__version__,
-        "scipy": scipy.__version__,
-        "variant": variant,
-        "variants_available": [v for v in mi.variants() if v.endswith("_rgb")],
-        "llvm_backend": bool(dr.has_backend(dr.JitBackend.LLVM)),
-        "cuda_backend (GPU)": bool(dr.has_backend(dr.JitBackend.CUDA)),
-        "DRJIT_LIBLLVM_PATH": os.environ.get("DRJIT_LIBLLVM_PATH", "(search)"),
-        "MI_BIVARIATE_DATA": os.environ.get("MI_BIVARIATE_DATA", "(unset)"),
-        "cpu_count": os.cpu_count(),
-    }
-    if args.json:
-        print(json.dumps(info, indent=2))
-    else:
-        width = max(len(k) for k in info)
-        for k, v in info.items():
-            print(f"{k:<{width}}  {v}")
-    return 0
-
-
-# --------------------------------------------------------------------------- render
-
-def _load_brdf_source(spec: str, data: Optional[str], interpolation: str = "nearest"):
-    """A BRDF from a CLI spec: a MERL .binary, a bivariate .npz, an NBRDF name or an analytic spec."""
-    from mi_bivariate import analytic, bivariate, merl, nbrdf
-
-    path = Path(spec)
-    if path.suffix == ".binary":
-        return merl.MERLBRDF.read(path)
-    if path.suffix == ".npz":
-        return bivariate.BivariateBRDF.load(path)
-    if spec in nbrdf.NBRDF_MATERIALS:
-        return nbrdf.nbrdf_merl(spec, data_dir=data)
-    if ":" in spec or spec in ("lambertian", "ggx", "oren-nayar", "bivariate-lobe"):
-        return analytic.to_merl(analytic.analytic_from_spec(spec))
-    if path.exists():
-        raise InputError(path, "unknown BRDF file type", "use a MERL .binary or a bivariate .npz")
-    raise InputError(spec, "not a file, an NBRDF material name or an analytic spec",
-                     f"NBRDF names: {', '.join(nbrdf.NBRDF_MATERIALS)}")
-
-
-def _load_probe(spec: str, data: Optional[str]):
-    from mi_bivariate import probes
-
-    path = Path(spec)
-    if path.suffix:
-        return probes.Probe.load(path)
-    return probes.shared_probe(spec, data_dir=data)
-
-
-def cmd_render(args: argparse.Namespace) -> int:
-    from mi_bivariate import render
-    from mi_bivariate.variants import ensure_variant
-
-    from mi_bivariate.atomic import atomic_paths, check_outputs
-
-    _check_render_sizes(args.resolution, args.spp)
-    _check_seed(args.seed)
-    _check_out_file(args.out)
-    out = Path(args.out)
-    check_outputs([out, out.with_suffix(".png")], _existing_files(args.brdf, args.probe))
-    ensure_variant(args.variant)
-    brdf = _load_brdf_source(args.brdf, args.data)
-    probe = _load_probe(args.probe, args.data)
-    result = render.render_sphere(render.bsdf_dict(brdf), probe, resolution=args.resolution, spp=args.spp,
-                                  camera=args.camera, seed=args.seed)
-    with atomic_paths([out, out.with_suffix(".png")]) as (exr, png):
-        render.write_exr(exr, result.image)
-        render.write_png_preview(png, result.image)
-    print(f"wrote {out} and {out.with_suffix('.png')}")
-    return 0
-
-
-# --------------------------------------------------------------------------- reduce
-
-def cmd_reduce(args: argparse.Namespace) -> int:
-    import numpy as np
-
-    from mi_bivariate import bivariate, merl
-    from mi_bivariate.atomic import atomic_paths, check_outputs
-
-    _check_grid(args.grid)
-    _check_out_file(args.out)
-    out = Path(args.out) if args.out else Path(args.merl).with_suffix(".npz")
-    check_outputs([out, out.with_suffix(".exr")], _existing_files(args.merl))
-    source = merl.MERLBRDF.read(args.merl)
-    valid = source.table[np.isfinite(source.table)]
-    if not np.any(valid > 0.0):
-        raise InputError(args.merl, "MERL table holds no positive value: the relative error of a reduction is "
-                                    "undefined", "check the file")
-    biv = bivariate.BivariateBRDF.reduce(source, n_t=args.grid[0], n_s=args.grid[1])
-    exact = bivariate.exact_floor(source)
-    grid = bivariate.reduction_error(source, biv)
-    with atomic_paths([out, out.with_suffix(".exr")]) as (npz, exr):
-        biv.save(npz)
-        biv.save_exr(exr)
-    print(f"exact floor (Eq. 1 of the exact phi_d average at MERL resolution, paper Fig. 3): {exact:.4f}")
-    print(f"grid floor (Eq. 1 of the {biv.n_t}x{biv.n_s} table read back at MERL resolution): {grid:.4f}")
-    print(f"wrote {out} and {out.with_suffix('.exr')}")
-    return 0
-
-
-# --------------------------------------------------------------------------- learn-prior
-
-def cmd_learn_prior(args: argparse.Namespace) -> int:
-    from mi_bivariate import training_set
-    from mi_bivariate.atomic import atomic_paths, check_outputs
-
-    _check_grid(args.grid)
-    _check_out_file(args.out)
-    basis_out = training_set.basis_path_for(args.out)
-    check_outputs([args.out, basis_out], _existing_files(*args.sources))
-    smooth, basis = training_set.learn_priors_from_merl(args.sources, n_t=args.grid[0], n_s=args.grid[1],
-                                                        data_dir=args.data)
-    with atomic_paths([args.out, basis_out], suffixes=[".npz", ".npz"]) as (tmp_smooth, tmp_basis):
-        smooth.save(tmp_smooth)
-        basis.save(tmp_basis)
-    print(f"wrote {args.out} (smoothness prior, {len(smooth.provenance['materials'])} materials) and "
-          f"{basis_out} (basis prior, {basis.basis.shape[1]} components)")
-    return 0
-
-
-# --------------------------------------------------------------------------- recover
-
-def cmd_recover(args: argparse.Namespace) -> int:
-    from mi_bivariate import recover as rec
-    from mi_bivariate import spherefit
-    from mi_bivariate.images import load_image, load_mask
-    from mi_bivariate.threads import blas_threads
-    from mi_bivariate.variants import ensure_variant
-
-    from mi_bivariate.atomic import check_outputs
-
-    _check_recovery_sizes(args.normals, args.dirs, args.grid)
-    _check_seed(args.seed)
-    _check_float("--max-view-angle", args.max_view_angle, 0.0, 90.0, lo_open=True)
-    _check_float("--saturation", args.saturation, 0.0, float("inf"), lo_open=True)
-    if args.alpha != "gcv":
-        _check_float("--alpha", args.alpha, float("-inf"), float("inf"))  # the sign is the library's check
-    if args.threads is not None and not 1 <= args.threads <= 1024:
-        raise InputError("--threads", f"must be from 1 to 1024, got {args.threads}")
-    _check_out_file(args.out)
-    outputs = rec.output_paths(args.out, merl=args.merl, report=not args.no_report)
-    _SOURCE_NAMES.update({"image": str(args.image), "lighting matrix L": str(args.probe)})
-    check_outputs(outputs, _existing_files(args.image, args.probe, args.mask, args.prior))
-    ensure_variant(args.variant)
-    if args.threads is not None:
-        import drjit as dr
-
-        dr.set_thread_count(args.threads)
-    probe = _load_probe(args.probe, args.data)
-    image = load_image(args.image)
-    mask = load_mask(args.mask, image.shape) if args.mask else None
-    sphere = None if args.sphere in (None, "auto") else args.sphere
-    fit = spherefit.fit_sphere(image, mask, sphere=sphere, source=str(args.image))
-    print(fit.summary())
-    smooth_prior, basis_prior = None, "default"
-    if args.prior is not None:
-        from mi_bivariate.basis_prior import BasisPrior
-        from mi_bivariate.prior import Prior
-        from mi_bivariate.training_set import basis_path_for
-
-        smooth_prior = Prior.load(args.prior)
-        basis_file = basis_path_for(args.prior)
-        basis_prior = BasisPrior.load(basis_file) if basis_file.is_file() else None
-    try:
-        with blas_threads():  # no BLAS oversubscription on a shared machine (mi_bivariate.threads)
-            result = rec.recover(
-                image, probe, fit.geometry, masks=mask, n_normals=args.normals, n_dirs=args.dirs,
-                grid=tuple(args.grid), alpha=args.alpha, seed=args.seed, max_view_angle_deg=args.max_view_angle,
-                saturation=args.saturation, noise=args.noise, sampling=args.sampling,
-                prior=smooth_prior, basis_prior=None if args.no_basis_prior else basis_prior)
-    except InputError as exc:
-        # The library names its arguments ("image", "lighting matrix L"); name the user's files.
-        names = {"image": args.image, "lighting matrix L": args.probe}
-        if exc.source in names:
-            raise InputError(names[exc.source], exc.problem, exc.hint) from None
-        raise
-    paths = rec.write_outputs(result, args.out, merl=args.merl, report=not args.no_report,
-                              report_render=args.report_render)
-    print(result.summary())
-    for p in paths:
-        print(f"wrote {p}")
-    return 0
-
-
-# --------------------------------------------------------------------------- demo
-
-def cmd_demo(args: argparse.Namespace) -> int:
-    from mi_bivariate import demo
-    from mi_bivariate.variants import ensure_variant
-
-    _check_render_sizes(args.resolution, args.spp)
-    _check_seed(args.seed)
-    _check_out_folder(Path(args.out))
-    ensure_variant(args.variant)
-    return demo.run_demo(out_dir=Path(args.out), material=args.material, input_probe=args.input_probe,
-                         novel_probe=args.novel_probe, data_dir=args.data, spp=args.spp, seed=args.seed,
-                         resolution=args.resolution)
-
-
-# --------------------------------------------------------------------------- evaluate
-
-def cmd_evaluate(args: argparse.Namespace) -> int:
-    from mi_bivariate import evaluate as ev
-    from mi_bivariate.variants import ensure_variant
-
-    _check_recovery_sizes(args.normals or 8000, args.dirs or 32000, args.grid or (32, 32))
-    _check_render_sizes(args.resolution or 128, args.spp)
-    _check_render_sizes(args.resolution or 128, args.novel_spp, flag="--novel-spp")
-    _check_seed(args.seed)
-    _check_float("--alpha", args.alpha, float("-inf"), float("inf"))
-    _check_float("--abs-time-factor", args.abs_time_factor, 0.0, 1e6, lo_open=True)
-    if not 1 <= args.jobs <= 256:
-        raise InputError("--jobs", f"must be from 1 to 256, got {args.jobs}")
-    if args.threads is not None and not 1 <= args.threads <= 1024:
-        raise InputError("--threads", f"must be from 1 to 1024, got {args.threads}")
-    _check_out_folder(Path(args.out))
-    ensure_variant(args.variant)
-    data = args.data
-    materials = list(args.materials) or (ev.quick_materials(data) if args.quick else ["nbrdf"])
-    overrides = {k: v for k, v in {
-        "input_probes": tuple(args.input_probes) if args.input_probes else None,
-        "novel_probes": tuple(args.novel_probes) if args.novel_probes else None,
-        "resolution": args.resolution, "spp": args.spp, "novel_spp": args.novel_spp,
-        "n_normals": args.normals, "n_dirs": args.dirs, "grid": tuple(args.grid) if args.grid else None,
-        "alpha": args.alpha, "seed": args.seed,
-        "baselines": tuple(args.baselines) if args.baselines is not None else None,
-        "noise": args.noise, "renderer": args.renderer, "novel_resolution": args.novel_resolution,
-        "prior": args.prior,
-    }.items() if v is not None}
-    config = (ev.EvalConfig.quick(shared_data=ev.have_shared_data(data), **overrides) if args.quick
-              else ev.EvalConfig(**overrides))
-    formats = ("png", "pdf") if args.pdf else ("png",)
-    records = ev.run_evaluation(materials, args.out, config=config, jobs=args.jobs, dask=args.dask,
-                                data_dir=data, progress=not args.no_progress, figures=not args.no_figures,
-                                figure_formats=formats, threads=args.threads)
-    print(ev.format_summary(records))
-    if args.abs:
-        out = Path(args.out) / "analysis_by_synthesis.jsonl"
-        for record in records[:args.abs]:
-            result = ev.analysis_by_synthesis(record["spec"], config.input_probes[0], config=config, data_dir=data,
-                                              time_factor=args.abs_time_factor)
-            ev.append_record(out, result)
-            a, lin = result["abs"], result["linear"]
-            print(f"analysis by synthesis, {record['material']}: linear solve Eq. 1 {lin['eq1']:.4g} in "
-                  f"{lin['time_s']:.1f} s; Adam+prb {a['final']['eq1']:.4g} after {a['time_s']:.1f} s "
-                  f"({a['iterations']} iterations){' (reached)' if a['reached_linear_eq1'] else ''}")
-    print(f"results: {Path(args.out) / ev.RESULTS_FILE}, {Path(args.out) / ev.SUMMARY_FILE}"
-          + ("" if args.no_figures else f", figures in {Path(args.out) / 'figures'}"))
-    return 0
-
-
-# --------------------------------------------------------------------------- parser
-
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="mi-bivariate",
@@ -463,7 +79,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("info", help="versions, Mitsuba variant, LLVM and GPU availability")
     _add_variant(p)
     p.add_argument("--json", action="store_true", help="print JSON")
-    p.set_defaults(func=cmd_info)
+    
 
     p = sub.add_parser("render", help="render a sphere of any BRDF under a probe (EXR + PNG preview)")
     p.add_argument("brdf", help="MERL .binary, bivariate .npz, MERL-NBRDF name, or analytic spec "
@@ -476,21 +92,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     _add_variant(p)
     _add_data(p)
-    p.set_defaults(func=cmd_render)
+    
 
     p = sub.add_parser("reduce", help="reduce a MERL .binary to a bivariate table (prints the exact and grid floors)")
     p.add_argument("merl", help="MERL .binary file")
     p.add_argument("--out", default=None, help="output .npz (default: beside the input)")
     p.add_argument("--grid", type=int, nargs=2, default=(32, 32), metavar=("N_T", "N_S"),
                    help="st grid size (theta_h nodes, theta_d nodes)")
-    p.set_defaults(func=cmd_reduce)
+    
 
     p = sub.add_parser("learn-prior", help="learn the smoothness prior from a set of MERL materials")
     p.add_argument("sources", nargs="+", help="folders of MERL .binary files, .binary files, or MERL-NBRDF names")
     p.add_argument("--out", default="prior.npz", help="output .npz")
     p.add_argument("--grid", type=int, nargs=2, default=(32, 32), metavar=("N_T", "N_S"))
     _add_data(p)
-    p.set_defaults(func=cmd_learn_prior)
+    
 
     p = sub.add_parser("recover", help="recover a bivariate BRDF from an HDR image of a sphere under a known probe")
     p.add_argument("image", help="linear HDR image (.exr/.hdr/.pfm)")
@@ -527,12 +143,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="same as --threads 1")
     _add_variant(p)
     _add_data(p)
-    p.set_defaults(func=cmd_recover)
+    
 
     p = sub.add_parser("demo", help="render a measured material, recover it, re-render it under a novel probe")
     p.add_argument("--out", default="out/demo", help="output folder")
-    p.add_argument("--material", default=None, help="MERL-NBRDF name (default: gold-metallic-paint3; "
-                                                    "an analytic material without shared data)")
+    p.add_argument("--material", default=None,
+                   help="MERL-NBRDF name, MERL .binary or analytic spec (default: gold-metallic-paint3; "
+                        "an analytic material without shared data)")
     p.add_argument("--input-probe", default="grace_latlong_1k", help="probe lighting the input image")
     p.add_argument("--novel-probe", default="pisa_256", help="probe for the validation render")
     p.add_argument("--spp", type=int, default=256, help="samples per pixel of every render")
@@ -540,7 +157,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     _add_variant(p)
     _add_data(p)
-    p.set_defaults(func=cmd_demo)
+    
     p = sub.add_parser("evaluate", help="batch evaluation: recover many materials, re-render under novel probes, "
                                         "compare with the truth and parametric baselines")
     p.add_argument("materials", nargs="*",
@@ -583,25 +200,31 @@ def build_parser() -> argparse.ArgumentParser:
                    help="analysis by synthesis runs up to this many times the linear solve's time")
     _add_variant(p)
     _add_data(p)
-    p.set_defaults(func=cmd_evaluate)
+    
     return parser
 
 
-def _format_warning(message, category, filename, lineno, line=None) -> str:
-    text = " ".join(str(message).split())
-    for name, path in _SOURCE_NAMES.items():
-        if text.startswith(name + ":"):
-            text = path + text[len(name):]
-            break
-    return f"mi-bivariate: warning: {text}\n"
+def _warning_formatter(source_names: Dict[str, str]):
+    """``warnings.formatwarning`` printing one line, with internal source names replaced by the user's files."""
+    def format_warning(message, category, filename, lineno, line=None) -> str:
+        text = " ".join(str(message).split())
+        for name, path in source_names.items():
+            if text.startswith(name + ":"):
+                text = path + text[len(name):]
+                break
+        return f"mi-bivariate: warning: {text}\n"
+
+    return format_warning
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    warnings.formatwarning = _format_warning
+    args.source_names = {}  # filled by commands that know which user file an internal name stands for
+    warnings.formatwarning = _warning_formatter(args.source_names)
     try:
-        return int(args.func(args) or 0)
+        commands = importlib.import_module("mi_bivariate.commands")  # the pipeline, loaded only to run
+        return int(commands.COMMANDS[args.command](args) or 0)
     except InputError as exc:
         print(f"mi-bivariate: error: {exc}", file=sys.stderr)
         return 2

@@ -24,6 +24,8 @@ from types import SimpleNamespace
 from typing import Any, Tuple
 
 import numpy as np
+import drjit as dr
+import mitsuba as mi
 
 PI = math.pi
 HALF_PI = 0.5 * math.pi
@@ -41,7 +43,6 @@ _NUMPY_OPS = SimpleNamespace(
 
 
 def _drjit_ops() -> SimpleNamespace:
-    import drjit as dr
 
     return SimpleNamespace(
         sqrt=dr.sqrt,
@@ -149,7 +150,6 @@ def dirs_from_half_diff(theta_h: Any, phi_h: Any, theta_d: Any, phi_d: Any) -> T
 
 def _like_vector(x: Any) -> Any:
     if _is_drjit(x):
-        import mitsuba as mi
 
         return mi.Vector3f(0.0)
     return np.zeros(3)

@@ -21,65 +21,33 @@ from __future__ import annotations
 import json
 import time
 from pathlib import Path
-from typing import Optional
+from typing import Optional, Tuple
 
-import numpy as np
-
-from mi_bivariate import adequacy, analytic, metrics, nbrdf, probes, reference, render
+from mi_bivariate import adequacy, metrics, nbrdf, reference, render, report
 from mi_bivariate.atomic import atomic_paths
 from mi_bivariate.bivariate import BivariateBRDF, floors
-from mi_bivariate.errors import InputError
+from mi_bivariate.merl import MERLBRDF
+from mi_bivariate.probes import Probe
 from mi_bivariate.recover import recover
+from mi_bivariate.sources import DEFAULT_ANALYTIC, have_shared_data, load_brdf, load_probe
+from mi_bivariate.sources import synthetic_environment  # noqa: F401  (its old home; tests import it here)
 
 DEFAULT_MATERIAL = "gold-metallic-paint3"
 
 
-def synthetic_environment(height: int = 128, width: int = 256, seed: int = 0) -> np.ndarray:
-    """A procedural lat-long environment ``(H, W, 3) float32``: sky, sun, ground and windows.
-
-    Used when no real probe is available. It has a bright sun, a sky
-    gradient, a darker ground and a few bright rectangular "windows" at
-    random azimuths, so it is neither symmetric nor low-frequency.
-    """
-    rng = np.random.default_rng(seed)
-    theta = (np.arange(height) + 0.5) / height * np.pi           # polar angle from +y
-    phi = (np.arange(width) + 0.5) / width * 2.0 * np.pi
-    th, ph = np.meshgrid(theta, phi, indexing="ij")
-    up = np.cos(th)
-    sky = np.where(up[..., None] > 0, np.array([0.35, 0.5, 0.9]) * (0.4 + 0.6 * up[..., None]),
-                   np.array([0.25, 0.2, 0.15]) * (0.5 + 0.5 * (-up[..., None])))
-    sun_dir = np.array([np.sin(0.7) * np.cos(1.0), np.cos(0.7), np.sin(0.7) * np.sin(1.0)])
-    dirs = np.stack([np.sin(th) * np.cos(ph), np.cos(th), np.sin(th) * np.sin(ph)], axis=-1)
-    cos_sun = dirs @ sun_dir
-    env = sky + np.array([60.0, 55.0, 45.0]) * (cos_sun > np.cos(0.06))[..., None]
-    env += np.array([2.0, 1.8, 1.5]) * np.exp((cos_sun - 1.0) / 0.02)[..., None]
-    for _ in range(6):
-        p0, t0 = rng.uniform(0, 2 * np.pi), rng.uniform(0.3, 1.6)
-        dp, dt = rng.uniform(0.1, 0.4), rng.uniform(0.1, 0.4)
-        inside = (np.abs(np.angle(np.exp(1j * (ph - p0)))) < dp) & (np.abs(th - t0) < dt)
-        env[inside] += rng.uniform(2.0, 8.0) * rng.uniform(0.7, 1.0, size=3)
-    return env.astype(np.float32)
-
-
 def _materials_and_probes(material: Optional[str], input_probe: str, novel_probe: str,
-                          data_dir: Optional[str]):
-    try:
-        nbrdf.data_dir(data_dir)
-        have_data = True
-    except InputError:
-        have_data = False
-    if have_data:
-        name = material or DEFAULT_MATERIAL
-        truth = nbrdf.nbrdf_merl(name, data_dir=data_dir)
-        return (f"MERL-NBRDF {name}", truth, probes.shared_probe(input_probe, data_dir),
-                probes.shared_probe(novel_probe, data_dir))
-    if material is not None and material in nbrdf.NBRDF_MATERIALS:
+                          data_dir: Optional[str]) -> Tuple[str, MERLBRDF, Probe, Probe]:
+    """``(label, 3D truth, input probe, novel probe)``: shared data if present, else analytic + synthetic."""
+    if have_shared_data(data_dir):
+        spec = material or DEFAULT_MATERIAL
+        label = f"MERL-NBRDF {spec}" if spec in nbrdf.ALL_NBRDF_MATERIALS else spec
+        return (label, load_brdf(spec, data_dir), load_probe(input_probe, data_dir),
+                load_probe(novel_probe, data_dir))
+    if material is not None and material in nbrdf.ALL_NBRDF_MATERIALS:
         nbrdf.data_dir(data_dir)  # raises the helpful "set MI_BIVARIATE_DATA" error
-    spec = material or "ggx:diffuse=0.25,0.12,0.05,specular=0.6,alpha=0.12,ior=1.5"
-    truth = analytic.to_merl(analytic.analytic_from_spec(spec))
+    spec = material or DEFAULT_ANALYTIC
     print("shared data not found (set MI_BIVARIATE_DATA): using an analytic material and synthetic probes")
-    return (spec, truth, probes.Probe(synthetic_environment(seed=1), source="synthetic environment 1"),
-            probes.Probe(synthetic_environment(seed=7), source="synthetic environment 2"))
+    return spec, load_brdf(spec, data_dir), load_probe("synthetic:1"), load_probe("synthetic:7")
 
 
 def run_demo(out_dir: Path = Path("out/demo"), material: Optional[str] = None,
@@ -137,8 +105,6 @@ def run_demo(out_dir: Path = Path("out/demo"), material: Optional[str] = None,
     # All outputs together (all or none): a failure leaves an earlier demo's files as they were.
     names = ("recovered.npz", "recovered_table.exr", "input.exr", "novel_recovered.exr", "novel_truth.exr",
              "demo.png", "metrics.json")
-    from mi_bivariate import report
-
     with atomic_paths([out_dir / n for n in names]) as tmp:
         rec.brdf.save(tmp[0])
         rec.brdf.save_exr(tmp[1])

@@ -27,10 +27,12 @@ from pathlib import Path
 from typing import Dict, Optional, Tuple
 
 import numpy as np
+import mitsuba as mi
 
 from mi_bivariate.atomic import atomic_path
 from mi_bivariate.errors import InputError, InputWarning
 from mi_bivariate.common import PathLike
+from mi_bivariate import __version__
 
 HDR_SUFFIXES = (".exr", ".hdr", ".rgbe", ".pic", ".pfm")
 LDR_SUFFIXES = (".png", ".jpg", ".jpeg")
@@ -219,8 +221,6 @@ def _png_size(path: Path) -> None:
 
 def _read_with_mitsuba(path: Path, fmt: str) -> np.ndarray:
     """RGBE, PFM, PNG or JPEG through ``mi.Bitmap`` after the structural checks."""
-    import mitsuba as mi
-
     if fmt == "rgbe":
         check_rgbe(path)
     elif fmt == "pfm":
@@ -324,8 +324,6 @@ def load_mask(path: PathLike, shape: tuple) -> np.ndarray:
 
 def provenance_header(units: str, extra: Optional[Dict[str, str]] = None) -> Dict[str, str]:
     """String attributes for an output EXR header: tool version, command line, units, plus ``extra``."""
-    from mi_bivariate import __version__
-
     header = {"mi_bivariate_version": __version__,
               "mi_bivariate_command": shlex.join([os.path.basename(sys.argv[0] or "python")] + sys.argv[1:]),
               "units": units}
@@ -373,8 +371,6 @@ def tonemap(image: np.ndarray, exposure: Optional[float] = None, percentile: flo
 
 def write_png(path: PathLike, image: np.ndarray, exposure: Optional[float] = None) -> Path:
     """Write a tonemapped sRGB PNG preview of a linear image atomically."""
-    import mitsuba as mi
-
     path = Path(path)
     image = np.asarray(image)
     if image.ndim != 3 or image.shape[2] != 3:

@@ -23,6 +23,7 @@ import os
 from pathlib import Path
 from typing import Callable, List, Tuple, Union
 
+import mitsuba as mi
 import numpy as np
 
 from mi_bivariate.atomic import atomic_path
@@ -272,11 +273,6 @@ class MERLBRDF:
         Row ``i_h * 90 + i_d``, column ``i_p``. Missing samples stay NaN (the
         plugin fills them).
         """
-        import mitsuba as mi
-
-        from mi_bivariate.variants import ensure_variant
-
-        ensure_variant()
         img = np.asarray(self.table, np.float32).reshape(MERL_SHAPE[0] * MERL_SHAPE[1], MERL_SHAPE[2], 3)
         return mi.Bitmap(np.ascontiguousarray(img))
 

@@ -32,16 +32,18 @@ from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Dict, Optional, Sequence, Tuple, Union
+from typing import Any, Dict, Optional, Tuple, Union
 
 import numpy as np
+import mitsuba as mi
 
-from mi_bivariate.capture import Observations, observations_from_normal_map
 from mi_bivariate.errors import InputError, InputWarning
-from mi_bivariate.geometry import Intrinsics
+from mi_bivariate.geometry import Camera, Geometry, SurfaceMaps
 from mi_bivariate.common import PathLike
+from mi_bivariate.render import bsdf_dict, load_scene
+from mi_bivariate.variants import ensure_variant
 
 
 #: Mesh file types read through trimesh.
@@ -51,135 +53,6 @@ MESH_SUFFIXES = (".obj", ".ply", ".stl", ".glb", ".gltf", ".off")
 PATCH_MAX_ANGLE_DEG = 30.0
 #: ... and lie this close to the centre's tangent plane (relative to their distance).
 PATCH_MAX_SLOPE = 0.35
-
-
-# ------------------------------------------------------------------ camera
-
-def _rotation(matrix: Any, source: str) -> np.ndarray:
-    rot = np.eye(3) if matrix is None else np.asarray(matrix, dtype=np.float64)
-    if rot.shape != (3, 3) or not np.all(np.isfinite(rot)) or not np.allclose(rot @ rot.T, np.eye(3), atol=1e-6) \
-            or np.linalg.det(rot) < 0:
-        raise InputError(source, "camera_to_world is not a (3, 3) rotation matrix")
-    return rot
-
-
-@dataclass(frozen=True)
-class Camera:
-    """A posed pinhole or orthographic camera, in world units.
-
-    Attributes:
-        width, height: image size in pixels.
-        intrinsics: perspective: focal lengths and principal point in pixels;
-            orthographic: ``fx, fy`` in pixels per world unit and the pixel
-            position of the optical axis.
-        camera_to_world: ``(3, 3)`` rotation from camera-frame to world vectors.
-        position: ``(3,)`` world position of the centre of projection
-            (perspective) or of the optical axis' point on the image plane,
-            where rays start (orthographic).
-        orthographic: parallel projection along the camera's -z.
-    """
-
-    width: int
-    height: int
-    intrinsics: Intrinsics
-    camera_to_world: np.ndarray = field(default_factory=lambda: np.eye(3))
-    position: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    orthographic: bool = False
-
-    def __post_init__(self) -> None:
-        if int(self.width) < 1 or int(self.height) < 1:
-            raise InputError("camera", f"image size must be positive, got {self.width}x{self.height}")
-        object.__setattr__(self, "width", int(self.width))
-        object.__setattr__(self, "height", int(self.height))
-        try:
-            k = Intrinsics.coerce(self.intrinsics)
-        except ValueError as exc:
-            raise InputError("camera", str(exc)) from None
-        if not all(math.isfinite(v) for v in (k.fx, k.fy, k.cx, k.cy)) or k.fx <= 0 or k.fy <= 0:
-            raise InputError("camera", f"invalid intrinsics {k}")
-        object.__setattr__(self, "intrinsics", k)
-        object.__setattr__(self, "camera_to_world", _rotation(self.camera_to_world, "camera"))
-        position = np.asarray(self.position, dtype=np.float64).reshape(-1)
-        if position.shape != (3,) or not np.all(np.isfinite(position)):
-            raise InputError("camera", f"position must be a finite 3-vector, got {self.position!r}")
-        object.__setattr__(self, "position", position)
-
-    @classmethod
-    def look_at(cls, origin: Sequence[float], target: Sequence[float], up: Sequence[float] = (0.0, 1.0, 0.0),
-                width: int = 128, height: Optional[int] = None, fov_deg: Optional[float] = 30.0,
-                scale: Optional[float] = None) -> "Camera":
-        """A camera at ``origin`` looking at ``target``.
-
-        Args:
-            fov_deg: horizontal field of view (perspective, square pixels,
-                centred principal point).
-            scale: instead, pixels per world unit: an orthographic camera.
-        """
-        height = width if height is None else height
-        origin, target, up = (np.asarray(v, dtype=np.float64) for v in (origin, target, up))
-        back = origin - target
-        if not np.linalg.norm(back) > 0:
-            raise InputError("camera", "origin and target coincide")
-        z = back / np.linalg.norm(back)
-        x = np.cross(up, z)
-        if not np.linalg.norm(x) > 1e-9:
-            raise InputError("camera", "the up vector is parallel to the viewing direction")
-        x /= np.linalg.norm(x)
-        rot = np.stack([x, np.cross(z, x), z], axis=1)
-        if scale is not None:
-            k = Intrinsics(float(scale), float(scale), 0.5 * width, 0.5 * height)
-            return cls(width, height, k, rot, origin, orthographic=True)
-        if fov_deg is None or not 0.0 < fov_deg < 180.0:
-            raise InputError("camera", f"fov must be in (0, 180) degrees, got {fov_deg}")
-        return cls(width, height, Intrinsics.from_fov(width, height, fov_deg), rot, origin)
-
-    @property
-    def view_axis(self) -> np.ndarray:
-        """World direction from the scene towards the camera (the camera's +z), ``(3,)``."""
-        return self.camera_to_world[:, 2].copy()
-
-    def rays(self, x: np.ndarray, y: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
-        """World ray origins and unit directions through pixel positions (x right, y down), ``(..., 3)``."""
-        k, rot = self.intrinsics, self.camera_to_world
-        x, y = np.broadcast_arrays(np.asarray(x, np.float64), np.asarray(y, np.float64))
-        if self.orthographic:
-            local = np.stack([(x - k.cx) / k.fx, -(y - k.cy) / k.fy, np.zeros_like(x)], axis=-1)
-            origins = self.position + local @ rot.T
-            directions = np.broadcast_to(-rot[:, 2], origins.shape).copy()
-        else:
-            directions = k.rays(x, y) @ rot.T
-            origins = np.broadcast_to(self.position, directions.shape).copy()
-        return origins, directions
-
-    def sensor_dict(self) -> dict:
-        """Mitsuba sensor dictionary (box filter, RGB float film) for a render from this camera.
-
-        Raises:
-            InputError: non-square pixels, or (perspective) an off-centre
-                principal point, which Mitsuba's sensors do not model here.
-        """
-        import mitsuba as mi
-
-        k, rot = self.intrinsics, self.camera_to_world
-        if abs(k.fx - k.fy) > 1e-6 * k.fx:
-            raise InputError("camera", "cannot render non-square pixels (fx != fy)")
-        origin = self.position.copy()
-        if self.orthographic:
-            origin += rot @ np.array([(0.5 * self.width - k.cx) / k.fx, -(0.5 * self.height - k.cy) / k.fy, 0.0])
-        elif abs(k.cx - 0.5 * self.width) > 1e-6 or abs(k.cy - 0.5 * self.height) > 1e-6:
-            raise InputError("camera", "cannot render an off-centre principal point")
-        look = mi.ScalarTransform4f().look_at(origin=origin.tolist(), target=(origin - rot[:, 2]).tolist(),
-                                              up=rot[:, 1].tolist())
-        film = {"type": "hdrfilm", "width": self.width, "height": self.height, "pixel_format": "rgb",
-                "rfilter": {"type": "box"}}
-        if self.orthographic:
-            # Mitsuba's orthographic film spans [-1, 1] across the width (times the scale).
-            half = 0.5 * self.width / k.fx
-            return {"type": "orthographic", "film": film, "near_clip": 1e-4, "far_clip": 1e5,
-                    "to_world": look @ mi.ScalarTransform4f().scale([half, half, 1.0])}
-        fov = math.degrees(2.0 * math.atan(0.5 * self.width / k.fx))
-        return {"type": "perspective", "film": film, "fov": fov, "fov_axis": "x", "near_clip": 1e-4,
-                "far_clip": 1e5, "to_world": look}
 
 
 # -------------------------------------------------------------------- mesh
@@ -347,11 +220,6 @@ class MeshShape:
 
     def mitsuba_mesh(self, bsdf: Optional[dict] = None) -> Any:
         """The mesh as a ``mi.Mesh`` (with ``bsdf``, a BSDF dictionary, when given)."""
-        import mitsuba as mi
-
-        from mi_bivariate.variants import ensure_variant
-
-        ensure_variant()
         props = mi.Properties()
         if bsdf is not None:
             props["bsdf"] = mi.load_dict(bsdf)
@@ -368,11 +236,7 @@ class MeshShape:
 
     def scene(self) -> Any:
         """A ``mi.Scene`` holding only this mesh (for ray casts and shadow rays), cached per variant."""
-        from mi_bivariate.variants import ensure_variant
-
-        import mitsuba as mi
-
-        variant = ensure_variant()
+        variant = mi.variant()
         if variant not in self._scenes:
             self._scenes[variant] = mi.load_dict({"type": "scene", "shape": self.mitsuba_mesh()})
         return self._scenes[variant]
@@ -380,32 +244,8 @@ class MeshShape:
 
 # ----------------------------------------------------------- ray casting
 
-@dataclass
-class SurfaceMaps:
-    """What each pixel of a camera sees of a mesh (all world frame, ``float64``).
-
-    Attributes:
-        normals: ``(H, W, 3)`` unit shading normals (0 outside ``mask``).
-        views: ``(H, W, 3)`` unit directions from the surface towards the camera.
-        positions: ``(H, W, 3)`` surface points (NaN where no hit).
-        geometric_normals: ``(H, W, 3)`` unit face normals.
-        hit: ``(H, W) bool`` the pixel-centre ray hits the mesh.
-        mask: ``(H, W) bool`` the whole pixel sees one continuous patch
-            (see the module docstring); the pixels to use.
-    """
-
-    normals: np.ndarray
-    views: np.ndarray
-    positions: np.ndarray
-    geometric_normals: np.ndarray
-    hit: np.ndarray
-    mask: np.ndarray
-
-
 def _cast(scene: Any, origins: np.ndarray, directions: np.ndarray) -> Tuple[np.ndarray, ...]:
     """Intersect rays ``(N, 3)``: ``valid (N,)``, ``p``, ``sh_n``, ``n`` ``(N, 3)`` float64."""
-    import mitsuba as mi
-
     ray = mi.Ray3f(mi.Point3f(origins.astype(np.float32).T), mi.Vector3f(directions.astype(np.float32).T))
     si = scene.ray_intersect(ray)
     valid = np.array(si.is_valid(), dtype=bool)
@@ -458,14 +298,17 @@ def surface_maps(shape: MeshShape, camera: Camera) -> SurfaceMaps:
 
 
 @dataclass(frozen=True)
-class MeshView:
-    """A mesh seen by a posed camera: the ``geometry`` of an image of a known shape.
+class MeshView(Geometry):
+    """A mesh seen by a posed camera: the :class:`~mi_bivariate.geometry.Geometry` of an image of a known shape.
 
     Usable wherever :func:`mi_bivariate.recover.recover` takes a geometry.
     """
 
     shape: MeshShape
     camera: Camera
+
+    no_pixels = "no pixel sees the mesh cleanly (all are silhouette or masked pixels)"
+    no_pixels_hint = "use a larger image or move the camera closer"
 
     def surface(self) -> SurfaceMaps:
         """:func:`surface_maps` (cached)."""
@@ -475,52 +318,17 @@ class MeshView:
             object.__setattr__(self, "_surface", cache)
         return cache
 
+    def surface_maps(self, width: int, height: int, source: str = "image") -> SurfaceMaps:
+        """:meth:`surface` for an image of the camera's size (``InputError`` otherwise)."""
+        cam = self.camera
+        if (height, width) != (cam.height, cam.width):
+            raise InputError(source, f"image is {width}x{height} but the camera is {cam.width}x{cam.height}",
+                             "give the camera the image's size")
+        return self.surface()
+
     def occluder(self) -> MeshShape:
         """The object that casts shadows on itself (for ``lighting_matrix(occluder=...)``)."""
         return self.shape
-
-    def observations(self, image: np.ndarray, **kwargs: Any) -> Observations:
-        """:func:`observations_from_mesh` for this view."""
-        return observations_from_mesh(image, self, **kwargs)
-
-
-def observations_from_mesh(image: np.ndarray, view: MeshView, n_normals: int = 8000,
-                           max_view_angle_deg: float = 80.0, saturation: Optional[float] = None,
-                           mask: Optional[np.ndarray] = None, seed: int = 0, probe_index: int = 0,
-                           source: str = "image") -> Observations:
-    """Observations from an image of a known mesh (normals uniform over those it shows).
-
-    Per-pixel normals, views and surface points come from :func:`surface_maps`;
-    selection is :func:`mi_bivariate.capture.observations_from_normal_map`.
-    The rows keep their surface points (:attr:`Observations.positions`) for
-    visibility.
-
-    Args:
-        image: ``(H, W, 3)`` linear RGB of the camera's size.
-        view: the mesh and camera.
-        mask: optional ``(H, W) bool``, True where pixels may be used.
-        n_normals, max_view_angle_deg, saturation, seed, probe_index, source:
-            as in :func:`mi_bivariate.capture.observations_from_sphere`.
-    """
-    image = np.asarray(image)
-    cam = view.camera
-    if image.ndim != 3 or image.shape[:2] != (cam.height, cam.width):
-        raise InputError(source, f"image has shape {image.shape} but the camera is {cam.width}x{cam.height}",
-                         "give the camera the image's size")
-    maps = view.surface()
-    usable = maps.mask
-    if mask is not None:
-        mask = np.asarray(mask)
-        if mask.shape != usable.shape:
-            raise InputError(source, f"mask has shape {mask.shape} but the image is {cam.height}x{cam.width}")
-        usable = usable & mask.astype(bool)
-    if not usable.any():
-        raise InputError(source, "no pixel sees the mesh cleanly (all are silhouette or masked pixels)",
-                         "use a larger image or move the camera closer")
-    return observations_from_normal_map(image, maps.normals, usable, maps.views, n_normals=n_normals,
-                                        max_view_angle_deg=max_view_angle_deg, saturation=saturation,
-                                        seed=seed, probe_index=probe_index, source=source,
-                                        positions=maps.positions, geometric_normals=maps.geometric_normals)
 
 
 # --------------------------------------------------------------- renders
@@ -544,11 +352,6 @@ def render_mesh(bsdf: Any, probe: Any, view: MeshView, spp: int = 64, seed: int 
                 max_depth: int = 2) -> np.ndarray:
     """Render ``view.shape`` with ``bsdf`` (anything :func:`mi_bivariate.render.bsdf_dict` takes)
     under ``probe`` from ``view.camera``: ``(H, W, 3) float32`` linear RGB (background 0)."""
-    import mitsuba as mi
-
-    from mi_bivariate.render import bsdf_dict, load_scene
-    from mi_bivariate.variants import ensure_variant
-
     ensure_variant()
     if int(spp) < 1:
         raise InputError("spp", f"must be >= 1, got {spp}")

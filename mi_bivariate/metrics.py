@@ -17,6 +17,9 @@ import math
 from typing import Dict, Optional, Tuple
 
 import numpy as np
+from mi_bivariate.merl import MERL_SHAPE, geometric_mask, node_angles, MERLBRDF
+from mi_bivariate.bivariate import BivariateBRDF
+from mi_bivariate.coordinates import st_from_half_diff
 
 #: Regions of the (theta_h, theta_d) domain for the error breakdown, in degrees, in order of
 #: precedence: a cell belongs to the first region whose bound it meets; "rest" is every other cell.
@@ -138,8 +141,6 @@ def merl_cell_weights() -> np.ndarray:
     sum to ~pi^2 (the integral of ``cos(theta_i) cos(theta_o)`` over both
     hemispheres).
     """
-    from mi_bivariate.merl import MERL_SHAPE, geometric_mask, node_angles
-
     n_h, n_d, n_p = MERL_SHAPE
     theta_h, theta_d, phi_d = node_angles()
     th, td, pd = theta_h[:, None, None], theta_d[None, :, None], phi_d[None, None, :]
@@ -163,9 +164,6 @@ def estimate_on_merl_grid(estimate) -> np.ndarray:
     ``(90, 90, 3)``), or any object with ``eval(theta_h, theta_d, phi_d)``
     (a 3D analytic or parametric BRDF).
     """
-    from mi_bivariate.bivariate import BivariateBRDF
-    from mi_bivariate.merl import MERL_SHAPE, MERLBRDF, node_angles
-
     theta_h, theta_d, phi_d = node_angles()
     if isinstance(estimate, BivariateBRDF):
         return estimate.eval(theta_h[:, None], theta_d[None, :])[:, :, None, :]
@@ -208,9 +206,6 @@ def observed_cells(observed_nodes: np.ndarray, theta_h: Optional[np.ndarray] = N
         observed_nodes: ``(n_t, n_s) bool``.
         theta_h, theta_d: radians (broadcast); default the MERL nodes, giving ``(90, 90) bool``.
     """
-    from mi_bivariate.coordinates import st_from_half_diff
-    from mi_bivariate.merl import node_angles
-
     nodes = np.asarray(observed_nodes, bool)
     if nodes.ndim != 2 or min(nodes.shape) < 2:
         raise ValueError(f"observed_nodes must be (n_t >= 2, n_s >= 2) bool, got shape {nodes.shape}")
@@ -258,7 +253,6 @@ class BRDFErrors:
     """
 
     def __init__(self, truth, min_value: float = 0.0):
-        from mi_bivariate.merl import node_angles
 
         valid = truth.valid_mask()
         self.index = np.nonzero(valid)                                   # cells: (i_h, i_d, i_p)
@@ -271,9 +265,6 @@ class BRDFErrors:
 
     def estimate_at_cells(self, estimate) -> np.ndarray:
         """``(n_cells, 3)`` float64 values of an estimate (see :func:`estimate_on_merl_grid`) at the cells."""
-        from mi_bivariate.bivariate import BivariateBRDF
-        from mi_bivariate.merl import MERLBRDF
-
         i_h, i_d, i_p = self.index
         if isinstance(estimate, BivariateBRDF):
             return estimate_on_merl_grid(estimate)[i_h, i_d, 0]

@@ -48,10 +48,12 @@ from pathlib import Path
 from typing import Any, Dict, Optional, Sequence, Tuple, Union
 
 import numpy as np
+import drjit as dr
+import mitsuba as mi
 
 from mi_bivariate.images import read_image, write_exr
 from mi_bivariate.errors import InputError
-from mi_bivariate.common import PathLike
+from mi_bivariate.common import PathLike, luminance
 
 
 #: Readable probe file types (extension -> description).
@@ -93,8 +95,6 @@ GRACE_LATLONG_ROTATION: np.ndarray = np.array([
     [math.sin(math.radians(275.0)), 0.0, math.cos(math.radians(275.0))],
 ])
 
-#: Rec. 709 luminance weights, as Mitsuba's ``luminance()``.
-LUMINANCE_WEIGHTS = np.array([0.212671, 0.715160, 0.072169])
 
 _TO_WORLD_KEY = "mi_bivariate_to_world"
 _EVAL_CHUNK = 1 << 22
@@ -428,11 +428,6 @@ class Probe:
 
     def emitter_dict(self) -> dict:
         """Mitsuba ``envmap`` emitter dictionary (data passed as a ``mi.Bitmap``)."""
-        import mitsuba as mi
-
-        from mi_bivariate.variants import ensure_variant
-
-        ensure_variant()
         return {
             "type": "envmap",
             "bitmap": mi.Bitmap(np.array(self.data)),  # nanobind wants a writable array
@@ -441,11 +436,7 @@ class Probe:
 
     def emitter(self) -> Any:
         """The loaded ``envmap`` emitter for the active variant (cached)."""
-        import mitsuba as mi
-
-        from mi_bivariate.variants import ensure_variant
-
-        variant = ensure_variant()
+        variant = mi.variant()
         if variant not in self._emitters:
             self._emitters[variant] = mi.load_dict(self.emitter_dict())
         return self._emitters[variant]
@@ -456,9 +447,6 @@ class Probe:
         Calls the envmap emitter's own ``eval`` (which looks up ``-si.wi``), so
         the values are bit-identical to what a render sees.
         """
-        import drjit as dr
-        import mitsuba as mi
-
         emitter = self.emitter()
         si = dr.zeros(mi.SurfaceInteraction3f)
         si.wi = -directions
@@ -466,8 +454,6 @@ class Probe:
 
     def eval(self, directions: np.ndarray) -> np.ndarray:
         """Radiance towards world ``directions`` ``(N, 3)`` (normalised here): ``(N, 3) float32``."""
-        import mitsuba as mi
-
         d = np.asarray(directions, dtype=np.float64)
         if d.ndim != 2 or d.shape[1] != 3:
             raise ValueError(f"directions must have shape (N, 3), got {d.shape}")
@@ -512,10 +498,6 @@ def _bilinear_disk_lookup(image: np.ndarray, a: np.ndarray, b: np.ndarray) -> np
     bottom = img[y0 + 1, x0] * (1 - wx) + img[y0 + 1, x0 + 1] * wx
     return (top * (1 - wy) + bottom * wy).astype(np.float32)
 
-
-def luminance(rgb: np.ndarray) -> np.ndarray:
-    """Rec. 709 luminance of ``(..., 3)`` linear RGB."""
-    return np.asarray(rgb, dtype=np.float64) @ LUMINANCE_WEIGHTS
 
 
 def log_luminance_correlation(reference: Probe, other: Probe, width: int = 64,

@@ -53,10 +53,13 @@ from dataclasses import dataclass
 from typing import Any, Dict, Sequence, Tuple
 
 import numpy as np
+import drjit as dr
+import mitsuba as mi
 
 from mi_bivariate import metrics
 from mi_bivariate.errors import InputError
-from mi_bivariate.render import SphereRender, bsdf_dict, coverage_mask, make_camera, sphere_geometry
+from mi_bivariate.geometry import SphereCamera
+from mi_bivariate.render import SphereRender, bsdf_dict
 from mi_bivariate.variants import ensure_variant
 
 #: Directions per pixel and strategy (cosine, lobe, environment) by default.
@@ -100,9 +103,9 @@ def pixel_rays(resolution: int, subpixels: int = 1, radius_fraction: float = RAD
         centre lies inside the silhouette (sub-pixels outside the sphere get the
         normal pushed onto the silhouette), and the fully covered pixel mask.
     """
-    cam = make_camera("orthographic", int(resolution), radius_fraction=radius_fraction)
-    geometry = sphere_geometry(cam, radius_fraction)
-    width, height = cam["resolution"]
+    cam = SphereCamera.create("orthographic", int(resolution), radius_fraction=radius_fraction)
+    geometry = cam.sphere_geometry(radius_fraction)
+    width, height = cam.resolution
     _, centre_inside = geometry.normals(width, height)
     rows, cols = np.nonzero(centre_inside)
     s = int(subpixels)
@@ -116,15 +119,12 @@ def pixel_rays(resolution: int, subpixels: int = 1, radius_fraction: float = RAD
     z = np.sqrt(np.clip(1.0 - x * x - y * y, 0.0, None))
     n_cam = np.stack([x, y, z], axis=-1)
     normals = n_cam @ np.asarray(geometry.camera_to_world, np.float64).T
-    mask = coverage_mask(cam) & centre_inside
+    mask = cam.coverage_mask() & centre_inside
     return normals, np.stack([rows, cols], axis=1), mask, geometry, cam
 
 
 def _lattice(i: Any, n: int, shift_u: Any, shift_v: Any) -> Tuple[Any, Any]:
     """Point ``i`` of the ``n``-point Fibonacci lattice, Cranley-Patterson shifted (Dr.Jit)."""
-    import drjit as dr
-    import mitsuba as mi
-
     u = mi.Float(i) * (1.0 / n) + (0.5 / n) + shift_u
     v = mi.Float(i * _GOLDEN_U32) * 2.0**-32 + shift_v
     u, v = u - dr.floor(u), v - dr.floor(v)
@@ -138,9 +138,6 @@ def _chunk(bsdf: Any, emitter: Any, probe: Any, data: np.ndarray, directions: Tu
 
     ``data`` holds per point ``[n (3), v (3), shifts (3 strategies x 2)]``.
     """
-    import drjit as dr
-    import mitsuba as mi
-
     m = len(data)
     buf = mi.Float(np.ascontiguousarray(data, np.float32).reshape(-1))
     stride = data.shape[1]
@@ -229,9 +226,6 @@ def render_reference(bsdf: Any, probe: Any, resolution: int = 64, seed: int = 0,
         pixels whose centre lies on the sphere), ``normals``, ``mask`` (pixels
         fully covered, as ``render_sphere``), ``geometry``.
     """
-    import drjit as dr
-    import mitsuba as mi
-
     ensure_variant()
     directions = tuple(int(k) for k in directions)
     if len(directions) != 3 or min(directions) < 0 or sum(directions) == 0:
@@ -283,8 +277,6 @@ def quadrature_noise(bsdf: Any, probe: Any, resolution: int = 64, directions: Se
     the directions (includes any bias the two seeds share). ``seconds``: one
     render's wall time, ``cpu_seconds`` its CPU time.
     """
-    import mitsuba as mi
-
     ensure_variant()
     plugin = bsdf if hasattr(bsdf, "sampler") else mi.load_dict(bsdf_dict(bsdf))
     a = render_reference(plugin, probe, resolution, seeds[0], directions)

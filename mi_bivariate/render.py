@@ -28,20 +28,24 @@ renormalised (world frame; zero outside the mask).
 
 from __future__ import annotations
 
-import math
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Dict, Optional, Sequence, Tuple, Union
+from typing import Any, Optional, Sequence, Union
 
+import mitsuba as mi
 import numpy as np
 
+from mi_bivariate.bivariate import BivariateBRDF
 from mi_bivariate.errors import InputError
-from mi_bivariate.geometry import SphereGeometry
+from mi_bivariate.geometry import SphereCamera, SphereGeometry
+# Previews and EXRs are written by mi_bivariate.images; re-exported here for the render command.
+from mi_bivariate.images import tonemap, write_exr  # noqa: F401
+from mi_bivariate.images import write_png as write_png_preview  # noqa: F401
+from mi_bivariate.merl import MERLBRDF
+from mi_bivariate.variants import ensure_variant
 
 
-#: Distance of the orthographic camera from the sphere's centre (any value > 1 works).
-ORTHO_DISTANCE = 5.0
 
 
 @dataclass
@@ -53,8 +57,7 @@ class SphereRender:
         normals: ``(H, W, 3) float32`` unit world normals inside ``mask``, 0 elsewhere.
         mask: ``(H, W) bool`` pixels fully covered by the sphere.
         geometry: the sphere in pixels (orthographic camera), else ``None``.
-        camera: camera description: ``type``, ``to_world`` (4, 4), ``resolution`` (W, H),
-            ``fov`` (degrees; perspective), ``distance``, ``camera_to_world`` (3, 3).
+        camera: the :class:`~mi_bivariate.geometry.SphereCamera` it was rendered from.
         spp, seed: sampling parameters of the render.
     """
 
@@ -62,7 +65,7 @@ class SphereRender:
     normals: np.ndarray
     mask: np.ndarray
     geometry: Optional[SphereGeometry]
-    camera: Dict[str, Any] = field(default_factory=dict)
+    camera: Optional[SphereCamera] = None
     spp: int = 0
     seed: int = 0
 
@@ -70,7 +73,6 @@ class SphereRender:
 # ------------------------------------------------------------------ BSDFs
 
 def _merl_bitmap(table: np.ndarray):
-    import mitsuba as mi
 
     # Keep NaN (missing samples): the plugin fills them from their phi_d row.
     # A writable copy: nanobind rejects read-only arrays (e.g. cached tables).
@@ -93,10 +95,6 @@ def bsdf_dict(source: Any, interpolation: str = "linear", sampling: str = "table
     Raises:
         InputError: unknown file type or object.
     """
-    from mi_bivariate.bivariate import BivariateBRDF
-    from mi_bivariate.merl import MERLBRDF
-    from mi_bivariate.variants import ensure_variant
-
     ensure_variant()
     if isinstance(source, dict):
         if "type" not in source:
@@ -127,133 +125,9 @@ def bsdf_dict(source: Any, interpolation: str = "linear", sampling: str = "table
                      "pass a BivariateBRDF, MERLBRDF, analytic BRDF, .npz/.binary path or a BSDF dict")
 
 
-# ----------------------------------------------------------------- camera
-
-def _resolution(resolution: Union[int, Sequence[int]]) -> Tuple[int, int]:
-    if isinstance(resolution, (int, np.integer)):
-        width = height = int(resolution)
-    else:
-        width, height = (int(v) for v in resolution)
-    if width < 1 or height < 1:
-        raise InputError("resolution", f"must be positive, got {resolution!r}")
-    return width, height
-
-
-def _rotation(camera_to_world: Any) -> np.ndarray:
-    rot = np.eye(3) if camera_to_world is None else np.asarray(camera_to_world, np.float64)
-    if rot.shape != (3, 3) or not np.allclose(rot @ rot.T, np.eye(3), atol=1e-6) or np.linalg.det(rot) < 0:
-        raise InputError("camera_to_world", "must be a (3, 3) rotation matrix")
-    return rot
-
-
-def default_distance(fov: float, radius_fraction: float) -> float:
-    """Perspective distance at which the silhouette radius is ``radius_fraction`` of the image width.
-
-    The silhouette of a unit sphere at distance d has angular radius asin(1/d).
-    """
-    tan_sil = 2.0 * radius_fraction * math.tan(math.radians(fov) / 2.0)
-    return 1.0 / math.sin(math.atan(tan_sil))
-
-
-def camera_rays(camera: Dict[str, Any], px: np.ndarray, py: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
-    """World ray origins and unit directions through film positions (pixels, y down).
-
-    Args:
-        camera: a :attr:`SphereRender.camera` dictionary.
-        px, py: film coordinates in pixels, any broadcastable shape.
-
-    Returns:
-        ``(origins, directions)``, ``(..., 3) float64``.
-    """
-    width, height = camera["resolution"]
-    rot = np.asarray(camera["camera_to_world"], np.float64)
-    px, py = np.broadcast_arrays(np.asarray(px, np.float64), np.asarray(py, np.float64))
-    # Film positions in units of half the image width (Mitsuba's x-axis convention).
-    u = (px - 0.5 * width) / (0.5 * width)
-    v = (0.5 * height - py) / (0.5 * width)
-    if camera["type"] == "orthographic":
-        half = camera["half_width"]
-        local_o = np.stack([u * half, v * half, np.full_like(u, camera["distance"])], axis=-1)
-        local_d = np.broadcast_to(np.array([0.0, 0.0, -1.0]), local_o.shape)
-    else:
-        tan = math.tan(math.radians(camera["fov"]) / 2.0)
-        local_d = np.stack([u * tan, v * tan, -np.ones_like(u)], axis=-1)
-        local_d = local_d / np.linalg.norm(local_d, axis=-1, keepdims=True)
-        local_o = np.broadcast_to(np.array([0.0, 0.0, camera["distance"]]), local_d.shape)
-    return local_o @ rot.T, local_d @ rot.T
-
-
-def coverage_mask(camera: Dict[str, Any]) -> np.ndarray:
-    """``(H, W) bool``: pixels whose four corner rays all hit the unit sphere (full coverage)."""
-    width, height = camera["resolution"]
-    cx, cy = np.meshgrid(np.arange(width + 1, dtype=np.float64), np.arange(height + 1, dtype=np.float64))
-    o, d = camera_rays(camera, cx, cy)
-    # Distance^2 from the centre to the ray's line: |o|^2 - (o.d)^2 (d unit; camera outside the sphere).
-    od = np.einsum("...k,...k->...", o, d)
-    hit = (np.einsum("...k,...k->...", o, o) - od * od < 1.0) & (od < 0.0)
-    return hit[:-1, :-1] & hit[:-1, 1:] & hit[1:, :-1] & hit[1:, 1:]
-
-
-def sensor_dict(camera: Dict[str, Any]) -> dict:
-    """Mitsuba sensor dictionary (box filter, float32 RGB film) for a camera description."""
-    import mitsuba as mi
-
-    width, height = camera["resolution"]
-    film = {"type": "hdrfilm", "width": width, "height": height, "pixel_format": "rgb",
-            "rfilter": {"type": "box"}}
-    sensor = {"type": camera["type"], "film": film, "to_world": mi.ScalarTransform4f(camera["to_world"])}
-    if camera["type"] == "perspective":
-        sensor.update(fov=float(camera["fov"]), fov_axis="x", near_clip=1e-3, far_clip=1e4)
-    else:
-        sensor.update(near_clip=1e-3, far_clip=1e4)
-    return sensor
-
-
-def make_camera(camera: str = "orthographic", resolution: Union[int, Sequence[int]] = 256,
-                radius_fraction: float = 0.45, fov: float = 30.0, distance: Optional[float] = None,
-                camera_to_world: Any = None) -> Dict[str, Any]:
-    """Describe a camera looking at the unit sphere at the origin (see the module docstring)."""
-    import mitsuba as mi
-
-    width, height = _resolution(resolution)
-    rot = _rotation(camera_to_world)
-    if not radius_fraction > 0.0:
-        raise InputError("radius_fraction", f"must be positive, got {radius_fraction}")
-    info: Dict[str, Any] = {"type": camera, "resolution": (width, height), "camera_to_world": rot}
-    if camera == "orthographic":
-        # Silhouette radius in pixels = radius_fraction * min(W, H); one pixel = 2 half / W world units.
-        radius_px = radius_fraction * min(width, height)
-        info.update(half_width=0.5 * width / radius_px, distance=ORTHO_DISTANCE, fov=None)
-        scale = mi.ScalarTransform4f().scale([info["half_width"]] * 2 + [1.0])
-    elif camera == "perspective":
-        if not 0.0 < fov < 180.0:
-            raise InputError("fov", f"must be in (0, 180) degrees, got {fov}")
-        d = default_distance(fov, radius_fraction) if distance is None else float(distance)
-        if d <= 1.0:
-            raise InputError("distance", f"the camera must be outside the unit sphere, got {d}")
-        info.update(fov=float(fov), distance=d)
-        scale = mi.ScalarTransform4f()
-    else:
-        raise InputError("camera", f"unknown camera {camera!r}", "use 'orthographic' or 'perspective'")
-    origin = rot @ np.array([0.0, 0.0, info["distance"]])
-    up = rot @ np.array([0.0, 1.0, 0.0])
-    look = mi.ScalarTransform4f().look_at(origin=origin.tolist(), target=[0.0, 0.0, 0.0], up=up.tolist())
-    info["to_world"] = np.array((look @ scale).matrix, np.float64)
-    return info
-
-
-def sphere_geometry(camera: Dict[str, Any], radius_fraction: float) -> Optional[SphereGeometry]:
-    """The orthographic render's sphere in pixels (``None`` for perspective)."""
-    if camera["type"] != "orthographic":
-        return None
-    width, height = camera["resolution"]
-    return SphereGeometry(cx=0.5 * width, cy=0.5 * height, radius=radius_fraction * min(width, height),
-                          camera_to_world=np.array(camera["camera_to_world"]))
-
-
 # ------------------------------------------------------------------ scene
 
-def sphere_scene_dict(bsdf: dict, probe: Any, camera: Dict[str, Any], normals: bool = True,
+def sphere_scene_dict(bsdf: dict, probe: Any, camera: SphereCamera, normals: bool = True,
                       max_depth: int = 2, center: Sequence[float] = (0.0, 0.0, 0.0)) -> dict:
     """Scene dictionary: unit sphere, probe emitter, camera, ``path`` (inside ``aov`` when ``normals``).
 
@@ -266,7 +140,7 @@ def sphere_scene_dict(bsdf: dict, probe: Any, camera: Dict[str, Any], normals: b
     return {
         "type": "scene",
         "integrator": integrator,
-        "sensor": sensor_dict(camera),
+        "sensor": camera.sensor_dict(),
         "sphere": {"type": "sphere", "center": [float(c) for c in center], "radius": 1.0, "bsdf": bsdf},
         "probe": probe.emitter_dict(),
     }
@@ -274,8 +148,6 @@ def sphere_scene_dict(bsdf: dict, probe: Any, camera: Dict[str, Any], normals: b
 
 def load_scene(scene: dict) -> Any:
     """``mi.load_dict`` that turns a plugin's InputError (wrapped by Mitsuba) back into one line."""
-    import mitsuba as mi
-
     try:
         return mi.load_dict(scene)
     except RuntimeError as exc:
@@ -305,23 +177,19 @@ def render_sphere(bsdf: Any, probe: Any, resolution: Union[int, Sequence[int]] =
         distance: camera distance from the sphere centre (perspective).
         camera_to_world: ``(3, 3)`` rotation of the camera about the sphere's centre.
     """
-    import mitsuba as mi
-
-    from mi_bivariate.variants import ensure_variant
-
     ensure_variant()
     if int(spp) < 1:
         raise InputError("spp", f"must be >= 1, got {spp}")
     bsdf = bsdf_dict(bsdf)
-    cam = make_camera(camera, resolution, radius_fraction, fov, distance, camera_to_world)
+    cam = SphereCamera.create(camera, resolution, radius_fraction, fov, distance, camera_to_world)
     scene = load_scene(sphere_scene_dict(bsdf, probe, cam, normals=True))
     out = np.array(mi.render(scene, spp=int(spp), seed=int(seed)), dtype=np.float32)
     image = np.ascontiguousarray(out[..., :3])
     n = out[..., 3:6].astype(np.float64)
-    mask = coverage_mask(cam)
+    mask = cam.coverage_mask()
     length = np.linalg.norm(n, axis=-1, keepdims=True)
     n = np.where(mask[..., None] & (length > 0.0), n / np.maximum(length, 1e-30), 0.0).astype(np.float32)
-    return SphereRender(image=image, normals=n, mask=mask, geometry=sphere_geometry(cam, radius_fraction),
+    return SphereRender(image=image, normals=n, mask=mask, geometry=cam.sphere_geometry(radius_fraction),
                         camera=cam, spp=int(spp), seed=int(seed))
 
 
@@ -334,13 +202,9 @@ def render_like(bsdf: Any, probe: Any, geometry: SphereGeometry, width: int, hei
     pose, and the sphere is moved so its centre lands on ``(cx, cy)``.
     The returned ``mask`` marks pixels whose centre sees the sphere.
     """
-    import mitsuba as mi
-
-    from mi_bivariate.variants import ensure_variant
-
     ensure_variant()
-    cam = make_camera("orthographic", (width, height), radius_fraction=geometry.radius / min(width, height),
-                      camera_to_world=geometry.camera_to_world)
+    cam = SphereCamera.create("orthographic", (width, height), radius_fraction=geometry.radius / min(width, height),
+                              camera_to_world=geometry.camera_to_world)
     offset = np.array([(geometry.cx - 0.5 * width) / geometry.radius,
                        -(geometry.cy - 0.5 * height) / geometry.radius, 0.0])
     center = np.asarray(geometry.camera_to_world, np.float64) @ offset
@@ -349,9 +213,3 @@ def render_like(bsdf: Any, probe: Any, geometry: SphereGeometry, width: int, hei
     normals, mask = geometry.normals(width, height)
     return SphereRender(image=np.ascontiguousarray(out[..., :3]), normals=normals.astype(np.float32), mask=mask,
                         geometry=geometry, camera=cam, spp=int(spp), seed=int(seed))
-
-
-# ----------------------------------------------------------------- output
-# Previews and EXRs are written by mi_bivariate.images; re-exported here for convenience.
-from mi_bivariate.images import tonemap, write_exr  # noqa: E402
-from mi_bivariate.images import write_png as write_png_preview  # noqa: E402

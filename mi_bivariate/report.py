@@ -8,7 +8,7 @@ recovered and reference renders are directly comparable.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Dict, Optional, Sequence, Tuple
+from typing import Any, Dict, Optional, Tuple
 
 import numpy as np
 
@@ -17,6 +17,7 @@ from mi_bivariate.bivariate import BivariateBRDF
 from mi_bivariate.coordinates import half_diff_from_dirs
 from mi_bivariate.images import tonemap
 from mi_bivariate.common import PathLike
+from mi_bivariate import render
 
 
 
@@ -180,7 +181,6 @@ def write_recovery_report(result: Any, path: PathLike, rerender: Optional[np.nda
     label = "recovered BRDF re-rendered (same probe)"
     if rerender is None and image is not None and result.geometries:
         if path_trace:
-            from mi_bivariate import render
 
             geo = result.geometries[0]
             rerender = render.render_like(render.bsdf_dict(result.brdf), result.probes[0], geo,
@@ -234,12 +234,16 @@ def write_recovery_report(result: Any, path: PathLike, rerender: Optional[np.nda
 
 def write_demo_figure(path: PathLike, shot: Any, novel_rec: Any, novel_truth: Any, rec: Any, truth: Any,
                       floor: BivariateBRDF, numbers: Dict[str, Any]) -> Path:
-    """The demo's figure (Fig. 5 + Fig. 6 analogue for one material)."""
+    """The demo's figure (Fig. 5 + Fig. 6 analogue for one material).
+
+    Probes are named by file name (``numbers`` holds their full paths), so the panel titles fit.
+    """
     plt = _pyplot()
     fig, axes = plt.subplots(2, 4, figsize=(17, 8))
-    _show(axes[0, 0], shot.image, f"input: {numbers['input_probe']}", _exposure(shot.image, shot.mask))
+    probe_in, probe_novel = Path(str(numbers["input_probe"])).name, Path(str(numbers["novel_probe"])).name
+    _show(axes[0, 0], shot.image, f"input: {probe_in}", _exposure(shot.image, shot.mask))
     exposure = _exposure(novel_truth.image, novel_truth.mask)
-    _show(axes[0, 1], novel_rec.image, f"recovered, novel probe {numbers['novel_probe']}", exposure)
+    _show(axes[0, 1], novel_rec.image, f"recovered, novel probe {probe_novel}", exposure)
     _show(axes[0, 2], novel_truth.image, "ground truth (3D table)", exposure)
     _difference(axes[0, 3], novel_rec.image, novel_truth.image, novel_truth.mask,
                 f"|difference| x100 / mean (rel. RMSE {numbers['image_relative_rmse_novel']:.3f})")
@@ -256,243 +260,3 @@ def write_demo_figure(path: PathLike, shot: Any, novel_rec: Any, novel_truth: An
     fig.suptitle(f"{numbers['material']}: recovered from one image", fontsize=11)
     fig.tight_layout()
     return save_figure(fig, path)
-
-
-# ---------------------------------------------------------------------------
-# Evaluation figures (mi_bivariate.evaluate): each takes the JSON records of
-# results.jsonl and/or one material's artifact arrays (materials/<slug>.npz),
-# returns a matplotlib figure, and never renders or recovers anything.
-
-def close_figure(fig: Any) -> None:
-    """Close a figure made by the functions below (after saving it in every format)."""
-    _pyplot().close(fig)
-
-
-def save_figure_formats(fig: Any, stem: PathLike, formats: Sequence[str] = ("png",), dpi: int = 100) -> list:
-    """Save one figure as ``stem.<fmt>`` for every format (atomic), then close it."""
-    stem = Path(stem)
-    paths = []
-    for fmt in formats:
-        path = stem.with_name(f"{stem.name}.{fmt}")
-        with atomic_path(path) as tmp:
-            fig.savefig(tmp, dpi=dpi, bbox_inches="tight", format=fmt)
-        paths.append(path)
-    close_figure(fig)
-    return paths
-
-
-def _f32(image: np.ndarray) -> np.ndarray:
-    return np.asarray(image, np.float32)
-
-
-def _material_order(records: Sequence[dict], key: Any) -> list:
-    return sorted(records, key=key)
-
-
-_METRIC_LABELS = {"eq1": "Eq. 1 relative RMS", "eq1_min": "Eq. 1, cells f > 1e-3 1/sr",
-                  "cosine": "cosine-weighted relative L2", "log": "RMS of ln(1 + f) difference"}
-
-
-def plot_reduction_ranking(records: Sequence[dict], artifacts: Dict[str, Dict[str, np.ndarray]],
-                           novel: str, metric: str = "eq1") -> Any:
-    """Fig. 3 analogue: materials sorted by the error of their bivariate reduction (the floor).
-
-    Top: the floor's errors per material (``metric`` sorts; all four metrics
-    drawn, log scale). Bottom: the best and the worst material rendered under
-    the probe ``novel`` with the full 3D BRDF and with its bivariate reduction.
-    """
-    plt = _pyplot()
-    order = _material_order(records, lambda r: r["floor"][metric])
-    fig = plt.figure(figsize=(12, 7.5))
-    ax = fig.add_subplot(2, 1, 1)
-    x = np.arange(len(order))
-    for m, style in zip(("eq1", "eq1_min", "cosine", "log"), ("o-", "s--", "^-", "d:")):
-        ax.semilogy(x, [max(r["floor"][m], 1e-6) for r in order], style, ms=4, lw=1, label=_METRIC_LABELS[m])
-    ax.set_xticks(x, [r["material"] for r in order], rotation=60, ha="right", fontsize=7)
-    ax.set_ylabel("error of the bivariate reduction", fontsize=8)
-    ax.set_title(f"bivariate reduction (Eq. 1 projection) of each material, sorted by {_METRIC_LABELS[metric]}",
-                 fontsize=9)
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=7)
-    for k, (r, tag) in enumerate(((order[0], "best"), (order[-1], "worst"))):
-        art = artifacts[r["material"]]
-        truth, floor, mask = _f32(art[f"truth__{novel}"]), _f32(art[f"floor_render__{novel}"]), art["mask"]
-        exposure = _exposure(truth, mask)
-        _show(fig.add_subplot(2, 4, 5 + 2 * k), truth, f"{tag}: {r['material']}\n3D truth ({novel})", exposure)
-        _show(fig.add_subplot(2, 4, 6 + 2 * k), floor,
-              f"bivariate reduction\n(Eq. 1 {r['floor']['eq1']:.3g}, log {r['floor']['log']:.3g})", exposure)
-    fig.tight_layout()
-    return fig
-
-
-def plot_validation(record: dict, art: Dict[str, np.ndarray], input_probe: str, novel: str) -> Any:
-    """Fig. 5 analogue: input image, recovered re-render, ground truth, |difference| x100 under ``novel``."""
-    plt = _pyplot()
-    fig, axes = plt.subplots(1, 4, figsize=(15, 3.9))
-    mask = art["mask"]
-    image = _f32(art[f"input__{input_probe}"])
-    _show(axes[0], image, f"input: {record['material']}\nunder {input_probe}", _exposure(image, mask))
-    truth = _f32(art[f"truth__{novel}"])
-    rec = _f32(art[f"recovered_render__{input_probe}__{novel}"])
-    exposure = _exposure(truth, mask)
-    errs = record["inputs"][input_probe]["images"][novel]
-    _show(axes[1], rec, f"recovered, novel probe {novel}", exposure)
-    _show(axes[2], truth, "ground truth (3D table)", exposure)
-    _difference(axes[3], rec, truth, mask,
-                f"|difference| x100 / mean\nrel. RMSE {errs['rel_rmse']:.3f}, PSNR {errs['psnr']:.1f} dB")
-    fig.tight_layout()
-    return fig
-
-
-def _table_eval(table: np.ndarray, theta_h: np.ndarray, theta_d: np.ndarray) -> np.ndarray:
-    return BivariateBRDF(np.asarray(table, np.float32)).eval(theta_h, theta_d)
-
-
-def plot_incident_planes(record: dict, art: Dict[str, np.ndarray], input_probes: Sequence[str],
-                         channel: int = 1) -> Any:
-    """Fig. 6 analogue (scatter): the BRDF along the incident plane for the stored view angles.
-
-    Curves: the original 3D BRDF, its bivariate reduction (truth), and the
-    table recovered under each input probe (one channel, log scale).
-    """
-    plt = _pyplot()
-    views = sorted(float(k.split("__")[1]) for k in art if k.startswith("incident__") and k.endswith("__truth"))
-    fig, axes = plt.subplots(1, len(views), figsize=(6 * len(views), 4), squeeze=False)
-    theta_in = art["incident__theta_in"]
-    for ax, view in zip(axes[0], views):
-        _, theta_h, theta_d, _ = incident_plane(view, n=len(theta_in))
-        ax.plot(theta_in, art[f"incident__{view:g}__truth"][:, channel], "k.", ms=3, label="original 3D")
-        ax.plot(theta_in, _table_eval(art["floor"], theta_h, theta_d)[:, channel], "-", lw=1.5,
-                label="bivariate truth (floor)")
-        for p, style in zip(input_probes, ("--", "-.", ":")):
-            ax.plot(theta_in, _table_eval(art[f"recovered__{p}"], theta_h, theta_d)[:, channel], style, lw=1.3,
-                    label=f"recovered ({p})")
-        ax.set_yscale("log")
-        ax.set_xlabel(f"light angle in the incident plane (deg), view at {view:g} deg", fontsize=8)
-        ax.set_ylabel(f"f ({'RGB'[channel]}, 1/sr)", fontsize=8)
-        ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=7)
-    fig.suptitle(f"{record['material']}: incident plane", fontsize=10)
-    fig.tight_layout()
-    return fig
-
-
-def plot_error_curves(records: Sequence[dict], metrics: Sequence[str] = ("eq1", "cosine", "log")) -> Any:
-    """Fig. 6 analogue (curves): per-material error for each input probe over the bivariate floor.
-
-    Materials are sorted by the floor's error of each panel's metric.
-    """
-    plt = _pyplot()
-    probes = list(records[0]["inputs"])
-    fig, axes = plt.subplots(1, len(metrics), figsize=(6 * len(metrics), 4.2), squeeze=False)
-    for ax, m in zip(axes[0], metrics):
-        order = _material_order(records, lambda r: r["floor"][m])
-        x = np.arange(len(order))
-        ax.fill_between(x, 1e-6, [max(r["floor"][m], 1e-6) for r in order], color="0.85", label="floor (bivariate truth)")
-        for p, style in zip(probes, ("o-", "s--", "^:")):
-            ax.plot(x, [max(r["inputs"][p]["recovered"][m], 1e-6) for r in order], style, ms=3, lw=1,
-                    label=f"recovered ({p})")
-        ax.set_yscale("log")
-        ax.set_xticks(x, [r["material"] for r in order], rotation=70, ha="right", fontsize=6)
-        ax.set_title(_METRIC_LABELS[m], fontsize=9)
-        ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=7)
-    fig.tight_layout()
-    return fig
-
-
-def _observation_image(ax: Any, omap: np.ndarray, title: str) -> None:
-    im = ax.imshow(np.log10(np.maximum(omap, 1e-3)), origin="lower", extent=(0, 1, 0, 1), cmap="cividis",
-                   aspect="auto")
-    ax.set_title(title, fontsize=9)
-    ax.set_xlabel("s = 2 theta_d / pi", fontsize=8)
-    ax.set_ylabel("t = sqrt(2 theta_h / pi)", fontsize=8)
-    ax.figure.colorbar(im, ax=ax, fraction=0.046, pad=0.02, label="log10 observations")
-
-
-def plot_environment_dependence(record: dict, art: Dict[str, np.ndarray], input_probes: Sequence[str]) -> Any:
-    """Fig. 7 analogue: one material recovered under each input probe, with the adequacy map.
-
-    Row per input probe: input image, st observation map (adequacy), recovered
-    table, bivariate truth, re-render under the first novel probe.
-    """
-    plt = _pyplot()
-    novel = sorted(k.split("__")[1] for k in art if k.startswith("truth__"))[0]
-    floor = BivariateBRDF(np.asarray(art["floor"], np.float32))
-    lo = float(np.log10(max(np.percentile(floor.table, 1), 1e-4)))
-    hi = float(np.log10(max(floor.table.max(), 1e-3)))
-    fig, axes = plt.subplots(len(input_probes), 5, figsize=(22, 4 * len(input_probes)), squeeze=False)
-    mask = art["mask"]
-    for row, p in zip(axes, input_probes):
-        e = record["inputs"][p]
-        a = e["adequacy"]
-        image = _f32(art[f"input__{p}"])
-        _show(row[0], image, f"input under {p}", _exposure(image, mask))
-        _observation_image(row[1], art[f"observation_map__{p}"],
-                           f"adequacy: rank {a['rank_fraction']:.2f}, cond {a['condition_number']:.2g}"
-                           + ("" if a["adequate"] else " (flagged)"))
-        r = e["recovered"]
-        plot_table(row[2], BivariateBRDF(np.asarray(art[f"recovered__{p}"], np.float32)),
-                   f"recovered (log err {r['log']:.3f}, Eq. 1 {r['eq1']:.3g})", vmin=lo, vmax=hi)
-        plot_table(row[3], floor, f"bivariate truth (log err {record['floor']['log']:.3f})", vmin=lo, vmax=hi)
-        truth = _f32(art[f"truth__{novel}"])
-        _show(row[4], _f32(art[f"recovered_render__{p}__{novel}"]),
-              f"re-render under {novel} (rel. RMSE {e['images'][novel]['rel_rmse']:.3f})", _exposure(truth, mask))
-    fig.suptitle(f"{record['material']}: the same material recovered under different environments", fontsize=11)
-    fig.tight_layout()
-    return fig
-
-
-def plot_table_gallery(records: Sequence[dict], artifacts: Dict[str, Dict[str, np.ndarray]],
-                       input_probes: Sequence[str], columns: int = 2) -> Any:
-    """(theta_h, theta_d) images (log10 mean RGB) of every recovered table next to the bivariate truth.
-
-    Per material: truth, then one panel per input probe, on a shared colour
-    scale (x: theta_d, y: t ~ sqrt(theta_h), specular peak at the bottom).
-    """
-    plt = _pyplot()
-    n = len(records)
-    per = 1 + len(input_probes)
-    rows = int(np.ceil(n / columns))
-    fig, axes = plt.subplots(rows, columns * per, figsize=(1.9 * columns * per, 1.75 * rows), squeeze=False)
-    for ax in axes.ravel():
-        ax.set_axis_off()
-    for k, r in enumerate(records):
-        art = artifacts[r["material"]]
-        floor = np.asarray(art["floor"], np.float64).mean(axis=2)
-        lo = float(np.log10(max(np.percentile(floor, 1), 1e-4)))
-        hi = float(np.log10(max(floor.max(), 1e-3)))
-        tables = [("truth", floor)] + [(p, np.asarray(art[f"recovered__{p}"], np.float64).mean(axis=2))
-                                       for p in input_probes]
-        for j, (label, table) in enumerate(tables):
-            ax = axes[k // columns, (k % columns) * per + j]
-            ax.imshow(np.log10(np.maximum(table, 1e-4)), origin="lower", extent=(0, 1, 0, 1), cmap="viridis",
-                      vmin=lo, vmax=hi, aspect="auto")
-            ax.set_title((r["material"][:22] + "\n" if j == 0 else "\n") + label, fontsize=6)
-    fig.tight_layout()
-    return fig
-
-
-def plot_baselines(records: Sequence[dict], input_probe: str, metrics: Sequence[str] = ("log", "eq1_min")) -> Any:
-    """Per-material errors of the bivariate recovery, the parametric baselines and the floor."""
-    plt = _pyplot()
-    families = list(records[0]["inputs"][input_probe].get("baselines", {}))
-    fig, axes = plt.subplots(len(metrics), 1, figsize=(13, 3.6 * len(metrics)), squeeze=False)
-    for ax, m in zip(axes[:, 0], metrics):
-        order = _material_order(records, lambda r: r["inputs"][input_probe]["recovered"][m])
-        x = np.arange(len(order))
-        series = [("bivariate recovery", [r["inputs"][input_probe]["recovered"][m] for r in order])]
-        series += [(f"{f} fit (3D)", [r["inputs"][input_probe]["baselines"][f]["errors"][m] for r in order])
-                   for f in families]
-        series.append(("bivariate floor", [r["floor"][m] for r in order]))
-        width = 0.8 / len(series)
-        for k, (label, values) in enumerate(series):
-            ax.bar(x + (k - (len(series) - 1) / 2) * width, np.maximum(values, 1e-6), width, label=label)
-        ax.set_yscale("log")
-        ax.set_xticks(x, [r["material"] for r in order], rotation=60, ha="right", fontsize=7)
-        ax.set_ylabel(_METRIC_LABELS[m], fontsize=8)
-        ax.grid(True, axis="y", which="both", alpha=0.3)
-        ax.legend(fontsize=7, ncol=len(series))
-    axes[0, 0].set_title(f"bivariate recovery vs parametric fits, input probe {input_probe}", fontsize=9)
-    fig.tight_layout()
-    return fig

@@ -42,7 +42,9 @@ import numpy as np
 from mi_bivariate import metrics, render
 from mi_bivariate.bivariate import BivariateBRDF
 from mi_bivariate.common import PathLike
+from mi_bivariate.evaluate.config import EvalConfig
 from mi_bivariate.recover import recover
+from mi_bivariate.sources import MaterialSpec, load_probe, load_truth, probe_label, resolve_materials
 from mi_bivariate.variants import ensure_variant
 
 
@@ -107,7 +109,7 @@ def optimise_table(image: np.ndarray, mask: np.ndarray, probe: Any, start: np.nd
     """
     start = np.ascontiguousarray(np.maximum(np.asarray(start, np.float32), 1e-6))
     res = image.shape[0]
-    cam = render.make_camera("orthographic", res, radius_fraction=0.45)
+    cam = render.SphereCamera.create("orthographic", res, radius_fraction=0.45)
     scene_dict = render.sphere_scene_dict({"type": "bivariate", "table": mi.Bitmap(start),
                                            "sampling": settings.sampling}, probe, cam, normals=False)
     scene_dict["integrator"] = {"type": "prb", "max_depth": settings.max_depth, "hide_emitters": True}
@@ -196,19 +198,16 @@ def analysis_by_synthesis(material: Any, input_probe: str = "grace_latlong_1k", 
         relight error / the linear route's time, when the linear route is at
         least as good) and ``trace``.
     """
-    # evaluate is the layer above (it calls this module): imported here, not at the top.
-    from mi_bivariate import evaluate as ev
-
     ensure_variant()
-    config = config or ev.EvalConfig()
+    config = config or EvalConfig()
     settings = settings or SynthesisSettings()
     overrides = {k: v for k, v in (("spp", spp), ("learning_rate", learning_rate)) if v is not None}
     if overrides:
         settings = SynthesisSettings(**{**asdict(settings), **overrides})
-    spec = material if isinstance(material, ev.MaterialSpec) else ev.resolve_materials([material], data_dir)[0]
-    truth = ev.load_truth(spec, data_dir)
-    probe = ev.load_probe(input_probe, data_dir)
-    novel = ev.load_probe(novel_probe, data_dir)
+    spec = material if isinstance(material, MaterialSpec) else resolve_materials([material], data_dir)[0]
+    truth = load_truth(spec, data_dir)
+    probe = load_probe(input_probe, data_dir, cache=True)
+    novel = load_probe(novel_probe, data_dir, cache=True)
     res = config.resolution
     truth_bsdf = render.bsdf_dict(truth)
     shot = render.render_sphere(truth_bsdf, probe, resolution=res, spp=config.spp, seed=config.seed)
@@ -217,7 +216,8 @@ def analysis_by_synthesis(material: Any, input_probe: str = "grace_latlong_1k", 
 
     rec = recover(shot.image, probe, shot.geometry, n_normals=config.n_normals, n_dirs=config.n_dirs,
                   grid=config.grid, alpha=config.alpha, seed=config.seed, keep_inputs=False)
-    linear_s = sum(rec.timings.get(k, 0.0) for k in ("observations", "lighting matrix", "adequacy", "normal equations", "solve"))
+    linear_s = sum(rec.timings.get(k, 0.0)
+                   for k in ("observations", "lighting matrix", "adequacy", "normal equations", "solve"))
     brdf_errors = metrics.BRDFErrors(truth)
     linear_errors = {k: v for k, v in brdf_errors(rec.brdf).items() if k != "eq1_rgb"}
     linear_relight = relight_error(rec.brdf, novel, truth_novel, config.novel_spp, relight_seed)
@@ -252,7 +252,7 @@ def analysis_by_synthesis(material: Any, input_probe: str = "grace_latlong_1k", 
     reached_relight = first("relight", linear_relight)
     speedup = best["time_s"] / linear_s if linear_relight <= best["relight"] and linear_s > 0 else None
     last = trace[-1]
-    return {"material": spec.label, "input_probe": ev.probe_label(input_probe), "novel_probe": ev.probe_label(novel_probe),
+    return {"material": spec.label, "input_probe": probe_label(input_probe), "novel_probe": probe_label(novel_probe),
             "config_hash": config.hash(),
             "linear": {"time_s": linear_s, "relight": linear_relight, **linear_errors},
             "abs": {"iterations": run["iterations"], "time_s": run["time_s"], "budget_s": budget,

@@ -20,16 +20,16 @@ from pathlib import Path
 from typing import Dict, Iterable, Optional, Sequence, Tuple, Union
 
 import numpy as np
-from mi_bivariate.common import PathLike
 
 from .atomic import atomic_path
 from .basis_prior import BasisPrior
 from .bivariate import BivariateBRDF
+from .common import PathLike
 from .errors import InputError
-from .merl import MERLBRDF, merl_files_in
+from .merl import MERLBRDF
 from .nbrdf import ALL_NBRDF_MATERIALS, NBRDF_FILE, NBRDF_TRAIN_FILE, data_dir as nbrdf_data_dir, nbrdf_merl
 from .prior import Prior
-
+from .sources import merl_files
 
 
 def cache_dir() -> Path:
@@ -100,22 +100,6 @@ def leave_one_out_priors(material: str, n_t: int = 32, n_s: int = 32,
     return learn_priors(tables, exclude=(material,), provenance={"training": "shared MERL-NBRDF, leave-one-out"})
 
 
-def _expand_sources(sources: Union[PathLike, Iterable[PathLike]]) -> list:
-    if isinstance(sources, (str, os.PathLike)):
-        sources = [sources]
-    expanded = []
-    for src in sources:
-        path = Path(src)
-        if path.is_dir():
-            found = merl_files_in(path)
-            if not found:
-                raise InputError(path, "folder holds no MERL .binary files")
-            expanded.extend(found)
-        else:
-            expanded.append(src)
-    return expanded
-
-
 def tables_from_sources(sources: Union[PathLike, Iterable[PathLike]], n_t: int = 32, n_s: int = 32,
                         data_dir: Optional[PathLike] = None) -> Tuple[Dict[str, np.ndarray], Dict[str, str]]:
     """Reduce MERL materials to ``(n_t, n_s, 3)`` tables: a folder of ``.binary`` files, files,
@@ -126,9 +110,9 @@ def tables_from_sources(sources: Union[PathLike, Iterable[PathLike]], n_t: int =
     """
     tables: Dict[str, np.ndarray] = {}
     origin: Dict[str, str] = {}
-    names = [str(s) for s in _expand_sources(sources) if str(s) in ALL_NBRDF_MATERIALS and not Path(s).is_file()]
+    names = [str(s) for s in merl_files(sources) if str(s) in ALL_NBRDF_MATERIALS and not Path(s).is_file()]
     shared = reduced_tables(n_t, n_s, names, data_dir) if names else {}
-    for src in _expand_sources(sources):
+    for src in merl_files(sources):
         path = Path(src)
         if path.is_file():
             merl = MERLBRDF.read(path)

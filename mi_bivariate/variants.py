@@ -4,6 +4,14 @@ The toolkit runs on ``llvm_ad_rgb`` by default and on ``cuda_ad_rgb`` where a
 GPU exists (same code). ``MI_BIVARIATE_VARIANT`` overrides the default. Python
 BSDF plugins are registered per variant, so every switch goes through
 :func:`ensure_variant`.
+
+Only the front doors select the variant: the CLI's commands,
+:func:`mi_bivariate.recover.recover`, the rendering entry points
+(``render``, ``reference``, ``mesh.render_mesh``), the demo and the
+evaluation's workers. Code below them (data-model methods such as
+``BivariateBRDF.to_bitmap`` or ``Probe.emitter``) uses whatever variant is
+selected and never changes it; without one, Mitsuba itself raises
+``No variant was set!``.
 """
 
 from __future__ import annotations
@@ -11,18 +19,24 @@ from __future__ import annotations
 import os
 from typing import Optional
 
+import mitsuba as mi
+
 from mi_bivariate.errors import InputError
+from mi_bivariate.plugins import register
 
 DEFAULT_VARIANT = "llvm_ad_rgb"
 SUPPORTED_VARIANTS = ("llvm_ad_rgb", "cuda_ad_rgb", "scalar_rgb")
 
 
-def ensure_variant(variant: Optional[str] = None) -> str:
+def ensure_variant(variant: Optional[str] = None, vectorised: bool = False) -> str:
     """Select a Mitsuba variant (if needed) and register the plugins for it.
 
     Args:
         variant: a variant name; ``None`` keeps an already selected supported
             variant, else uses ``$MI_BIVARIATE_VARIANT`` or ``llvm_ad_rgb``.
+        vectorised: the caller needs a JIT (wide) variant, as the lighting
+            matrix does: with ``variant=None`` an active ``scalar_rgb`` is
+            replaced by the default; naming ``scalar_rgb`` is an error.
 
     Returns:
         The active variant name.
@@ -31,24 +45,22 @@ def ensure_variant(variant: Optional[str] = None) -> str:
         InputError: (a ``ValueError``) naming ``--variant`` or
             ``MI_BIVARIATE_VARIANT`` for an unsupported or unavailable variant.
     """
-    import mitsuba as mi
-
     current = mi.variant()
     source = "--variant"
     if variant is None:
-        if current in SUPPORTED_VARIANTS:
+        if current in SUPPORTED_VARIANTS and not (vectorised and current == "scalar_rgb"):
             variant = current
         else:
             variant = os.environ.get("MI_BIVARIATE_VARIANT") or DEFAULT_VARIANT
             source = "MI_BIVARIATE_VARIANT"
-    if variant not in SUPPORTED_VARIANTS:
-        raise InputError(source, f"unsupported Mitsuba variant {variant!r}", f"use one of {', '.join(SUPPORTED_VARIANTS)}")
+    choices = [v for v in SUPPORTED_VARIANTS if not (vectorised and v == "scalar_rgb")]
+    if variant not in choices:
+        raise InputError(source, f"unsupported Mitsuba variant {variant!r}", f"use one of {', '.join(choices)}")
     if variant not in mi.variants():
         raise InputError(source, f"Mitsuba variant {variant!r} is not available in this build",
-                         f"available: {', '.join(v for v in mi.variants() if v in SUPPORTED_VARIANTS)}")
+                         f"available: {', '.join(v for v in mi.variants() if v in choices)}")
     if current != variant:
         mi.set_variant(variant)
-    from mi_bivariate.plugins import register
-
     register()
     return variant
+

@@ -11,6 +11,11 @@ from __future__ import annotations
 
 from typing import Dict, Tuple
 
+import mitsuba as mi
+
+from mi_bivariate.plugins.bivariate import make_bivariate_bsdf
+from mi_bivariate.plugins.merl import make_merl_bsdf
+
 PLUGIN_NAMES: Tuple[str, ...] = ("bivariate", "merl")
 
 # variant -> {plugin name: class}
@@ -19,23 +24,16 @@ _CLASSES: Dict[str, Dict[str, type]] = {}
 
 def plugin_classes() -> Dict[str, type]:
     """The plugin classes of the active variant (built on first use)."""
-    import mitsuba as mi
-
     variant = mi.variant()
     if variant is None:
         raise RuntimeError("set a Mitsuba variant (mi_bivariate.variants.ensure_variant()) before using the plugins")
     if variant not in _CLASSES:
-        from .bivariate import make_bivariate_bsdf
-        from .merl import make_merl_bsdf
-
         _CLASSES[variant] = {"bivariate": make_bivariate_bsdf(), "merl": make_merl_bsdf()}
     return _CLASSES[variant]
 
 
 def register() -> None:
     """Register the ``bivariate`` and ``merl`` BSDFs with the active variant (idempotent)."""
-    import mitsuba as mi
-
     variant = mi.variant()
     first = variant not in _CLASSES
     classes = plugin_classes()

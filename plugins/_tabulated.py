@@ -27,12 +27,16 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Tuple
+from typing import Any, Tuple
 
 import numpy as np
+import drjit as dr
+import mitsuba as mi
+
+from mi_bivariate.common import luminance
+from mi_bivariate.errors import InputError
 
 #: Luminance weights (Rec. 709) used to turn RGB tables into one density.
-LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 
 #: Mixture weight of cosine sampling is clamped to this range, so neither
 #: strategy is ever switched off (robust to tables that are mostly one or
@@ -135,7 +139,6 @@ class HalfVectorSampler:
     """
 
     def __init__(self, profile: HalfVectorProfile):
-        import mitsuba as mi
 
         self.cosine_weight = float(profile.cosine_weight)
         self.distribution = mi.IrregularContinuousDistribution(
@@ -153,9 +156,6 @@ class HalfVectorSampler:
             ``(wo: mi.Vector3f, cosine: mi.Bool)``: the direction (may lie below
             the horizon when the reflection does) and which strategy produced it.
         """
-        import drjit as dr
-        import mitsuba as mi
-
         cosine = sample1 < self.cosine_weight
         wo_cosine = mi.warp.square_to_cosine_hemisphere(sample2)
 
@@ -172,9 +172,6 @@ class HalfVectorSampler:
 
         Zero when either direction is at or below the horizon.
         """
-        import drjit as dr
-        import mitsuba as mi
-
         cos_o = mi.Frame3f.cos_theta(wo)
         valid = (mi.Frame3f.cos_theta(wi) > 0.0) & (cos_o > 0.0)
         h = dr.normalize(wi + wo)
@@ -191,28 +188,71 @@ class HalfVectorSampler:
 def make_tabulated_bsdf_base():
     """Build the common ``mi.BSDF`` subclass for the active variant.
 
-    Subclasses implement ``_eval_brdf(wi, wo) -> mi.Color3f`` (the table's value
-    in 1/sr, no cosine) and ``_rebuild()`` (derived data and ``self.sampler``).
+    The base reads the shared properties (``sampling``, ``interpolation``,
+    ``filename`` / ``table``), exposes ``table`` as the differentiable
+    parameter and rebuilds the sampler when it changes. A plugin writes only
+    what is its own:
+
+    - ``plugin_name``, ``file_suffix``, ``interpolations`` (accepted modes,
+      default first) and ``table_ndim`` (the table tensor's rank, channels last);
+    - ``read_file(filename) -> ndarray`` and ``from_array(array) -> ndarray``
+      (the ``filename`` and ``table`` properties; raise ``InputError``);
+    - ``profile_values(host) -> (values, theta_h_nodes, theta_d_nodes)`` for the
+      half-vector density;
+    - ``_eval_brdf(wi, wo) -> mi.Color3f`` (the table's value in 1/sr, no cosine).
+
     Defined in a function because ``mi.BSDF`` only exists once a variant is set.
     """
-    import drjit as dr
-    import mitsuba as mi
-
     class TabulatedBSDF(mi.BSDF):
         """One-sided reflection BSDF given by a table; mixture importance sampling."""
+
+        plugin_name = "tabulated"
+        file_suffix = ""
+        interpolations: Tuple[str, ...] = ("linear",)
+        table_ndim = 3
 
         def __init__(self, props: mi.Properties):
             mi.BSDF.__init__(self, props)
             sampling = props.get("sampling", "table")
             if sampling not in ("table", "cosine"):
-                raise ValueError(f"{self.plugin_name}: sampling must be 'table' or 'cosine', got {sampling!r}")
+                raise InputError(self.plugin_name, f"sampling must be 'table' or 'cosine', got {sampling!r}")
             self.sampling = sampling
+            interpolation = props.get("interpolation", self.interpolations[0])
+            if interpolation not in self.interpolations:
+                raise InputError(self.plugin_name, f"interpolation must be "
+                                 f"{' or '.join(repr(m) for m in self.interpolations)}, got {interpolation!r}")
+            self.interpolation = interpolation
             flags = mi.BSDFFlags.GlossyReflection | mi.BSDFFlags.DiffuseReflection | mi.BSDFFlags.FrontSide
             self.m_components = [flags]
             self.m_flags = flags
             self.sampler: HalfVectorSampler | None = None
+            if "filename" in props:
+                table = self.read_file(str(props["filename"]))
+            elif "table" in props:
+                table = self.from_array(bitmap_to_array(props["table"], f"{self.plugin_name} table"))
+            else:
+                raise InputError(self.plugin_name, f"the BSDF needs a 'filename' ({self.file_suffix}) or a 'table' "
+                                                  "(mi.Bitmap) property")
+            self.table = mi.TensorXf(table)
+            self._rebuild()
 
-        plugin_name = "tabulated"
+        def _rebuild(self) -> None:
+            """Check the table's shape and rebuild the sampler from it."""
+            shape = tuple(self.table.shape)
+            if len(shape) != self.table_ndim or shape[-1] != 3 or not self.valid_shape(shape):
+                raise InputError(self.plugin_name, f"table has shape {shape}, which this plugin cannot use")
+            values, theta_h_nodes, theta_d_nodes = self.profile_values(dr.detach(self.table).numpy())
+            self.sampler = HalfVectorSampler(half_vector_profile(luminance(values), theta_h_nodes, theta_d_nodes,
+                                                                 cosine_only=self.sampling == "cosine"))
+
+        def valid_shape(self, shape: Tuple[int, ...]) -> bool:
+            return True
+
+        def traverse(self, callback: mi.TraversalCallback) -> None:
+            callback.put("table", self.table, mi.ParamFlags.Differentiable)
+
+        def parameters_changed(self, keys: list) -> None:
+            self._rebuild()
 
         def _enabled(self, ctx: mi.BSDFContext) -> bool:
             return ctx.is_enabled(mi.BSDFFlags.GlossyReflection) or ctx.is_enabled(mi.BSDFFlags.DiffuseReflection)
@@ -256,12 +296,22 @@ def make_tabulated_bsdf_base():
             weight = dr.select(active, value / dr.maximum(pdf, 1e-30), 0.0)
             return bs, weight
 
-        def _set_profile(self, profile: HalfVectorProfile) -> None:
-            self.sampler = HalfVectorSampler(profile)
+        def to_string(self) -> str:
+            return (f"{type(self).__name__}[shape={tuple(self.table.shape)}, interpolation={self.interpolation!r}, "
+                    f"sampling={self.sampling!r}, p_cosine={self.sampler.cosine_weight:.3f}]")
 
     return TabulatedBSDF
 
 
-def luminance(table: np.ndarray) -> np.ndarray:
-    """RGB ``(..., 3)`` -> luminance ``(...)`` (float64)."""
-    return np.asarray(table, dtype=np.float64) @ LUMINANCE
+def bitmap_to_array(bitmap: Any, source: str) -> np.ndarray:
+    """A ``mi.Bitmap`` as a ``(H, W, 3) float32`` array (InputError if not RGB)."""
+    if not isinstance(bitmap, mi.Bitmap):
+        raise InputError(source, f"'table' must be a mitsuba.Bitmap, got {type(bitmap).__name__}",
+                         "numpy arrays cannot be passed to Python plugins; use mi.Bitmap(array)")
+    array = np.array(bitmap, dtype=np.float32, copy=True)
+    if array.ndim == 2:
+        array = array[..., None]
+    if array.shape[-1] != 3:
+        raise InputError(source, f"'table' bitmap must be RGB, got {array.shape[-1]} channel(s)")
+    return array
+

@@ -22,14 +22,16 @@ Differentiable parameter: ``table`` (``mi.TensorXf``, ``(90, 90, 180, 3)``).
 from __future__ import annotations
 
 import math
-from typing import Any, Tuple
+from typing import Tuple
 
+import drjit as dr
+import mitsuba as mi
 import numpy as np
 
+from mi_bivariate.coordinates import fold_phi_d, half_diff_from_dirs
 from mi_bivariate.errors import InputError
-
-from ._tabulated import half_vector_profile, luminance, make_tabulated_bsdf_base
-from .bivariate import bitmap_to_array
+from mi_bivariate.merl import MERLBRDF, geometric_mask
+from mi_bivariate.plugins._tabulated import make_tabulated_bsdf_base
 
 N_THETA_H, N_THETA_D, N_PHI_D = 90, 90, 180
 
@@ -52,8 +54,6 @@ def fill_missing(table: np.ndarray, valid: np.ndarray) -> np.ndarray:
 
 def prepare_merl_table(table: np.ndarray, source: str) -> np.ndarray:
     """Validate a ``(90, 90, 180, 3)`` MERL table (1/sr) and fill its missing entries."""
-    from mi_bivariate.merl import geometric_mask
-
     table = np.asarray(table, dtype=np.float32)
     if table.shape != (N_THETA_H, N_THETA_D, N_PHI_D, 3):
         raise InputError(source, f"a MERL table must have shape (90, 90, 180, 3), got {table.shape}")
@@ -66,50 +66,30 @@ def prepare_merl_table(table: np.ndarray, source: str) -> np.ndarray:
     return fill_missing(table, valid)
 
 
-def load_merl_table(props: Any) -> np.ndarray:
-    """The filled ``(90, 90, 180, 3) float32`` table named by a plugin's properties."""
-    if "filename" in props:
-        from mi_bivariate.merl import MERLBRDF
-
-        filename = str(props["filename"])
-        return prepare_merl_table(MERLBRDF.read(filename).table, filename)
-    if "table" in props:
-        array = bitmap_to_array(props["table"], "merl table")
-        if array.shape != (N_THETA_H * N_THETA_D, N_PHI_D, 3):
-            raise InputError("merl table", f"bitmap must be 8100 x 180 (H x W) RGB, got {array.shape}")
-        return prepare_merl_table(array.reshape(N_THETA_H, N_THETA_D, N_PHI_D, 3), "merl table")
-    raise InputError("merl", "the BSDF needs a 'filename' (.binary) or a 'table' (mi.Bitmap) property")
-
-
 def make_merl_bsdf():
     """Build the ``merl`` BSDF class for the active variant."""
-    import drjit as dr
-    import mitsuba as mi
-
-    from mi_bivariate.coordinates import fold_phi_d, half_diff_from_dirs
-
     TabulatedBSDF = make_tabulated_bsdf_base()
 
     class MERLBSDF(TabulatedBSDF):
         plugin_name = "merl"
+        file_suffix = ".binary"
+        interpolations = ("nearest", "linear")
+        table_ndim = 4
 
-        def __init__(self, props: mi.Properties):
-            TabulatedBSDF.__init__(self, props)
-            interpolation = props.get("interpolation", "nearest")
-            if interpolation not in ("nearest", "linear"):
-                raise InputError("merl", f"interpolation must be 'nearest' or 'linear', got {interpolation!r}")
-            self.interpolation = interpolation
-            self.table = mi.TensorXf(load_merl_table(props))
-            self._rebuild()
+        def read_file(self, filename: str) -> np.ndarray:
+            return prepare_merl_table(MERLBRDF.read(filename).table, filename)
 
-        def _rebuild(self) -> None:
-            if tuple(self.table.shape) != (N_THETA_H, N_THETA_D, N_PHI_D, 3):
-                raise ValueError(f"merl: table must have shape (90, 90, 180, 3), got {tuple(self.table.shape)}")
-            host = dr.detach(self.table).numpy()
+        def from_array(self, array: np.ndarray) -> np.ndarray:
+            if array.shape != (N_THETA_H * N_THETA_D, N_PHI_D, 3):
+                raise InputError("merl table", f"bitmap must be 8100 x 180 (H x W) RGB, got {array.shape}")
+            return prepare_merl_table(array.reshape(N_THETA_H, N_THETA_D, N_PHI_D, 3), "merl table")
+
+        def valid_shape(self, shape: Tuple[int, ...]) -> bool:
+            return shape == (N_THETA_H, N_THETA_D, N_PHI_D, 3)
+
+        def profile_values(self, host: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
             nodes = np.arange(N_THETA_H) / N_THETA_H
-            profile = half_vector_profile(luminance(host.mean(axis=2, dtype=np.float64)), nodes, nodes,
-                                          cosine_only=self.sampling == "cosine")
-            self._set_profile(profile)
+            return host.mean(axis=2, dtype=np.float64), nodes, nodes
 
         def _coordinates(self, wi: mi.Vector3f, wo: mi.Vector3f) -> Tuple[mi.Float, mi.Float, mi.Float]:
             """Continuous node coordinates (node k at k) along theta_h, theta_d, phi_d."""
@@ -144,15 +124,5 @@ def make_merl_bsdf():
                     hi = self._gather(h0 + dh, d0 + dd, p1)
                     result += (w_h * w_d) * dr.lerp(lo, hi, wp)
             return result
-
-        def traverse(self, callback: mi.TraversalCallback) -> None:
-            callback.put("table", self.table, mi.ParamFlags.Differentiable)
-
-        def parameters_changed(self, keys: list[str]) -> None:
-            self._rebuild()
-
-        def to_string(self) -> str:
-            return (f"MERLBSDF[interpolation={self.interpolation!r}, sampling={self.sampling!r}, "
-                    f"p_cosine={self.sampler.cosine_weight:.3f}]")
 
     return MERLBSDF

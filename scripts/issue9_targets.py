@@ -62,8 +62,11 @@ def main() -> None:
             print(f"- {k}: {np.median(values):.2f}")
     if args.noisy:
         noisy = load(args.noisy)
-        pairs = [(relight(noisy[m]["inputs"][args.single]), relight(records[m]["inputs"][args.single]))
-                 for m in noisy if m in records]
+        names = [m for m in sorted(noisy) if m in records]
+        pairs = [(relight(noisy[m]["inputs"][args.single]), relight(records[m]["inputs"][args.single])) for m in names]
+        print("\n| material | relight error, clean | with input noise | noisy / clean |\n|---|---|---|---|")
+        for m, (a, b) in zip(names, pairs):
+            print(f"| {m} | {b:.4f} | {a:.4f} | {a / b:.2f} |")
         print(f"- noisy / clean relight error ({len(pairs)} materials): median "
               f"{np.median([a / b for a, b in pairs]):.2f}; medians {np.median([a for a, _ in pairs]):.4f} / "
               f"{np.median([b for _, b in pairs]):.4f}")

@@ -77,7 +77,7 @@ def test_perturbations_degrade_gracefully(scene):
                                L_novel, reference)
     # The radius error is measured against the true silhouette: the automatic fit
     # itself is ~0.8% small here (see test_fit_bias), which a +2% error would partly cancel.
-    true_r = k.fx * np.tan(np.arcsin(1.0 / render.camera["distance"]))
+    true_r = k.fx * np.tan(np.arcsin(1.0 / render.camera.distance))
     err["known"] = novel_error(recover_from_photo(image, probe, intrinsics=k, sphere=(48.0, 48.0, true_r), **FAST),
                                L_novel, reference)
     err["radius"] = novel_error(recover_from_photo(image, probe, intrinsics=k, sphere=(48.0, 48.0, 1.02 * true_r),
@@ -113,6 +113,6 @@ def test_fit_bias(scene):
     _, render, _, _ = scene
     k = Intrinsics.from_fov(RES, RES, FOV)
     fit = fit_sphere(render.image, intrinsics=k, warn=False)
-    true = np.arcsin(1.0 / render.camera["distance"])
+    true = np.arcsin(1.0 / render.camera.distance)
     # Measured: 13.448 vs 13.558 degrees (-0.8%) at 96 px, 512 spp.
     assert abs(fit.geometry.half_angle / true - 1.0) < 0.015

@@ -29,7 +29,8 @@ import pytest
 from mi_bivariate.analytic import BivariateLobe
 from mi_bivariate.bivariate import BivariateBRDF
 from mi_bivariate.probes import Probe
-from mi_bivariate.render import bsdf_dict, make_camera, sphere_scene_dict
+from mi_bivariate.geometry import SphereCamera
+from mi_bivariate.render import bsdf_dict, sphere_scene_dict
 from mi_bivariate.variants import ensure_variant
 
 RES = 24
@@ -63,7 +64,7 @@ def envmap() -> Probe:
 
 
 def make_scene(bsdf: dict, integrator: str = "prb") -> mi.Scene:
-    scene = sphere_scene_dict(bsdf, envmap(), make_camera("orthographic", RES), normals=False)
+    scene = sphere_scene_dict(bsdf, envmap(), SphereCamera.create("orthographic", RES), normals=False)
     scene["integrator"] = {"type": integrator, "max_depth": 2, "hide_emitters": True}
     if integrator == "direct":
         scene["integrator"] = {"type": "direct", "hide_emitters": True}

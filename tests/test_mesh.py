@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 import trimesh
 
-from mi_bivariate import lighting, mesh, metrics, solve
+from mi_bivariate import capture, lighting, mesh, metrics, solve
 from mi_bivariate.analytic import BivariateLobe, CookTorranceGGX
 from mi_bivariate.bivariate import BivariateBRDF
 from mi_bivariate.errors import InputError, InputWarning
-from mi_bivariate.geometry import PerspectiveSphereGeometry, SphereGeometry
+from mi_bivariate.geometry import Camera, PerspectiveSphereGeometry, SphereGeometry
 from mi_bivariate.merl import MERLBRDF
 from mi_bivariate.probes import Probe
 from mi_bivariate.render import bsdf_dict
@@ -45,7 +45,7 @@ def sky_probe(yaw_deg: float = 0.0, n_lights: int = 2) -> Probe:
 def torus_view():
     shape = mesh.MeshShape.load(trimesh.creation.torus(1.0, 0.45, major_sections=96, minor_sections=48),
                                 normals="vertex")
-    return mesh.MeshView(shape, mesh.Camera.look_at((0.0, 3.2, 3.2), (0, 0, 0), width=96, fov_deg=40))
+    return mesh.MeshView(shape, Camera.look_at((0.0, 3.2, 3.2), (0, 0, 0), width=96, fov_deg=40))
 
 
 def test_formats_normals_and_warnings(tmp_path):
@@ -88,7 +88,7 @@ def test_formats_normals_and_warnings(tmp_path):
 def test_ray_cast_normals_match_the_analytic_sphere():
     """Mitsuba ray casts on a fine icosphere reproduce geometry.py's closed-form normals and views."""
     shape = mesh.MeshShape.load(trimesh.creation.icosphere(subdivisions=5), normals="vertex")
-    cam = mesh.Camera.look_at((0, 0, 4.0), (0, 0, 0), width=80, fov_deg=35)
+    cam = Camera.look_at((0, 0, 4.0), (0, 0, 0), width=80, fov_deg=35)
     maps = mesh.surface_maps(shape, cam)
     n, v, full = PerspectiveSphereGeometry(cam.intrinsics, np.array([0, 0, -4.0])).normals_and_views(80, 80, "full")
     assert np.count_nonzero(full ^ maps.mask) <= 4  # only tessellation-edge pixels may differ
@@ -98,7 +98,7 @@ def test_ray_cast_normals_match_the_analytic_sphere():
     # Orthographic camera, rotated pose: normals in the world frame, views constant.
     rot = np.linalg.qr(np.random.default_rng(1).normal(size=(3, 3)))[0]
     rot *= np.sign(np.linalg.det(rot))
-    cam = mesh.Camera(80, 80, (30.0, 30.0, 40.0, 40.0), rot, rot @ [0, 0, 5.0], orthographic=True)
+    cam = Camera(80, 80, (30.0, 30.0, 40.0, 40.0), rot, rot @ [0, 0, 5.0], orthographic=True)
     maps = mesh.surface_maps(shape, cam)
     n, centre = SphereGeometry(40.0, 40.0, 30.0, rot).normals(80, 80)
     both = centre & maps.mask
@@ -106,7 +106,7 @@ def test_ray_cast_normals_match_the_analytic_sphere():
     assert np.degrees(np.arccos(np.clip(np.sum(n[both] * maps.normals[both], -1), -1, 1))).max() < 0.3
     assert np.allclose(maps.views[both], rot[:, 2], atol=1e-6)
     with pytest.raises(InputError, match="sees no part"):
-        mesh.surface_maps(shape, mesh.Camera.look_at((0, 0, 4.0), (0, 0, 8.0), width=16))
+        mesh.surface_maps(shape, Camera.look_at((0, 0, 4.0), (0, 0, 8.0), width=16))
 
 
 def test_visibility_kernel_matches_a_reference(torus_view):
@@ -116,7 +116,7 @@ def test_visibility_kernel_matches_a_reference(torus_view):
 
     probe = sky_probe()
     image = np.ones((96, 96, 3), np.float32)
-    obs = torus_view.observations(image, n_normals=600, seed=2)
+    obs = capture.image_observations(image, torus_view, n_normals=600, seed=2)
     rows = np.arange(0, len(obs), len(obs) // 12)
     sub = obs.subset(rows)
     brdf = BivariateBRDF.reduce(BivariateLobe(diffuse=0.3, specular=3.0, width=0.2))
@@ -156,7 +156,7 @@ def test_model_agreement_with_self_shadowing(torus_view):
     probe = sky_probe()
     table = BivariateBRDF.reduce(BivariateLobe(diffuse=0.3, specular=1.5, width=0.3))
     image = mesh.render_mesh(bsdf_dict(table), probe, torus_view, spp=256, seed=1)
-    obs = torus_view.observations(image, n_normals=1500)
+    obs = capture.image_observations(image, torus_view, n_normals=1500)
     predicted = {}
     for vis in (True, False):
         L = lighting.lighting_matrix(obs, probe, n_dirs=8000, occluder=torus_view.shape if vis else None)
@@ -190,7 +190,7 @@ def test_recovery_with_visibility_beats_without(torus_view):
     truth_bsdf = bsdf_dict(truth)
     image = mesh.render_mesh(truth_bsdf, probe, torus_view, spp=256, seed=1)
     reference = mesh.render_mesh(truth_bsdf, novel, torus_view, spp=128, seed=7)
-    obs = torus_view.observations(image, n_normals=1500)
+    obs = capture.image_observations(image, torus_view, n_normals=1500)
     result = {}
     for vis in (True, False):
         L = lighting.lighting_matrix(obs, probe, n_dirs=8000, occluder=torus_view.shape if vis else None)

@@ -10,7 +10,7 @@ from mi_bivariate import mesh
 from mi_bivariate.analytic import BivariateLobe
 from mi_bivariate.bivariate import BivariateBRDF
 from mi_bivariate.errors import InputError
-from mi_bivariate.geometry import PerspectiveSphereGeometry
+from mi_bivariate.geometry import Camera, PerspectiveSphereGeometry
 from mi_bivariate.probes import rotation_matrix
 from mi_bivariate.recover import recover
 from mi_bivariate.render import bsdf_dict, render_sphere
@@ -64,7 +64,7 @@ def test_views_and_probes_stack_into_one_solve(views):
     probes, poses, ortho, persp = views
     one = recover(ortho[0].image, probes[0], ortho[0].geometry, **FAST)
     geo = PerspectiveSphereGeometry((64 / (2 * np.tan(np.radians(15))),) * 2 + (32.0, 32.0),
-                                    [0.0, 0.0, -persp.camera["distance"]], 1.0, rotation_matrix((20, -100, 0)))
+                                    [0.0, 0.0, -persp.camera.distance], 1.0, rotation_matrix((20, -100, 0)))
     three = recover([r.image for r in ortho] + [persp.image], [probes[0], probes[1], probes[1]],
                     [r.geometry for r in ortho] + [geo], **FAST)
     assert set(np.unique(three.observations.image_index)) == {0, 1, 2}
@@ -87,8 +87,8 @@ def test_mesh_views_from_two_poses():
     """A torus seen from two camera poses under two probes, with visibility, in one solve."""
     shape = mesh.MeshShape.load(trimesh.creation.torus(1.0, 0.45, major_sections=64, minor_sections=32),
                                 normals="vertex")
-    cams = [mesh.Camera.look_at((0.0, 3.2, 3.2), (0, 0, 0), width=64, fov_deg=40),
-            mesh.Camera.look_at((3.5, -1.0, 2.0), (0, 0, 0), width=64, scale=18.0)]
+    cams = [Camera.look_at((0.0, 3.2, 3.2), (0, 0, 0), width=64, fov_deg=40),
+            Camera.look_at((3.5, -1.0, 2.0), (0, 0, 0), width=64, scale=18.0)]
     probes = [sky_probe(n_lights=12), sky_probe(yaw_deg=120.0, n_lights=12)]
     viewsets = [mesh.MeshView(shape, c) for c in cams]
     images = [mesh.render_mesh(bsdf_dict(TRUTH), p, v, spp=128, seed=3 + i)

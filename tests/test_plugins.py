@@ -15,7 +15,8 @@ from mi_bivariate.bivariate import BivariateBRDF
 from mi_bivariate.coordinates import half_diff_from_dirs, st_from_dirs
 from mi_bivariate.merl import MERLBRDF
 from mi_bivariate.probes import Probe
-from mi_bivariate.render import bsdf_dict, make_camera, sphere_scene_dict
+from mi_bivariate.geometry import SphereCamera
+from mi_bivariate.render import bsdf_dict, sphere_scene_dict
 from mi_bivariate.variants import ensure_variant
 
 RHO = np.array([0.2, 0.5, 0.8])
@@ -214,15 +215,14 @@ def synthetic_probe() -> Probe:
 
 
 def render(bsdf: dict, probe: Probe, seed: int = 0, spp: int = 64, res: int = 32) -> np.ndarray:
-    cam = make_camera("orthographic", res)
+    cam = SphereCamera.create("orthographic", res)
     scene = mi.load_dict(sphere_scene_dict(bsdf, probe, cam, normals=False))
     return np.array(mi.render(scene, spp=spp, seed=seed), np.float64)[..., :3]
 
 
 def disc(res: int = 32) -> np.ndarray:
-    from mi_bivariate.render import coverage_mask
 
-    return coverage_mask(make_camera("orthographic", res))
+    return SphereCamera.create("orthographic", res).coverage_mask()
 
 
 def assert_same_to_noise(a, b, mask, seeds_a, seeds_b, slack=1.3):
@@ -281,7 +281,7 @@ def test_filename_properties(tmp_path):
 # ------------------------------------------------------ parameters and AD
 
 def sphere_scene(bsdf: dict, res: int = 16) -> mi.Scene:
-    return mi.load_dict(sphere_scene_dict(bsdf, synthetic_probe(), make_camera("orthographic", res), normals=False))
+    return mi.load_dict(sphere_scene_dict(bsdf, synthetic_probe(), SphereCamera.create("orthographic", res), normals=False))
 
 
 @pytest.mark.parametrize("plugin", ["bivariate", "merl"])

@@ -13,8 +13,8 @@ from mi_bivariate.analytic import Lambertian
 from mi_bivariate.bivariate import BivariateBRDF
 from mi_bivariate.errors import InputError
 from mi_bivariate.probes import Probe
-from mi_bivariate.render import (bsdf_dict, camera_rays, coverage_mask, make_camera, render_sphere, sensor_dict,
-                                 write_exr, write_png_preview)
+from mi_bivariate.geometry import SphereCamera
+from mi_bivariate.render import bsdf_dict, render_sphere, write_exr, write_png_preview
 
 SCENES = Path(__file__).resolve().parents[1] / "scenes"
 DIFFUSE = {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.5}}
@@ -24,11 +24,11 @@ def angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.degrees(np.arccos(np.clip(np.sum(a * b, axis=-1), -1.0, 1.0)))
 
 
-def ray_traced_normals(camera: dict) -> np.ndarray:
+def ray_traced_normals(camera: SphereCamera) -> np.ndarray:
     """Unit-sphere normals at pixel centres from the camera model, ``(H, W, 3)`` (NaN on a miss)."""
-    width, height = camera["resolution"]
+    width, height = camera.resolution
     px, py = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
-    o, d = camera_rays(camera, px, py)
+    o, d = camera.rays(px, py)
     od = np.sum(o * d, -1)
     disc = od * od - (np.sum(o * o, -1) - 1.0)
     t = -od - np.sqrt(np.where(disc >= 0, disc, np.nan))
@@ -53,11 +53,11 @@ def test_orthographic_normals_follow_geometry_convention(kwargs):
     # Normals are averaged over random positions in the pixel (16 spp): a few
     # tenths of a degree from the centre normal; a mirrored axis would be tens.
     assert np.median(err) < 0.5 and err.max() < 3.0
-    np.testing.assert_allclose(r.geometry.view_direction(), np.asarray(r.camera["camera_to_world"]) @ [0, 0, 1])
+    np.testing.assert_allclose(r.geometry.view_direction(), np.asarray(r.camera.camera_to_world) @ [0, 0, 1])
 
 
 def test_orthographic_geometry_is_exact():
-    cam = make_camera("orthographic", 64)
+    cam = SphereCamera.create("orthographic", 64)
     r = render_sphere(DIFFUSE, Probe.constant(1.0, 16), resolution=64, spp=4)
     assert (r.geometry.cx, r.geometry.cy, r.geometry.radius) == (32.0, 32.0, 0.45 * 64)
     # The camera model used for masks agrees with the geometry at pixel centres.
@@ -81,13 +81,13 @@ def test_perspective_normals_follow_camera_model():
 def test_mask_is_full_coverage(camera):
     # An emitting sphere (radiance 1) over a black background renders each pixel's
     # covered fraction: exactly 1 on fully covered pixels, < 1 on partial ones.
-    cam = make_camera(camera, 32)
+    cam = SphereCamera.create(camera, 32)
     scene = mi.load_dict({
-        "type": "scene", "integrator": {"type": "direct"}, "sensor": sensor_dict(cam),
+        "type": "scene", "integrator": {"type": "direct"}, "sensor": cam.sensor_dict(),
         "sphere": {"type": "sphere", "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 1.0}}},
     })
     coverage = np.array(mi.render(scene, spp=256, seed=0))[..., 0]
-    mask = coverage_mask(cam)
+    mask = cam.coverage_mask()
     assert np.all(coverage[mask] == pytest.approx(1.0, abs=1e-6))
     # Unmasked pixels that happen to catch only hits have a tiny uncovered corner.
     full_outside = (coverage > 1.0 - 1e-6) & ~mask
@@ -97,11 +97,11 @@ def test_mask_is_full_coverage(camera):
 
 def test_bad_camera_arguments():
     with pytest.raises(InputError, match="unknown camera"):
-        make_camera("fisheye")
+        SphereCamera.create("fisheye")
     with pytest.raises(InputError, match="rotation"):
-        make_camera(camera_to_world=np.diag([1.0, 1.0, -1.0]))
+        SphereCamera.create(camera_to_world=np.diag([1.0, 1.0, -1.0]))
     with pytest.raises(InputError, match="outside the unit sphere"):
-        make_camera("perspective", distance=0.5)
+        SphereCamera.create("perspective", distance=0.5)
 
 
 # --------------------------------------------------------- renders proper
@@ -116,7 +116,7 @@ def test_same_seed_same_image():
     np.testing.assert_array_equal(a.normals, b.normals)
     assert not np.array_equal(a.image, c.image)
     assert a.image.dtype == np.float32 and a.image.shape == (32, 32, 3)
-    assert np.all(a.image[~coverage_mask(a.camera) & (a.normals[..., 2] == 0)] >= 0.0)
+    assert np.all(a.image[~a.camera.coverage_mask() & (a.normals[..., 2] == 0)] >= 0.0)
 
 
 @pytest.mark.parametrize("source", ["bivariate", "merl-file", "analytic"])

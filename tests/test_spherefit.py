@@ -6,6 +6,7 @@ sphere geometry is known exactly, and the renderer's own normals AOV.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import warnings
 
@@ -14,7 +15,7 @@ import pytest
 
 from mi_bivariate import render, spherefit
 from mi_bivariate.errors import InputError, InputWarning
-from mi_bivariate.geometry import Intrinsics, PerspectiveSphereGeometry, SphereGeometry
+from mi_bivariate.geometry import Intrinsics, PerspectiveSphereGeometry, SphereCamera, SphereGeometry
 from mi_bivariate.probes import Probe, rotation_matrix
 
 BSDF = {"type": "roughplastic", "alpha": 0.2, "diffuse_reflectance": {"type": "rgb", "value": [0.5, 0.3, 0.2]}}
@@ -123,10 +124,10 @@ def test_fit_sphere_bad_input(kwargs, match):
 
 def test_intrinsics_match_render_camera_rays():
     rot = rotation_matrix((20.0, -35.0, 10.0))
-    cam = render.make_camera("perspective", (64, 48), fov=40.0, camera_to_world=rot)
+    cam = SphereCamera.create("perspective", (64, 48), fov=40.0, camera_to_world=rot)
     k = Intrinsics.from_fov(64, 48, 40.0)
     x, y = np.random.default_rng(1).uniform(0, 64, 50), np.random.default_rng(2).uniform(0, 48, 50)
-    _, d = render.camera_rays(cam, x, y)
+    _, d = cam.rays(x, y)
     assert np.allclose(k.rays(x, y) @ rot.T, d, atol=1e-12)
     assert np.allclose(k.project(k.rays(x, y)), np.stack([x, y], axis=1), atol=1e-9)
 
@@ -203,7 +204,7 @@ def test_perspective_render_centred(probe):
     k = Intrinsics.from_fov(256, 192, 40.0)
     fit = spherefit.fit_sphere(res.image, intrinsics=k, camera_to_world=rot)
     assert fit.confident
-    assert fit.geometry.distance == pytest.approx(res.camera["distance"], rel=2e-3)
+    assert fit.geometry.distance == pytest.approx(res.camera.distance, rel=2e-3)
     normals, views, mask = fit.geometry.normals_and_views(256, 192)
     inner = interior(mask & res.mask, views, normals)
     assert inner.sum() > 5000
@@ -214,14 +215,14 @@ def test_perspective_render_off_axis(probe):
     """The camera looks past the sphere: its silhouette is an ellipse off the image centre."""
     import mitsuba as mi
 
-    cam = render.make_camera("perspective", (256, 192), fov=50.0, distance=4.5)
+    cam = SphereCamera.create("perspective", (256, 192), fov=50.0, distance=4.5)
     origin, target = np.array([0.0, 0.0, 4.5]), np.array([0.6, -0.3, 0.0])
-    cam["to_world"] = np.array(mi.ScalarTransform4f().look_at(origin=origin.tolist(), target=target.tolist(),
-                                                               up=[0.0, 1.0, 0.0]).matrix, np.float64)
+    cam = dataclasses.replace(cam, to_world=np.array(mi.ScalarTransform4f().look_at(
+        origin=origin.tolist(), target=target.tolist(), up=[0.0, 1.0, 0.0]).matrix, np.float64))
     out = np.array(mi.render(render.load_scene(render.sphere_scene_dict(BSDF, probe, cam)), spp=32, seed=3))
     image, aov = out[..., :3], out[..., 3:6]
     # Mitsuba's look_at frame is (left, up, forward); ours is (right, up, backward).
-    rot = cam["to_world"][:3, :3] @ np.diag([-1.0, 1.0, -1.0])
+    rot = cam.to_world[:3, :3] @ np.diag([-1.0, 1.0, -1.0])
     k = Intrinsics.from_fov(256, 192, 50.0)
     fit = spherefit.fit_sphere(image, intrinsics=k, camera_to_world=rot)
     assert fit.confident

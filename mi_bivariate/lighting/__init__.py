@@ -187,7 +187,7 @@ def lighting_matrix(obs: Observations, probes: Union[Any, Sequence[Any]], n_t: i
     Returns:
         ``(M, n_t * n_s, 3) float32``; column ``it * n_s + is``.
     """
-    ensure_variant()
+    ensure_variant(vectorised=True)
     probes = _as_probe_list(probes)
     _check_inputs(obs, probes, n_t, n_s, n_dirs)
     if sampling not in SAMPLINGS:
@@ -241,7 +241,7 @@ def texel_lighting_matrix(obs: Observations, probes: Union[Any, Sequence[Any]], 
     Returns:
         ``(M, n_t * n_s, 3) float32``, laid out as :func:`lighting_matrix`.
     """
-    ensure_variant()
+    ensure_variant(vectorised=True)
     probes = _as_probe_list(probes)
     _check_inputs(obs, probes, n_t, n_s, 2)
     if downsample < 1:

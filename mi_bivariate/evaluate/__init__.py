@@ -1,0 +1,92 @@
+"""Batch evaluation: the paper's experiments over a set of materials (``mi-bivariate evaluate``).
+
+Per material (a MERL ``.binary``, a MERL-NBRDF name or an analytic spec) and
+per input probe:
+
+1. render the input image of the full 3D BRDF (``merl`` plugin, trilinear)
+   with the converged reference renderer (:mod:`mi_bivariate.reference`,
+   deterministic hemisphere quadrature; ``renderer="path"`` path-traces
+   instead), clean unless ``noise`` adds the camera noise of
+   :mod:`mi_bivariate.noise`;
+2. :func:`~mi_bivariate.recover.recover` the bivariate BRDF from it;
+3. render under every novel probe, with the *same* renderer and the same
+   quadrature seed: the recovery (``bivariate`` plugin), the exact reduction's
+   ``n_t x n_s`` table and the 3D truth; the *relight floor* is the reduction's
+   image error against the truth, and the recovery's error is reported with
+   its ratio to that floor (:func:`mi_bivariate.metrics.relight_errors`);
+4. fit the parametric baselines (:mod:`mi_bivariate.baselines`) to the same
+   observations through the same lighting matrix;
+5. record the BRDF errors of :class:`mi_bivariate.metrics.BRDFErrors` (Eq. 1
+   over all cells, over the cells the input observes
+   (:func:`mi_bivariate.adequacy.observed_nodes` and
+   :func:`mi_bivariate.metrics.observed_cells`) and over f > 1e-3;
+   cosine-weighted; log-space; per region) for the recovery, the grid table
+   and the baselines; the *exact floor* and the *grid floor*
+   (:func:`mi_bivariate.bivariate.floors`); the adequacy diagnostics and
+   timings.
+
+Reference renders of the truth and of the reduction's table depend on the
+material and the probe only, not on the solver: they are cached in
+``references/`` (one ``.npz`` per material, probe and render settings), so a
+rerun after a solver change renders only the recoveries.
+
+Results are one JSON line per finished material in ``results.jsonl``; a
+rerun skips the materials already there with the same configuration hash
+(:meth:`EvalConfig.hash`). Materials run in parallel in worker processes or on
+a Dask cluster. Every random choice is seeded, so the same command reproduces
+the same numbers.
+
+The package, one concept per module:
+
+- :mod:`~mi_bivariate.evaluate.config`: :class:`EvalConfig`, its hash, the solver's identity;
+- :mod:`~mi_bivariate.evaluate.protocol`: :func:`evaluate_material`, the steps above as functions;
+- :mod:`~mi_bivariate.evaluate.renders`: the scored renders and their cache;
+- :mod:`~mi_bivariate.evaluate.results`: results, artifacts, ``summary.csv``, tables, figures;
+- :mod:`~mi_bivariate.evaluate.runner`: :func:`run_evaluation` (in-process, processes, Dask).
+
+Materials and probes are named as in :mod:`mi_bivariate.sources`; analysis by
+synthesis is :mod:`mi_bivariate.synthesis`.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Optional, Union
+
+from mi_bivariate.common import PathLike
+from mi_bivariate.errors import InputError, InputWarning
+from mi_bivariate.evaluate.config import (DEFAULT_INPUT_PROBES, DEFAULT_NOVEL_PROBES, PROTOCOL_VERSION,
+                                          QUICK_ANALYTIC, QUICK_NBRDF, EvalConfig, quick_materials)
+from mi_bivariate.evaluate.protocol import INCIDENT_VIEWS, NOISE_SEED_OFFSET, MaterialTask, evaluate_material
+# The old module's names, private ones included (tests and scripts reach _fmt, _folder_lock, _init_worker,
+# _connect_dask), so that ``mi_bivariate.evaluate.<name>`` keeps resolving.
+from mi_bivariate.evaluate.results import (HEADLINE_COLUMNS, REJECTED_FILE, RESULTS_FILE, SUMMARY_COLUMNS,
+                                           SUMMARY_FILE, _fmt, append_record, artifact_path, format_summary,
+                                           load_artifacts, make_figures, markdown_table, read_records,
+                                           repair_results, save_artifacts, summary_rows, write_summary_csv)
+from mi_bivariate.evaluate.runner import (LOCK_FILE, REFERENCE_DIR, _connect_dask, _folder_lock, _init_worker,
+                                          run_evaluation, threads_per_job)
+from mi_bivariate.sources import (MaterialSpec, have_shared_data, load_probe, load_truth, probe_label,
+                                  resolve_materials)
+
+
+def analysis_by_synthesis(material: Union[str, MaterialSpec], input_probe: str = DEFAULT_INPUT_PROBES[0],
+                          config: Optional[EvalConfig] = None, data_dir: Optional[PathLike] = None,
+                          time_factor: float = 10.0, **kwargs: Any) -> dict:
+    """The linear solve against differentiable rendering on one material: see
+    :func:`mi_bivariate.synthesis.analysis_by_synthesis` (this is a thin wrapper)."""
+    # Imported here: synthesis builds on this package (EvalConfig, the sources), not the other way round.
+    from mi_bivariate import synthesis
+
+    return synthesis.analysis_by_synthesis(material, input_probe, config=config, data_dir=data_dir,
+                                           time_factor=time_factor, **kwargs)
+
+
+__all__ = [
+    "DEFAULT_INPUT_PROBES", "DEFAULT_NOVEL_PROBES", "HEADLINE_COLUMNS", "INCIDENT_VIEWS", "InputError",
+    "InputWarning", "LOCK_FILE", "MaterialSpec", "MaterialTask", "NOISE_SEED_OFFSET", "PROTOCOL_VERSION",
+    "QUICK_ANALYTIC", "QUICK_NBRDF", "REFERENCE_DIR", "REJECTED_FILE", "RESULTS_FILE", "SUMMARY_COLUMNS",
+    "SUMMARY_FILE", "EvalConfig", "analysis_by_synthesis", "append_record", "artifact_path", "evaluate_material",
+    "format_summary", "have_shared_data", "load_artifacts", "load_probe", "load_truth", "make_figures",
+    "markdown_table", "probe_label", "quick_materials", "read_records", "repair_results", "resolve_materials",
+    "run_evaluation", "save_artifacts", "summary_rows", "threads_per_job", "write_summary_csv",
+]

@@ -1,0 +1,149 @@
+"""What decides an evaluation's numbers: :class:`EvalConfig`, its hash, and the solver's identity.
+
+A finished material is reused on resume only when the hash of its
+configuration (:meth:`EvalConfig.hash`) is unchanged; the hash covers the
+settings, :data:`PROTOCOL_VERSION` and the solver's identity (the packaged
+priors' bytes and the default alpha), so a re-learnt prior or a re-tuned
+alpha never mixes with old results.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import List, Optional, Tuple
+
+from mi_bivariate import basis_prior, prior, solve
+from mi_bivariate.common import PathLike
+from mi_bivariate.errors import InputError
+from mi_bivariate.sources import DEFAULT_ANALYTIC, have_shared_data
+
+#: Bumped when the protocol changes in a way that changes numbers (part of the config hash).
+PROTOCOL_VERSION = 3
+DEFAULT_INPUT_PROBES: Tuple[str, ...] = ("grace_latlong_1k", "uffizi_256")
+DEFAULT_NOVEL_PROBES: Tuple[str, ...] = ("grace_256", "pisa_256", "venice_sunset_1k",
+                                         "pedestrian_overpass_1k", "royal_esplanade_1k")
+#: Materials of ``--quick`` with the shared data (else analytic ones, see :func:`quick_materials`).
+QUICK_NBRDF = ("gold-metallic-paint3", "blue-acrylic")
+QUICK_ANALYTIC = (DEFAULT_ANALYTIC, "oren-nayar:albedo=0.6,0.4,0.3,sigma=0.4")
+
+
+@dataclass(frozen=True)
+class EvalConfig:
+    """Everything that decides the numbers of an evaluation (hashed for resume).
+
+    Attributes:
+        input_probes: probes lighting the input image (shared names or files).
+        novel_probes: probes of the validation renders.
+        resolution: image width = height of every render (pixels).
+        spp: samples per pixel of the input renders.
+        novel_spp: samples per pixel of the validation renders.
+        n_normals, n_dirs, grid, alpha: recovery settings (:func:`~mi_bivariate.recover.recover`).
+        baselines: parametric families to fit (:data:`mi_bivariate.baselines.FAMILIES`).
+        baseline_nfev: least-squares evaluations of a baseline's final run.
+        seed: seeds renders (input: seed, novel probe k: seed + 1 + k) and recovery.
+        renderer: ``"reference"`` (deterministic quadrature, :mod:`mi_bivariate.reference`;
+            ``spp`` and ``novel_spp`` unused) or ``"path"`` (Mitsuba path tracing at ``spp`` /
+            ``novel_spp``; noisy, for comparison).
+        novel_resolution: image width = height of the renders under the novel probes.
+        reference_directions: directions per pixel of the reference renderer (cosine, lobe,
+            environment; :data:`mi_bivariate.reference.DEFAULT_DIRECTIONS`).
+        noise: camera noise level of the input images (:func:`mi_bivariate.noise.add_camera_noise`:
+            relative standard deviation at the mean signal; 0 = clean).
+        prior: a prior file (:meth:`mi_bivariate.prior.Prior.load`) passed to ``recover``
+            (``None``: the packaged default, or leave-one-out priors, see below).
+        leave_one_out: for a shared MERL-NBRDF material and ``prior=None``, learn both
+            priors (smoothness and basis) from the other 72 shared materials, so that no
+            number comes from a prior that saw the material
+            (:func:`mi_bivariate.training_set.leave_one_out_priors`).
+
+    An input probe spec ``"a+b"`` renders the material under both probes and recovers
+    from the two images together (several images, one solve).
+    """
+
+    input_probes: Tuple[str, ...] = DEFAULT_INPUT_PROBES
+    novel_probes: Tuple[str, ...] = DEFAULT_NOVEL_PROBES
+    resolution: int = 128
+    spp: int = 128
+    novel_spp: int = 64
+    n_normals: int = 8000
+    n_dirs: int = 32000
+    grid: Tuple[int, int] = (32, 32)
+    alpha: Optional[float] = None
+    baselines: Tuple[str, ...] = ("ggx", "ward")
+    baseline_nfev: int = 40
+    seed: int = 0
+    renderer: str = "reference"
+    novel_resolution: int = 64
+    reference_directions: Tuple[int, int, int] = (1024, 2048, 3072)
+    noise: float = 0.0
+    prior: Optional[str] = None
+    leave_one_out: bool = True
+
+    @classmethod
+    def quick(cls, shared_data: bool = True, **overrides) -> "EvalConfig":
+        """Small sizes for the test suite and notebooks (seconds per material).
+
+        Without the shared data (``shared_data=False``) the probes are synthetic.
+        """
+        base = dict(resolution=48, spp=16, novel_spp=8, n_normals=1000, n_dirs=3000, grid=(12, 12),
+                    baseline_nfev=8, novel_probes=("pisa_256",), novel_resolution=32,
+                    reference_directions=(256, 512, 256), leave_one_out=False)
+        if not shared_data:
+            base.update(input_probes=("synthetic:1", "synthetic:3"), novel_probes=("synthetic:7",))
+        base.update(overrides)
+        return cls(**base)
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["input_probes"], d["novel_probes"] = list(self.input_probes), list(self.novel_probes)
+        d["grid"], d["baselines"] = list(self.grid), list(self.baselines)
+        d["reference_directions"] = list(self.reference_directions)
+        return d
+
+    def validate(self) -> None:
+        """Raise :class:`InputError` for settings no run can use (before any work starts)."""
+        if self.renderer not in ("reference", "path"):
+            raise InputError("renderer", f"unknown renderer {self.renderer!r}", "use 'reference' or 'path'")
+        if not (math.isfinite(self.noise) and self.noise >= 0.0):
+            raise InputError("--noise", f"noise level must be a finite number >= 0, got {self.noise}")
+        if self.prior is not None and not Path(self.prior).is_file():
+            raise InputError(self.prior, "prior file not found")
+        if int(self.novel_resolution) < 4:
+            raise InputError("--novel-resolution", f"must be >= 4 pixels, got {self.novel_resolution}")
+        if len(self.reference_directions) != 3 or min(self.reference_directions) < 0:
+            raise InputError("reference_directions", "need 3 non-negative counts (cosine, lobe, environment)")
+
+    def hash(self) -> str:
+        """16 hex digits of SHA-256 over the canonical JSON of the config and protocol version."""
+        extra = {} if self.prior is None else {"prior_sha256": _file_digest(self.prior)}   # bytes, not name
+        text = json.dumps({"protocol": PROTOCOL_VERSION, "solver": _solver_identity(), **self.to_dict(), **extra},
+                          sort_keys=True)
+        return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def _file_digest(path: PathLike) -> str:
+    try:
+        return hashlib.sha256(Path(path).read_bytes()).hexdigest()[:16]
+    except OSError:
+        return "missing"
+
+
+def _solver_identity() -> dict:
+    """What else decides the numbers: the packaged prior's bytes and the default alpha.
+
+    A finished material is only reused on resume when these are unchanged, so a
+    re-learnt prior or a re-tuned alpha never mixes with old results.
+    """
+    digest = hashlib.sha256(Path(prior.DEFAULT_PRIOR_PATH).read_bytes()).hexdigest()[:16]
+    basis = _file_digest(basis_prior.DEFAULT_BASIS_PRIOR_PATH)
+    return {"default_prior_sha256": digest, "default_basis_prior_sha256": basis,
+            "default_alpha": solve.DEFAULT_ALPHA, "solver": "mis+noise-aware+basis v1"}
+
+
+def quick_materials(data_dir: Optional[PathLike] = None) -> List[str]:
+    """``--quick`` materials: two MERL-NBRDF ones with the shared data, else two analytic ones."""
+    return list(QUICK_NBRDF) if have_shared_data(data_dir) else list(QUICK_ANALYTIC)

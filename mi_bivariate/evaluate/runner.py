@@ -1,0 +1,312 @@
+"""Running an evaluation: the front door :func:`run_evaluation`, in-process, in worker
+processes or on a Dask cluster, resuming from ``results.jsonl``.
+
+Materials run in parallel in worker processes (``jobs``; spawn context,
+Dr.Jit threads per worker = cores // jobs) or on a Dask cluster. The Mitsuba
+variant is selected once at each front door: :func:`run_evaluation` (and the
+in-process tasks), :func:`_init_worker` (each worker process) and
+:func:`_evaluate_on_dask_worker` (each Dask task). One run holds an output
+folder at a time (:func:`_folder_lock`). Every random choice is seeded, so the
+same command reproduces the same numbers.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import fcntl
+import json
+import multiprocessing
+import os
+import shutil
+import signal
+import sys
+import threading
+import time
+import warnings
+from concurrent.futures import ProcessPoolExecutor, as_completed as cf_completed
+from pathlib import Path
+from typing import Any, Callable, Dict, Iterator, List, Optional, Sequence, Tuple, Union
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from mi_bivariate.atomic import atomic_path
+from mi_bivariate.common import PathLike
+from mi_bivariate.errors import InputError, InputWarning
+from mi_bivariate.evaluate.config import EvalConfig
+from mi_bivariate.evaluate.protocol import MaterialTask, evaluate_material
+from mi_bivariate.evaluate.results import (RESULTS_FILE, SUMMARY_FILE, append_record, artifact_path, make_figures,
+                                           read_records, repair_results, save_artifacts, write_summary_csv)
+from mi_bivariate.merl import MERLBRDF
+from mi_bivariate.sources import MaterialSpec, load_probe, resolve_materials
+from mi_bivariate.variants import ensure_variant
+
+#: Folder (under the output folder) of cached reference renders of truths and exact reductions.
+REFERENCE_DIR = "references"
+#: Held (``flock``) by the run using an output folder.
+LOCK_FILE = ".evaluate.lock"
+
+
+def threads_per_job(jobs: int) -> int:
+    """Dr.Jit threads for each of ``jobs`` worker processes: the cores shared out, at least 1."""
+    return max(1, (os.cpu_count() or 1) // max(1, jobs))
+
+
+def _watch_parent(parent: int, interval: float = 0.5) -> None:
+    """Exit this process as soon as ``parent`` is no longer its parent (it died)."""
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(interval)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="mi-bivariate-parent-watch", daemon=True).start()
+
+
+def _init_worker(variant: Optional[str], parent: Optional[int] = None) -> None:
+    """Worker set-up: die with the parent (``PR_SET_PDEATHSIG`` on Linux and a
+    watchdog thread polling ``os.getppid``), then select the variant."""
+    if parent is not None:
+        if sys.platform.startswith("linux"):
+            with contextlib.suppress(OSError, AttributeError):
+                libc = ctypes.CDLL(None, use_errno=True)
+                libc.prctl(1, signal.SIGTERM, 0, 0, 0)  # PR_SET_PDEATHSIG = 1
+        if os.getppid() != parent:      # the parent died before the signal was armed
+            os._exit(1)
+        _watch_parent(parent)
+    ensure_variant(variant)
+
+
+def _evaluate_on_dask_worker(task: MaterialTask, variant: str) -> Tuple[dict, Dict[str, np.ndarray]]:
+    """A Dask worker's front door: select the parent's variant, then run the protocol."""
+    ensure_variant(variant)
+    return evaluate_material(task)
+
+
+def _connect_dask(address: Any) -> Any:
+    """A ``distributed.Client`` for ``address`` (a client is returned as is); InputError if unreachable."""
+    try:
+        from distributed import Client
+    except ImportError:
+        raise InputError("--dask", "the 'distributed' package is not installed",
+                         "pip install distributed, or run without --dask") from None
+    if isinstance(address, Client):
+        return address
+    try:
+        return Client(address, timeout="5s")
+    except (OSError, TimeoutError, ValueError, TypeError) as exc:
+        text = " ".join(str(exc).split())[:160] or type(exc).__name__
+        raise InputError("--dask", f"cannot reach a Dask scheduler at {address!r} ({text})",
+                         "start the scheduler or check the address") from None
+
+
+@contextlib.contextmanager
+def _folder_lock(out: Path) -> Iterator[None]:
+    """Hold an exclusive ``flock`` on ``out/.evaluate.lock`` (released when the process ends, even killed).
+
+    Raises:
+        InputError: another run holds it.
+    """
+    path = out / LOCK_FILE
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            holder = os.pread(fd, 64, 0).decode("ascii", "replace").strip() or "?"
+            raise InputError(out, f"another evaluate run (pid {holder}) is using this folder",
+                             "wait for it to finish, or use another --out") from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        yield
+    finally:
+        os.close(fd)
+
+
+@contextlib.contextmanager
+def _blas_threads(n: int) -> Iterator[None]:
+    """Environment for spawned workers: BLAS/OpenMP pools of ``n`` threads (restored afterwards)."""
+    keys = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+    old = {k: os.environ.get(k) for k in keys}
+    os.environ.update({k: str(n) for k in keys})
+    try:
+        yield
+    finally:
+        for k, v in old.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+def _run_tasks(tasks: List[MaterialTask], jobs: int, dask: Any) -> Iterator[Tuple[MaterialTask, Any]]:
+    """Yield ``(task, (record, arrays))`` or ``(task, exception)`` as tasks finish.
+
+    In-process, in a spawn-context process pool, or on Dask. A task's
+    exception is yielded, not raised, so one bad material does not stop the
+    batch; ``KeyboardInterrupt`` still does.
+    """
+    if dask is not None:
+        from distributed import as_completed
+
+        client = _connect_dask(dask)
+        try:
+            variant = mi.variant()
+            futures = {client.submit(_evaluate_on_dask_worker, t, variant, pure=False,
+                                     key=f"mi-bivariate-{t.material.slug}-{t.config.hash()}"): t for t in tasks}
+            for fut in as_completed(list(futures)):
+                try:
+                    yield futures[fut], fut.result()
+                except Exception as exc:  # noqa: BLE001 (reported per material)
+                    yield futures[fut], exc
+        finally:
+            if client is not dask:
+                client.close()
+        return
+    if jobs <= 1:
+        for t in tasks:
+            try:
+                result = evaluate_material(t)
+            except Exception as exc:  # noqa: BLE001
+                result = exc
+            yield t, result
+        return
+    with _blas_threads(tasks[0].threads or threads_per_job(jobs)):
+        pool = ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("spawn"),
+                                   initializer=_init_worker, initargs=(mi.variant(), os.getpid()))
+    with pool:
+        futures = {pool.submit(evaluate_material, t): t for t in tasks}
+        try:
+            for fut in cf_completed(futures):
+                try:
+                    yield futures[fut], fut.result()
+                except Exception as exc:  # noqa: BLE001
+                    yield futures[fut], exc
+        except BaseException:
+            for fut in futures:
+                fut.cancel()
+            raise
+
+
+def run_evaluation(materials: Sequence[Union[str, MaterialSpec]], out_dir: PathLike,
+                   config: Optional[EvalConfig] = None, jobs: int = 1, dask: Any = None,
+                   data_dir: Optional[PathLike] = None, progress: bool = True,
+                   figures: bool = True, figure_formats: Sequence[str] = ("png",),
+                   on_record: Optional[Callable[[dict], None]] = None,
+                   threads: Optional[int] = None) -> List[dict]:
+    """Evaluate materials, resuming from ``out_dir/results.jsonl``.
+
+    Args:
+        materials: material specs (see :func:`resolve_materials`) or :class:`MaterialSpec` s.
+        out_dir: output folder (``results.jsonl``, ``summary.csv``, ``materials/``, ``figures/``).
+        config: the protocol settings (default :class:`EvalConfig`).
+        jobs: worker processes (1: in this process).
+        dask: a ``distributed.Client`` or a scheduler address; overrides ``jobs``.
+        data_dir: shared data folder (default ``$MI_BIVARIATE_DATA``).
+        progress: show a tqdm progress bar.
+        figures: draw the figures at the end (:func:`make_figures`).
+        on_record: called with each new record after it is safely on disk.
+        threads: Dr.Jit threads per job (default: cores // jobs in worker
+            processes; unchanged in-process and on Dask). Numbers are bitwise
+            reproducible only with 1 thread per job: with more, the lighting
+            matrix's parallel scatter-add sums in a varying order (~1e-6 relative).
+
+    Returns:
+        All records of this configuration, in material order.
+    """
+    ensure_variant()
+    config = config or EvalConfig()
+    config.validate()
+    if jobs < 1:
+        raise InputError("--jobs", f"must be >= 1, got {jobs}")
+    specs = [m if isinstance(m, MaterialSpec) else None for m in materials]
+    if any(s is None for s in specs):
+        specs = resolve_materials([str(m) for m in materials if not isinstance(m, MaterialSpec)], data_dir) + \
+            [m for m in materials if isinstance(m, MaterialSpec)]
+    if not specs:
+        raise InputError("materials", "no materials given")
+    # Fail early (in the parent, with a one-line error) on a missing probe or data folder,
+    # a damaged MERL file or an unreachable scheduler: before the output folder exists.
+    for p in tuple(config.input_probes) + tuple(config.novel_probes):
+        for part in p.split("+"):
+            load_probe(part, data_dir, cache=True)
+    for m in specs:
+        if m.kind == "merl":
+            MERLBRDF.check_file(m.spec)
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise InputError(out, "the output folder is a file", "choose another --out")
+    client = _connect_dask(dask) if dask is not None else None
+    created = not out.exists()
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(out, f"cannot create the output folder ({exc.strerror or exc})") from None
+    try:
+        with _folder_lock(out):
+            records = _run_locked(specs, out, config, jobs, client, data_dir, progress, figures,
+                                  figure_formats, on_record, threads, created)
+    finally:
+        if client is not None and client is not dask:
+            client.close()
+    return records
+
+
+def _run_locked(specs: List[MaterialSpec], out: Path, config: EvalConfig, jobs: int, dask: Any,
+                data_dir: Optional[PathLike], progress: bool, figures: bool, figure_formats: Sequence[str],
+                on_record: Optional[Callable[[dict], None]], threads: Optional[int], created: bool) -> List[dict]:
+    """:func:`run_evaluation`'s work, in a folder it holds the lock of."""
+    (out / "materials" / config.hash()).mkdir(parents=True, exist_ok=True)
+    results = out / RESULTS_FILE
+    repair_results(results)
+    h = config.hash()
+    done = {r["material"] for r in read_records(results, h)}
+    if threads is None and dask is None and jobs > 1:
+        threads = threads_per_job(jobs)
+    tasks = [MaterialTask(m, config, None if data_dir is None else str(data_dir), threads,
+                          cache_dir=str(out / REFERENCE_DIR))
+             for m in specs if m.label not in done]
+    with atomic_path(out / "config.json") as tmp:
+        tmp.write_text(json.dumps({"config_hash": h, **config.to_dict()}, indent=2))
+
+    parent_threads = dr.thread_count()
+    failures: List[Tuple[str, BaseException]] = []
+    if tasks:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=len(specs), initial=len(specs) - len(tasks), desc="materials", unit="material",
+                   disable=not progress)
+        try:
+            for task, result in _run_tasks(tasks, jobs, dask):
+                bar.update(1)
+                if isinstance(result, BaseException):
+                    # Not a record: a rerun tries this material again.
+                    failures.append((task.material.label, result))
+                    warnings.warn(f"{task.material.label}: evaluation failed: {type(result).__name__}: {result}",
+                                  InputWarning, stacklevel=2)
+                    continue
+                record, arrays = result
+                # Artifacts before the record: a record on disk always has its artifacts.
+                save_artifacts(artifact_path(out, record), arrays)
+                append_record(results, record)
+                if on_record is not None:
+                    on_record(record)
+                bar.set_postfix_str(record["material"][:24])
+        finally:
+            bar.close()
+            dr.set_thread_count(parent_threads)      # in-process tasks may have changed it
+
+    by_label = {r["material"]: r for r in read_records(results, h)}
+    records = [by_label[m.label] for m in specs if m.label in by_label]
+    write_summary_csv(records, out / SUMMARY_FILE)
+    if figures and records:
+        make_figures(out, records, formats=figure_formats)
+    if failures and not records:
+        label, exc = failures[0]
+        if created:  # nothing came of it: leave no folder behind
+            shutil.rmtree(out, ignore_errors=True)
+        if isinstance(exc, InputError):
+            raise exc
+        raise RuntimeError(f"every material failed; first: {label}: {type(exc).__name__}: {exc}") from exc
+    return records

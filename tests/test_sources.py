@@ -1,0 +1,77 @@
+"""mi_bivariate.sources: every kind of name and path turns into the right material or probe,
+and bad names fail with one InputError naming them."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mi_bivariate import analytic, nbrdf, sources
+from mi_bivariate.bivariate import BivariateBRDF
+from mi_bivariate.errors import InputError
+from mi_bivariate.merl import MERLBRDF
+
+GGX = "ggx:diffuse=0.2,specular=0.5,alpha=0.2"
+
+
+def test_analytic_specs_tabulate_the_parsed_model():
+    brdf = sources.load_brdf(GGX)
+    want = analytic.to_merl(analytic.CookTorranceGGX([0.2] * 3, [0.5] * 3, alpha=0.2))
+    assert isinstance(brdf, MERLBRDF) and brdf.table.dtype == np.float64
+    np.testing.assert_array_equal(brdf.table, want.table)
+    assert sources.load_brdf(GGX, dtype=np.float32).table.dtype == np.float32
+    for name in sources.ANALYTIC_NAMES:                     # bare family names take the class defaults
+        assert sources.is_analytic_spec(name)
+        assert type(analytic.analytic_from_spec(name)).__name__ != "AnalyticBRDF"
+    assert isinstance(sources.load_brdf("lambertian"), MERLBRDF)
+    assert sources.DEFAULT_ANALYTIC.startswith("ggx:")
+    analytic.analytic_from_spec(sources.DEFAULT_ANALYTIC)
+
+
+def test_files_are_read_by_their_type(tmp_path):
+    merl = analytic.to_merl(analytic.Lambertian([0.5, 0.3, 0.2]))
+    merl.write(tmp_path / "m.binary")
+    np.testing.assert_array_equal(sources.load_brdf(str(tmp_path / "m.binary")).table,
+                                  MERLBRDF.read(tmp_path / "m.binary").table)
+    biv = BivariateBRDF.reduce(merl, n_t=8, n_s=8)
+    biv.save(tmp_path / "b.npz")
+    np.testing.assert_array_equal(sources.load_brdf(str(tmp_path / "b.npz")).table, biv.table)
+    (tmp_path / "t.txt").write_text("x")
+    with pytest.raises(InputError, match="unknown BRDF file type"):
+        sources.load_brdf(str(tmp_path / "t.txt"))
+    with pytest.raises(InputError, match="not a file, an NBRDF material name or an analytic spec"):
+        sources.load_brdf("no-such-material")
+    # Folders expand to their .binary files, sorted; an empty folder is an error.
+    merl.write(tmp_path / "a.binary")
+    assert sources.merl_files([tmp_path, "gold-paint"]) == [tmp_path / "a.binary", tmp_path / "m.binary",
+                                                            "gold-paint"]
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(InputError, match="no MERL .binary"):
+        sources.merl_files(tmp_path / "empty")
+
+
+def test_resolve_materials_kinds_order_and_duplicates(tmp_path):
+    analytic.to_merl(analytic.Lambertian([0.5, 0.3, 0.2])).write(tmp_path / "m.binary")
+    specs = sources.resolve_materials([str(tmp_path / "m.binary"), "blue-acrylic", GGX, "blue-acrylic",
+                                       str(tmp_path)])
+    assert [(s.kind, s.label) for s in specs] == [("merl", "m"), ("nbrdf", "blue-acrylic"),
+                                                  ("analytic", analytic.analytic_from_spec(GGX).name)]
+    assert [s.spec for s in sources.resolve_materials(["nbrdf"])] == list(nbrdf.NBRDF_MATERIALS)
+    with pytest.raises(InputError, match="not a folder, .binary file, MERL-NBRDF name or analytic spec"):
+        sources.resolve_materials(["no-such-material"])
+    with pytest.raises(InputError, match="MERL file not found"):
+        sources.resolve_materials([str(tmp_path / "missing.binary")])
+    truth = sources.load_truth(specs[2])
+    assert truth.table.dtype == np.float32      # the evaluation's truths of analytic specs are float32
+    np.testing.assert_allclose(truth.table, sources.load_brdf(GGX).table, rtol=1e-6)
+
+
+def test_synthetic_probes_and_labels():
+    probe = sources.load_probe("synthetic:3")
+    np.testing.assert_array_equal(probe.data[..., :3], sources.synthetic_environment(seed=3))
+    assert sources.load_probe("synthetic:3", cache=True) is sources.load_probe("synthetic:3", cache=True)
+    assert sources.load_probe("synthetic:3") is not probe                       # uncached by default
+    with pytest.raises(InputError, match="seed must be an integer"):
+        sources.load_probe("synthetic:x")
+    assert sources.probe_label("/a/b/pisa_256.hdr") == "pisa_256"
+    assert sources.probe_label("synthetic:1") == "synthetic:1"
