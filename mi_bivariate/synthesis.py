@@ -217,7 +217,8 @@ def analysis_by_synthesis(material: Any, input_probe: str = "grace_latlong_1k", 
 
     rec = recover(shot.image, probe, shot.geometry, n_normals=config.n_normals, n_dirs=config.n_dirs,
                   grid=config.grid, alpha=config.alpha, seed=config.seed, keep_inputs=False)
-    linear_s = sum(rec.timings.get(k, 0.0) for k in ("observations", "lighting matrix", "adequacy", "normal equations", "solve"))
+    linear_s = sum(rec.timings.get(k, 0.0)
+                   for k in ("observations", "lighting matrix", "adequacy", "normal equations", "solve"))
     brdf_errors = metrics.BRDFErrors(truth)
     linear_errors = {k: v for k, v in brdf_errors(rec.brdf).items() if k != "eq1_rgb"}
     linear_relight = relight_error(rec.brdf, novel, truth_novel, config.novel_spp, relight_seed)
