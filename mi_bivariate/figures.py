@@ -20,7 +20,7 @@ import numpy as np
 from mi_bivariate.atomic import atomic_path
 from mi_bivariate.bivariate import BivariateBRDF
 from mi_bivariate.common import PathLike
-from mi_bivariate.report import _difference, _exposure, _pyplot, _show, incident_plane, plot_table
+from mi_bivariate.report import show_difference, exposure_of, pyplot, show_image, incident_plane, plot_table
 
 Artifacts = Dict[str, np.ndarray]
 
@@ -63,7 +63,7 @@ def evaluation_figures(records: Sequence[dict], artifacts: Dict[str, Artifacts],
 
 def close_figure(fig: Any) -> None:
     """Close a figure made by the functions below (after saving it in every format)."""
-    _pyplot().close(fig)
+    pyplot().close(fig)
 
 
 def save_figure_formats(fig: Any, stem: PathLike, formats: Sequence[str] = ("png",), dpi: int = 100) -> list:
@@ -99,7 +99,7 @@ def plot_reduction_ranking(records: Sequence[dict], artifacts: Dict[str, Dict[st
     drawn, log scale). Bottom: the best and the worst material rendered under
     the probe ``novel`` with the full 3D BRDF and with its bivariate reduction.
     """
-    plt = _pyplot()
+    plt = pyplot()
     order = _material_order(records, lambda r: r["floor"][metric])
     fig = plt.figure(figsize=(12, 7.5))
     ax = fig.add_subplot(2, 1, 1)
@@ -115,9 +115,9 @@ def plot_reduction_ranking(records: Sequence[dict], artifacts: Dict[str, Dict[st
     for k, (r, tag) in enumerate(((order[0], "best"), (order[-1], "worst"))):
         art = artifacts[r["material"]]
         truth, floor, mask = _f32(art[f"truth__{novel}"]), _f32(art[f"floor_render__{novel}"]), art["mask"]
-        exposure = _exposure(truth, mask)
-        _show(fig.add_subplot(2, 4, 5 + 2 * k), truth, f"{tag}: {r['material']}\n3D truth ({novel})", exposure)
-        _show(fig.add_subplot(2, 4, 6 + 2 * k), floor,
+        exposure = exposure_of(truth, mask)
+        show_image(fig.add_subplot(2, 4, 5 + 2 * k), truth, f"{tag}: {r['material']}\n3D truth ({novel})", exposure)
+        show_image(fig.add_subplot(2, 4, 6 + 2 * k), floor,
               f"bivariate reduction\n(Eq. 1 {r['floor']['eq1']:.3g}, log {r['floor']['log']:.3g})", exposure)
     fig.tight_layout()
     return fig
@@ -125,18 +125,18 @@ def plot_reduction_ranking(records: Sequence[dict], artifacts: Dict[str, Dict[st
 
 def plot_validation(record: dict, art: Dict[str, np.ndarray], input_probe: str, novel: str) -> Any:
     """Fig. 5 analogue: input image, recovered re-render, ground truth, |difference| x100 under ``novel``."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, axes = plt.subplots(1, 4, figsize=(15, 3.9))
     mask = art["mask"]
     image = _f32(art[f"input__{input_probe}"])
-    _show(axes[0], image, f"input: {record['material']}\nunder {input_probe}", _exposure(image, mask))
+    show_image(axes[0], image, f"input: {record['material']}\nunder {input_probe}", exposure_of(image, mask))
     truth = _f32(art[f"truth__{novel}"])
     rec = _f32(art[f"recovered_render__{input_probe}__{novel}"])
-    exposure = _exposure(truth, mask)
+    exposure = exposure_of(truth, mask)
     errs = record["inputs"][input_probe]["images"][novel]
-    _show(axes[1], rec, f"recovered, novel probe {novel}", exposure)
-    _show(axes[2], truth, "ground truth (3D table)", exposure)
-    _difference(axes[3], rec, truth, mask,
+    show_image(axes[1], rec, f"recovered, novel probe {novel}", exposure)
+    show_image(axes[2], truth, "ground truth (3D table)", exposure)
+    show_difference(axes[3], rec, truth, mask,
                 f"|difference| x100 / mean\nrel. RMSE {errs['rel_rmse']:.3f}, PSNR {errs['psnr']:.1f} dB")
     fig.tight_layout()
     return fig
@@ -153,7 +153,7 @@ def plot_incident_planes(record: dict, art: Dict[str, np.ndarray], input_probes:
     Curves: the original 3D BRDF, its bivariate reduction (truth), and the
     table recovered under each input probe (one channel, log scale).
     """
-    plt = _pyplot()
+    plt = pyplot()
     views = sorted(float(k.split("__")[1]) for k in art if k.startswith("incident__") and k.endswith("__truth"))
     fig, axes = plt.subplots(1, len(views), figsize=(6 * len(views), 4), squeeze=False)
     theta_in = art["incident__theta_in"]
@@ -180,7 +180,7 @@ def plot_error_curves(records: Sequence[dict], metrics: Sequence[str] = ("eq1", 
 
     Materials are sorted by the floor's error of each panel's metric.
     """
-    plt = _pyplot()
+    plt = pyplot()
     probes = list(records[0]["inputs"])
     fig, axes = plt.subplots(1, len(metrics), figsize=(6 * len(metrics), 4.2), squeeze=False)
     for ax, m in zip(axes[0], metrics):
@@ -214,7 +214,7 @@ def plot_environment_dependence(record: dict, art: Dict[str, np.ndarray], input_
     Row per input probe: input image, st observation map (adequacy), recovered
     table, bivariate truth, re-render under the first novel probe.
     """
-    plt = _pyplot()
+    plt = pyplot()
     novel = sorted(k.split("__")[1] for k in art if k.startswith("truth__"))[0]
     floor = BivariateBRDF(np.asarray(art["floor"], np.float32))
     lo = float(np.log10(max(np.percentile(floor.table, 1), 1e-4)))
@@ -225,7 +225,7 @@ def plot_environment_dependence(record: dict, art: Dict[str, np.ndarray], input_
         e = record["inputs"][p]
         a = e["adequacy"]
         image = _f32(art[f"input__{p}"])
-        _show(row[0], image, f"input under {p}", _exposure(image, mask))
+        show_image(row[0], image, f"input under {p}", exposure_of(image, mask))
         _observation_image(row[1], art[f"observation_map__{p}"],
                            f"adequacy: rank {a['rank_fraction']:.2f}, cond {a['condition_number']:.2g}"
                            + ("" if a["adequate"] else " (flagged)"))
@@ -234,8 +234,8 @@ def plot_environment_dependence(record: dict, art: Dict[str, np.ndarray], input_
                    f"recovered (log err {r['log']:.3f}, Eq. 1 {r['eq1']:.3g})", vmin=lo, vmax=hi)
         plot_table(row[3], floor, f"bivariate truth (log err {record['floor']['log']:.3f})", vmin=lo, vmax=hi)
         truth = _f32(art[f"truth__{novel}"])
-        _show(row[4], _f32(art[f"recovered_render__{p}__{novel}"]),
-              f"re-render under {novel} (rel. RMSE {e['images'][novel]['rel_rmse']:.3f})", _exposure(truth, mask))
+        show_image(row[4], _f32(art[f"recovered_render__{p}__{novel}"]),
+              f"re-render under {novel} (rel. RMSE {e['images'][novel]['rel_rmse']:.3f})", exposure_of(truth, mask))
     fig.suptitle(f"{record['material']}: the same material recovered under different environments", fontsize=11)
     fig.tight_layout()
     return fig
@@ -248,7 +248,7 @@ def plot_table_gallery(records: Sequence[dict], artifacts: Dict[str, Dict[str, n
     Per material: truth, then one panel per input probe, on a shared colour
     scale (x: theta_d, y: t ~ sqrt(theta_h), specular peak at the bottom).
     """
-    plt = _pyplot()
+    plt = pyplot()
     n = len(records)
     per = 1 + len(input_probes)
     rows = int(np.ceil(n / columns))
@@ -273,7 +273,7 @@ def plot_table_gallery(records: Sequence[dict], artifacts: Dict[str, Dict[str, n
 
 def plot_baselines(records: Sequence[dict], input_probe: str, metrics: Sequence[str] = ("log", "eq1_min")) -> Any:
     """Per-material errors of the bivariate recovery, the parametric baselines and the floor."""
-    plt = _pyplot()
+    plt = pyplot()
     families = list(records[0]["inputs"][input_probe].get("baselines", {}))
     fig, axes = plt.subplots(len(metrics), 1, figsize=(13, 3.6 * len(metrics)), squeeze=False)
     for ax, m in zip(axes[:, 0], metrics):

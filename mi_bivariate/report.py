@@ -21,7 +21,8 @@ from mi_bivariate import render
 
 
 
-def _pyplot():
+def pyplot():
+    """``matplotlib.pyplot`` on the Agg backend (imported on first use: matplotlib is heavy)."""
     import matplotlib
 
     matplotlib.use("Agg", force=False)
@@ -41,11 +42,12 @@ def save_figure(fig: Any, path: PathLike, dpi: int = 110, tight: bool = True) ->
     extra = {"pil_kwargs": {"compress_level": 1}} if fmt == "png" else {}  # fast zlib: 3x faster, ~1.3x bigger
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=dpi, bbox_inches="tight" if tight else None, format=fmt, **extra)
-    _pyplot().close(fig)
+    pyplot().close(fig)
     return path
 
 
-def _exposure(image: np.ndarray, mask: Optional[np.ndarray] = None) -> float:
+def exposure_of(image: np.ndarray, mask: Optional[np.ndarray] = None) -> float:
+    """The exposure that maps the image's bright (masked) pixels to display white (shared by panels)."""
     if mask is not None and mask.shape != image.shape[:2]:     # e.g. input and novel renders differ in size
         mask = np.any(image > 0, axis=-1)
     values = image[mask] if mask is not None else image.reshape(-1, 3)
@@ -55,14 +57,15 @@ def _exposure(image: np.ndarray, mask: Optional[np.ndarray] = None) -> float:
     return 1.0 / level if level > 0 else 1.0
 
 
-def _show(ax: Any, image: np.ndarray, title: str, exposure: float) -> None:
+def show_image(ax: Any, image: np.ndarray, title: str, exposure: float) -> None:
+    """An HDR image on ``ax``, tone-mapped at ``exposure``, titled, without axes."""
     ax.imshow(tonemap(image, exposure))
     ax.set_title(title, fontsize=9)
     ax.set_axis_off()
 
 
-def _difference(ax: Any, image: np.ndarray, reference: np.ndarray, mask: np.ndarray, title: str,
-                scale: float = 100.0) -> None:
+def show_difference(ax: Any, image: np.ndarray, reference: np.ndarray, mask: np.ndarray, title: str,
+                    scale: float = 100.0) -> None:
     """|image - reference| x scale, relative to the reference's mean (the paper shows x100)."""
     mean = float(np.mean(reference[mask])) if mask.any() else 1.0
     diff = np.abs(image - reference).mean(axis=2) / max(mean, 1e-30) * scale
@@ -174,7 +177,7 @@ def write_recovery_report(result: Any, path: PathLike, rerender: Optional[np.nda
     own prediction ``L f`` at the observed normals (:func:`predicted_image`,
     milliseconds), compared with the observations at the same pixels.
     """
-    plt = _pyplot()
+    plt = pyplot()
     obs = result.observations
     image = result.images[0] if result.images else None
     reference = image
@@ -194,11 +197,11 @@ def write_recovery_report(result: Any, path: PathLike, rerender: Optional[np.nda
     if image is not None:
         geo = result.geometries[0]
         normals, mask = geo.normals(image.shape[1], image.shape[0])
-        exposure = _exposure(image, mask)
-        _show(axes[0, 0], image, "input", exposure)
+        exposure = exposure_of(image, mask)
+        show_image(axes[0, 0], image, "input", exposure)
         if rerender is not None:
-            _show(axes[0, 1], rerender, label, exposure)
-            _difference(axes[0, 2], rerender, reference, mask, "|difference| x100 / mean")
+            show_image(axes[0, 1], rerender, label, exposure)
+            show_difference(axes[0, 2], rerender, reference, mask, "|difference| x100 / mean")
     for ax in axes[0]:
         if not ax.images:
             ax.set_axis_off()
@@ -238,14 +241,14 @@ def write_demo_figure(path: PathLike, shot: Any, novel_rec: Any, novel_truth: An
 
     Probes are named by file name (``numbers`` holds their full paths), so the panel titles fit.
     """
-    plt = _pyplot()
+    plt = pyplot()
     fig, axes = plt.subplots(2, 4, figsize=(17, 8))
     probe_in, probe_novel = Path(str(numbers["input_probe"])).name, Path(str(numbers["novel_probe"])).name
-    _show(axes[0, 0], shot.image, f"input: {probe_in}", _exposure(shot.image, shot.mask))
-    exposure = _exposure(novel_truth.image, novel_truth.mask)
-    _show(axes[0, 1], novel_rec.image, f"recovered, novel probe {probe_novel}", exposure)
-    _show(axes[0, 2], novel_truth.image, "ground truth (3D table)", exposure)
-    _difference(axes[0, 3], novel_rec.image, novel_truth.image, novel_truth.mask,
+    show_image(axes[0, 0], shot.image, f"input: {probe_in}", exposure_of(shot.image, shot.mask))
+    exposure = exposure_of(novel_truth.image, novel_truth.mask)
+    show_image(axes[0, 1], novel_rec.image, f"recovered, novel probe {probe_novel}", exposure)
+    show_image(axes[0, 2], novel_truth.image, "ground truth (3D table)", exposure)
+    show_difference(axes[0, 3], novel_rec.image, novel_truth.image, novel_truth.mask,
                 f"|difference| x100 / mean (rel. RMSE {numbers['image_relative_rmse_novel']:.3f})")
     lo = float(np.log10(max(np.percentile(floor.table, 1), 1e-4)))
     hi = float(np.log10(max(floor.table.max(), 1e-3)))

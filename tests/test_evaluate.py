@@ -142,13 +142,15 @@ def test_resume_after_kill_and_truncation(resumed):
     assert ev.EvalConfig(**{**TINY.to_dict(), "seed": 1, "grid": (8, 8)}).hash() != TINY.hash()
 
 
-def _close(a, b, rtol: float, atol: float = 0.0, path: str = "") -> bool:
+def _close(a, b, rtol: float, atol: float = 0.0, path: str = "", psnr_atol: float = 0.0) -> bool:
+    """Recursive comparison; PSNR values (dB) get ``psnr_atol`` besides ``rtol``."""
     if isinstance(a, dict):
-        return a.keys() == b.keys() and all(_close(a[k], b[k], rtol, atol, f"{path}/{k}") for k in a)
+        return a.keys() == b.keys() and all(_close(a[k], b[k], rtol, atol, f"{path}/{k}", psnr_atol) for k in a)
     if isinstance(a, list):
-        return len(a) == len(b) and all(_close(x, y, rtol, atol, path) for x, y in zip(a, b))
+        return len(a) == len(b) and all(_close(x, y, rtol, atol, path, psnr_atol) for x, y in zip(a, b))
     if isinstance(a, float):
-        ok = a == b or abs(a - b) <= rtol * max(abs(a), abs(b)) + atol
+        tol = rtol * max(abs(a), abs(b)) + (psnr_atol if path.endswith("/psnr") else atol)
+        ok = a == b or abs(a - b) <= tol
         if not ok:
             print(f"differs at {path}: {a!r} vs {b!r}")
         return ok
@@ -173,7 +175,9 @@ def test_jobs_and_dask_reproduce_in_process(resumed, tmp_path):
     assert all(r["threads"] == ev.threads_per_job(2) for r in pooled)
     serial = ev.run_evaluation(MATERIALS[:2], tmp_path / "serial", config=TINY, threads=pooled[0]["threads"],
                                progress=False, figures=False)
-    assert [_numbers(r) for r in serial] == [_numbers(r) for r in pooled]
+    # Identical up to float64 rounding: numpy's SIMD sums depend on memory alignment, which differs
+    # between a fresh worker and a long-lived process (seen on Eq. 1 values of ~1e-17, exact reductions).
+    assert _close([_numbers(r) for r in serial], [_numbers(r) for r in pooled], rtol=1e-12, atol=1e-15)
     # Dask (in-process worker) and the resumed 2-thread run: the same up to the float32
     # summation order of the lighting matrix.
     distributed = pytest.importorskip("distributed")
@@ -187,8 +191,11 @@ def test_jobs_and_dask_reproduce_in_process(resumed, tmp_path):
         # order differs with the thread count) moves a relight error of ~4e-3 by ~2e-6 through
         # the two-stage solve (noise estimate, basis prior); the same thread count is bitwise
         # identical (above).
+        # A PSNR is 20 log10 of the same error: an absolute 1e-5 on a relight error of ~4e-3 is
+        # 20 / ln 10 * 1e-5 / 4e-3 = 0.02 dB (measured: 56.355 vs 56.363 dB).
         assert _close(_without_rounding_ratios(_numbers(r)),
-                      _without_rounding_ratios(_numbers(resumed_by[r["material"]])), rtol=1e-4, atol=1e-5)
+                      _without_rounding_ratios(_numbers(resumed_by[r["material"]])), rtol=1e-4, atol=1e-5,
+                      psnr_atol=0.03)
 
 
 def test_baseline_fit_recovers_its_own_model():

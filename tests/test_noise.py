@@ -42,3 +42,11 @@ def test_clean_image_has_almost_no_noise_and_bad_input_is_an_input_error():
     assert a_hat * 2.0 + b_hat < 1e-5
     with pytest.raises(InputError):
         estimate_camera_noise(clean[:5, :5], mask[:5, :5])
+
+
+def test_chi_square_quantile_matches_scipy_stats():
+    import scipy.stats
+
+    from mi_bivariate import noise
+
+    assert noise._CHI2_QUANTILE == pytest.approx(float(scipy.stats.chi2.ppf(noise.QUANTILE, 1)), rel=1e-12)
