@@ -62,8 +62,9 @@ import numpy as np
 from scipy.linalg import blas, eigvalsh
 
 from mi_bivariate.capture import hemisphere_lattice
+from mi_bivariate.coordinates import ST_REGIONS
 from mi_bivariate.errors import InputError, InputWarning
-from mi_bivariate.probes import luminance
+from mi_bivariate.common import LUMINANCE_WEIGHTS, luminance
 from mi_bivariate.threads import blas_threads
 
 #: Singular values below this fraction of the largest do not count towards the rank.
@@ -74,27 +75,21 @@ MIN_RANK_FRACTION = 0.5
 MIN_DETAIL = 0.06
 #: Angular scale (degrees) of the detail test.
 DETAIL_SCALE_DEG = 3.0
-#: Regions of the st domain, as angle bounds in degrees.
-REGIONS: Dict[str, Tuple[str, float, float]] = {
-    "specular": ("theta_h", 0.0, 2.0),
-    "retro": ("theta_d", 0.0, 10.0),
-    "grazing": ("theta_d", 75.0, 90.0),
-}
-
-_LUMINANCE = np.array([0.212671, 0.715160, 0.072169])
+#: Regions of the st domain (:data:`coordinates.ST_REGIONS`): name -> (axis, low, high) in degrees.
+REGIONS: Dict[str, Tuple[str, float, float]] = {name: (axis, lo, hi) for name, axis, lo, hi in ST_REGIONS}
 
 
 def _luminance(L: np.ndarray) -> np.ndarray:
     """Luminance of ``(M, N, 3)`` (or a channel ``(M, N)``) as ``(M, N) float64``.
 
     Accumulated channel by channel in float64 (no ``(M, N, 3) float64`` copy):
-    the same numbers as ``L.astype(float64) @ _LUMINANCE`` up to rounding order.
+    the same numbers as ``L.astype(float64) @ LUMINANCE_WEIGHTS`` up to rounding order.
     """
     L = np.asarray(L)
     if L.ndim == 3 and L.shape[2] == 3:
-        lum = L[..., 0] * np.float64(_LUMINANCE[0])
-        lum += L[..., 1] * np.float64(_LUMINANCE[1])
-        lum += L[..., 2] * np.float64(_LUMINANCE[2])
+        lum = L[..., 0] * np.float64(LUMINANCE_WEIGHTS[0])
+        lum += L[..., 1] * np.float64(LUMINANCE_WEIGHTS[1])
+        lum += L[..., 2] * np.float64(LUMINANCE_WEIGHTS[2])
         return lum
     if L.ndim == 2:
         return L.astype(np.float64)

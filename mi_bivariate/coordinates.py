@@ -30,6 +30,15 @@ import mitsuba as mi
 PI = math.pi
 HALF_PI = 0.5 * math.pi
 
+#: Named regions of the (theta_h, theta_d) domain, ``(name, axis, low, high)`` in degrees: near the
+#: specular peak, near retro-reflection and at grazing differences. Adequacy counts how well they
+#: are lit; metrics splits the BRDF error by them.
+ST_REGIONS: Tuple[Tuple[str, str, float, float], ...] = (
+    ("specular", "theta_h", 0.0, 2.0),
+    ("retro", "theta_d", 0.0, 10.0),
+    ("grazing", "theta_d", 75.0, 90.0),
+)
+
 _NUMPY_OPS = SimpleNamespace(
     sqrt=np.sqrt,
     atan2=np.arctan2,

@@ -19,15 +19,11 @@ from typing import Dict, Optional, Tuple
 import numpy as np
 from mi_bivariate.merl import MERL_SHAPE, geometric_mask, node_angles, MERLBRDF
 from mi_bivariate.bivariate import BivariateBRDF
-from mi_bivariate.coordinates import st_from_half_diff
+from mi_bivariate.coordinates import ST_REGIONS, st_from_half_diff
 
-#: Regions of the (theta_h, theta_d) domain for the error breakdown, in degrees, in order of
-#: precedence: a cell belongs to the first region whose bound it meets; "rest" is every other cell.
-REGIONS: Tuple[Tuple[str, str, float, float], ...] = (
-    ("specular", "theta_h", 0.0, 2.0),
-    ("retro", "theta_d", 0.0, 10.0),
-    ("grazing", "theta_d", 75.0, 90.0),
-)
+#: Regions of the (theta_h, theta_d) domain for the error breakdown (:data:`coordinates.ST_REGIONS`),
+#: in order of precedence: a cell belongs to the first region whose bound it meets; "rest" is every other cell.
+REGIONS: Tuple[Tuple[str, str, float, float], ...] = ST_REGIONS
 REGION_NAMES: Tuple[str, ...] = tuple(r[0] for r in REGIONS) + ("rest",)
 
 
