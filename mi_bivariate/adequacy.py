@@ -62,9 +62,9 @@ import numpy as np
 from scipy.linalg import blas, eigvalsh
 
 from mi_bivariate.capture import hemisphere_lattice
+from mi_bivariate.common import LUMINANCE_WEIGHTS, luminance
 from mi_bivariate.coordinates import ST_REGIONS
 from mi_bivariate.errors import InputError, InputWarning
-from mi_bivariate.common import LUMINANCE_WEIGHTS, luminance
 from mi_bivariate.threads import blas_threads
 
 #: Singular values below this fraction of the largest do not count towards the rank.

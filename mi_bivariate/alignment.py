@@ -38,9 +38,11 @@ from typing import Any, Dict, Optional, Tuple
 
 import numpy as np
 
-from mi_bivariate import capture, lighting, prior as prior_mod, solve as solve_mod
-from mi_bivariate.errors import InputError
+from mi_bivariate import capture, lighting
+from mi_bivariate import prior as prior_mod
+from mi_bivariate import solve as solve_mod
 from mi_bivariate.bivariate import BivariateBRDF
+from mi_bivariate.errors import InputError
 
 #: Default grid of the per-candidate solve (coarse: only the residual's minimum matters).
 ALIGN_GRID = (16, 16)

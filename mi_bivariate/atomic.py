@@ -18,9 +18,8 @@ import tempfile
 from pathlib import Path
 from typing import Iterable, Iterator, List, Optional, Sequence
 
-from mi_bivariate.errors import InputError
 from mi_bivariate.common import PathLike
-
+from mi_bivariate.errors import InputError
 
 
 def _write_error(path: Path, exc: OSError) -> InputError:

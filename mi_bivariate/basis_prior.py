@@ -38,6 +38,7 @@ from pathlib import Path
 from typing import Mapping, Optional, Sequence, Tuple
 
 import numpy as np
+
 from mi_bivariate.common import PathLike
 
 from .atomic import atomic_path

@@ -24,13 +24,12 @@ import mitsuba as mi
 import numpy as np
 
 from mi_bivariate.atomic import atomic_path
+from mi_bivariate.common import PathLike
 from mi_bivariate.coordinates import grid_nodes, half_diff_from_st, st_from_half_diff
 from mi_bivariate.errors import InputError
 from mi_bivariate.images import write_exr
-from mi_bivariate.npzio import read_npz
 from mi_bivariate.merl import MERL_SHAPE, MERLBRDF, above_horizon, node_angles
-from mi_bivariate.common import PathLike
-
+from mi_bivariate.npzio import read_npz
 
 FORMAT = "mi_bivariate.BivariateBRDF"
 FORMAT_VERSION = 1

@@ -23,9 +23,9 @@ import math
 from types import SimpleNamespace
 from typing import Any, Tuple
 
-import numpy as np
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
 PI = math.pi
 HALF_PI = 0.5 * math.pi

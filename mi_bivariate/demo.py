@@ -29,8 +29,8 @@ from mi_bivariate.bivariate import BivariateBRDF, floors
 from mi_bivariate.merl import MERLBRDF
 from mi_bivariate.probes import Probe
 from mi_bivariate.recover import recover
-from mi_bivariate.sources import DEFAULT_ANALYTIC, have_shared_data, load_brdf, load_probe
 from mi_bivariate.sources import synthetic_environment  # noqa: F401  (its old home; tests import it here)
+from mi_bivariate.sources import DEFAULT_ANALYTIC, have_shared_data, load_brdf, load_probe
 
 DEFAULT_MATERIAL = "gold-metallic-paint3"
 

@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import os
 from typing import Optional
-from mi_bivariate.common import PathLike
 
+from mi_bivariate.common import PathLike
 
 
 class InputError(ValueError):

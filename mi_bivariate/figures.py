@@ -20,7 +20,7 @@ import numpy as np
 from mi_bivariate.atomic import atomic_path
 from mi_bivariate.bivariate import BivariateBRDF
 from mi_bivariate.common import PathLike
-from mi_bivariate.report import show_difference, exposure_of, pyplot, show_image, incident_plane, plot_table
+from mi_bivariate.report import exposure_of, incident_plane, plot_table, pyplot, show_difference, show_image
 
 Artifacts = Dict[str, np.ndarray]
 

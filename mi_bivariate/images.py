@@ -26,13 +26,13 @@ import warnings
 from pathlib import Path
 from typing import Dict, Optional, Tuple
 
-import numpy as np
 import mitsuba as mi
+import numpy as np
 
-from mi_bivariate.atomic import atomic_path
-from mi_bivariate.errors import InputError, InputWarning
-from mi_bivariate.common import PathLike
 from mi_bivariate import __version__
+from mi_bivariate.atomic import atomic_path
+from mi_bivariate.common import PathLike
+from mi_bivariate.errors import InputError, InputWarning
 
 HDR_SUFFIXES = (".exr", ".hdr", ".rgbe", ".pic", ".pfm")
 LDR_SUFFIXES = (".png", ".jpg", ".jpeg")

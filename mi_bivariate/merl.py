@@ -27,10 +27,9 @@ import mitsuba as mi
 import numpy as np
 
 from mi_bivariate.atomic import atomic_path
+from mi_bivariate.common import PathLike
 from mi_bivariate.coordinates import fold_phi_d
 from mi_bivariate.errors import InputError
-from mi_bivariate.common import PathLike
-
 
 MERL_SHAPE: Tuple[int, int, int] = (90, 90, 180)
 MERL_SCALE: Tuple[float, float, float] = (1.0 / 1500.0, 1.15 / 1500.0, 1.66 / 1500.0)

@@ -36,15 +36,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Dict, Optional, Tuple, Union
 
-import numpy as np
 import mitsuba as mi
+import numpy as np
 
+from mi_bivariate.common import PathLike
 from mi_bivariate.errors import InputError, InputWarning
 from mi_bivariate.geometry import Camera, Geometry, SurfaceMaps
-from mi_bivariate.common import PathLike
 from mi_bivariate.render import bsdf_dict, load_scene
 from mi_bivariate.variants import ensure_variant
-
 
 #: Mesh file types read through trimesh.
 MESH_SUFFIXES = (".obj", ".ply", ".stl", ".glb", ".gltf", ".off")

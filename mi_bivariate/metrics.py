@@ -17,9 +17,10 @@ import math
 from typing import Dict, Optional, Tuple
 
 import numpy as np
-from mi_bivariate.merl import MERL_SHAPE, geometric_mask, node_angles, MERLBRDF
+
 from mi_bivariate.bivariate import BivariateBRDF
 from mi_bivariate.coordinates import ST_REGIONS, st_from_half_diff
+from mi_bivariate.merl import MERL_SHAPE, MERLBRDF, geometric_mask, node_angles
 
 #: Regions of the (theta_h, theta_d) domain for the error breakdown (:data:`coordinates.ST_REGIONS`),
 #: in order of precedence: a cell belongs to the first region whose bound it meets; "rest" is every other cell.

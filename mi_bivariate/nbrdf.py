@@ -18,10 +18,9 @@ from typing import Dict, Optional, Tuple
 
 import numpy as np
 
+from mi_bivariate.common import PathLike
 from mi_bivariate.errors import InputError
 from mi_bivariate.merl import MERL_SHAPE, MERLBRDF, geometric_mask, node_angles
-from mi_bivariate.common import PathLike
-
 
 NBRDF_MATERIALS: Tuple[str, ...] = (
     "alum-bronze", "black-fabric", "blue-acrylic", "brass", "colonial-maple-223",

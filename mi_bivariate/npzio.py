@@ -18,9 +18,8 @@ from typing import Dict, Optional, Sequence
 
 import numpy as np
 
-from mi_bivariate.errors import InputError
 from mi_bivariate.common import PathLike
-
+from mi_bivariate.errors import InputError
 
 #: Largest uncompressed array read from an archive (bytes): 1 GiB.
 MAX_MEMBER_BYTES = 1 << 30

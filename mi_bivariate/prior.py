@@ -63,8 +63,9 @@ from pathlib import Path
 from typing import Any, Dict, Mapping, Optional, Sequence, Tuple, Union
 
 import numpy as np
-from mi_bivariate.common import PathLike
 import scipy.sparse as sp
+
+from mi_bivariate.common import PathLike
 
 from .atomic import atomic_path
 from .errors import InputError

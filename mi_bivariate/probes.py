@@ -47,14 +47,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, Optional, Sequence, Tuple, Union
 
-import numpy as np
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
-from mi_bivariate.images import read_image, write_exr
-from mi_bivariate.errors import InputError
 from mi_bivariate.common import PathLike, luminance
-
+from mi_bivariate.errors import InputError
+from mi_bivariate.images import read_image, write_exr
 
 #: Readable probe file types (extension -> description).
 PROBE_FORMATS: Dict[str, str] = {

@@ -19,20 +19,24 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
-from mi_bivariate import adequacy, alignment as alignment_mod, capture, lighting, prior as prior_mod
-from mi_bivariate import report as report_mod, solve as solve_mod, spherefit
+from mi_bivariate import adequacy
+from mi_bivariate import alignment as alignment_mod
+from mi_bivariate import capture, lighting
+from mi_bivariate import prior as prior_mod
+from mi_bivariate import report as report_mod
+from mi_bivariate import solve as solve_mod
+from mi_bivariate import spherefit
 from mi_bivariate.atomic import atomic_paths
 from mi_bivariate.basis_prior import BasisPrior, default_basis_prior
 from mi_bivariate.bivariate import BivariateBRDF
+from mi_bivariate.common import PathLike
 from mi_bivariate.errors import InputError, InputWarning
 from mi_bivariate.geometry import Geometry
 from mi_bivariate.images import load_image, load_mask
 from mi_bivariate.noise import estimate_camera_noise
 from mi_bivariate.probes import Probe
-from mi_bivariate.common import PathLike
 from mi_bivariate.threads import blas_threads
 from mi_bivariate.variants import ensure_variant
-
 
 
 @dataclass

@@ -52,9 +52,9 @@ import time
 from dataclasses import dataclass
 from typing import Any, Dict, Sequence, Tuple
 
-import numpy as np
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
 from mi_bivariate import metrics
 from mi_bivariate.errors import InputError

@@ -39,13 +39,12 @@ import numpy as np
 from mi_bivariate.bivariate import BivariateBRDF
 from mi_bivariate.errors import InputError
 from mi_bivariate.geometry import SphereCamera, SphereGeometry
+
 # Previews and EXRs are written by mi_bivariate.images; re-exported here for the render command.
 from mi_bivariate.images import tonemap, write_exr  # noqa: F401
 from mi_bivariate.images import write_png as write_png_preview  # noqa: F401
 from mi_bivariate.merl import MERLBRDF
 from mi_bivariate.variants import ensure_variant
-
-
 
 
 @dataclass

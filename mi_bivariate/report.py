@@ -12,13 +12,12 @@ from typing import Any, Dict, Optional, Tuple
 
 import numpy as np
 
+from mi_bivariate import render
 from mi_bivariate.atomic import atomic_path
 from mi_bivariate.bivariate import BivariateBRDF
+from mi_bivariate.common import PathLike
 from mi_bivariate.coordinates import half_diff_from_dirs
 from mi_bivariate.images import tonemap
-from mi_bivariate.common import PathLike
-from mi_bivariate import render
-
 
 
 def pyplot():

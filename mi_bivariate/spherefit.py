@@ -38,8 +38,17 @@ import numpy as np
 
 from mi_bivariate.errors import InputError, InputWarning
 from mi_bivariate.geometry import Intrinsics, PerspectiveSphereGeometry, SphereGeometry, orthonormal_pair
-from mi_bivariate.silhouette import (MIN_RADIUS_PX, REFINE_PASSES, arc_fraction, crack_points, disc_mask, kasa_circle,
-                                     luminance_map, refine_boundary, segment_sphere)
+from mi_bivariate.silhouette import (
+    MIN_RADIUS_PX,
+    REFINE_PASSES,
+    arc_fraction,
+    crack_points,
+    disc_mask,
+    kasa_circle,
+    luminance_map,
+    refine_boundary,
+    segment_sphere,
+)
 
 #: Confidence thresholds: RMS boundary distance (pixels), inlier fraction,
 #: fraction of the circle's outline observed (and silhouette.MIN_RADIUS_PX).

@@ -49,7 +49,6 @@ from mi_bivariate.sources import MaterialSpec, load_probe, load_truth, probe_lab
 from mi_bivariate.variants import ensure_variant
 
 
-
 @dataclass(frozen=True)
 class SynthesisSettings:
     """Settings of :func:`optimise_table` (one setting for every material: not tuned per material).

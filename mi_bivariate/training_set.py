@@ -27,7 +27,9 @@ from .bivariate import BivariateBRDF
 from .common import PathLike
 from .errors import InputError
 from .merl import MERLBRDF
-from .nbrdf import ALL_NBRDF_MATERIALS, NBRDF_FILE, NBRDF_TRAIN_FILE, data_dir as nbrdf_data_dir, nbrdf_merl
+from .nbrdf import ALL_NBRDF_MATERIALS, NBRDF_FILE, NBRDF_TRAIN_FILE
+from .nbrdf import data_dir as nbrdf_data_dir
+from .nbrdf import nbrdf_merl
 from .prior import Prior
 from .sources import merl_files
 

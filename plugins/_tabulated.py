@@ -29,9 +29,9 @@ import math
 from dataclasses import dataclass
 from typing import Any, Tuple
 
-import numpy as np
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
 from mi_bivariate.common import luminance
 from mi_bivariate.errors import InputError

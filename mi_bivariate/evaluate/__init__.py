@@ -54,19 +54,48 @@ from typing import Any, Optional, Union
 
 from mi_bivariate.common import PathLike
 from mi_bivariate.errors import InputError, InputWarning
-from mi_bivariate.evaluate.config import (DEFAULT_INPUT_PROBES, DEFAULT_NOVEL_PROBES, PROTOCOL_VERSION,
-                                          QUICK_ANALYTIC, QUICK_NBRDF, EvalConfig, quick_materials)
+from mi_bivariate.evaluate.config import (
+    DEFAULT_INPUT_PROBES,
+    DEFAULT_NOVEL_PROBES,
+    PROTOCOL_VERSION,
+    QUICK_ANALYTIC,
+    QUICK_NBRDF,
+    EvalConfig,
+    quick_materials,
+)
 from mi_bivariate.evaluate.protocol import INCIDENT_VIEWS, NOISE_SEED_OFFSET, MaterialTask, evaluate_material
+
 # The old module's names, private ones included (tests and scripts reach _fmt, _folder_lock, _init_worker,
 # _connect_dask), so that ``mi_bivariate.evaluate.<name>`` keeps resolving.
-from mi_bivariate.evaluate.results import (HEADLINE_COLUMNS, REJECTED_FILE, RESULTS_FILE, SUMMARY_COLUMNS,
-                                           SUMMARY_FILE, _fmt, append_record, artifact_path, format_summary,
-                                           load_artifacts, make_figures, markdown_table, read_records,
-                                           repair_results, save_artifacts, summary_rows, write_summary_csv)
-from mi_bivariate.evaluate.runner import (LOCK_FILE, REFERENCE_DIR, _connect_dask, _folder_lock, _init_worker,
-                                          run_evaluation, threads_per_job)
-from mi_bivariate.sources import (MaterialSpec, have_shared_data, load_probe, load_truth, probe_label,
-                                  resolve_materials)
+from mi_bivariate.evaluate.results import (
+    HEADLINE_COLUMNS,
+    REJECTED_FILE,
+    RESULTS_FILE,
+    SUMMARY_COLUMNS,
+    SUMMARY_FILE,
+    _fmt,
+    append_record,
+    artifact_path,
+    format_summary,
+    load_artifacts,
+    make_figures,
+    markdown_table,
+    read_records,
+    repair_results,
+    save_artifacts,
+    summary_rows,
+    write_summary_csv,
+)
+from mi_bivariate.evaluate.runner import (
+    LOCK_FILE,
+    REFERENCE_DIR,
+    _connect_dask,
+    _folder_lock,
+    _init_worker,
+    run_evaluation,
+    threads_per_job,
+)
+from mi_bivariate.sources import MaterialSpec, have_shared_data, load_probe, load_truth, probe_label, resolve_materials
 
 
 def analysis_by_synthesis(material: Union[str, MaterialSpec], input_probe: str = DEFAULT_INPUT_PROBES[0],

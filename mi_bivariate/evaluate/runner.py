@@ -24,7 +24,8 @@ import sys
 import threading
 import time
 import warnings
-from concurrent.futures import ProcessPoolExecutor, as_completed as cf_completed
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import as_completed as cf_completed
 from pathlib import Path
 from typing import Any, Callable, Dict, Iterator, List, Optional, Sequence, Tuple, Union
 
@@ -37,8 +38,17 @@ from mi_bivariate.common import PathLike
 from mi_bivariate.errors import InputError, InputWarning
 from mi_bivariate.evaluate.config import EvalConfig
 from mi_bivariate.evaluate.protocol import MaterialTask, evaluate_material
-from mi_bivariate.evaluate.results import (RESULTS_FILE, SUMMARY_FILE, append_record, artifact_path, make_figures,
-                                           read_records, repair_results, save_artifacts, write_summary_csv)
+from mi_bivariate.evaluate.results import (
+    RESULTS_FILE,
+    SUMMARY_FILE,
+    append_record,
+    artifact_path,
+    make_figures,
+    read_records,
+    repair_results,
+    save_artifacts,
+    write_summary_csv,
+)
 from mi_bivariate.merl import MERLBRDF
 from mi_bivariate.sources import MaterialSpec, load_probe, resolve_materials
 from mi_bivariate.variants import ensure_variant

@@ -62,12 +62,10 @@ import numpy as np
 
 from mi_bivariate.capture import Observations
 from mi_bivariate.errors import InputError
-from mi_bivariate.lighting.directions import (direction_pairs, hemisphere_offsets, light_directions,
-                                              row_frames)
+from mi_bivariate.lighting.directions import direction_pairs, hemisphere_offsets, light_directions, row_frames
 from mi_bivariate.lighting.kernels import _lighting_chunk, _row_packets, _spatial_order, _texel_chunk
-from mi_bivariate.lighting.mis import (MIS_FRACTIONS, PEAK_T_MAX, SAMPLINGS, _mis_chunk,
-                                       _mis_lanes,  # noqa: F401  (benchmarks/ablation.py)
-                                       strategy_counts)
+from mi_bivariate.lighting.mis import _mis_lanes  # noqa: F401  (benchmarks/ablation.py)
+from mi_bivariate.lighting.mis import MIS_FRACTIONS, PEAK_T_MAX, SAMPLINGS, _mis_chunk, strategy_counts
 from mi_bivariate.variants import ensure_variant
 
 __all__ = ["CHUNK_BYTES", "MIS_FRACTIONS", "PEAK_T_MAX", "PROGRESS_PAIRS", "SAMPLINGS", "direction_pairs",

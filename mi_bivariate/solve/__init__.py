@@ -57,12 +57,17 @@ from __future__ import annotations
 
 from mi_bivariate.solve.common import DEFAULT_ALPHA, KKT_TOLERANCE
 from mi_bivariate.solve.confidence import Confidence
-from mi_bivariate.solve.data_term import (DARK_FRACTION, MODEL_ERROR, MODEL_ERROR_FORMS, DataTerm,
-                                          prepare_data_term, row_sigma)
+from mi_bivariate.solve.data_term import (
+    DARK_FRACTION,
+    MODEL_ERROR,
+    MODEL_ERROR_FORMS,
+    DataTerm,
+    prepare_data_term,
+    row_sigma,
+)
 from mi_bivariate.solve.gcv import GCV_ALPHAS, GCV_PROBES, GCVCurve, gcv_curve
 from mi_bivariate.solve.nnls import NNLSResult, kkt_violation, nnls_gram
-from mi_bivariate.solve.regularised import (PairSolution, SolveResult, SweepPoint, alpha_sweep, solve,
-                                            solve_prepared)
+from mi_bivariate.solve.regularised import PairSolution, SolveResult, SweepPoint, alpha_sweep, solve, solve_prepared
 
 __all__ = [
     "DEFAULT_ALPHA", "KKT_TOLERANCE", "DARK_FRACTION", "MODEL_ERROR", "MODEL_ERROR_FORMS", "GCV_ALPHAS",

@@ -20,7 +20,6 @@ from scipy.linalg import blas
 from mi_bivariate.errors import InputError
 from mi_bivariate.solve.common import validate_problem
 
-
 #: Relative error of one pixel's model prediction ``L f`` even for noise-free input
 #: (a 3D BRDF is not bivariate: the exact phi_d average predicts MERL-NBRDF pixels to
 #: ~1-5%; the lighting matrix's quadrature adds ~0.1%). It is the floor of every
