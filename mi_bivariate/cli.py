@@ -121,7 +121,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--report-render", action="store_true",
                    help="path-trace the report's re-render (seconds) instead of predicting it as L f")
     p.add_argument("--normals", type=int, default=8000, help="number of normals M")
-    p.add_argument("--dirs", type=int, default=32000, help="light directions per normal K")
+    p.add_argument("--dirs", type=int, default=None, help="light directions per normal K (default 8000)")
     p.add_argument("--grid", type=int, nargs=2, default=(32, 32), metavar=("N_T", "N_S"))
     p.add_argument("--alpha", type=_parse_alpha, default=None,
                    help="smoothness weight: a number (default 1e-2, see docs/recovery.md) or 'gcv'")
@@ -180,7 +180,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--spp", type=int, default=None, help="samples per pixel of the input render (default 128)")
     p.add_argument("--novel-spp", type=int, default=None, help="samples per pixel of validation renders (default 64)")
     p.add_argument("--normals", type=int, default=None, help="normals M (default 8000)")
-    p.add_argument("--dirs", type=int, default=None, help="light directions K (default 32000)")
+    p.add_argument("--dirs", type=int, default=None, help="light directions K (default 8000)")
     p.add_argument("--grid", type=int, nargs=2, default=None, metavar=("N_T", "N_S"))
     p.add_argument("--alpha", type=float, default=None, help="regularisation weight")
     p.add_argument("--baselines", nargs="*", default=None, metavar="MODEL",

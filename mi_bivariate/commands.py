@@ -233,6 +233,8 @@ def cmd_learn_prior(args: argparse.Namespace) -> int:
 # --------------------------------------------------------------------------- recover
 
 def cmd_recover(args: argparse.Namespace) -> int:
+    if args.dirs is None:
+        args.dirs = lighting.DEFAULT_DIRS
     _check_recovery_sizes(args.normals, args.dirs, args.grid)
     _check_seed(args.seed)
     _check_float("--max-view-angle", args.max_view_angle, 0.0, 90.0, lo_open=True)
@@ -298,7 +300,10 @@ def cmd_demo(args: argparse.Namespace) -> int:
 # --------------------------------------------------------------------------- evaluate
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    _check_recovery_sizes(args.normals or 8000, args.dirs or 32000, args.grid or (32, 32))
+    def given(value, default):  # 0 is a value to check, not "unset"
+        return default if value is None else value
+
+    _check_recovery_sizes(given(args.normals, 8000), given(args.dirs, lighting.DEFAULT_DIRS), given(args.grid, (32, 32)))
     _check_render_sizes(args.resolution or 128, args.spp)
     _check_render_sizes(args.resolution or 128, args.novel_spp, flag="--novel-spp")
     _check_seed(args.seed)
@@ -348,4 +353,5 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 #: Subcommand name -> function.
-COMMANDS = {"info": cmd_info, "render": cmd_render, "reduce": cmd_reduce, "learn-prior": cmd_learn_prior, "recover": cmd_recover, "demo": cmd_demo, "evaluate": cmd_evaluate}
+COMMANDS = {"info": cmd_info, "render": cmd_render, "reduce": cmd_reduce, "learn-prior": cmd_learn_prior,
+            "recover": cmd_recover, "demo": cmd_demo, "evaluate": cmd_evaluate}

@@ -105,7 +105,7 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
             *,
             masks: Optional[Union[np.ndarray, Sequence[Optional[np.ndarray]]]] = None,
             n_normals: int = 8000,
-            n_dirs: int = 32000,
+            n_dirs: int = lighting.DEFAULT_DIRS,
             grid: Tuple[int, int] = (32, 32),
             alpha: Union[None, float, str] = None,
             prior: Optional[prior_mod.Prior] = None,
@@ -131,7 +131,7 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
             (:class:`mi_bivariate.mesh.MeshView`). Poses may differ per image.
         masks: optional ``(H, W) bool`` usable-pixel masks.
         n_normals: normals M per image (uniform over the visible hemisphere).
-        n_dirs: light directions K per normal.
+        n_dirs: light directions K per normal (:data:`lighting.DEFAULT_DIRS`).
         grid: st grid ``(n_t, n_s)``.
         alpha: the smoothness prior's weight (default :data:`solve.DEFAULT_ALPHA`), or
             ``"gcv"``: chosen per channel by generalised cross-validation

@@ -19,6 +19,7 @@ from typing import List, Optional, Tuple
 from mi_bivariate import basis_prior, prior, solve
 from mi_bivariate.common import PathLike
 from mi_bivariate.errors import InputError
+from mi_bivariate.lighting import DEFAULT_DIRS
 from mi_bivariate.sources import DEFAULT_ANALYTIC, have_shared_data
 
 #: Bumped when the protocol changes in a way that changes numbers (part of the config hash).
@@ -70,7 +71,7 @@ class EvalConfig:
     spp: int = 128
     novel_spp: int = 64
     n_normals: int = 8000
-    n_dirs: int = 32000
+    n_dirs: int = DEFAULT_DIRS
     grid: Tuple[int, int] = (32, 32)
     alpha: Optional[float] = None
     baselines: Tuple[str, ...] = ("ggx", "ward")
