@@ -375,9 +375,10 @@ def _sphere_footprints(pixels: np.ndarray, cx: float, cy: float, radius: float, 
     """
     rows, cols = pixels[:, 0].astype(np.float64), pixels[:, 1].astype(np.float64)
 
-    def normal(dx: np.ndarray, dy: np.ndarray) -> np.ndarray:  # camera-frame normal at pixel offset
-        x = (cols[:, None] + 0.5 + dx - cx) / radius
-        y = -(rows[:, None] + 0.5 + dy - cy) / radius
+    def normal(dx: np.ndarray, dy: np.ndarray, sel: slice = slice(None)) -> np.ndarray:
+        """Camera-frame normals ``(m, k, 3)`` at pixel offsets ``(1, k)`` of the pixels ``sel``."""
+        x = (cols[sel, None] + 0.5 + dx - cx) / radius
+        y = -(rows[sel, None] + 0.5 + dy - cy) / radius
         return np.stack([x, y, np.sqrt(np.clip(1.0 - x * x - y * y, 0.0, None))], axis=-1)
 
     corners = np.array([[-0.5, -0.5], [0.5, -0.5], [-0.5, 0.5], [0.5, 0.5]])
@@ -390,7 +391,7 @@ def _sphere_footprints(pixels: np.ndarray, cx: float, cy: float, radius: float, 
         sel = np.flatnonzero(sides == side)
         offs = (np.arange(side) + 0.5) / side - 0.5
         ox, oy = np.meshgrid(offs, offs)
-        n_cam = normal(ox.reshape(1, -1), oy.reshape(1, -1))[sel]  # (m, side^2, 3)
+        n_cam = normal(ox.reshape(1, -1), oy.reshape(1, -1), sel)  # (m, side^2, 3)
         n_cam /= np.linalg.norm(n_cam, axis=-1, keepdims=True)
         out_normals.append((n_cam @ rot.T).reshape(-1, 3))
         out_rows.append(np.repeat(sel, side * side))

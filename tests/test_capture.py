@@ -9,7 +9,7 @@ import pytest
 
 from mi_bivariate import capture
 from mi_bivariate.errors import InputError, InputWarning
-from mi_bivariate.geometry import SphereGeometry
+from mi_bivariate.geometry import Intrinsics, PerspectiveSphereGeometry, SphereGeometry
 
 
 def sphere_image(size: int = 128, radius: float = 57.6, value: float = 0.5) -> tuple:
@@ -165,3 +165,20 @@ def test_bad_input():
     nans[::2] = np.nan
     with pytest.warns(InputWarning, match="unusable values"):
         capture.observations_from_sphere(nans, geo)
+
+
+def test_every_geometry_gives_surface_maps_that_agree_with_its_own_model():
+    """The Geometry interface: an orthographic sphere's maps are its normals and one view; a pinhole
+    sphere's fully covered pixels lie inside its centre-covered ones and look back along the rays."""
+    ortho = SphereGeometry(16.0, 15.0, 12.0)
+    maps = ortho.surface_maps(32, 30)
+    normals, mask = ortho.normals(32, 30)
+    np.testing.assert_array_equal(maps.mask, mask)
+    np.testing.assert_array_equal(maps.normals, normals)
+    np.testing.assert_allclose(maps.views[mask], np.broadcast_to(ortho.view_direction(), (mask.sum(), 3)))
+    assert np.all(maps.views[~mask] == 0) and maps.positions is None and ortho.occluder() is None
+    persp = PerspectiveSphereGeometry(Intrinsics.from_fov(40, 30, 40.0), [0.2, -0.1, -4.0])
+    full = persp.surface_maps(40, 30)
+    _, _, centre = persp.normals_and_views(40, 30, coverage="centre")
+    assert full.mask.sum() > 20 and np.all(centre[full.mask]) and full.mask.sum() < centre.sum()
+    assert np.all(np.sum(full.normals[full.mask] * full.views[full.mask], axis=-1) > 0)

@@ -18,6 +18,7 @@ from mi_bivariate import capture, lighting
 from mi_bivariate.capture import Observations
 from mi_bivariate.coordinates import grid_nodes, half_diff_from_dirs, half_diff_from_st
 from mi_bivariate.errors import InputError
+from mi_bivariate.geometry import SphereGeometry
 from mi_bivariate.probes import Probe
 from reference_lighting import lighting_matrix_reference
 
@@ -280,7 +281,7 @@ def test_footprint_model_predicts_area_integrated_pixels():
 
 
 def test_footprints_follow_subset_and_stack():
-    geo = __import__("mi_bivariate.geometry", fromlist=["SphereGeometry"]).SphereGeometry(32.0, 32.0, 28.0)
+    geo = SphereGeometry(32.0, 32.0, 28.0)
     image = np.ones((64, 64, 3), np.float32)
     obs = capture.observations_from_sphere(image, geo, n_normals=3000, max_view_angle_deg=88.0, footprint=2.0)
     rows = np.unique(obs.footprint_rows)
@@ -299,3 +300,27 @@ def test_footprints_follow_subset_and_stack():
     r = rows[-1]
     mean = obs.footprint_normals[obs.footprint_rows == r].mean(axis=0)
     assert np.degrees(np.arccos(np.dot(mean / np.linalg.norm(mean), obs.normals[r]))) < 2.0
+
+
+def test_footprint_rows_are_means_of_their_sub_rows_in_both_quadratures():
+    """Each footprint row of L equals the mean of the rows its sub-pixel normals get on their own
+    (with the texel quadrature, which is deterministic), and centre rows are untouched."""
+    geo = SphereGeometry(20.0, 20.0, 17.0)
+    obs = capture.observations_from_sphere(np.ones((40, 40, 3), np.float32), geo, n_normals=800,
+                                           max_view_angle_deg=85.0, footprint=6.0)
+    probe = synthetic_probe()
+    L = lighting.texel_lighting_matrix(obs, probe, n_t=8, n_s=8)
+    plain = lighting.texel_lighting_matrix(capture.Observations(obs.normals, obs.views, obs.values,
+                                                                obs.probe_index), probe, n_t=8, n_s=8)
+    fp = np.unique(obs.footprint_rows)
+    centre = np.setdiff1d(np.arange(len(obs)), fp)
+    assert len(fp) > 10 and len(centre) > 10
+    np.testing.assert_allclose(L[centre], plain[centre], rtol=1e-5, atol=1e-7)  # float32 order of other chunks
+    sub = capture.Observations(obs.footprint_normals, obs.views[obs.footprint_rows], obs.values[obs.footprint_rows],
+                               obs.probe_index[obs.footprint_rows])
+    L_sub = lighting.texel_lighting_matrix(sub, probe, n_t=8, n_s=8)
+    for r in fp[:: max(1, len(fp) // 20)]:
+        np.testing.assert_allclose(L[r], L_sub[obs.footprint_rows == r].mean(axis=0), rtol=1e-5, atol=1e-7)
+    assert np.abs(L[fp] - plain[fp]).max() > 1e-3 * np.abs(plain[fp]).max()   # footprints change them
+    L_mis = lighting.lighting_matrix(obs, probe, n_t=8, n_s=8, n_dirs=2000)
+    assert np.all(np.isfinite(L_mis)) and np.all(L_mis >= 0)

@@ -55,7 +55,7 @@ between runs to float32 rounding (~1e-7 relative), not bit for bit.
 from __future__ import annotations
 
 import sys
-from typing import Any, List, Optional, Sequence, Tuple, Union
+from typing import Any, Callable, List, Optional, Sequence, Tuple, Union
 
 import mitsuba as mi
 import numpy as np
@@ -208,6 +208,7 @@ def lighting_matrix(obs: Observations, probes: Union[Any, Sequence[Any]], n_t: i
 
     jobs = []
     order = _spatial_order(obs.normals)
+    order = order[np.isin(order, _centre_rows(obs))] if obs.has_footprints else order
     for p in np.unique(obs.probe_index):
         for o in np.unique(scene_of_row):
             rows = order[(obs.probe_index[order] == p) & (scene_of_row[order] == o)]
@@ -223,37 +224,41 @@ def lighting_matrix(obs: Observations, probes: Union[Any, Sequence[Any]], n_t: i
     for p, o, rows in jobs:
         L[rows] = chunk_fn(packets[rows], probes[p], n_t, n_s, n_dirs, scenes[o] if o >= 0 else None)
     if obs.has_footprints:
-        _footprint_rows(L, obs, probes, n_t, n_s, n_dirs, seed, chunk, sampling)
+        _footprint_rows(L, obs, n_nodes, chunk, lambda sub, b: lighting_matrix(
+            sub, probes, n_t=n_t, n_s=n_s, n_dirs=n_dirs, seed=seed + 1 + b, chunk=chunk, progress=False,
+            sampling=sampling))
     return L
 
 
-def _footprint_rows(L: np.ndarray, obs: Observations, probes: List[Any], n_t: int, n_s: int, n_dirs: int,
-                    seed: int, chunk: Optional[int], sampling: str) -> None:
-    """Replace the rows that have a pixel footprint by the mean of their footprint normals' rows (in place).
+def _centre_rows(obs: Observations) -> np.ndarray:
+    """The rows modelled by their centre normal alone (the others are footprint means)."""
+    keep = np.ones(len(obs), dtype=bool)
+    if obs.has_footprints:
+        keep[obs.footprint_rows] = False
+    return np.flatnonzero(keep)
+
+
+def _footprint_rows(L: np.ndarray, obs: Observations, n_nodes: int, chunk: Optional[int],
+                    rows_of: Callable[[Observations, int], np.ndarray]) -> None:
+    """Fill the rows that have a pixel footprint with the mean of their footprint normals' rows (in place).
 
     The footprint normals (:attr:`Observations.footprint_normals`) become rows
-    of their own, with their pixel's view and probe, in blocks of whole
-    pixels so that memory stays at one block's ``(P, N, 3)``; their direction
-    offsets are seeded apart from the centre rows'.
+    of their own, with their pixel's view and probe (footprints are made for
+    convex spheres: no positions, no shadow rays), in blocks of whole pixels so
+    that memory stays at about one block's ``(P, N, 3)``. ``rows_of(sub, block)``
+    computes a block's rows with the caller's quadrature.
     """
     rows = obs.footprint_rows
-    starts = np.flatnonzero(np.r_[True, rows[1:] != rows[:-1]])
-    ends = np.r_[starts[1:], len(rows)]
-    per_block = max(1, _chunk_rows(n_t * n_s, chunk) * 4)
-    first = 0
-    while first < len(starts):
-        last = first + 1                              # whole pixels, up to per_block footprint normals
-        while last < len(starts) and ends[last] - starts[first] <= per_block:
-            last += 1
-        lo, hi = starts[first], ends[last - 1]
+    starts = np.flatnonzero(np.r_[True, rows[1:] != rows[:-1]])   # first footprint normal of each pixel
+    counts = np.diff(np.r_[starts, len(rows)]).astype(np.float32)
+    block = starts // max(1, _chunk_rows(n_nodes, chunk) * 4)     # a pixel goes wholly to one block
+    for b in np.unique(block):
+        pix = np.flatnonzero(block == b)
+        lo, hi = starts[pix[0]], starts[pix[-1]] + int(counts[pix[-1]])
         owner = rows[lo:hi]
-        sub = Observations(normals=obs.footprint_normals[lo:hi], views=obs.views[owner], values=obs.values[owner],
-                           probe_index=obs.probe_index[owner])
-        L_sub = lighting_matrix(sub, probes, n_t=n_t, n_s=n_s, n_dirs=n_dirs, seed=seed + 1 + first,
-                                chunk=chunk, progress=False, sampling=sampling)
-        counts = (ends[first:last] - starts[first:last]).astype(np.float32)
-        L[rows[starts[first:last]]] = np.add.reduceat(L_sub, starts[first:last] - lo, axis=0) / counts[:, None, None]
-        first = last
+        sub = Observations(normals=obs.footprint_normals[lo:hi], views=obs.views[owner],
+                           values=obs.values[owner], probe_index=obs.probe_index[owner])
+        L[rows[starts[pix]]] = np.add.reduceat(rows_of(sub, int(b)), starts[pix] - lo, axis=0) / counts[pix, None, None]
 
 
 def texel_lighting_matrix(obs: Observations, probes: Union[Any, Sequence[Any]], n_t: int = 32,
@@ -284,6 +289,7 @@ def texel_lighting_matrix(obs: Observations, probes: Union[Any, Sequence[Any]], 
     packets = _row_packets(obs.normals, obs.views, np.zeros((m_total, 2), dtype=np.float32))
     rows_per_chunk = _chunk_rows(n_nodes, chunk)
     order = _spatial_order(obs.normals)
+    order = order[np.isin(order, _centre_rows(obs))] if obs.has_footprints else order
     L = np.empty((m_total, n_nodes, 3), dtype=np.float32)
     for p in np.unique(obs.probe_index):
         probe = probes[int(p)]
@@ -297,5 +303,8 @@ def texel_lighting_matrix(obs: Observations, probes: Union[Any, Sequence[Any]], 
         for i in range(0, len(rows), rows_per_chunk):
             sel = rows[i:i + rows_per_chunk]
             L[sel] = _texel_chunk(packets[sel], texels, n_t, n_s)
+    if obs.has_footprints:
+        _footprint_rows(L, obs, n_nodes, chunk, lambda sub, b: texel_lighting_matrix(
+            sub, probes, n_t=n_t, n_s=n_s, downsample=downsample, chunk=chunk))
     return L
 
