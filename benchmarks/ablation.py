@@ -37,8 +37,9 @@ CONFIGS = (
     ("+ MIS, constant model error, alpha 0.1", "mis", "constant", 1e-1, False),
     ("+ MIS, relative model error", "mis", "relative", 1e-2, False),
     ("+ MIS, sqrt model error (default)", "mis", "sqrt", 1e-2, False),
-    ("+ basis prior (default)", "mis", "sqrt", 1e-2, True),
+    ("+ basis prior (default), alpha fixed at 1e-2", "mis", "sqrt", 1e-2, True),
     ("+ GCV alpha instead of 1e-2", "mis", "sqrt", "gcv", True),
+    ("+ discrepancy-principle alpha <= 1e-2 (default)", "mis", "sqrt", "discrepancy", True),
 )
 
 
@@ -121,7 +122,7 @@ def main() -> None:
             r = solve.solve_prepared(data, prior, alpha)
             if use_basis:
                 mean, std = basis.predict(r.table, r.resolution, r.posterior_std)
-                r = solve.solve_prepared(data, prior, alpha, mean=mean, mean_std=std)
+                r = solve.solve_prepared(data, prior, r.alphas, mean=mean, mean_std=std)  # as recover() does
             f = r.table.reshape(-1, 3)
             errors = np.array([rel(np.einsum("mnc,nc->mc", L_novel[p], f), truth[p]) for p in NOVEL])
             scores[label].append(float(np.median(errors / floors)))

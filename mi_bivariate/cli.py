@@ -37,12 +37,12 @@ def _parse_sphere(text: str):
 
 
 def _parse_alpha(text: str):
-    if text.strip().lower() == "gcv":
-        return "gcv"
+    if text.strip().lower() in ("gcv", "discrepancy"):
+        return text.strip().lower()
     try:
         return float(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number or 'gcv', got {text!r}") from None
+        raise argparse.ArgumentTypeError(f"expected a number, 'discrepancy' or 'gcv', got {text!r}") from None
 
 
 def _parse_noise(text: str):
@@ -124,7 +124,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--dirs", type=int, default=None, help="light directions per normal K (default 8000)")
     p.add_argument("--grid", type=int, nargs=2, default=(32, 32), metavar=("N_T", "N_S"))
     p.add_argument("--alpha", type=_parse_alpha, default=None,
-                   help="smoothness weight: a number (default 1e-2, see docs/recovery.md) or 'gcv'")
+                   help="smoothness weight: a number, or how to choose it per channel: 'discrepancy' (default: "
+                        "the largest weight whose fit explains the image to within its expected error) or 'gcv'")
     p.add_argument("--noise", type=_parse_noise, default="auto", metavar="auto|none|A,B",
                    help="camera noise, variance A*I+B in image units: estimated from the image (auto, default), "
                         "none (clean input) or given")
@@ -182,7 +183,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--normals", type=int, default=None, help="normals M (default 8000)")
     p.add_argument("--dirs", type=int, default=None, help="light directions K (default 8000)")
     p.add_argument("--grid", type=int, nargs=2, default=None, metavar=("N_T", "N_S"))
-    p.add_argument("--alpha", type=float, default=None, help="regularisation weight")
+    p.add_argument("--alpha", type=_parse_alpha, default=None,
+                   help="regularisation weight, or how to choose it: 'discrepancy' (default) or 'gcv'")
     p.add_argument("--baselines", nargs="*", default=None, metavar="MODEL",
                    help="parametric baselines to fit (default: ggx ward; none: skip)")
     p.add_argument("--seed", type=int, default=None)

@@ -240,7 +240,7 @@ def cmd_recover(args: argparse.Namespace) -> int:
     _check_float("--max-view-angle", args.max_view_angle, 0.0, 90.0, lo_open=True)
     _check_float("--footprint", args.footprint, 0.0, 90.0, lo_open=True)
     _check_float("--saturation", args.saturation, 0.0, float("inf"), lo_open=True)
-    if args.alpha != "gcv":
+    if not isinstance(args.alpha, str):
         _check_float("--alpha", args.alpha, float("-inf"), float("inf"))  # the sign is the library's check
     if args.threads is not None and not 1 <= args.threads <= 1024:
         raise InputError("--threads", f"must be from 1 to 1024, got {args.threads}")
@@ -307,7 +307,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     _check_render_sizes(args.resolution or 128, args.spp)
     _check_render_sizes(args.resolution or 128, args.novel_spp, flag="--novel-spp")
     _check_seed(args.seed)
-    _check_float("--alpha", args.alpha, float("-inf"), float("inf"))
+    if not isinstance(args.alpha, str):
+        _check_float("--alpha", args.alpha, float("-inf"), float("inf"))
     _check_float("--abs-time-factor", args.abs_time_factor, 0.0, 1e6, lo_open=True)
     if not 1 <= args.jobs <= 256:
         raise InputError("--jobs", f"must be from 1 to 256, got {args.jobs}")

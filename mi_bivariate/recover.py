@@ -133,9 +133,12 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
         n_normals: normals M per image (uniform over the visible hemisphere).
         n_dirs: light directions K per normal (:data:`lighting.DEFAULT_DIRS`).
         grid: st grid ``(n_t, n_s)``.
-        alpha: the smoothness prior's weight (default :data:`solve.DEFAULT_ALPHA`), or
-            ``"gcv"``: chosen per channel by generalised cross-validation
-            (:func:`solve.gcv_curve`; measured to over-fit clean images, see docs/recovery.md).
+        alpha: how the smoothness prior's weight is chosen: ``"discrepancy"`` (default) per
+            channel by the discrepancy principle (:mod:`mi_bivariate.solve.discrepancy`: the
+            largest alpha whose fit explains the image to within its expected error), ``"gcv"``
+            by generalised cross-validation (:func:`solve.gcv_curve`; measured to over-fit clean
+            images, see docs/recovery.md), or a number (every channel). The second stage (basis
+            prior) keeps the first stage's alphas.
         prior: smoothness prior (default: the packaged one, resampled to ``grid``).
         basis_prior: the data-driven table prior (:mod:`mi_bivariate.basis_prior`):
             ``"default"`` the packaged one (learnt from the 73 shared MERL-NBRDF
@@ -178,8 +181,7 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
     n_t, n_s = (int(g) for g in grid)
     if n_t < 2 or n_s < 2:
         raise InputError("grid", f"{n_t}x{n_s} is too small", "each st axis needs at least 2 nodes")
-    if alpha is not None and alpha != "gcv" and not (np.isfinite(alpha) and alpha >= 0):
-        raise InputError("alpha", f"must be a finite number >= 0 or 'gcv', got {alpha}")
+    solve_mod.check_alpha(alpha)  # fail before the lighting matrix
 
     timings: Dict[str, float] = {}
     t0 = time.perf_counter()
@@ -218,7 +220,9 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
         if basis is not None:
             # Stage 2: the first estimate and its confidence give the basis prior's prediction.
             mean, std = basis.predict(solution.table, solution.resolution, solution.posterior_std)
-            solution = solve_mod.solve_prepared(data, prior, alpha, mean=mean, mean_std=std)
+            rule = solution.alpha_rule
+            solution = solve_mod.solve_prepared(data, prior, solution.alphas, mean=mean, mean_std=std)
+            solution.alpha_rule = rule
         timings["solve"] = time.perf_counter() - t0 - timings["normal equations"]
         table = solution.table
         predicted = np.einsum("mnc,nc->mc", L, table.reshape(n_t * n_s, 3), optimize=True)

@@ -8,8 +8,8 @@ import scipy.optimize as sopt
 
 from mi_bivariate.errors import InputError
 from mi_bivariate.prior import Prior
-from mi_bivariate.solve import (KKT_TOLERANCE, alpha_sweep, gcv_curve, kkt_violation, nnls_gram,
-                                prepare_data_term, row_sigma, solve)
+from mi_bivariate.solve import (DEFAULT_ALPHA, DISCREPANCY_ALPHAS, DISCREPANCY_TARGET, KKT_TOLERANCE, alpha_sweep, check_alpha, discrepancy_alpha,
+                                gcv_curve, kkt_violation, nnls_gram, prepare_data_term, row_sigma, solve)
 
 N_T, N_S = 6, 5
 N = N_T * N_S
@@ -169,6 +169,75 @@ def test_gcv_trace_and_choice():
     assert chosen < 0.5 * errors[-1] and chosen < 0.5 * max(errors)
 
 
+def _unconstrained_data_term(data, penalty, k, alpha):
+    lam = alpha / (N * data.level[k] ** 2)
+    f = np.linalg.solve(data.gram[k] + lam * penalty, data.rhs[k])
+    return float(data.yy[k] - 2 * f @ data.rhs[k] + f @ data.gram[k] @ f)
+
+
+def _noisy_problem(noise: float, seed: int = 41):
+    rng = np.random.default_rng(seed)
+    L = _lighting(300, seed)
+    clean = np.einsum("mnk,nk->mk", L.astype(np.float64), _truth(seed + 1).reshape(N, 3))
+    return L, clean * (1 + noise * rng.standard_normal(clean.shape)), noise * np.abs(clean) + 1e-12
+
+
+@pytest.mark.parametrize("start", [1e-2, 1e3])
+def test_discrepancy_alpha_against_a_dense_scan(start):
+    """The walk (up or down from ``start``) and its refinement find where a dense scan of direct solves
+    crosses the target; a wide grid, so that the data term is steep in part of it."""
+    L, I, sigma = _noisy_problem(0.05)
+    data = prepare_data_term(L, I, sigma)
+    penalty = _prior().penalty_matrix("diffuse")
+    grid = 10.0 ** np.arange(-2.0, 3.01, 0.5)
+    dense = np.logspace(-2, 3, 251)
+    for k in range(3):
+        rho = np.array([_unconstrained_data_term(data, penalty, k, a) for a in dense])
+        assert np.all(np.diff(rho) >= -1e-9 * rho[1:])  # the data term grows with alpha
+        slope = np.gradient(np.log(rho), np.log(dense))
+        assert slope[50] > 0.25  # steep there: alpha is pinned by the target
+        for i in (50, 125, 200):  # crossings inside the range
+            target = rho[i] * 1.0001
+            choice = discrepancy_alpha(data, penalty, (k,), target=target, alphas=grid, start=start)
+            assert choice.bounded == ""
+            assert _unconstrained_data_term(data, penalty, k, choice.alpha) == pytest.approx(target, rel=0.02)
+            if slope[i] > 0.1:  # alpha itself is pinned where the data term is not flat
+                assert choice.alpha == pytest.approx(dense[i], rel=0.02 / slope[i])
+        if k == 2:  # one alpha for all channels: the mean of their data terms meets the target
+            target = np.mean([_unconstrained_data_term(data, penalty, c, 1.0) for c in range(3)])
+            choice = discrepancy_alpha(data, penalty, target=target, alphas=grid, start=start)
+            assert np.mean([_unconstrained_data_term(data, penalty, c, choice.alpha) for c in range(3)]) == \
+                pytest.approx(target, rel=0.02)
+            assert choice.alpha == pytest.approx(1.0, rel=0.1)
+        low = discrepancy_alpha(data, penalty, (k,), target=0.5 * rho[0], alphas=grid, start=start)
+        assert low.bounded == "low" and low.alpha == pytest.approx(1e-2)
+        high = discrepancy_alpha(data, penalty, (k,), target=2 * rho[-1], alphas=grid, start=start)
+        assert high.bounded == "high" and high.alpha == pytest.approx(1e3)
+    # The package's own range: from 1e-4 up to the learnt default alpha, which bounds it.
+    assert DISCREPANCY_ALPHAS[0] == pytest.approx(1e-4) and DISCREPANCY_ALPHAS[-1] == DEFAULT_ALPHA
+
+
+def test_discrepancy_is_the_default_and_alpha_grows_with_the_noise():
+    assert check_alpha(None) == "discrepancy"
+    chosen = []
+    for noise in (0.01, 0.05, 0.2):
+        L, I, _ = _noisy_problem(noise)
+        # The same model-error sigma for all three: more noise leaves more residual, so a weaker prior
+        # would over-fit it; camera noise given in sigma instead lets alpha grow (below).
+        result = solve(L, I, _prior(), n_t=N_T, n_s=N_S, sigma=0.05 * np.abs(I) + 1e-12)
+        assert result.alpha_rule == "discrepancy" and np.all(result.alphas == result.alpha_choice.alpha)
+        chosen.append(result.alphas)
+    assert np.all(chosen[0] >= chosen[1]) and np.all(chosen[1] >= chosen[2])
+    L, I, _ = _noisy_problem(0.05)
+    sigmas = [row_sigma(I, noise=[(a, 0.0)]) for a in (0.0, 1e-3 * np.mean(I), 1e-2 * np.mean(I))]
+    alphas = [solve(L, I, _prior(), n_t=N_T, n_s=N_S, sigma=s).alphas for s in sigmas]
+    assert np.all(alphas[0] <= alphas[1]) and np.all(alphas[1] <= alphas[2]) and np.any(alphas[0] < alphas[2])
+    # Scale-free: a brighter image and probe choose the same alphas.
+    base = solve(L, I, _prior(), n_t=N_T, n_s=N_S)
+    np.testing.assert_allclose(solve(L * 10, I * 10, _prior(), n_t=N_T, n_s=N_S).alphas, base.alphas, rtol=1e-6)
+    assert DISCREPANCY_TARGET > 0
+
+
 def test_alpha_zero_noiseless_recovers_the_truth():
     L = _lighting(200, 5)
     truth = _truth(6)
@@ -236,6 +305,8 @@ def test_input_errors():
         solve(L, bad_i, prior)
     with pytest.raises(InputError, match="alpha"):
         solve(L, I, prior, alpha=-1.0)
+    with pytest.raises(InputError, match="alpha"):
+        solve(L, I, prior, alpha="morozov")
     with pytest.raises(InputError, match="M = 0"):
         solve(L[:0], I[:0], prior)
     with pytest.raises(InputError, match="grid"):

@@ -14,7 +14,7 @@ import json
 import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import List, Optional, Tuple
+from typing import List, Optional, Tuple, Union
 
 from mi_bivariate import basis_prior, prior, solve
 from mi_bivariate.common import PathLike
@@ -73,7 +73,7 @@ class EvalConfig:
     n_normals: int = 8000
     n_dirs: int = DEFAULT_DIRS
     grid: Tuple[int, int] = (32, 32)
-    alpha: Optional[float] = None
+    alpha: Union[None, float, str] = None
     baselines: Tuple[str, ...] = ("ggx", "ward")
     baseline_nfev: int = 40
     seed: int = 0
@@ -142,7 +142,8 @@ def _solver_identity() -> dict:
     digest = hashlib.sha256(Path(prior.DEFAULT_PRIOR_PATH).read_bytes()).hexdigest()[:16]
     basis = _file_digest(basis_prior.DEFAULT_BASIS_PRIOR_PATH)
     return {"default_prior_sha256": digest, "default_basis_prior_sha256": basis,
-            "default_alpha": solve.DEFAULT_ALPHA, "solver": "mis+noise-aware+basis v1"}
+            "default_alpha": solve.DEFAULT_ALPHA_RULE, "discrepancy_target": solve.DISCREPANCY_TARGET,
+            "solver": "mis+noise-aware+basis v2"}
 
 
 def quick_materials(data_dir: Optional[PathLike] = None) -> List[str]:

@@ -211,6 +211,8 @@ def describe_recovery(rec: Recovery) -> dict:
     return {"relative_residual": rec.relative_residual(),
             "prior_winner": list(rec.solution.winner),
             "alpha": float(rec.solution.alpha),
+            "alphas": [float(a) for a in rec.solution.alphas],
+            "alpha_rule": rec.solution.alpha_rule,
             "noise_model": rec.brdf.provenance.get("noise"),
             "observations": int(len(rec.observations.values)),
             "adequacy": _adequacy_summary(rec.adequacy)}

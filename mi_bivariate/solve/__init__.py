@@ -18,8 +18,10 @@ measured (``docs/recovery.md``, "What each change brought"):
   count, and a noisy image is not over-fitted.
 - **Scale-free alpha.** ``level_k`` is the best constant (Lambertian) table, the
   paper's starting point, so alpha is dimensionless: a brighter probe, image or
-  material changes nothing. ``alpha`` is given, or chosen per channel by
-  generalised cross-validation (:func:`gcv_curve`).
+  material changes nothing. ``alpha`` is chosen per channel by the discrepancy
+  principle (:func:`discrepancy_alpha`: the largest alpha whose fit leaves the
+  residual the rows' expected error allows), by generalised cross-validation
+  (:func:`gcv_curve`), or given.
 - **A table prior** (optional): a per-node Gaussian from the data-driven basis
   prior (:mod:`mi_bivariate.basis_prior`), which carries what measured materials do
   into the nodes the image does not pin down.
@@ -29,9 +31,10 @@ The non-negative least-squares problem is solved on the normal equations
 Park's block principal pivoting (with Murty's single-exchange fallback), starting from
 the paper's Lambertian initialisation. Every answer's KKT conditions are verified; if
 they fail, the problem is re-solved with ``scipy.optimize.nnls`` on an eigen-reduced
-``N x N`` system and the result says so. The solve is done once per weight pair; with
-a given alpha the pair with the lower data residual is kept per channel (paper
-Sect. 4), with GCV the pair with the lower GCV score. Each solution carries a per-node
+``N x N`` system and the result says so. The solve is done once per weight pair; the pair
+with the lower data residual is kept per channel (paper Sect. 4; with the discrepancy
+principle both pairs use the alpha chosen on the first pair's curve), with GCV the pair
+with the lower GCV score. Each solution carries a per-node
 confidence: the diagonal of the model resolution matrix ``X^-1 L^T W L / M`` (1: the
 node's value comes from the image; 0: from the priors) and the posterior spread.
 
@@ -44,6 +47,8 @@ front door re-exports their public names:
                             prior variant, alpha and stage)
 :mod:`.nnls`                the constrained solve: block principal pivoting
                             (:func:`nnls_gram`), KKT check, scipy fallback
+:mod:`.discrepancy`         alpha by the discrepancy principle (:func:`discrepancy_alpha`,
+                            the default)
 :mod:`.gcv`                 alpha by generalised cross-validation (:func:`gcv_curve`)
 :mod:`.confidence`          resolution, posterior spread, measured share, from one
                             factorisation, computed on first use
@@ -55,7 +60,7 @@ front door re-exports their public names:
 
 from __future__ import annotations
 
-from mi_bivariate.solve.common import DEFAULT_ALPHA, KKT_TOLERANCE
+from mi_bivariate.solve.common import ALPHA_RULES, DEFAULT_ALPHA, DEFAULT_ALPHA_RULE, KKT_TOLERANCE, check_alpha
 from mi_bivariate.solve.confidence import Confidence
 from mi_bivariate.solve.data_term import (
     DARK_FRACTION,
@@ -65,12 +70,19 @@ from mi_bivariate.solve.data_term import (
     prepare_data_term,
     row_sigma,
 )
+from mi_bivariate.solve.discrepancy import (
+    DISCREPANCY_ALPHAS,
+    DISCREPANCY_TARGET,
+    DiscrepancyChoice,
+    discrepancy_alpha,
+)
 from mi_bivariate.solve.gcv import GCV_ALPHAS, GCV_PROBES, GCVCurve, gcv_curve
 from mi_bivariate.solve.nnls import NNLSResult, kkt_violation, nnls_gram
 from mi_bivariate.solve.regularised import PairSolution, SolveResult, SweepPoint, alpha_sweep, solve, solve_prepared
 
 __all__ = [
-    "DEFAULT_ALPHA", "KKT_TOLERANCE", "DARK_FRACTION", "MODEL_ERROR", "MODEL_ERROR_FORMS", "GCV_ALPHAS",
+    "ALPHA_RULES", "DEFAULT_ALPHA", "DEFAULT_ALPHA_RULE", "DISCREPANCY_ALPHAS", "DISCREPANCY_TARGET",
+    "DiscrepancyChoice", "check_alpha", "discrepancy_alpha", "KKT_TOLERANCE", "DARK_FRACTION", "MODEL_ERROR", "MODEL_ERROR_FORMS", "GCV_ALPHAS",
     "GCV_PROBES", "Confidence", "DataTerm", "GCVCurve", "NNLSResult", "PairSolution", "SolveResult",
     "SweepPoint", "alpha_sweep", "gcv_curve", "kkt_violation", "nnls_gram", "prepare_data_term", "row_sigma",
     "solve", "solve_prepared",

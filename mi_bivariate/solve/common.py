@@ -11,7 +11,7 @@ recurrence, for the smoothness prior's sparse normal matrix).
 
 from __future__ import annotations
 
-from typing import Optional, Tuple
+from typing import Optional, Tuple, Union
 
 import numpy as np
 import scipy.linalg as sla
@@ -27,6 +27,10 @@ from mi_bivariate.prior import Prior
 #: (benchmarks/ablation.py, docs/recovery.md): 1.27 at 1e-2 (GCV per recovery: 1.91,
 #: it over-fits the model error, which is correlated between neighbouring pixels).
 DEFAULT_ALPHA = 1e-2
+#: How alpha is chosen when none is given: the discrepancy principle (:mod:`~mi_bivariate.solve.discrepancy`).
+DEFAULT_ALPHA_RULE = "discrepancy"
+#: The rules that choose alpha per recovery from the data.
+ALPHA_RULES = ("discrepancy", "gcv")
 #: Largest accepted KKT violation (relative natural residual, see :func:`~mi_bivariate.solve.kkt_violation`).
 KKT_TOLERANCE = 1e-9
 
@@ -70,19 +74,28 @@ def grid_shape(n_nodes: int, prior: Prior, n_t: Optional[int], n_s: Optional[int
     return int(n_t), int(n_s)
 
 
-def check_alpha(alpha) -> Optional[float]:
-    """``None`` for "choose by GCV" (``"gcv"``), :data:`DEFAULT_ALPHA` for ``None``, else a finite alpha >= 0."""
+def check_alpha(alpha) -> Union[str, np.ndarray]:
+    """A rule of :data:`ALPHA_RULES` (``None``: :data:`DEFAULT_ALPHA_RULE`), or given alphas as ``(3,) float64``.
+
+    A given alpha is one number (every channel) or three (per channel), finite and >= 0.
+    """
     if alpha is None:
-        return DEFAULT_ALPHA
-    if isinstance(alpha, str) and alpha == "gcv":
-        return None
+        alpha = DEFAULT_ALPHA_RULE
+    if isinstance(alpha, str):
+        if alpha in ALPHA_RULES:
+            return alpha
+        try:
+            alpha = float(alpha)
+        except ValueError:
+            raise InputError("alpha", f"must be a number or one of {', '.join(ALPHA_RULES)}, got {alpha!r}") from None
     try:
-        alpha = float(alpha)
+        values = np.broadcast_to(np.asarray(alpha, np.float64), (3,)).copy()
     except (TypeError, ValueError):
-        raise InputError("alpha", f"must be a number or 'gcv', got {alpha!r}") from None
-    if not np.isfinite(alpha) or alpha < 0:
+        raise InputError("alpha", f"must be a number (or 3) or one of {', '.join(ALPHA_RULES)}, "
+                         f"got {alpha!r}") from None
+    if not np.all(np.isfinite(values)) or np.any(values < 0):
         raise InputError("alpha", f"must be finite and >= 0, got {alpha}")
-    return alpha
+    return values
 
 
 def penalty_weight(alpha: float, n_nodes: int, level: float) -> float:

@@ -2,10 +2,11 @@
 
 :func:`solve` validates once (:func:`~mi_bivariate.solve.data_term.prepare_data_term`),
 then :func:`solve_prepared` solves each prior variant (weight pair) per channel with the
-algorithms of this package (alpha by :mod:`~mi_bivariate.solve.gcv` unless given, the
-constrained solve by :mod:`~mi_bivariate.solve.nnls`, the confidence by
+algorithms of this package (alpha per channel by the discrepancy principle,
+:mod:`~mi_bivariate.solve.discrepancy`, unless given or asked of :mod:`~mi_bivariate.solve.gcv`;
+the constrained solve by :mod:`~mi_bivariate.solve.nnls`, the confidence by
 :mod:`~mi_bivariate.solve.confidence`) and keeps, per channel, the pair with the lower
-data residual (alpha given; paper Sect. 4) or the lower GCV score.
+data residual (paper Sect. 4) or, with GCV, the lower GCV score.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from mi_bivariate.prior import PAIRS, Prior, default_prior
 from mi_bivariate.solve.common import check_alpha, grid_shape, penalty_weight
 from mi_bivariate.solve.confidence import Confidence
 from mi_bivariate.solve.data_term import DataTerm, prepare_data_term
+from mi_bivariate.solve.discrepancy import DiscrepancyChoice, discrepancy_alpha
 from mi_bivariate.solve.gcv import gcv_curve
 from mi_bivariate.solve.nnls import NNLSResult, nnls_gram
 
@@ -70,8 +72,10 @@ class SolveResult:
     pairs: Dict[str, PairSolution]     #: every pair's solution
     lambertian: np.ndarray             #: (3,) 1/sr, the Lambertian start (best constant table)
     scale: np.ndarray                  #: (3,) the prior's scale (the Lambertian level)
-    alpha_rule: str = "gcv"            #: "gcv" or "given"
+    alpha_rule: str = "discrepancy"    #: "discrepancy", "gcv" or "given"
     timings: Dict[str, float] = field(default_factory=dict)  #: seconds
+    #: how the discrepancy principle chose alpha (``None`` for another rule)
+    alpha_choice: Optional[DiscrepancyChoice] = None
 
     @property
     def alpha(self) -> float:
@@ -185,7 +189,7 @@ def solve_prepared(data: DataTerm, prior: Optional[Prior] = None, alpha=None, *,
     """
     t0 = time.perf_counter()
     prior = default_prior() if prior is None else prior
-    alpha = check_alpha(alpha)
+    rule = check_alpha(alpha)
     n_t, n_s = grid_shape(data.n_nodes, prior, n_t, n_s)
     if (prior.n_t, prior.n_s) != (n_t, n_s):
         prior = prior.resampled(n_t, n_s)
@@ -206,12 +210,22 @@ def solve_prepared(data: DataTerm, prior: Optional[Prior] = None, alpha=None, *,
     seconds = {p: 0.0 for p in pairs}
     confidences = {p: Confidence(data, penalties[p], np.zeros(3), precision, (n_t, n_s)) for p in pairs}
     winner = []
+    choice: Optional[DiscrepancyChoice] = None
+    if isinstance(rule, str) and rule == "discrepancy":  # one alpha for every channel, on the first pair's curve
+        extra = None if precision is None else (precision, precision * mean)
+        choice = discrepancy_alpha(data, penalties[pairs[0]], extra=extra)
     for k in range(3):
+        if choice is not None:
+            alpha_k = choice.alpha
+        elif isinstance(rule, str):
+            alpha_k = None  # GCV, per channel and pair
+        else:
+            alpha_k = float(rule[k])
         for p in pairs:
             t1 = time.perf_counter()
-            channels[p].append(_solve_channel(data, penalties[p], alpha, k, data.level, precision, mean))
+            channels[p].append(_solve_channel(data, penalties[p], alpha_k, k, data.level, precision, mean))
             seconds[p] += time.perf_counter() - t1
-        if alpha is None:
+        if isinstance(rule, str) and rule == "gcv":
             # The pair whose prior explains the image better in the cross-validation sense.
             w = min(pairs, key=lambda p: (channels[p][k].gcv, p != pairs[0]))
         else:
@@ -234,7 +248,7 @@ def solve_prepared(data: DataTerm, prior: Optional[Prior] = None, alpha=None, *,
     timings = {"normal_equations": data.time_s, **seconds}
     timings["total"] = data.time_s + time.perf_counter() - t0
     return SolveResult(table, winner, alphas, rel, solutions, data.level.copy(), data.level.copy(),
-                       "gcv" if alpha is None else "given", timings)
+                       rule if isinstance(rule, str) else "given", timings, choice)
 
 
 def solve(L: np.ndarray, I: np.ndarray, prior: Optional[Prior] = None, alpha=None, *,

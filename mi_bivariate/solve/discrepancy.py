@@ -1,0 +1,137 @@
+"""Choosing alpha: the discrepancy principle (Morozov 1966), bounded by the learnt alpha.
+
+The smoothness prior's weight alpha (one for the three channels) is the largest alpha in
+``[DISCREPANCY_ALPHAS[0], DISCREPANCY_ALPHAS[-1]]`` (``1e-4`` to :data:`DEFAULT_ALPHA`) whose
+(unconstrained Tikhonov) solution still explains the image to within its expected error: the
+data term ``rho(alpha) = (1/M) ||(I - L f_alpha) / sigma||^2`` (the mean over the channels) at
+most :data:`DISCREPANCY_TARGET`. ``rho`` grows with alpha, so the answer is found by walking
+the log grid :data:`DISCREPANCY_ALPHAS` down from the default alpha until the target is met,
+then by regula falsi in ``(log alpha, log rho)`` inside the bracketing half decade
+(:data:`REFINEMENTS` steps). An image the default explains costs one Cholesky factorisation
+per channel; one it does not, typically three to four.
+
+Why bounded above, and why a target of 20 and not 1 (measured on 16 *training* materials,
+never on a scored one; ``docs/recovery.md``, "Choosing alpha"):
+
+- The rows' ``sigma`` (:func:`~mi_bivariate.solve.row_sigma`) carries a model error of 1% of
+  the pixel besides the camera's noise, but the bivariate reduction's own error in a pixel
+  (what the isotropic 3D BRDF does that no (theta_h, theta_d) table can) is larger and varies
+  from material to material: at the alpha that relit best, ``rho`` was 0.5 to 40. A target of
+  1 would drive alpha to its floor for most materials; 20 (an expected error of ~4.5% of a
+  pixel) leaves the default in place unless the image is clearly not explained.
+- Where the default does not explain the image (``rho`` of 100-270 for a metallic paint), the
+  image is right: lowering alpha until ``rho = 20`` relit it at 0.47x the exact reduction's
+  error instead of 2.1x.
+- The data term cannot see the nodes the image does not constrain, which are what novel
+  light exposes: where ``rho`` is already small at the default, *raising* alpha to meet the
+  target smoothed those nodes and relit 5 of 8 training materials worse (up to 1.9x). The
+  learnt alpha is therefore an upper bound, the prior's strength for what the image does not
+  say; the image may only lower it.
+
+With camera noise the rows' ``sigma`` grows and ``rho`` shrinks, so a noisy image keeps the
+default (it is not over-fitted). GCV (:mod:`~mi_bivariate.solve.gcv`) estimates the error
+level from the residual instead, and over-fits, because the model error is correlated between
+neighbouring pixels.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional, Sequence, Tuple
+
+import numpy as np
+import scipy.linalg as sla
+
+from mi_bivariate.solve.common import DEFAULT_ALPHA, penalty_weight
+from mi_bivariate.solve.data_term import DataTerm
+
+#: The log grid walked (half decades from 1e-4 to DEFAULT_ALPHA = 1e-2): the range alpha is chosen in.
+DISCREPANCY_ALPHAS = tuple(10.0 ** np.arange(-4.0, -1.99, 0.5))
+#: Regula falsi steps inside the bracketing half decade (one Cholesky factorisation each).
+REFINEMENTS = 1
+#: The data term (mean squared residual in units of the rows' sigma) alpha is raised to.
+DISCREPANCY_TARGET = 20.0
+
+
+@dataclass
+class DiscrepancyChoice:
+    """The discrepancy principle's alpha of one channel and prior."""
+    alpha: float            #: the chosen alpha
+    alphas: np.ndarray      #: (A,) the alphas evaluated, ascending
+    data_terms: np.ndarray  #: (A,) rho at each (unconstrained)
+    bounded: str            #: "" (target met inside the range), "low" (rho > target at the smallest alpha)
+    #: or "high" (rho <= target at the largest)
+
+
+def _data_term(data: DataTerm, penalty: np.ndarray, channels: Sequence[int], alpha: float,
+               extra: Optional[Tuple[np.ndarray, np.ndarray]]) -> float:
+    """The mean over ``channels`` of the unconstrained solution's data term at ``alpha``."""
+    n = data.n_nodes
+    total = 0.0
+    for k in channels:
+        g, b = data.gram[k], data.rhs[k]
+        x = g + penalty_weight(alpha, n, data.level[k]) * penalty
+        rhs = b
+        if extra is not None:
+            x[np.diag_indices(n)] += extra[0][:, k]
+            rhs = b + extra[1][:, k]
+        f = sla.cho_solve(sla.cho_factor(x, check_finite=False, overwrite_a=True), rhs, check_finite=False)
+        total += max(data.yy[k] - 2.0 * f @ b + f @ g @ f, 0.0)
+    return float(total / len(channels))
+
+
+def discrepancy_alpha(data: DataTerm, penalty: np.ndarray, channels: Sequence[int] = (0, 1, 2),
+                      target: float = DISCREPANCY_TARGET, alphas: Sequence[float] = DISCREPANCY_ALPHAS,
+                      start: float = DEFAULT_ALPHA, extra: Optional[Tuple[np.ndarray, np.ndarray]] = None
+                      ) -> DiscrepancyChoice:
+    """The largest alpha with data term ``rho(alpha) <= target``, ``rho`` the mean over ``channels``.
+
+    One alpha serves every channel: chosen per channel, a material's colour channels were
+    smoothed by alphas three decades apart and relit worse (``docs/recovery.md``).
+
+    Args:
+        data: the normal equations (rows weighted by their sigma).
+        penalty: ``(N, N)`` the prior's ``R^T R``.
+        channels: which channels' data terms are averaged.
+        target: the data term allowed (see the module's notes).
+        alphas: ascending log grid bounding the choice; the walk starts at the grid point
+            nearest ``start`` and moves one point at a time towards the target.
+        extra: ``(precision, shift)`` ``(N, 3)`` each: a fixed diagonal Gaussian term (the
+            basis prior) in the system and the right-hand side.
+    """
+    grid = np.asarray(alphas, np.float64)
+    i = int(np.argmin(np.abs(np.log(grid) - np.log(start))))
+    seen = {i: _data_term(data, penalty, channels, grid[i], extra)}
+    step = 1 if seen[i] <= target else -1
+    while 0 <= i + step < len(grid):
+        i += step
+        seen[i] = _data_term(data, penalty, channels, grid[i], extra)
+        if (seen[i] > target) == (step > 0):  # crossed the target
+            break
+    order = sorted(seen)
+    a, r = grid[order], np.array([seen[j] for j in order])
+    below = r <= target
+    if below.all():
+        return DiscrepancyChoice(float(a[-1]), a, r, "high" if order[-1] == len(grid) - 1 else "")
+    if not below.any():
+        return DiscrepancyChoice(float(a[0]), a, r, "low")
+    j = int(np.nonzero(~below)[0][0])  # first point above the target; j - 1 is below it
+    lo, hi = (np.log(a[j - 1]), np.log(max(r[j - 1], 1e-300))), (np.log(a[j]), np.log(r[j]))
+    y = np.log(target)
+
+    def secant() -> float:
+        if hi[1] <= lo[1]:
+            return lo[0]
+        return float(np.clip(lo[0] + (y - lo[1]) * (hi[0] - lo[0]) / (hi[1] - lo[1]), lo[0], hi[0]))
+
+    x = secant()
+    for _ in range(REFINEMENTS):  # regula falsi in (log alpha, log rho)
+        rho = _data_term(data, penalty, channels, float(np.exp(x)), extra)
+        a, r = np.append(a, np.exp(x)), np.append(r, rho)
+        if rho <= target:
+            lo = (x, np.log(max(rho, 1e-300)))
+        else:
+            hi = (x, np.log(rho))
+        x = secant()
+    keep = np.argsort(a)
+    return DiscrepancyChoice(float(np.exp(x)), a[keep], r[keep], "")
