@@ -41,11 +41,12 @@ Conventions (all measured against Mitsuba 3.9's ``envmap`` emitter, see
 
 from __future__ import annotations
 
+import hashlib
 import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Dict, Optional, Sequence, Tuple, Union
+from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
 
 import drjit as dr
 import mitsuba as mi
@@ -250,6 +251,7 @@ class Probe:
     to_world: np.ndarray = field(default_factory=lambda: np.eye(4))
     source: str = "<array>"
     _emitters: Dict[str, Any] = field(default_factory=dict, init=False, repr=False)
+    _digest: List[str] = field(default_factory=list, init=False, repr=False)
 
     def __post_init__(self) -> None:
         data = np.array(self.data, dtype=np.float32, copy=True)
@@ -272,9 +274,21 @@ class Probe:
                 value.setflags(write=False)
             object.__setattr__(self, key, value)
         object.__setattr__(self, "_emitters", {})
+        object.__setattr__(self, "_digest", [])
 
     def __repr__(self) -> str:
         return f"Probe({self.source!r}, {self.width}x{self.height})"
+
+    def content_digest(self) -> str:
+        """A hex digest of the radiance data, its shape and ``to_world`` (computed once: the probe is
+        immutable). Equal digests mean equal probes; caches of probe-derived values key on it."""
+        if not self._digest:
+            h = hashlib.sha256()  # SHA-NI: ~3 ms for a 1k probe
+            h.update(repr(self.data.shape).encode())
+            h.update(np.ascontiguousarray(self.data).data)
+            h.update(np.ascontiguousarray(self.to_world, dtype=np.float64).data)
+            self._digest.append(h.hexdigest())
+        return self._digest[0]
 
     @property
     def height(self) -> int:
@@ -390,14 +404,21 @@ class Probe:
             raise ValueError(f"factor {factor} must be >= 1 and divide the width {self.width}")
         if factor == 1:
             return self
-        cols = self.data.astype(np.float64).reshape(self.height, self.width // factor, factor, 3).mean(axis=2)
+        # Column blocks summed in order and divided (what ``mean(axis=2)`` of the reshaped
+        # array computes, bit for bit, without its strided reduction: ~4x faster at 1k).
+        cols = self.data[:, 0::factor].astype(np.float64)
+        for i in range(1, factor):
+            cols += self.data[:, i::factor]
+        cols /= factor
         new_h = max(3, -(-self.height // factor))
         lo, hi = _row_band_edges(self.height)
         new_lo, new_hi = _row_band_edges(new_h)
         a = np.maximum(new_lo[:, None], lo[None, :])
         b = np.minimum(new_hi[:, None], hi[None, :])
         overlap = np.where(b > a, np.cos(a) - np.cos(b), 0.0)  # (new_h, H) sin-weighted measure
-        rows = np.einsum("kj,jwc->kwc", overlap, cols) / overlap.sum(axis=1)[:, None, None]
+        # One BLAS product over the rows (an einsum here was 4x slower).
+        rows = (overlap @ cols.reshape(self.height, -1)).reshape(new_h, -1, 3)
+        rows /= overlap.sum(axis=1)[:, None, None]
         return Probe(rows.astype(np.float32), self.to_world, self.source)
 
     # ------------------------------------------------------------- quadrature
