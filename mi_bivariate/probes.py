@@ -461,16 +461,18 @@ class Probe:
             self._emitters[variant] = mi.load_dict(self.emitter_dict())
         return self._emitters[variant]
 
-    def eval_dr(self, directions: Any) -> Any:
+    def eval_dr(self, directions: Any, active: Any = True) -> Any:
         """Radiance towards unit world ``directions`` (``mi.Vector3f``) as ``mi.Color3f``.
 
         Calls the envmap emitter's own ``eval`` (which looks up ``-si.wi``), so
-        the values are bit-identical to what a render sees.
+        the values are bit-identical to what a render sees. Lanes where
+        ``active`` (``mi.Bool``) is false return 0 without reading the map
+        (masked gathers: the lighting kernels skip directions below the horizon).
         """
         emitter = self.emitter()
         si = dr.zeros(mi.SurfaceInteraction3f)
         si.wi = -directions
-        return emitter.eval(si)
+        return emitter.eval(si, active)
 
     def eval(self, directions: np.ndarray) -> np.ndarray:
         """Radiance towards world ``directions`` ``(N, 3)`` (normalised here): ``(N, 3) float32``."""

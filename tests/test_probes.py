@@ -208,6 +208,12 @@ def test_eval_matches_numpy_reference_of_envmap():
 
     dr_out = np.array(rotated.eval_dr(mi.Vector3f(d.T.astype(np.float32)))).T
     np.testing.assert_array_equal(dr_out, rotated.eval(d))
+    # Masked lookups (the lighting kernels skip directions below the horizon): 0 where inactive,
+    # the same bits where active.
+    active = d[:, 1] > 0.2
+    masked = np.array(rotated.eval_dr(mi.Vector3f(d.T.astype(np.float32)), mi.Bool(active))).T
+    np.testing.assert_array_equal(masked[active], dr_out[active])
+    assert np.all(masked[~active] == 0.0) and np.all(dr_out[~active] > 0.0)
 
 
 def test_bright_texel_lights_expected_world_direction():
