@@ -67,6 +67,7 @@ from mi_bivariate.capture import hemisphere_lattice
 from mi_bivariate.common import LUMINANCE_WEIGHTS, luminance
 from mi_bivariate.coordinates import ST_REGIONS
 from mi_bivariate.errors import InputError, InputWarning
+from mi_bivariate.lighting import gram as gram_mod
 from mi_bivariate.threads import blas_threads
 
 #: Singular values below this fraction of the largest do not count towards the rank.
@@ -103,21 +104,15 @@ def _gram(lum: np.ndarray) -> np.ndarray:
     return blas.dsyrk(1.0, np.asarray(lum, np.float64).T, trans=0, lower=0)
 
 
-#: Rows of L per block of :func:`_luminance_statistics` (a block of 512 rows x 1024 nodes x RGB
-#: float32 is 6 MB; its compacted float64 luminance about 1.7 MB).
-BLOCK_ROWS = 512
-
-
-def _luminance_statistics(L: np.ndarray, block_rows: int = BLOCK_ROWS) -> Tuple[np.ndarray, np.ndarray]:
+def _luminance_statistics(L: np.ndarray, block_rows: int = gram_mod.BLOCK_ROWS) -> Tuple[np.ndarray, np.ndarray]:
     """The luminance Gram matrix and the observation shares of L in one pass over its rows.
 
     Equal to ``(_gram(lum), sum_m lum[m] / sum(lum[m]))`` of ``lum = _luminance(L)`` up to
     the order of float64 summation (~1e-16 relative), without the ``(M, N) float64`` copy.
     Blocks of ``block_rows`` rows; each block's luminance, Gram update and shares are
-    computed on the columns it touches only: a sphere pixel's light directions reach a
-    small part of the st domain (at normal view a single curve, theta_h = theta_d), so
-    neighbouring rows (the observations' pixel order) leave most columns exactly zero.
-    Measured on the benchmark sphere (6564 x 1024, grace): 15% of the dense Gram's flops.
+    computed on the columns it touches only (:mod:`mi_bivariate.lighting.gram`: a block
+    of neighbouring pixels reaches a small part of the st domain; 15% of the dense
+    Gram's flops on the benchmark sphere).
 
     Args:
         L: ``(M, N, 3)`` (RGB, luminance by :data:`LUMINANCE_WEIGHTS`) or ``(M, N)``.
@@ -131,20 +126,18 @@ def _luminance_statistics(L: np.ndarray, block_rows: int = BLOCK_ROWS) -> Tuple[
         raise InputError(None, f"lighting matrix must be (M, N, 3) or (M, N), got shape {L.shape}")
     m, n = L.shape[:2]
     gram = np.zeros((n, n))
-    flat = gram.reshape(-1)
     shares = np.zeros(n)
-    for start in range(0, m, max(1, int(block_rows))):
-        block = L[start:start + block_rows]
-        touched = block.reshape(len(block), -1).any(axis=0)
-        cols = np.flatnonzero(touched.reshape(n, -1).any(axis=1) if L.ndim == 3 else touched)
+    step = max(1, int(block_rows))
+    for start in range(0, m, step):
+        block = L[start:start + step]
+        cols = gram_mod.touched_columns(block)
         if not len(cols):
             continue
         lum = _luminance(np.take(block, cols, axis=1))
         totals = lum.sum(axis=1)
         inv = np.divide(1.0, totals, out=np.zeros_like(totals), where=totals > 0)
         shares[cols] += inv @ lum
-        # cols ascend, so the block's upper triangle lands in the upper triangle.
-        flat[(cols[:, None] * n + cols).reshape(-1)] += _gram(lum).reshape(-1)
+        gram_mod.add_block_gram(gram, cols, lum)
     return gram, shares
 
 

@@ -353,3 +353,24 @@ def test_mis_masked_lookups_change_no_bit():
         dr.set_thread_count(threads)
     assert np.any(got > 0)
     np.testing.assert_array_equal(got, expected)
+
+
+def test_weighted_gram_by_row_blocks_matches_dense_product():
+    """lighting.gram.weighted_gram (blocks of rows, touched columns only) equals A^T A and A^T y."""
+    from mi_bivariate.lighting import gram
+
+    rng = np.random.default_rng(12)
+    m, n = 301, 50
+    L = rng.random((m, n, 3)).astype(np.float32)
+    L *= (np.abs(np.arange(n)[None, :] - np.linspace(0, n, m)[:, None]) < 9)[:, :, None]
+    L[100:140] = 0.0  # a block with no signal
+    w, y = rng.random(m) + 0.5, rng.random(m)
+    channel = L[:, :, 1]  # a strided view, as the solve passes it
+    a = channel.astype(np.float64) * w[:, None]
+    for block_rows in (1, 16, 128, 10_000):
+        g, rhs = gram.weighted_gram(channel, w, y, block_rows=block_rows)
+        np.testing.assert_allclose(g, a.T @ a, rtol=1e-13, atol=1e-13 * np.abs(a.T @ a).max())
+        np.testing.assert_array_equal(g, g.T)
+        np.testing.assert_allclose(rhs, a.T @ y, rtol=1e-13, atol=1e-13)
+    assert gram.weighted_gram(channel, w)[1] is None
+    np.testing.assert_array_equal(gram.touched_columns(L[100:140]), [])
