@@ -140,6 +140,8 @@ def read_hdr_image(path: PathLike) -> Tuple[np.ndarray, Optional[np.ndarray]]:
 def check_radiance(data: np.ndarray, source: Any) -> None:
     """Raise :class:`InputError` naming ``source`` if ``data`` (..., 3) has NaN,
     infinite or negative values (counted per pixel)."""
+    if np.isfinite(data).all() and not (data < 0).any():  # the common case in two flat passes (~2 ms at 1k)
+        return
     nan = np.isnan(data).any(axis=-1)
     inf = np.isinf(data).any(axis=-1)
     neg = (data < 0).any(axis=-1)
