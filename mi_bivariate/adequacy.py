@@ -68,7 +68,7 @@ from mi_bivariate.common import LUMINANCE_WEIGHTS, luminance
 from mi_bivariate.coordinates import ST_REGIONS
 from mi_bivariate.errors import InputError, InputWarning
 from mi_bivariate.lighting import gram as gram_mod
-from mi_bivariate.threads import blas_threads
+from mi_bivariate.threads import blas_threads, with_blas_threads
 
 #: Singular values below this fraction of the largest do not count towards the rank.
 RANK_TOL = 1e-3
@@ -270,6 +270,7 @@ def environment_detail(probe: Any, scale_deg: float = DETAIL_SCALE_DEG, n_points
     return value
 
 
+@with_blas_threads  # its row re-binning is a BLAS product: no oversubscription on a shared machine
 def _environment_detail(probe: Any, scale_deg: float, n_points: int) -> float:
     """Share of a probe's log-luminance variation at angular scales below ``scale_deg`` (uncached).
 
