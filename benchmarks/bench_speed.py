@@ -7,12 +7,18 @@ One table, every row with its peer measured in the same process run:
   material without the shared data) under grace_latlong_1k, defaults, automatic sphere fit;
 - the report: in-process time of :func:`mi_bivariate.report.write_recovery_report` (default:
   ``L f`` prediction) against the path-traced re-render (``--report-render``);
-- the lighting matrix (M ~ 6500 rows of 8000 normals, K = 32000, 32 x 32), both samplings:
+- where one ``recover --no-report`` process spends its time: the stages ``recover()`` times
+  itself (its printed ``timings``), the imports (``import mi_bivariate.commands``, the pipeline the
+  CLI loads, in a fresh process) and the rest (interpreter start, variant, reading the files, the
+  sphere fit, writing the table) as wall time minus those, medians of the same 3 processes;
+- the lighting matrix (M ~ 6500 rows of 8000 normals, K = lighting.DEFAULT_DIRS, 32 x 32), both samplings:
   ``"uniform"`` (the paper's mirrored lattice) against the numpy reference of
   ``tests/reference_lighting.py`` (the same quadrature, timed on a subset of rows and
   extrapolated, with the largest difference), and the default ``"mis"`` against the same
   reference (a different quadrature of the same integral: its time only);
-- the normal equations (3 channels) and the solve as ``recover`` runs it (two stages with the
+- the normal equations (3 channels, ``solve.prepare_data_term``) against the same Gram matrices
+  and right-hand sides by row blocks over the columns they touch (:func:`lighting.gram.weighted_gram`);
+- the solve as ``recover`` runs it (two stages with the
   basis prior, 2 prior variants x 3 channels each, confidence of the kept table) against
   solver v2 (``tests/reference_solve.py``, the code before issue 10, on the same normal
   equations: the largest table difference is printed) and against ``scipy.optimize.nnls`` on
@@ -25,7 +31,10 @@ The scaling table (M, K, grid, images) is ``benchmarks/bench_scaling.py``.
 
     MI_BIVARIATE_DATA=/work/shared/data python benchmarks/bench_speed.py
 
-On a shared machine: medians and ratios, with the load average printed.
+On a shared machine: medians and ratios, with the load average printed. The package's
+bytecode is compiled first (``compileall``): with ``PYTHONDONTWRITEBYTECODE`` set, as in some
+agent shells, every fresh process would otherwise compile ~60 modules from source (~0.16 s),
+which an installed package never does.
 """
 
 from __future__ import annotations
@@ -126,8 +135,24 @@ def import_time(repeats: int = 5) -> Tuple[float, float]:
     return statistics.median(cum), statistics.median(bare)
 
 
-def end_to_end(shot, probe, tmp: str, repeats: int = 3) -> Tuple[float, float, List[float]]:
-    """``recover --no-report`` wall times in fresh processes: (median, min, all)."""
+def compile_bytecode() -> None:
+    """Write the package's ``.pyc`` files as an install would (``PYTHONDONTWRITEBYTECODE`` may be set)."""
+    subprocess.run([sys.executable, "-m", "compileall", "-q", str(ROOT / "mi_bivariate"), str(ROOT / "plugins")],
+                   check=True, capture_output=True)
+
+
+def _stage_timings(stdout: str) -> Dict[str, float]:
+    """``recover()``'s own stage timings from the CLI's summary line ``timings: name x s, ...``."""
+    line = [ln for ln in stdout.splitlines() if ln.startswith("timings:")][-1]
+    out = {}
+    for item in line[len("timings:"):].split(","):
+        name, value, _ = item.strip().rsplit(" ", 2)
+        out[name] = float(value)
+    return out
+
+
+def end_to_end(shot, probe, tmp: str, repeats: int = 3) -> Tuple[float, float, List[float], Dict[str, float]]:
+    """``recover --no-report`` wall times in fresh processes: (median, CPU median, all, median stage timings)."""
     from mi_bivariate.images import write_exr
 
     image, probe_file = f"{tmp}/sphere.exr", f"{tmp}/probe.exr"
@@ -135,8 +160,20 @@ def end_to_end(shot, probe, tmp: str, repeats: int = 3) -> Tuple[float, float, L
     probe.save_exr(probe_file)
     cmd = [sys.executable, "-m", "mi_bivariate.cli", "recover", image, "--probe", probe_file,
            "--out", f"{tmp}/out.npz", "--no-report"]
-    walls = [timed(lambda: subprocess.run(cmd, check=True, capture_output=True))[0] for _ in range(repeats)]
-    return statistics.median(walls), cpu_median(repeats), walls
+    walls, stages = [], []
+    for _ in range(repeats):
+        wall, run = timed(lambda: subprocess.run(cmd, check=True, capture_output=True, text=True))
+        walls.append(wall)
+        stages.append(_stage_timings(run.stdout))
+    median_stages = {k: statistics.median(s[k] for s in stages) for k in stages[0]}
+    return statistics.median(walls), cpu_median(repeats), walls, median_stages
+
+
+def pipeline_import_time(repeats: int = 3) -> float:
+    """``import mi_bivariate.commands`` (what ``mi-bivariate recover`` loads) in fresh processes, median."""
+    code = "import time; t = time.perf_counter(); import mi_bivariate.commands; print(time.perf_counter() - t)"
+    return statistics.median(float(subprocess.run([sys.executable, "-c", code], check=True, capture_output=True,
+                                                  text=True).stdout) for _ in range(repeats))
 
 
 def lighting_peer(obs, probe, rows: int) -> Dict[str, float]:
@@ -151,7 +188,7 @@ def lighting_peer(obs, probe, rows: int) -> Dict[str, float]:
         out[sampling], out[f"{sampling}_cpu"], out[f"L_{sampling}"] = t, cpu_median(3), L
     m = len(obs.normals)
     idx = np.linspace(0, m - 1, rows).astype(int)
-    t_ref, ref = timed(lambda: lighting_matrix_reference(obs, probe, rows=idx))
+    t_ref, ref = timed(lambda: lighting_matrix_reference(obs, probe, n_dirs=lighting.DEFAULT_DIRS, rows=idx))
     out.update(reference=t_ref * m / rows, rows=rows,
                agreement=float(np.abs(out["L_uniform"][idx] - ref).max() / np.abs(ref).max()))
     return out
@@ -180,16 +217,28 @@ def solve_peer(L: np.ndarray, values: np.ndarray) -> Dict[str, float]:
         second.measured  # the confidence recover() saves with the table
         return first, second
 
+    from mi_bivariate.lighting.gram import weighted_gram
+
+    def blocked_data_term():
+        sigma = solve_mod.row_sigma(values)
+        m = len(values)
+        return [weighted_gram(L[:, :, k], 1.0 / (sigma[:, k] * np.sqrt(m)),
+                              values[:, k].astype(np.float64) / (sigma[:, k] * np.sqrt(m))) for k in range(3)]
+
     with blas_threads():
         t_data, data = median_time(lambda: solve_mod.prepare_data_term(L, values))
         cpu_data = cpu_median(3)
+        t_blocked, blocked = median_time(blocked_data_term)
+        blocked_difference = max(float(np.abs(g - data.gram[k]).max() / np.abs(data.gram[k]).max())
+                                 for k, (g, _) in enumerate(blocked))
         t_solve, (first, result) = median_time(lambda: two_stage(solve_mod, data))
         cpu = cpu_median(3)
         data_v2 = v2.prepare_data_term(L, values)
         t_v2, (_, result_v2) = timed(lambda: two_stage(v2, data_v2))
     t_default, _ = timed(lambda: two_stage(solve_mod, data))  # the libraries' own BLAS threads
     stages = 2 if basis is not None else 1
-    out = {"data": t_data, "data_cpu": cpu_data, "time": t_solve, "cpu": cpu, "v2": t_v2,
+    out = {"data": t_data, "data_cpu": cpu_data, "data_blocked": t_blocked, "data_blocked_difference": blocked_difference,
+           "time": t_solve, "cpu": cpu, "v2": t_v2,
            "v2_difference": float(np.abs(result.table - result_v2.table).max() / np.abs(result_v2.table).max()),
            "default_threads": t_default, "nnls": math.nan, "nnls_measured": math.nan, "nnls_share": math.nan,
            "difference": math.nan}
@@ -222,7 +271,8 @@ def adequacy_peer(L: np.ndarray, probe) -> Dict[str, float]:
 
     t, report = median_time(lambda: adequacy.analyse(L, probes=[probe], warn=False))
     cpu = cpu_median(3)
-    t_detail, _ = median_time(lambda: adequacy.environment_detail(probe))
+    # Uncached (environment_detail caches by probe content; recover's first call per probe pays this).
+    t_detail, _ = median_time(lambda: adequacy._environment_detail(probe, adequacy.DETAIL_SCALE_DEG, 40000))
 
     def svd_route():
         lum = L.astype(np.float64) @ np.array([0.212671, 0.715160, 0.072169])
@@ -248,6 +298,7 @@ def report_peer(result, tmp: str) -> Dict[str, float]:
 def peers(args: argparse.Namespace) -> None:
     import drjit as dr
 
+    from mi_bivariate import lighting
     from mi_bivariate.recover import recover
     from mi_bivariate.threads import blas_threads, configured_threads
     from mi_bivariate.variants import ensure_variant
@@ -257,14 +308,16 @@ def peers(args: argparse.Namespace) -> None:
     print(f"Variant {variant}, Dr.Jit threads {dr.thread_count()}, BLAS threads in heavy stages "
           f"{configured_threads() or 'library default'}.\n")
     _, probe, shot = load_inputs()
+    compile_bytecode()
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         t_imp, t_bare = import_time()
         rows.append(("`import mi_bivariate.cli`", t_imp, math.nan, "bare `python -c pass`", t_bare, "<= 0.3 s",
                      "python -X importtime, median of 5"))
-        med, cpu, walls = end_to_end(shot, probe, tmp)
+        med, cpu, walls, stages = end_to_end(shot, probe, tmp)
         rows.append(("`recover --no-report`, end to end", med, cpu, "(fastest of 3)", min(walls), "<= 2.0 s",
                      "fresh processes: " + ", ".join(f"{w:.2f}" for w in walls)))
+        t_pipeline = pipeline_import_time()
         with blas_threads():  # as the CLI does
             result = recover(shot.image, probe, shot.geometry)
         rep = report_peer(result, tmp)
@@ -273,7 +326,8 @@ def peers(args: argparse.Namespace) -> None:
         obs = result.observations
         lit = lighting_peer(obs, probe, args.rows)
         m = len(obs.normals)
-        rows.append((f"lighting matrix, uniform (M {m}, K 32000, 32 x 32)", lit["uniform"], lit["uniform_cpu"],
+        rows.append((f"lighting matrix, uniform (M {m}, K {lighting.DEFAULT_DIRS}, 32 x 32)", lit["uniform"],
+                     lit["uniform_cpu"],
                      "numpy reference (same quadrature)", lit["reference"], "<= 0.8 s, >= 80x",
                      f"reference on {lit['rows']} rows, extrapolated; max diff {lit['agreement']:.1e} of the "
                      "largest entry"))
@@ -282,8 +336,10 @@ def peers(args: argparse.Namespace) -> None:
                      "3 strategies, balance heuristic: ~2x the work per direction of the uniform lattice"))
         L = lit["L_mis"]
         sol = solve_peer(L, obs.values)
-        rows.append(("normal equations (3 channels, float64 syrk)", sol["data"], sol["data_cpu"], "-", math.nan,
-                     "-", "M N^2 per channel: the BLAS floor of the solve"))
+        rows.append(("normal equations (3 channels, `solve.prepare_data_term`)", sol["data"], sol["data_cpu"],
+                     "by row blocks, touched columns (`lighting.gram.weighted_gram`)", sol["data_blocked"], "-",
+                     f"same Gram matrices to {sol['data_blocked_difference']:.1e} of the largest entry; "
+                     "not wired into the solve"))
         rows.append(("solve as recover runs it (2 stages x 2 variants x 3 channels, confidence)", sol["time"],
                      sol["cpu"], "solver v2 (before issue 10), same normal equations", sol["v2"], "<= 0.3 s",
                      f"max table difference to v2 {sol['v2_difference']:.1e} of the largest entry"))
@@ -295,9 +351,10 @@ def peers(args: argparse.Namespace) -> None:
         rows.append(("solve, BLAS 1 thread", sol["time"], sol["cpu"], "same, default BLAS threads",
                      sol["default_threads"], "-", "oversubscription check (one run)"))
         adq = adequacy_peer(L, probe)
-        rows.append(("adequacy (Gram + eigenvalues, coverage, detail)", adq["time"], adq["cpu"], "SVD of M x N (spectrum only)",
-                     adq["svd"], "<= 0.15 s", f"detail test alone {adq['detail']:.3f} s; "
-                                              f"max spectrum diff {adq['difference']:.1e}"))
+        rows.append(("adequacy (Gram + eigenvalues, coverage, detail cached)", adq["time"], adq["cpu"],
+                     "SVD of M x N (spectrum only)", adq["svd"], "<= 0.15 s",
+                     f"detail test uncached (once per probe) {adq['detail']:.3f} s; "
+                     f"max spectrum diff {adq['difference']:.1e}"))
     print("| stage | ours, wall (s) | ours, CPU (s) | peer | peer, wall (s) | ratio (wall) | target | notes |")
     print("| --- | ---: | ---: | --- | ---: | ---: | --- | --- |")
     for name, ours, cpu, peer, theirs, target, note in rows:
@@ -307,6 +364,12 @@ def peers(args: argparse.Namespace) -> None:
           "children (median), which a loaded machine inflates far less than wall time.")
     print("\nStage timings of the in-process recovery: "
           + ", ".join(f"{k} {v:.3f} s" for k, v in result.timings.items()))
+    inside = sum(stages.values())
+    print(f"\nWhere one `recover --no-report` process spends its {med:.2f} s (medians of the 3 fresh processes): "
+          + ", ".join(f"{k} {v:.2f} s" for k, v in stages.items())
+          + f"; imports of the pipeline (`import mi_bivariate.commands`, fresh process) {t_pipeline:.2f} s; "
+          f"the rest (interpreter start, variant, reading the files, sphere fit, priors, writing) "
+          f"{max(0.0, med - inside - t_pipeline):.2f} s.")
 
 
 def main() -> None:

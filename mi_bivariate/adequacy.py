@@ -55,9 +55,11 @@ from __future__ import annotations
 
 import math
 import warnings
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
+import mitsuba as mi
 import numpy as np
 from scipy.linalg import blas, eigvalsh
 
@@ -65,7 +67,8 @@ from mi_bivariate.capture import hemisphere_lattice
 from mi_bivariate.common import LUMINANCE_WEIGHTS, luminance
 from mi_bivariate.coordinates import ST_REGIONS
 from mi_bivariate.errors import InputError, InputWarning
-from mi_bivariate.threads import blas_threads
+from mi_bivariate.lighting import gram as gram_mod
+from mi_bivariate.threads import blas_threads, with_blas_threads
 
 #: Singular values below this fraction of the largest do not count towards the rank.
 RANK_TOL = 1e-3
@@ -101,6 +104,43 @@ def _gram(lum: np.ndarray) -> np.ndarray:
     return blas.dsyrk(1.0, np.asarray(lum, np.float64).T, trans=0, lower=0)
 
 
+def _luminance_statistics(L: np.ndarray, block_rows: int = gram_mod.BLOCK_ROWS) -> Tuple[np.ndarray, np.ndarray]:
+    """The luminance Gram matrix and the observation shares of L in one pass over its rows.
+
+    Equal to ``(_gram(lum), sum_m lum[m] / sum(lum[m]))`` of ``lum = _luminance(L)`` up to
+    the order of float64 summation (~1e-16 relative), without the ``(M, N) float64`` copy.
+    Blocks of ``block_rows`` rows; each block's luminance, Gram update and shares are
+    computed on the columns it touches only (:mod:`mi_bivariate.lighting.gram`: a block
+    of neighbouring pixels reaches a small part of the st domain; 15% of the dense
+    Gram's flops on the benchmark sphere).
+
+    Args:
+        L: ``(M, N, 3)`` (RGB, luminance by :data:`LUMINANCE_WEIGHTS`) or ``(M, N)``.
+
+    Returns:
+        ``(gram, shares)``: ``(N, N) float64`` with its upper triangle filled (the lower
+        is zero) and ``(N,) float64``, the :func:`observation_map` before reshaping.
+    """
+    L = np.asarray(L)
+    if not (L.ndim == 2 or (L.ndim == 3 and L.shape[2] == 3)):
+        raise InputError(None, f"lighting matrix must be (M, N, 3) or (M, N), got shape {L.shape}")
+    m, n = L.shape[:2]
+    gram = np.zeros((n, n))
+    shares = np.zeros(n)
+    step = max(1, int(block_rows))
+    for start in range(0, m, step):
+        block = L[start:start + step]
+        cols = gram_mod.touched_columns(block)
+        if not len(cols):
+            continue
+        lum = _luminance(np.take(block, cols, axis=1))
+        totals = lum.sum(axis=1)
+        inv = np.divide(1.0, totals, out=np.zeros_like(totals), where=totals > 0)
+        shares[cols] += inv @ lum
+        gram_mod.add_block_gram(gram, cols, lum)
+    return gram, shares
+
+
 def _spectrum_from_gram(gram: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
     """:func:`singular_spectrum` from the upper triangle of the luminance Gram matrix."""
     norms = np.sqrt(np.clip(np.diag(gram), 0.0, None))
@@ -117,15 +157,6 @@ def _spectrum_from_gram(gram: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
     return sigma / sigma[0], observed
 
 
-def _observation_map(lum: np.ndarray, n_t: int, n_s: int) -> np.ndarray:
-    if lum.shape[1] != n_t * n_s:
-        raise InputError(None, f"lighting matrix has {lum.shape[1]} columns, expected {n_t}x{n_s}")
-    totals = lum.sum(axis=1)
-    inv = np.divide(1.0, totals, out=np.zeros_like(totals), where=totals > 0)
-    # sum_m lum[m, n] / totals[m]: one matrix-vector product, no (M, N) share array.
-    return (inv @ lum).reshape(n_t, n_s)
-
-
 def singular_spectrum(L: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
     """Relative singular values of the column-normalised (luminance) L.
 
@@ -136,7 +167,7 @@ def singular_spectrum(L: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
         ``(sigma, observed)``: descending ``sigma / sigma_max`` over the observed
         columns, and the ``(N,) bool`` mask of observed columns (non-zero).
     """
-    return _spectrum_from_gram(_gram(_luminance(L)))
+    return _spectrum_from_gram(_luminance_statistics(L)[0])
 
 
 def observation_map(L: np.ndarray, n_t: int, n_s: int) -> np.ndarray:
@@ -147,7 +178,9 @@ def observation_map(L: np.ndarray, n_t: int, n_s: int) -> np.ndarray:
     over rows, a node's value is how many pixels' worth of signal constrain it.
     The map sums to M.
     """
-    return _observation_map(_luminance(L), n_t, n_s)
+    if np.ndim(L) >= 2 and np.shape(L)[1] != n_t * n_s:
+        raise InputError(None, f"lighting matrix has {np.shape(L)[1]} columns, expected {n_t}x{n_s}")
+    return _luminance_statistics(L)[1].reshape(n_t, n_s)
 
 
 #: A node is *observed* when at least this many rows (Kish effective number, share-weighted) see it ...
@@ -209,8 +242,37 @@ def region_masks(n_t: int, n_s: int) -> Dict[str, np.ndarray]:
     return {name: (angles[axis] >= lo) & (angles[axis] <= hi) for name, (axis, lo, hi) in REGIONS.items()}
 
 
+#: Most recent :func:`environment_detail` values kept, by probe content (:meth:`Probe.content_digest`).
+DETAIL_CACHE_SIZE = 16
+_DETAIL_CACHE: "OrderedDict[Tuple[str, str, float, int], float]" = OrderedDict()
+
+
 def environment_detail(probe: Any, scale_deg: float = DETAIL_SCALE_DEG, n_points: int = 40000) -> float:
     """Share of a probe's log-luminance variation at angular scales below ``scale_deg``.
+
+    The value depends on the probe alone (not on the image), so it is cached by the
+    probe's content (:meth:`Probe.content_digest`: data and rotation), the arguments
+    and the Mitsuba variant: a recovery sweep over images, priors or settings under one
+    probe computes it once (~20-60 ms at 1k). See :func:`_environment_detail`.
+    """
+    digest = getattr(probe, "content_digest", None)
+    if digest is None:  # not a Probe: nothing to key on
+        return _environment_detail(probe, scale_deg, n_points)
+    key = (digest(), str(mi.variant()), float(scale_deg), int(n_points))
+    value = _DETAIL_CACHE.get(key)
+    if value is None:
+        value = _environment_detail(probe, scale_deg, n_points)
+        _DETAIL_CACHE[key] = value
+        while len(_DETAIL_CACHE) > DETAIL_CACHE_SIZE:
+            _DETAIL_CACHE.popitem(last=False)
+    else:
+        _DETAIL_CACHE.move_to_end(key)
+    return value
+
+
+@with_blas_threads  # its row re-binning is a BLAS product: no oversubscription on a shared machine
+def _environment_detail(probe: Any, scale_deg: float, n_points: int) -> float:
+    """Share of a probe's log-luminance variation at angular scales below ``scale_deg`` (uncached).
 
     The probe (first brought to texels of about ``scale_deg / 2``) is compared
     with itself box-filtered to texels of about ``scale_deg``
@@ -315,11 +377,15 @@ def analyse(L: np.ndarray, n_t: int = 32, n_s: int = 32, probes: Optional[Sequen
             best probe counts, since its rows constrain the specular region).
         warn: issue an :class:`InputWarning` when inadequate.
     """
+    if np.ndim(L) >= 2 and np.shape(L)[1] != n_t * n_s:
+        raise InputError(None, f"lighting matrix has {np.shape(L)[1]} columns, expected {n_t}x{n_s}")
     with blas_threads():
-        lum = _luminance(L)  # one pass over L for both the spectrum and the coverage
-        omap = _observation_map(lum, n_t, n_s)
-        sigma, observed = _spectrum_from_gram(_gram(lum))
-        del lum
+        gram, shares = _luminance_statistics(L)  # one pass over L for both the spectrum and the coverage
+        omap = shares.reshape(n_t, n_s)
+        sigma, observed = _spectrum_from_gram(gram)
+        del gram
+        detail = None if probes is None else [environment_detail(p) for p in
+                                              (list(probes) if isinstance(probes, (list, tuple)) else [probes])]
     if len(sigma):
         p = sigma / sigma.sum()
         p = p[p > 0]
@@ -343,9 +409,8 @@ def analyse(L: np.ndarray, n_t: int = 32, n_s: int = 32, probes: Optional[Sequen
     if rank < min_rank_fraction * n_t * n_s:
         report.reasons.append(f"the lighting matrix has numerical rank {rank} of {n_t * n_s} nodes "
                               f"(below {min_rank_fraction:.0%}): too little variety in the lighting")
-    if probes is not None:
-        plist = list(probes) if isinstance(probes, (list, tuple)) else [probes]
-        report.detail = [environment_detail(p) for p in plist]
+    if detail is not None:
+        report.detail = detail
         if max(report.detail) < min_detail:
             report.reasons.append(f"the environment has almost no detail finer than {DETAIL_SCALE_DEG:g} degrees "
                                   f"(detail {max(report.detail):.3f} < {min_detail:g}): sharp specular "

@@ -41,11 +41,12 @@ Conventions (all measured against Mitsuba 3.9's ``envmap`` emitter, see
 
 from __future__ import annotations
 
+import hashlib
 import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Dict, Optional, Sequence, Tuple, Union
+from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
 
 import drjit as dr
 import mitsuba as mi
@@ -139,6 +140,8 @@ def read_hdr_image(path: PathLike) -> Tuple[np.ndarray, Optional[np.ndarray]]:
 def check_radiance(data: np.ndarray, source: Any) -> None:
     """Raise :class:`InputError` naming ``source`` if ``data`` (..., 3) has NaN,
     infinite or negative values (counted per pixel)."""
+    if np.isfinite(data).all() and not (data < 0).any():  # the common case in two flat passes (~2 ms at 1k)
+        return
     nan = np.isnan(data).any(axis=-1)
     inf = np.isinf(data).any(axis=-1)
     neg = (data < 0).any(axis=-1)
@@ -250,6 +253,7 @@ class Probe:
     to_world: np.ndarray = field(default_factory=lambda: np.eye(4))
     source: str = "<array>"
     _emitters: Dict[str, Any] = field(default_factory=dict, init=False, repr=False)
+    _digest: List[str] = field(default_factory=list, init=False, repr=False)
 
     def __post_init__(self) -> None:
         data = np.array(self.data, dtype=np.float32, copy=True)
@@ -272,9 +276,21 @@ class Probe:
                 value.setflags(write=False)
             object.__setattr__(self, key, value)
         object.__setattr__(self, "_emitters", {})
+        object.__setattr__(self, "_digest", [])
 
     def __repr__(self) -> str:
         return f"Probe({self.source!r}, {self.width}x{self.height})"
+
+    def content_digest(self) -> str:
+        """A hex digest of the radiance data, its shape and ``to_world`` (computed once: the probe is
+        immutable). Equal digests mean equal probes; caches of probe-derived values key on it."""
+        if not self._digest:
+            h = hashlib.sha256()  # SHA-NI: ~3 ms for a 1k probe
+            h.update(repr(self.data.shape).encode())
+            h.update(np.ascontiguousarray(self.data).data)
+            h.update(np.ascontiguousarray(self.to_world, dtype=np.float64).data)
+            self._digest.append(h.hexdigest())
+        return self._digest[0]
 
     @property
     def height(self) -> int:
@@ -390,14 +406,21 @@ class Probe:
             raise ValueError(f"factor {factor} must be >= 1 and divide the width {self.width}")
         if factor == 1:
             return self
-        cols = self.data.astype(np.float64).reshape(self.height, self.width // factor, factor, 3).mean(axis=2)
+        # Column blocks summed in order and divided (what ``mean(axis=2)`` of the reshaped
+        # array computes, bit for bit, without its strided reduction: ~4x faster at 1k).
+        cols = self.data[:, 0::factor].astype(np.float64)
+        for i in range(1, factor):
+            cols += self.data[:, i::factor]
+        cols /= factor
         new_h = max(3, -(-self.height // factor))
         lo, hi = _row_band_edges(self.height)
         new_lo, new_hi = _row_band_edges(new_h)
         a = np.maximum(new_lo[:, None], lo[None, :])
         b = np.minimum(new_hi[:, None], hi[None, :])
         overlap = np.where(b > a, np.cos(a) - np.cos(b), 0.0)  # (new_h, H) sin-weighted measure
-        rows = np.einsum("kj,jwc->kwc", overlap, cols) / overlap.sum(axis=1)[:, None, None]
+        # One BLAS product over the rows (an einsum here was 4x slower).
+        rows = (overlap @ cols.reshape(self.height, -1)).reshape(new_h, -1, 3)
+        rows /= overlap.sum(axis=1)[:, None, None]
         return Probe(rows.astype(np.float32), self.to_world, self.source)
 
     # ------------------------------------------------------------- quadrature
@@ -440,16 +463,18 @@ class Probe:
             self._emitters[variant] = mi.load_dict(self.emitter_dict())
         return self._emitters[variant]
 
-    def eval_dr(self, directions: Any) -> Any:
+    def eval_dr(self, directions: Any, active: Any = True) -> Any:
         """Radiance towards unit world ``directions`` (``mi.Vector3f``) as ``mi.Color3f``.
 
         Calls the envmap emitter's own ``eval`` (which looks up ``-si.wi``), so
-        the values are bit-identical to what a render sees.
+        the values are bit-identical to what a render sees. Lanes where
+        ``active`` (``mi.Bool``) is false return 0 without reading the map
+        (masked gathers: the lighting kernels skip directions below the horizon).
         """
         emitter = self.emitter()
         si = dr.zeros(mi.SurfaceInteraction3f)
         si.wi = -directions
-        return emitter.eval(si)
+        return emitter.eval(si, active)
 
     def eval(self, directions: np.ndarray) -> np.ndarray:
         """Radiance towards world ``directions`` ``(N, 3)`` (normalised here): ``(N, 3) float32``."""

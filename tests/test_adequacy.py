@@ -105,3 +105,53 @@ def test_gram_spectrum_matches_svd(data_dir):
     totals = lum.sum(axis=1, keepdims=True)
     share = np.divide(lum, totals, out=np.zeros_like(lum), where=totals > 0)
     assert np.allclose(report.observation_map, share.sum(axis=0).reshape(16, 16), rtol=1e-12, atol=1e-12)
+
+
+def test_blocked_statistics_match_dense():
+    """The one-pass, column-compacted Gram and shares equal the dense route (an independent product)."""
+    rng = np.random.default_rng(3)
+    m, n = 203, 64
+    L = rng.random((m, n, 3)).astype(np.float32)
+    # Rows touch a band of columns that moves with the row, as sphere pixels do; one block is all zero.
+    band = np.abs(np.arange(n)[None, :] - np.linspace(0, n, m)[:, None]) < 12
+    L *= band[:, :, None]
+    L[40:60] = 0.0
+    L[:, 5] = 0.0  # a column no row reaches
+    lum = L.astype(np.float64) @ np.array(adequacy.LUMINANCE_WEIGHTS, dtype=np.float64)
+    dense = lum.T @ lum
+    totals = lum.sum(axis=1, keepdims=True)
+    shares = np.divide(lum, totals, out=np.zeros_like(lum), where=totals > 0).sum(axis=0)
+    for block_rows in (1, 7, 64, 1000):
+        gram, got = adequacy._luminance_statistics(L, block_rows=block_rows)
+        np.testing.assert_allclose(np.triu(gram), np.triu(dense), rtol=1e-13, atol=1e-13 * dense.max())
+        assert not np.any(np.tril(gram, -1))
+        np.testing.assert_allclose(got, shares, rtol=1e-13, atol=1e-13)
+    # One channel (M, N) takes the same path.
+    gram, _ = adequacy._luminance_statistics(L[..., 1], block_rows=7)
+    g1 = L[..., 1].astype(np.float64).T @ L[..., 1].astype(np.float64)
+    np.testing.assert_allclose(np.triu(gram), np.triu(g1), rtol=1e-13, atol=1e-13 * g1.max())
+
+
+def test_detail_cache_matches_fresh_and_follows_content(monkeypatch):
+    """environment_detail is cached by probe content: same value as a fresh computation, computed
+    once per content, recomputed for a different probe (data or rotation)."""
+    rng = np.random.default_rng(5)
+    data = (rng.random((128, 256, 3)) ** 6 * 10).astype(np.float32)  # 1.4 degree texels
+    probe = Probe(data, source="a")
+    fresh = adequacy._environment_detail(probe, adequacy.DETAIL_SCALE_DEG, 40000)
+    calls = []
+    original = adequacy._environment_detail
+    monkeypatch.setattr(adequacy, "_environment_detail", lambda *a: calls.append(a) or original(*a))
+    monkeypatch.setattr(adequacy, "_DETAIL_CACHE", type(adequacy._DETAIL_CACHE)())
+    assert adequacy.environment_detail(probe) == fresh and len(calls) == 1
+    assert adequacy.environment_detail(Probe(data.copy(), source="b")) == fresh and len(calls) == 1  # same content
+    other = data.copy()
+    other[10:60, 10:130] *= 0.01
+    changed = adequacy.environment_detail(Probe(other))
+    assert len(calls) == 2 and changed != fresh
+    assert changed == original(Probe(other), adequacy.DETAIL_SCALE_DEG, 40000)
+    adequacy.environment_detail(probe.rotated(euler_deg=(0, 30, 0)))
+    assert len(calls) == 3
+    adequacy.environment_detail(probe, scale_deg=6.0)
+    assert len(calls) == 4
+    assert probe.content_digest() != Probe(other).content_digest()

@@ -324,3 +324,53 @@ def test_footprint_rows_are_means_of_their_sub_rows_in_both_quadratures():
     assert np.abs(L[fp] - plain[fp]).max() > 1e-3 * np.abs(plain[fp]).max()   # footprints change them
     L_mis = lighting.lighting_matrix(obs, probe, n_t=8, n_s=8, n_dirs=2000)
     assert np.all(np.isfinite(L_mis)) and np.all(L_mis >= 0)
+
+
+def test_mis_masked_lookups_change_no_bit():
+    """The MIS kernel reads no texels for directions below the horizon (masked lookups); its rows
+    equal, bit for bit on one thread, those of the same lanes with every direction looked up."""
+    import drjit as dr
+    import mitsuba as mi
+
+    from mi_bivariate.lighting import kernels, mis
+
+    obs = random_observations(40, seed=8)
+    probe = synthetic_probe()
+    packets = kernels._row_packets(obs.normals, obs.views, lighting.hemisphere_offsets(len(obs), 3))
+    m, counts = len(packets), mis.strategy_counts(600)
+    threads = dr.thread_count()
+    dr.set_thread_count(1)  # one accumulation order
+    try:
+        got = np.array(mis._mis_chunk(packets, probe, 8, 8, 600))
+        data = mi.Float(packets.reshape(-1))
+        target = dr.zeros(mi.Float, m * 64 * 4)
+        for strategy in counts:
+            row, lx, ly, lz, d, weight, sin_v, cos_v, above = mis._mis_lanes(data, m, probe, strategy, counts)
+            kernels._splat(m, row, lx, ly, lz, sin_v, cos_v, probe.eval_dr(d) * weight, 8, 8, active=above,
+                           target=target)
+        expected = target.numpy().reshape(m, 64, 4)[:, :, :3]
+    finally:
+        dr.set_thread_count(threads)
+    assert np.any(got > 0)
+    np.testing.assert_array_equal(got, expected)
+
+
+def test_weighted_gram_by_row_blocks_matches_dense_product():
+    """lighting.gram.weighted_gram (blocks of rows, touched columns only) equals A^T A and A^T y."""
+    from mi_bivariate.lighting import gram
+
+    rng = np.random.default_rng(12)
+    m, n = 301, 50
+    L = rng.random((m, n, 3)).astype(np.float32)
+    L *= (np.abs(np.arange(n)[None, :] - np.linspace(0, n, m)[:, None]) < 9)[:, :, None]
+    L[100:140] = 0.0  # a block with no signal
+    w, y = rng.random(m) + 0.5, rng.random(m)
+    channel = L[:, :, 1]  # a strided view, as the solve passes it
+    a = channel.astype(np.float64) * w[:, None]
+    for block_rows in (1, 16, 128, 10_000):
+        g, rhs = gram.weighted_gram(channel, w, y, block_rows=block_rows)
+        np.testing.assert_allclose(g, a.T @ a, rtol=1e-13, atol=1e-13 * np.abs(a.T @ a).max())
+        np.testing.assert_array_equal(g, g.T)
+        np.testing.assert_allclose(rhs, a.T @ y, rtol=1e-13, atol=1e-13)
+    assert gram.weighted_gram(channel, w)[1] is None
+    np.testing.assert_array_equal(gram.touched_columns(L[100:140]), [])

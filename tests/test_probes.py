@@ -208,6 +208,12 @@ def test_eval_matches_numpy_reference_of_envmap():
 
     dr_out = np.array(rotated.eval_dr(mi.Vector3f(d.T.astype(np.float32)))).T
     np.testing.assert_array_equal(dr_out, rotated.eval(d))
+    # Masked lookups (the lighting kernels skip directions below the horizon): 0 where inactive,
+    # the same bits where active.
+    active = d[:, 1] > 0.2
+    masked = np.array(rotated.eval_dr(mi.Vector3f(d.T.astype(np.float32)), mi.Bool(active))).T
+    np.testing.assert_array_equal(masked[active], dr_out[active])
+    assert np.all(masked[~active] == 0.0) and np.all(dr_out[~active] > 0.0)
 
 
 def test_bright_texel_lights_expected_world_direction():
@@ -365,3 +371,20 @@ def test_shared_probe_errors(tmp_path, monkeypatch):
     monkeypatch.delenv("MI_BIVARIATE_DATA", raising=False)
     with pytest.raises(InputError, match="MI_BIVARIATE_DATA"):
         shared_probe("grace_256")
+
+
+def test_downsampled_matches_its_definition():
+    """Block means of columns, then sin-weighted overlap of row bands: the direct formula (einsum)."""
+    from mi_bivariate.probes import _row_band_edges
+
+    rng = np.random.default_rng(11)
+    probe = Probe(rng.random((61, 120, 3)) ** 3 * 100)
+    for factor in (2, 3, 4, 5, 8):
+        cols = probe.data.astype(np.float64).reshape(61, 120 // factor, factor, 3).mean(axis=2)
+        new_h = max(3, -(-61 // factor))
+        lo, hi = _row_band_edges(61)
+        new_lo, new_hi = _row_band_edges(new_h)
+        a, b = np.maximum(new_lo[:, None], lo[None, :]), np.minimum(new_hi[:, None], hi[None, :])
+        overlap = np.where(b > a, np.cos(a) - np.cos(b), 0.0)
+        expected = np.einsum("kj,jwc->kwc", overlap, cols) / overlap.sum(axis=1)[:, None, None]
+        np.testing.assert_allclose(probe.downsampled(factor).data, expected, rtol=2e-7, atol=0)

@@ -23,7 +23,8 @@ rows), plus the mirror image of every direction across that plane. A
 direction and its mirror image have the same (s, t): the fold of Fig. 4.
 
 Layout: :mod:`.directions` (the lattice, numpy), :mod:`.kernels` (the Dr.Jit
-kernels and the splat), :mod:`.mis` (the default sampling), this front door
+kernels and the splat), :mod:`.mis` (the default sampling), :mod:`.gram` (Gram
+matrices of L by row blocks that touch few nodes), this front door
 (:func:`lighting_matrix`, :func:`texel_lighting_matrix`: input checks, chunking,
 visibility).
 

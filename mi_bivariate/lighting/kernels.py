@@ -116,8 +116,7 @@ def _lighting_chunk(packets: np.ndarray, probe: Any, n_t: int, n_s: int, n_dirs:
         # shading horizon but below the face goes into the object.
         lit_plus = ~(shadow & occluder.ray_test(si.spawn_ray(d_plus), active=shadow))
         lit_minus = ~(shadow & occluder.ray_test(si.spawn_ray(d_minus), active=shadow))
-        radiance = dr.select(lit_plus, probe.eval_dr(d_plus), 0.0) + \
-            dr.select(lit_minus, probe.eval_dr(d_minus), 0.0)
+        radiance = probe.eval_dr(d_plus, lit_plus) + probe.eval_dr(d_minus, lit_minus)  # 0 where blocked
     weight = lz * (_TWO_PI / (2 * n_pairs))
     return _splat(m, row, lx, ly, lz, sin_v, cos_v, radiance * weight, n_t, n_s)
 

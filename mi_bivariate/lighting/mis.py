@@ -92,7 +92,8 @@ def _mis_lanes(data: Any, m: int, probe: Any, strategy: str, counts: dict, seed_
     if counts.get("environment"):
         ds = dr.zeros(mi.DirectionSample3f)
         ds.d = d
-        density += counts["environment"] * emitter.pdf_direction(it, ds)
+        # Masked: below the horizon the weight is 0 whatever the density (no pdf-map reads there).
+        density += counts["environment"] * emitter.pdf_direction(it, ds, lz > 0.0)
     if counts.get("peak"):
         density += counts["peak"] * _peak_pdf(lx, ly, lz, sin_v, cos_v)
     above = (lz > 0.0) & (density > 0.0)
@@ -120,7 +121,7 @@ def _mis_chunk(packets: np.ndarray, probe: Any, n_t: int, n_s: int, n_dirs: int,
     target = dr.zeros(mi.Float, m * n_t * n_s * 4)
     for strategy in counts:
         row, lx, ly, lz, d, weight, sin_v, cos_v, above = _mis_lanes(data, m, probe, strategy, counts)
-        radiance = probe.eval_dr(d)
+        lit = above  # directions below the horizon (weight 0; half the environment's samples) read no texels
         if occluder is not None:
             p3 = dr.gather(mi.Vector4f, data, row * _PACKETS + 3)
             p4 = dr.gather(mi.Vector4f, data, row * _PACKETS + 4)
@@ -128,8 +129,8 @@ def _mis_chunk(packets: np.ndarray, probe: Any, n_t: int, n_s: int, n_dirs: int,
             si = dr.zeros(mi.SurfaceInteraction3f)
             si.p = mi.Point3f(p3.y, p3.z, p3.w)
             si.n = mi.Normal3f(p4.x, p4.y, p4.z)
-            lit = ~(shadow & occluder.ray_test(si.spawn_ray(d), active=shadow & above))
-            radiance = dr.select(lit, radiance, 0.0)
+            lit = above & ~(shadow & occluder.ray_test(si.spawn_ray(d), active=shadow & above))
+        radiance = probe.eval_dr(d, lit)  # 0 where not lit, as a select after the lookup gave
         _splat(m, row, lx, ly, lz, sin_v, cos_v, radiance * weight, n_t, n_s, active=above, target=target)
     out = target.numpy().reshape(m, n_t * n_s, 4)
     return out[:, :, :3]  # a view: the caller copies it into L once
