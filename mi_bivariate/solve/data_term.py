@@ -15,9 +15,9 @@ from dataclasses import dataclass
 from typing import Optional, Sequence, Tuple
 
 import numpy as np
-from scipy.linalg import blas
 
 from mi_bivariate.errors import InputError
+from mi_bivariate.lighting.gram import weighted_gram
 from mi_bivariate.solve.common import validate_problem
 
 #: Relative error of one pixel's model prediction ``L f`` even for noise-free input
@@ -117,14 +117,6 @@ class DataTerm:
         return self.level
 
 
-def _weighted_gram(a: np.ndarray) -> np.ndarray:
-    """``a^T a`` (full symmetric ``(N, N)`` float64) by BLAS ``dsyrk``: half the flops of a product."""
-    upper = blas.dsyrk(1.0, a.T, trans=0, lower=0)  # a.T is Fortran-ordered: no copy
-    lower = np.tril_indices_from(upper, -1)
-    upper[lower] = upper.T[lower]
-    return upper
-
-
 def prepare_data_term(L: np.ndarray, I: np.ndarray, sigma: Optional[np.ndarray] = None,
                       image_index: Optional[np.ndarray] = None) -> DataTerm:
     """Validate ``L (M, N, 3)`` and ``I (M, 3)`` and build the noise-weighted normal equations.
@@ -144,15 +136,13 @@ def prepare_data_term(L: np.ndarray, I: np.ndarray, sigma: Optional[np.ndarray] 
     yy = np.empty(3)
     level = np.empty(3)
     ones = np.ones(n)
-    a_k = np.empty((m, n))
     for k in range(3):
         w = 1.0 / (sigma[:, k] * np.sqrt(m))
-        np.multiply(L[:, :, k], w[:, None], out=a_k)
         y_k = I[:, k].astype(np.float64) * w
-        if not np.any(a_k):
+        # By blocks of rows over the st nodes they touch (lighting.gram): ~1/6 of the dense flops.
+        gram[k], rhs[k] = weighted_gram(L[:, :, k], w, y_k)
+        if not np.any(np.diag(gram[k]) > 0):
             raise InputError("lighting matrix L", f"channel {k} is all zero: the probe sheds no light in it")
-        gram[k] = _weighted_gram(a_k)
-        rhs[k] = a_k.T @ y_k
         yy[k] = y_k @ y_k
         level[k] = max(0.0, float(ones @ rhs[k]) / float(ones @ gram[k] @ ones))
     return DataTerm(gram, rhs, yy, level, sigma, L, I, time.perf_counter() - start)
