@@ -155,7 +155,10 @@ def estimate_yaw(image: np.ndarray, probe: Any, geometry: Any, *, brdf: Any = No
         search_deg: optional ``(low, high)`` yaw interval in degrees instead
             of the full turn (e.g. when the misalignment is known to be small).
         mask, saturation, max_view_angle_deg: as for the observations.
-        alpha: regularisation weight of the per-candidate solve.
+        alpha: regularisation weight of the per-candidate solve (default
+            :data:`mi_bivariate.solve.DEFAULT_ALPHA`: one fixed weight, so that the
+            candidates' residuals compare; a rule that re-chooses alpha per candidate
+            would let a wrong yaw buy a closer fit).
         seed: seeds normal selection.
 
     Returns:
@@ -170,7 +173,8 @@ def estimate_yaw(image: np.ndarray, probe: Any, geometry: Any, *, brdf: Any = No
     t0 = time.perf_counter()
     obs = capture.image_observations(image, geometry, n_normals=n_normals, max_view_angle_deg=max_view_angle_deg,
                                      saturation=saturation, mask=mask, seed=seed)
-    residual = _YawResidual(obs, probe, brdf, grid, texel_width, alpha)
+    residual = _YawResidual(obs, probe, brdf, grid, texel_width,
+                            solve_mod.DEFAULT_ALPHA if alpha is None else alpha)
     if search_deg is None:
         coarse = np.arange(-180.0, 180.0, coarse_step_deg)
         low, high = -math.inf, math.inf
