@@ -20,7 +20,10 @@ TRUTH = BivariateBRDF.reduce(BivariateLobe(diffuse=(0.3, 0.2, 0.1), specular=2.0
 # noise=None: these tests judge poses, probes and visibility by how well one table fits every
 # image (the residual, against negative controls). The default noise="auto" reads the 128-spp
 # inputs' Monte Carlo noise and rightly fits less of it, which raises exactly that residual.
-FAST = dict(n_normals=700, n_dirs=6000, noise=None)
+# alpha fixed (the learnt 1e-2) for the same reason: residuals of different configurations are
+# compared, and the default discrepancy rule, told the inputs are clean, lowers alpha to fit their
+# Monte Carlo noise (the three-view table error then measured 0.112 instead of < 0.1).
+FAST = dict(n_normals=700, n_dirs=6000, noise=None, alpha=1e-2)
 
 
 _NOVEL = {}
