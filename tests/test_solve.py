@@ -313,3 +313,32 @@ def test_input_errors():
         solve(L, I, prior, n_t=4, n_s=4)
     with pytest.raises(InputError, match="all zero"):
         solve(np.zeros_like(L), I, prior)
+
+
+def test_discrepancy_search_brackets_the_target_with_few_evaluations(monkeypatch):
+    """On any increasing data-term curve the grid search returns the bracketing pair's refinement,
+    the bounds at the ends, and costs 1 evaluation when the default meets the target, 2 at the floor."""
+    from mi_bivariate.solve import discrepancy as disc
+
+    rng = np.random.default_rng(0)
+    logs = np.log10(DISCREPANCY_ALPHAS)
+    for _ in range(300):
+        values = np.sort(rng.uniform(0.0, 50.0, len(logs)))
+        target = float(rng.uniform(0.0, 55.0))
+        calls = []
+
+        def fake(data, penalty, channels, alpha, extra, values=values, calls=calls):
+            calls.append(alpha)
+            return float(np.interp(np.log10(alpha), logs, values))
+
+        monkeypatch.setattr(disc, "_data_term", fake)
+        choice = disc.discrepancy_alpha(None, None, target=target)
+        below = values <= target
+        if below[-1]:
+            assert choice.alpha == pytest.approx(DEFAULT_ALPHA) and choice.bounded == "high" and len(calls) == 1
+        elif not below[0]:
+            assert choice.alpha == pytest.approx(1e-4) and choice.bounded == "low" and len(calls) == 2
+        else:
+            j = int(np.nonzero(~below)[0][0])
+            assert DISCREPANCY_ALPHAS[j - 1] * (1 - 1e-12) <= choice.alpha <= DISCREPANCY_ALPHAS[j] * (1 + 1e-12)
+            assert len(calls) <= 2 + int(np.ceil(np.log2(len(logs)))) + 1

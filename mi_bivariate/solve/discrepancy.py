@@ -4,11 +4,11 @@ The smoothness prior's weight alpha (one for the three channels) is the largest 
 ``[DISCREPANCY_ALPHAS[0], DISCREPANCY_ALPHAS[-1]]`` (``1e-4`` to :data:`DEFAULT_ALPHA`) whose
 (unconstrained Tikhonov) solution still explains the image to within its expected error: the
 data term ``rho(alpha) = (1/M) ||(I - L f_alpha) / sigma||^2`` (the mean over the channels) at
-most :data:`DISCREPANCY_TARGET`. ``rho`` grows with alpha, so the answer is found by walking
-the log grid :data:`DISCREPANCY_ALPHAS` down from the default alpha until the target is met,
+most :data:`DISCREPANCY_TARGET`. ``rho`` grows with alpha, so the answer is found on the log grid
+:data:`DISCREPANCY_ALPHAS` (from the default alpha: its floor, then bisection),
 then by regula falsi in ``(log alpha, log rho)`` inside the bracketing half decade
 (:data:`REFINEMENTS` steps). An image the default explains costs one Cholesky factorisation
-per channel; one it does not, typically three to four.
+per channel; one that needs the floor (1e-4), two; one in between, five.
 
 Why bounded above, and why a target of 20 and not 1 (measured on 16 *training* materials,
 never on a scored one; ``docs/recovery.md``, "Choosing alpha"):
@@ -94,20 +94,28 @@ def discrepancy_alpha(data: DataTerm, penalty: np.ndarray, channels: Sequence[in
         penalty: ``(N, N)`` the prior's ``R^T R``.
         channels: which channels' data terms are averaged.
         target: the data term allowed (see the module's notes).
-        alphas: ascending log grid bounding the choice; the walk starts at the grid point
-            nearest ``start`` and moves one point at a time towards the target.
+        alphas: ascending log grid bounding the choice; the search starts at the grid point
+            nearest ``start``, tries the far end of the grid in the direction of the target,
+            then bisects the grid between them.
         extra: ``(precision, shift)`` ``(N, 3)`` each: a fixed diagonal Gaussian term (the
             basis prior) in the system and the right-hand side.
     """
     grid = np.asarray(alphas, np.float64)
+    seen: dict = {}
+
+    def below(i: int) -> bool:
+        if i not in seen:
+            seen[i] = _data_term(data, penalty, channels, grid[i], extra)
+        return seen[i] <= target
+
     i = int(np.argmin(np.abs(np.log(grid) - np.log(start))))
-    seen = {i: _data_term(data, penalty, channels, grid[i], extra)}
-    step = 1 if seen[i] <= target else -1
-    while 0 <= i + step < len(grid):
-        i += step
-        seen[i] = _data_term(data, penalty, channels, grid[i], extra)
-        if (seen[i] > target) == (step > 0):  # crossed the target
-            break
+    # The far end in the direction of the target first (often the answer), then bisection of the
+    # grid between the last point below the target and the first above it.
+    lo, hi = (i, len(grid) - 1) if below(i) else (0, i)
+    if lo == i and not below(hi) or hi == i and below(lo):
+        while hi - lo > 1:
+            mid = (lo + hi) // 2
+            lo, hi = (mid, hi) if below(mid) else (lo, mid)
     order = sorted(seen)
     a, r = grid[order], np.array([seen[j] for j in order])
     below = r <= target
