@@ -324,7 +324,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         "resolution": args.resolution, "spp": args.spp, "novel_spp": args.novel_spp,
         "n_normals": args.normals, "n_dirs": args.dirs, "grid": tuple(args.grid) if args.grid else None,
         "alpha": args.alpha, "seed": args.seed,
-        "baselines": tuple(args.baselines) if args.baselines is not None else None,
+        "baselines": None if args.baselines is None else tuple(b for b in args.baselines if b.lower() != "none"),
         "noise": args.noise, "renderer": args.renderer, "novel_resolution": args.novel_resolution,
         "prior": args.prior,
     }.items() if v is not None}

@@ -72,7 +72,8 @@ def test_second_run_on_a_folder_refuses(tmp_path, capsys):
     assert not (out / ev.RESULTS_FILE).exists()
 
 
-@pytest.mark.parametrize("case", ["unknown material", "truncated MERL", "unreachable dask", "out is a file"])
+@pytest.mark.parametrize("case", ["unknown material", "truncated MERL", "unreachable dask", "out is a file",
+                                  "unknown baseline", "bad alpha"])
 def test_bad_input_leaves_no_folder(tmp_path, capsys, case):
     out = tmp_path / "new" / "eval"
     material, extra = MATERIAL, []
@@ -83,6 +84,10 @@ def test_bad_input_leaves_no_folder(tmp_path, capsys, case):
         Path(material).write_bytes(b"\x5a\x00\x00\x00" * 2 + b"\xb4\x00\x00\x00" + b"\x00" * 100)
     elif case == "unreachable dask":
         extra = ["--dask", "tcp://127.0.0.1:9"]
+    elif case == "unknown baseline":  # was found only after each material's recovery
+        extra = ["--baselines", "ggx", "foo"]
+    elif case == "bad alpha":
+        extra = ["--alpha", "-1"]
     else:
         out = tmp_path / "file"
         out.write_text("not a folder")
@@ -96,6 +101,8 @@ def test_bad_input_leaves_no_folder(tmp_path, capsys, case):
         assert material in line and "truncated" in line
     if case == "unreachable dask":
         assert "--dask" in line and "scheduler" in line
+    if case == "unknown baseline":
+        assert "--baselines" in line and "'foo'" in line
 
 
 def test_workers_die_with_their_parent(tmp_path):

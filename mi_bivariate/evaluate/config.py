@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import List, Optional, Tuple, Union
 
 from mi_bivariate import basis_prior, prior, solve
+from mi_bivariate.baselines import FAMILIES
 from mi_bivariate.common import PathLike
 from mi_bivariate.errors import InputError
 from mi_bivariate.lighting import DEFAULT_DIRS
@@ -117,6 +118,12 @@ class EvalConfig:
             raise InputError("--novel-resolution", f"must be >= 4 pixels, got {self.novel_resolution}")
         if len(self.reference_directions) != 3 or min(self.reference_directions) < 0:
             raise InputError("reference_directions", "need 3 non-negative counts (cosine, lobe, environment)")
+        unknown = [b for b in self.baselines if b not in FAMILIES]
+        if unknown:
+            raise InputError("--baselines", f"unknown baseline model {unknown[0]!r}",
+                             f"use {' '.join(FAMILIES)}, or none")
+        if self.alpha is not None:
+            solve.check_alpha(self.alpha)
 
     def hash(self) -> str:
         """16 hex digits of SHA-256 over the canonical JSON of the config and protocol version."""
