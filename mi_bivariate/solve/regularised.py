@@ -269,10 +269,12 @@ def solve(L: np.ndarray, I: np.ndarray, prior: Optional[Prior] = None, alpha=Non
         I: ``(M, 3)`` observed pixel values (linear radiance).
         prior: weight pairs; default :func:`mi_bivariate.prior.default_prior`, resampled
             if its grid differs from ``(n_t, n_s)``.
-        alpha: the smoothness prior's weight: a number (default :data:`DEFAULT_ALPHA`),
-            and the pair with the lower data residual wins (the paper's rule); or
-            ``"gcv"``: chosen per channel and pair by generalised cross-validation
-            (:func:`gcv_curve`), and the pair with the lower GCV score wins.
+        alpha: the smoothness prior's weight, or how it is chosen: ``"discrepancy"``
+            (default, ``None``): one alpha for the three channels by the discrepancy
+            principle (:func:`discrepancy_alpha`), at most :data:`DEFAULT_ALPHA`; a number,
+            or three (per channel); with either the pair with the lower data residual
+            wins (the paper's rule). ``"gcv"``: chosen per channel and pair by generalised
+            cross-validation (:func:`gcv_curve`), and the pair with the lower GCV score wins.
         sigma: ``(M, 3)`` per-row noise std (default: :func:`row_sigma` of ``I``).
         image_index: ``(M,)`` image of each row (for the default ``sigma``).
         n_t, n_s: grid; default the prior's when it matches N, else sqrt(N).
