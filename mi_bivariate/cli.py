@@ -124,8 +124,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--dirs", type=int, default=None, help="light directions per normal K (default 8000)")
     p.add_argument("--grid", type=int, nargs=2, default=(32, 32), metavar=("N_T", "N_S"))
     p.add_argument("--alpha", type=_parse_alpha, default=None,
-                   help="smoothness weight: a number, or how to choose it per channel: 'discrepancy' (default: "
-                        "the largest weight whose fit explains the image to within its expected error) or 'gcv'")
+                   help="smoothness weight: a number, or how to choose it: 'discrepancy' (default: the largest "
+                        "weight, at most 1e-2, whose fit explains the image to within its expected error) or 'gcv'")
     p.add_argument("--noise", type=_parse_noise, default="auto", metavar="auto|none|A,B",
                    help="camera noise, variance A*I+B in image units: estimated from the image (auto, default), "
                         "none (clean input) or given")

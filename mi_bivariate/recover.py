@@ -133,12 +133,13 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
         n_normals: normals M per image (uniform over the visible hemisphere).
         n_dirs: light directions K per normal (:data:`lighting.DEFAULT_DIRS`).
         grid: st grid ``(n_t, n_s)``.
-        alpha: how the smoothness prior's weight is chosen: ``"discrepancy"`` (default) per
-            channel by the discrepancy principle (:mod:`mi_bivariate.solve.discrepancy`: the
-            largest alpha whose fit explains the image to within its expected error), ``"gcv"``
-            by generalised cross-validation (:func:`solve.gcv_curve`; measured to over-fit clean
-            images, see docs/recovery.md), or a number (every channel). The second stage (basis
-            prior) keeps the first stage's alphas.
+        alpha: how the smoothness prior's weight is chosen: ``"discrepancy"`` (default), one
+            alpha for the three channels by the discrepancy principle
+            (:mod:`mi_bivariate.solve.discrepancy`: the largest alpha, at most
+            :data:`solve.DEFAULT_ALPHA`, whose fit explains the image to within its expected
+            error); ``"gcv"``, per channel by generalised cross-validation (:func:`solve.gcv_curve`;
+            measured to over-fit clean images, see docs/recovery.md); or a number (every channel).
+            The second stage (basis prior) keeps the first stage's alphas.
         prior: smoothness prior (default: the packaged one, resampled to ``grid``).
         basis_prior: the data-driven table prior (:mod:`mi_bivariate.basis_prior`):
             ``"default"`` the packaged one (learnt from the 73 shared MERL-NBRDF

@@ -8,8 +8,9 @@ import scipy.optimize as sopt
 
 from mi_bivariate.errors import InputError
 from mi_bivariate.prior import Prior
-from mi_bivariate.solve import (DEFAULT_ALPHA, DISCREPANCY_ALPHAS, DISCREPANCY_TARGET, KKT_TOLERANCE, alpha_sweep, check_alpha, discrepancy_alpha,
-                                gcv_curve, kkt_violation, nnls_gram, prepare_data_term, row_sigma, solve)
+from mi_bivariate.solve import (DEFAULT_ALPHA, DISCREPANCY_ALPHAS, DISCREPANCY_TARGET, KKT_TOLERANCE, alpha_sweep,
+                                check_alpha, discrepancy_alpha, gcv_curve, kkt_violation, nnls_gram, prepare_data_term,
+                                row_sigma, solve)
 
 N_T, N_S = 6, 5
 N = N_T * N_S
@@ -196,13 +197,14 @@ def test_discrepancy_alpha_against_a_dense_scan(start):
         assert np.all(np.diff(rho) >= -1e-9 * rho[1:])  # the data term grows with alpha
         slope = np.gradient(np.log(rho), np.log(dense))
         assert slope[50] > 0.25  # steep there: alpha is pinned by the target
-        for i in (50, 125, 200):  # crossings inside the range
+        for i in range(10, 241, 7):  # crossings inside the range
             target = rho[i] * 1.0001
             choice = discrepancy_alpha(data, penalty, (k,), target=target, alphas=grid, start=start)
             assert choice.bounded == ""
-            assert _unconstrained_data_term(data, penalty, k, choice.alpha) == pytest.approx(target, rel=0.02)
+            # 1%: the regula falsi step matters (linear interpolation alone misses by up to 3% here)
+            assert _unconstrained_data_term(data, penalty, k, choice.alpha) == pytest.approx(target, rel=0.01)
             if slope[i] > 0.1:  # alpha itself is pinned where the data term is not flat
-                assert choice.alpha == pytest.approx(dense[i], rel=0.02 / slope[i])
+                assert choice.alpha == pytest.approx(dense[i], rel=0.01 / slope[i] + 0.02)
         if k == 2:  # one alpha for all channels: the mean of their data terms meets the target
             target = np.mean([_unconstrained_data_term(data, penalty, c, 1.0) for c in range(3)])
             choice = discrepancy_alpha(data, penalty, target=target, alphas=grid, start=start)

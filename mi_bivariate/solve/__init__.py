@@ -18,10 +18,10 @@ measured (``docs/recovery.md``, "What each change brought"):
   count, and a noisy image is not over-fitted.
 - **Scale-free alpha.** ``level_k`` is the best constant (Lambertian) table, the
   paper's starting point, so alpha is dimensionless: a brighter probe, image or
-  material changes nothing. ``alpha`` is chosen per channel by the discrepancy
-  principle (:func:`discrepancy_alpha`: the largest alpha whose fit leaves the
-  residual the rows' expected error allows), by generalised cross-validation
-  (:func:`gcv_curve`), or given.
+  material changes nothing. ``alpha`` is chosen by the discrepancy principle
+  (:func:`discrepancy_alpha`: one alpha for the channels, the largest, at most
+  :data:`DEFAULT_ALPHA`, whose fit leaves the residual the rows' expected error
+  allows), per channel by generalised cross-validation (:func:`gcv_curve`), or given.
 - **A table prior** (optional): a per-node Gaussian from the data-driven basis
   prior (:mod:`mi_bivariate.basis_prior`), which carries what measured materials do
   into the nodes the image does not pin down.
@@ -82,7 +82,8 @@ from mi_bivariate.solve.regularised import PairSolution, SolveResult, SweepPoint
 
 __all__ = [
     "ALPHA_RULES", "DEFAULT_ALPHA", "DEFAULT_ALPHA_RULE", "DISCREPANCY_ALPHAS", "DISCREPANCY_TARGET",
-    "DiscrepancyChoice", "check_alpha", "discrepancy_alpha", "KKT_TOLERANCE", "DARK_FRACTION", "MODEL_ERROR", "MODEL_ERROR_FORMS", "GCV_ALPHAS",
+    "DiscrepancyChoice", "check_alpha", "discrepancy_alpha", "KKT_TOLERANCE", "DARK_FRACTION", "MODEL_ERROR",
+    "MODEL_ERROR_FORMS", "GCV_ALPHAS",
     "GCV_PROBES", "Confidence", "DataTerm", "GCVCurve", "NNLSResult", "PairSolution", "SolveResult",
     "SweepPoint", "alpha_sweep", "gcv_curve", "kkt_violation", "nnls_gram", "prepare_data_term", "row_sigma",
     "solve", "solve_prepared",

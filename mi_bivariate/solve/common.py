@@ -22,9 +22,10 @@ from mi_bivariate.prior import Prior
 
 #: The learnt weight alpha of the normalised smoothness term (see :mod:`mi_bivariate.solve`):
 #: the upper bound of the discrepancy principle's alpha, and the fixed weight where residuals of
-#: several configurations are compared (yaw alignment). Chosen on 8 of the 50 *training* MERL-NBRDF materials (never on a scored one) with the
-#: default model-error form and the basis prior, by the median over materials of the
-#: relight error under three novel probes divided by the exact reduction's
+#: several configurations are compared (yaw alignment). Chosen on 8 of the 50 *training*
+#: MERL-NBRDF materials (never on a scored one) with the default model-error form and the
+#: basis prior, by the median over materials of the relight error under three novel probes
+#: divided by the exact reduction's
 #: (benchmarks/ablation.py, docs/recovery.md): 1.27 at 1e-2 (GCV per recovery: 1.91,
 #: it over-fits the model error, which is correlated between neighbouring pixels).
 DEFAULT_ALPHA = 1e-2

@@ -37,7 +37,7 @@ neighbouring pixels.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional, Sequence, Tuple
+from typing import Dict, Optional, Sequence, Tuple
 
 import numpy as np
 import scipy.linalg as sla
@@ -55,12 +55,13 @@ DISCREPANCY_TARGET = 20.0
 
 @dataclass
 class DiscrepancyChoice:
-    """The discrepancy principle's alpha of one channel and prior."""
+    """The discrepancy principle's alpha (one for the channels whose data terms were averaged)."""
     alpha: float            #: the chosen alpha
     alphas: np.ndarray      #: (A,) the alphas evaluated, ascending
     data_terms: np.ndarray  #: (A,) rho at each (unconstrained)
-    bounded: str            #: "" (target met inside the range), "low" (rho > target at the smallest alpha)
-    #: or "high" (rho <= target at the largest)
+    #: "" (target met inside the range), "low" (rho > target at the smallest alpha) or "high"
+    #: (rho <= target at the largest)
+    bounded: str
 
 
 def _data_term(data: DataTerm, penalty: np.ndarray, channels: Sequence[int], alpha: float,
@@ -101,45 +102,44 @@ def discrepancy_alpha(data: DataTerm, penalty: np.ndarray, channels: Sequence[in
             basis prior) in the system and the right-hand side.
     """
     grid = np.asarray(alphas, np.float64)
-    seen: dict = {}
+    seen: Dict[float, float] = {}  # alpha -> rho
 
-    def below(i: int) -> bool:
-        if i not in seen:
-            seen[i] = _data_term(data, penalty, channels, grid[i], extra)
-        return seen[i] <= target
+    def rho(alpha: float) -> float:
+        if alpha not in seen:
+            seen[alpha] = _data_term(data, penalty, channels, alpha, extra)
+        return seen[alpha]
 
+    def choice(alpha: float, bounded: str) -> DiscrepancyChoice:
+        evaluated = np.array(sorted(seen))
+        return DiscrepancyChoice(float(alpha), evaluated, np.array([seen[v] for v in evaluated]), bounded)
+
+    # From the start, the far end of the grid in the direction of the target first (often the
+    # answer), then bisection of the grid between the last point below the target and the first above.
     i = int(np.argmin(np.abs(np.log(grid) - np.log(start))))
-    # The far end in the direction of the target first (often the answer), then bisection of the
-    # grid between the last point below the target and the first above it.
-    lo, hi = (i, len(grid) - 1) if below(i) else (0, i)
-    if lo == i and not below(hi) or hi == i and below(lo):
-        while hi - lo > 1:
-            mid = (lo + hi) // 2
-            lo, hi = (mid, hi) if below(mid) else (lo, mid)
-    order = sorted(seen)
-    a, r = grid[order], np.array([seen[j] for j in order])
-    below = r <= target
-    if below.all():
-        return DiscrepancyChoice(float(a[-1]), a, r, "high" if order[-1] == len(grid) - 1 else "")
-    if not below.any():
-        return DiscrepancyChoice(float(a[0]), a, r, "low")
-    j = int(np.nonzero(~below)[0][0])  # first point above the target; j - 1 is below it
-    lo, hi = (np.log(a[j - 1]), np.log(max(r[j - 1], 1e-300))), (np.log(a[j]), np.log(r[j]))
+    if rho(grid[i]) <= target:
+        lo, hi = i, len(grid) - 1
+        if rho(grid[hi]) <= target:
+            return choice(grid[hi], "high")
+    else:
+        lo, hi = 0, i
+        if rho(grid[lo]) > target:
+            return choice(grid[lo], "low")
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        lo, hi = (mid, hi) if rho(grid[mid]) <= target else (lo, mid)
+    # Regula falsi in (log alpha, log rho) inside the bracket [grid[lo], grid[hi]].
+    lo_pt = (np.log(grid[lo]), np.log(max(rho(grid[lo]), 1e-300)))
+    hi_pt = (np.log(grid[hi]), np.log(rho(grid[hi])))
     y = np.log(target)
 
     def secant() -> float:
-        if hi[1] <= lo[1]:
-            return lo[0]
-        return float(np.clip(lo[0] + (y - lo[1]) * (hi[0] - lo[0]) / (hi[1] - lo[1]), lo[0], hi[0]))
+        (x0, y0), (x1, y1) = lo_pt, hi_pt
+        return x0 if y1 <= y0 else float(np.clip(x0 + (y - y0) * (x1 - x0) / (y1 - y0), x0, x1))
 
     x = secant()
-    for _ in range(REFINEMENTS):  # regula falsi in (log alpha, log rho)
-        rho = _data_term(data, penalty, channels, float(np.exp(x)), extra)
-        a, r = np.append(a, np.exp(x)), np.append(r, rho)
-        if rho <= target:
-            lo = (x, np.log(max(rho, 1e-300)))
-        else:
-            hi = (x, np.log(rho))
+    for _ in range(REFINEMENTS):
+        value = rho(float(np.exp(x)))
+        point = (x, np.log(max(value, 1e-300)))
+        lo_pt, hi_pt = (point, hi_pt) if value <= target else (lo_pt, point)
         x = secant()
-    keep = np.argsort(a)
-    return DiscrepancyChoice(float(np.exp(x)), a[keep], r[keep], "")
+    return choice(float(np.exp(x)), "")
