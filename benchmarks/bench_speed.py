@@ -16,8 +16,8 @@ One table, every row with its peer measured in the same process run:
   ``tests/reference_lighting.py`` (the same quadrature, timed on a subset of rows and
   extrapolated, with the largest difference), and the default ``"mis"`` against the same
   reference (a different quadrature of the same integral: its time only);
-- the normal equations (3 channels, ``solve.prepare_data_term``) against the same Gram matrices
-  and right-hand sides by row blocks over the columns they touch (:func:`lighting.gram.weighted_gram`);
+- the normal equations (3 channels, ``solve.prepare_data_term``: by row blocks over the st nodes
+  they touch, :func:`lighting.gram.weighted_gram`) against the dense route of solver v2;
 - the solve as ``recover`` runs it (two stages with the
   basis prior, 2 prior variants x 3 channels each, confidence of the kept table) against
   solver v2 (``tests/reference_solve.py``, the code before issue 10, on the same normal
@@ -219,30 +219,22 @@ def solve_peer(L: np.ndarray, values: np.ndarray) -> Dict[str, float]:
         second.measured  # the confidence recover() saves with the table
         return first, second
 
-    from mi_bivariate.lighting.gram import weighted_gram
-
-    def blocked_data_term():
-        sigma = solve_mod.row_sigma(values)
-        m = len(values)
-        return [weighted_gram(L[:, :, k], 1.0 / (sigma[:, k] * np.sqrt(m)),
-                              values[:, k].astype(np.float64) / (sigma[:, k] * np.sqrt(m))) for k in range(3)]
-
     with blas_threads():
         t_data, data = median_time(lambda: solve_mod.prepare_data_term(L, values))
         cpu_data = cpu_median(3)
-        t_blocked, blocked = median_time(blocked_data_term)
-        blocked_difference = max(float(np.abs(g - data.gram[k]).max() / np.abs(data.gram[k]).max())
-                                 for k, (g, _) in enumerate(blocked))
+        # Solver v2's data term is the dense route (one dsyrk over all M x N per channel).
+        t_dense, dense = median_time(lambda: v2.prepare_data_term(L, values))
+        dense_difference = max(float(np.abs(dense.gram[k] - data.gram[k]).max() / np.abs(dense.gram[k]).max())
+                               for k in range(3))
         t_solve, (first, result) = median_time(lambda: two_stage(solve_mod, data))
         cpu = cpu_median(3)
         # Solver v2 had no alpha rule: both run at the alpha the discrepancy principle chose here.
         chosen = float(first.alphas[0])
         t_given, (_, result_given) = timed(lambda: two_stage(solve_mod, data, chosen))
-        data_v2 = v2.prepare_data_term(L, values)
-        t_v2, (_, result_v2) = timed(lambda: two_stage(v2, data_v2, chosen))
+        t_v2, (_, result_v2) = timed(lambda: two_stage(v2, dense, chosen))
     t_default, _ = timed(lambda: two_stage(solve_mod, data))  # the libraries' own BLAS threads
     stages = 2 if basis is not None else 1
-    out = {"data": t_data, "data_cpu": cpu_data, "data_blocked": t_blocked, "data_blocked_difference": blocked_difference,
+    out = {"data": t_data, "data_cpu": cpu_data, "data_dense": t_dense, "data_dense_difference": dense_difference,
            "time": t_solve, "cpu": cpu, "v2": t_v2,
            "v2_difference": float(np.abs(result_given.table - result_v2.table).max() / np.abs(result_v2.table).max()),
            "given": t_given, "chosen_alpha": chosen,
@@ -342,10 +334,9 @@ def peers(args: argparse.Namespace) -> None:
                      "3 strategies, balance heuristic: ~2x the work per direction of the uniform lattice"))
         L = lit["L_mis"]
         sol = solve_peer(L, obs.values)
-        rows.append(("normal equations (3 channels, `solve.prepare_data_term`)", sol["data"], sol["data_cpu"],
-                     "by row blocks, touched columns (`lighting.gram.weighted_gram`)", sol["data_blocked"], "-",
-                     f"same Gram matrices to {sol['data_blocked_difference']:.1e} of the largest entry; "
-                     "the solve uses the blocked route"))
+        rows.append(("normal equations (3 channels, `solve.prepare_data_term`: row blocks, touched nodes)",
+                     sol["data"], sol["data_cpu"], "dense `dsyrk` over M x N (solver v2's route)", sol["data_dense"],
+                     "-", f"same Gram matrices to {sol['data_dense_difference']:.1e} of the largest entry"))
         rows.append(("solve as recover runs it (alpha rule, 2 stages x 2 variants x 3 channels, confidence)",
                      sol["time"], sol["cpu"], "the same at the chosen alpha, given (no alpha search)", sol["given"],
                      "<= 0.3 s", f"discrepancy principle chose alpha {sol['chosen_alpha']:.3g}"))
