@@ -126,6 +126,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--alpha", type=_parse_alpha, default=None,
                    help="smoothness weight: a number, or how to choose it: 'discrepancy' (default: the largest "
                         "weight, at most 1e-2, whose fit explains the image to within its expected error) or 'gcv'")
+    p.add_argument("--pair-rule", choices=("evidence", "residual"), default="evidence",
+                   help="which of the smoothness prior's two weight pairs each channel keeps: the one under which "
+                        "the image is likelier (evidence, default) or the lower data residual (the paper's rule)")
     p.add_argument("--noise", type=_parse_noise, default="auto", metavar="auto|none|A,B",
                    help="camera noise, variance A*I+B in image units: estimated from the image (auto, default), "
                         "none (clean input) or given")

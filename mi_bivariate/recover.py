@@ -82,7 +82,8 @@ class Recovery:
             f"lighting matrix: {self.lighting_matrix.shape[0]} x {self.lighting_matrix.shape[1]} x 3",
             f"adequacy: {self.adequacy.summary()}",
             f"solve: alpha ({self.solution.alpha_rule}) R/G/B "
-            f"{' '.join(f'{a:.3g}' for a in self.solution.alphas)}, prior pair per channel {winners}, "
+            f"{' '.join(f'{a:.3g}' for a in self.solution.alphas)}, prior pair per channel {winners} "
+            f"(by {self.solution.pair_rule}), "
             f"basis prior {'on' if self.brdf.provenance.get('basis_prior') else 'off'}, "
             f"relative residual {self.relative_residual():.4f}",
             f"confidence: the image measured {100 * float(np.mean(np.min(self.solution.measured, -1) > 0.5)):.0f}% "
@@ -108,6 +109,7 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
             n_dirs: int = lighting.DEFAULT_DIRS,
             grid: Tuple[int, int] = (32, 32),
             alpha: Union[None, float, str] = None,
+            pair_rule: str = solve_mod.DEFAULT_PAIR_RULE,
             prior: Optional[prior_mod.Prior] = None,
             basis_prior: Union[BasisPrior, None, str] = "default",
             noise: Any = "auto",
@@ -140,6 +142,10 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
             error); ``"gcv"``, per channel by generalised cross-validation (:func:`solve.gcv_curve`;
             measured to over-fit clean images, see docs/recovery.md); or a number (every channel).
             The second stage (basis prior) keeps the first stage's alphas.
+        pair_rule: which of the smoothness prior's two weight pairs each channel keeps:
+            ``"evidence"`` (default; the pair under which the image is likelier,
+            :mod:`mi_bivariate.solve.evidence`) or ``"residual"`` (the paper's: the lower
+            data residual). The second stage keeps the first stage's pairs.
         prior: smoothness prior (default: the packaged one, resampled to ``grid``).
         basis_prior: the data-driven table prior (:mod:`mi_bivariate.basis_prior`):
             ``"default"`` the packaged one (learnt from the 73 shared MERL-NBRDF
@@ -217,13 +223,7 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
         sigma = solve_mod.row_sigma(observations.values, observations.image_index, noise=noise_models)
         data = solve_mod.prepare_data_term(L, observations.values, sigma)
         timings["normal equations"] = time.perf_counter() - t0
-        solution = solve_mod.solve_prepared(data, prior, alpha)
-        if basis is not None:
-            # Stage 2: the first estimate and its confidence give the basis prior's prediction.
-            mean, std = basis.predict(solution.table, solution.resolution, solution.posterior_std)
-            rule = solution.alpha_rule
-            solution = solve_mod.solve_prepared(data, prior, solution.alphas, mean=mean, mean_std=std)
-            solution.alpha_rule = rule
+        solution = solve_stages(data, prior, alpha, basis, pair_rule)
         timings["solve"] = time.perf_counter() - t0 - timings["normal equations"]
         table = solution.table
         predicted = np.einsum("mnc,nc->mc", L, table.reshape(n_t * n_s, 3), optimize=True)
@@ -238,7 +238,7 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
         "method": "passive reflectometry (Romeiro et al. 2008), mi_bivariate.recover",
         "images": n, "normals": int(len(observations.values)), "light_directions": int(n_dirs),
         "sampling": sampling, "alpha": [float(a) for a in solution.alphas], "alpha_rule": solution.alpha_rule,
-        "prior_winner": list(solution.winner), "seed": int(seed),
+        "prior_winner": list(solution.winner), "prior_pair_rule": solution.pair_rule, "seed": int(seed),
         "basis_prior": None if basis is None else {"materials": len(basis.materials),
                                                     "components": int(basis.basis.shape[1])},
         "noise": None if noise_models is None else [None if v is None else [np.asarray(x).tolist() for x in v]
@@ -253,6 +253,27 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
                     adequacy=report, predicted=predicted,
                     images=images if keep_inputs else [], geometries=geometries,
                     probes=probe_list, timings=timings)
+
+
+def solve_stages(data: solve_mod.DataTerm, prior: prior_mod.Prior, alpha: Any = None,
+                 basis: Optional[BasisPrior] = None,
+                 pair_rule: str = solve_mod.DEFAULT_PAIR_RULE) -> solve_mod.SolveResult:
+    """The solve as :func:`recover` runs it: the smoothness prior, then the basis prior.
+
+    Stage 1 chooses alpha (``alpha``) and, per channel, the weight pair (``pair_rule``; both
+    as :func:`mi_bivariate.solve.solve`). Stage 2, with a basis prior, adds its per-node
+    Gaussian, predicted from the first table and its confidence, and solves again with the
+    first stage's alphas and pairs (the result keeps the first stage's rule names).
+    """
+    first = solve_mod.solve_prepared(data, prior, alpha, pair_rule=pair_rule)
+    if basis is None:
+        return first
+    mean, std = basis.predict(first.table, first.resolution, first.posterior_std)
+    pairs = tuple(p for p in first.pairs if p in first.winner)
+    second = solve_mod.solve_prepared(data, prior, first.alphas, mean=mean, mean_std=std, pairs=pairs,
+                                      winner=first.winner)
+    second.alpha_rule, second.pair_rule, second.alpha_choice = first.alpha_rule, first.pair_rule, first.alpha_choice
+    return second
 
 
 def _basis_prior(value: Union[BasisPrior, None, str], n_t: int, n_s: int) -> Optional[BasisPrior]:

@@ -119,11 +119,19 @@ def test_solve_matches_scipy_nnls_on_the_stacked_system():
                 np.sum((prior.regulariser(pair) @ expected) ** 2) / (N * level**2), rel=1e-4)
         assert np.all(sol.kkt_violation < 1e-12)
         assert np.all((sol.resolution >= 0) & (sol.resolution <= 1))
-    # The kept table is, per channel, the pair with the lower data term (alpha given: the paper's rule).
+    # The kept table is, per channel, the pair with the higher evidence (the default rule) ...
+    assert result.pair_rule == "evidence"
     for k, w in enumerate(result.winner):
         other = "gloss" if w == "diffuse" else "diffuse"
-        assert result.pairs[w].data_term[k] <= result.pairs[other].data_term[k]
+        assert result.pairs[w].log_evidence[k] >= result.pairs[other].log_evidence[k]
         np.testing.assert_array_equal(result.table[:, :, k], result.pairs[w].table[:, :, k])
+    # ... or, asked for, the pair with the lower data term (the paper's rule), same tables.
+    paper = solve(L, I, prior, alpha, n_t=N_T, n_s=N_S, pair_rule="residual")
+    assert paper.pair_rule == "residual" and np.all(np.isnan(paper.pairs["gloss"].log_evidence))
+    for k, w in enumerate(paper.winner):
+        other = "gloss" if w == "diffuse" else "diffuse"
+        assert paper.pairs[w].data_term[k] <= paper.pairs[other].data_term[k]
+        np.testing.assert_array_equal(paper.table[:, :, k], result.pairs[w].table[:, :, k])
 
 
 def test_images_combine_by_information_not_brightness():

@@ -31,10 +31,12 @@ The non-negative least-squares problem is solved on the normal equations
 Park's block principal pivoting (with Murty's single-exchange fallback), starting from
 the paper's Lambertian initialisation. Every answer's KKT conditions are verified; if
 they fail, the problem is re-solved with ``scipy.optimize.nnls`` on an eigen-reduced
-``N x N`` system and the result says so. The solve is done once per weight pair; the pair
-with the lower data residual is kept per channel (paper Sect. 4; with the discrepancy
-principle both pairs use the alpha chosen on the first pair's curve), with GCV the pair
-with the lower GCV score. Each solution carries a per-node
+``N x N`` system and the result says so. The solve is done once per weight pair (with the
+discrepancy principle both pairs use the alpha chosen on the first pair's curve); per
+channel the pair kept is the one under whose prior the image has the higher evidence
+(marginal likelihood, :mod:`.evidence`: the fit and what the prior paid for it; the paper
+kept the lower data residual, ``pair_rule="residual"``), with GCV the pair with the lower
+GCV score. Each solution carries a per-node
 confidence: the diagonal of the model resolution matrix ``X^-1 L^T W L / M`` (1: the
 node's value comes from the image; 0: from the priors) and the posterior spread.
 
@@ -50,6 +52,8 @@ front door re-exports their public names:
 :mod:`.discrepancy`         alpha by the discrepancy principle (:func:`discrepancy_alpha`,
                             the default)
 :mod:`.gcv`                 alpha by generalised cross-validation (:func:`gcv_curve`)
+:mod:`.evidence`            which prior variant is kept: the evidence of the image
+                            (:func:`log_evidence`)
 :mod:`.confidence`          resolution, posterior spread, measured share, from one
                             factorisation, computed on first use
 :mod:`.regularised`         the front door: :func:`solve`, :func:`solve_prepared`,
@@ -76,12 +80,14 @@ from mi_bivariate.solve.discrepancy import (
     DiscrepancyChoice,
     discrepancy_alpha,
 )
+from mi_bivariate.solve.evidence import DEFAULT_PAIR_RULE, PAIR_RULES, log_evidence, penalty_log_pdet
 from mi_bivariate.solve.gcv import GCV_ALPHAS, GCV_PROBES, GCVCurve, gcv_curve
 from mi_bivariate.solve.nnls import NNLSResult, kkt_violation, nnls_gram
 from mi_bivariate.solve.regularised import PairSolution, SolveResult, SweepPoint, alpha_sweep, solve, solve_prepared
 
 __all__ = [
-    "ALPHA_RULES", "DEFAULT_ALPHA", "DEFAULT_ALPHA_RULE", "DISCREPANCY_ALPHAS", "DISCREPANCY_TARGET",
+    "ALPHA_RULES", "DEFAULT_ALPHA", "DEFAULT_ALPHA_RULE", "DEFAULT_PAIR_RULE", "PAIR_RULES", "log_evidence",
+    "penalty_log_pdet", "DISCREPANCY_ALPHAS", "DISCREPANCY_TARGET",
     "DiscrepancyChoice", "check_alpha", "discrepancy_alpha", "KKT_TOLERANCE", "DARK_FRACTION", "MODEL_ERROR",
     "MODEL_ERROR_FORMS", "GCV_ALPHAS",
     "GCV_PROBES", "Confidence", "DataTerm", "GCVCurve", "NNLSResult", "PairSolution", "SolveResult",

@@ -173,6 +173,22 @@ def bandwidth(x: np.ndarray) -> int:
     return int(np.abs(rows - cols).max(initial=0))
 
 
+def banded_cholesky(x: np.ndarray, band: int) -> Optional[np.ndarray]:
+    """Upper banded Cholesky factor of an SPD matrix with ``x[i, j] = 0`` for ``|i - j| > band``
+    (LAPACK ``pbtrf``, ``O(N b^2)``), in banded storage ``u[b - d, j] = U[j - d, j]`` (row ``b``
+    is the diagonal), or ``None`` if ``x`` is not numerically positive definite."""
+    n = x.shape[0]
+    b = max(int(band), 1)
+    ab = np.zeros((b + 1, n))
+    for d in range(b + 1):  # upper banded storage: ab[b - d, j] = x[j - d, j]
+        ab[b - d, d:] = np.diagonal(x, d)
+    try:
+        u, info = lapack.dpbtrf(ab, lower=0)
+    except ValueError:
+        return None
+    return u if info == 0 else None
+
+
 def banded_inverse_diagonal(x: np.ndarray, band: int) -> Optional[np.ndarray]:
     """``diag(X^-1)`` of an SPD matrix with ``x[i, j] = 0`` for ``|i - j| > band``, or ``None``.
 
@@ -185,14 +201,8 @@ def banded_inverse_diagonal(x: np.ndarray, band: int) -> Optional[np.ndarray]:
     """
     n = x.shape[0]
     b = max(int(band), 1)
-    ab = np.zeros((b + 1, n))
-    for d in range(b + 1):  # upper banded storage: ab[b - d, j] = x[j - d, j]
-        ab[b - d, d:] = np.diagonal(x, d)
-    try:
-        u, info = lapack.dpbtrf(ab, lower=0)
-    except ValueError:
-        return None
-    if info != 0:
+    u = banded_cholesky(x, b)
+    if u is None:
         return None
     # Dense U rows within the band: U[i, i + d] = u[b - d, i + d].
     u_rows = np.zeros((n, b + 1))

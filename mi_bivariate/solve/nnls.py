@@ -41,6 +41,9 @@ class NNLSResult:
     method: str              #: "bpp" or "bpp+nnls-fallback"
     #: ``cho_factor`` of ``G`` when the final passive set is every variable (else ``None``)
     factor: Optional[Tuple[np.ndarray, bool]] = None
+    #: ``log det G`` when some passive-set solve factorised all of ``G`` (the usual first
+    #: one, from a positive start), else ``None``
+    log_det: Optional[float] = None
 
 
 def kkt_violation(G: np.ndarray, b: np.ndarray, x: np.ndarray, abs_g: Optional[np.ndarray] = None) -> float:
@@ -82,6 +85,13 @@ def _passive_solve(G: np.ndarray, b: np.ndarray, passive: np.ndarray):
     y = G @ x - b
     y[idx] = 0.0
     return x, y, factor
+
+
+def _full_log_det(factor: Optional[Tuple[np.ndarray, bool]], passive: np.ndarray) -> Optional[float]:
+    """``log det G`` from the passive-set factor when the passive set is every variable."""
+    if factor is None or not bool(np.all(passive)):
+        return None
+    return 2.0 * float(np.sum(np.log(np.diag(factor[0]))))
 
 
 def _nnls_fallback(G: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -133,6 +143,7 @@ def nnls_gram(G: np.ndarray, b: np.ndarray, passive: Optional[np.ndarray] = None
     b_scale = np.abs(b).max(initial=0.0)
 
     x, y, factor = _passive_solve(G, b, passive)
+    log_det = _full_log_det(factor, passive)
     iterations, best, backup = 1, n + 1, _BPP_BACKUP
     while iterations < max_iter:
         x_tol = _EXCHANGE_TOLERANCE * np.abs(x).max(initial=0.0)
@@ -151,6 +162,7 @@ def nnls_gram(G: np.ndarray, b: np.ndarray, passive: Optional[np.ndarray] = None
             last = np.flatnonzero(infeasible)[-1]
             passive[last] = ~passive[last]
         x, y, factor = _passive_solve(G, b, passive)
+        log_det = _full_log_det(factor, passive) if log_det is None else log_det
         iterations += 1
 
     x = np.maximum(x, 0.0)
@@ -161,4 +173,4 @@ def nnls_gram(G: np.ndarray, b: np.ndarray, passive: Optional[np.ndarray] = None
         violation = kkt_violation(G, b, x, abs_g)
         method = "bpp+nnls-fallback"
     full = method == "bpp" and bool(np.all(passive))
-    return NNLSResult(x, iterations, violation, method, factor if full else None)
+    return NNLSResult(x, iterations, violation, method, factor if full else None, log_det)

@@ -5,8 +5,9 @@ then :func:`solve_prepared` solves each prior variant (weight pair) per channel 
 algorithms of this package (alpha per channel by the discrepancy principle,
 :mod:`~mi_bivariate.solve.discrepancy`, unless given or asked of :mod:`~mi_bivariate.solve.gcv`;
 the constrained solve by :mod:`~mi_bivariate.solve.nnls`, the confidence by
-:mod:`~mi_bivariate.solve.confidence`) and keeps, per channel, the pair with the lower
-data residual (paper Sect. 4) or, with GCV, the lower GCV score.
+:mod:`~mi_bivariate.solve.confidence`) and keeps, per channel, the pair under which the
+image is likelier (:mod:`~mi_bivariate.solve.evidence`; the paper's lower data residual on
+request) or, with GCV, the lower GCV score.
 """
 
 from __future__ import annotations
@@ -23,6 +24,13 @@ from mi_bivariate.solve.common import check_alpha, grid_shape, penalty_weight
 from mi_bivariate.solve.confidence import Confidence
 from mi_bivariate.solve.data_term import DataTerm, prepare_data_term
 from mi_bivariate.solve.discrepancy import DiscrepancyChoice, discrepancy_alpha
+from mi_bivariate.solve.evidence import (
+    DEFAULT_PAIR_RULE,
+    PAIR_RULES,
+    channel_log_evidence,
+    log_det_spd,
+    penalty_log_pdet,
+)
 from mi_bivariate.solve.gcv import gcv_curve
 from mi_bivariate.solve.nnls import NNLSResult, nnls_gram
 
@@ -45,6 +53,9 @@ class PairSolution:
     method: Tuple[str, str, str]
     time_s: float
     confidence: Confidence = field(repr=False)
+    #: (3,) log evidence of the image under this pair (:mod:`~mi_bivariate.solve.evidence`,
+    #: up to a constant shared by the pairs); NaN where the pair rule did not need it
+    log_evidence: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
 
     @property
     def resolution(self) -> np.ndarray:
@@ -66,7 +77,7 @@ class PairSolution:
 class SolveResult:
     """Result of :func:`solve`: the kept table and what led to it."""
     table: np.ndarray                  #: (n_t, n_s, 3) float32, 1/sr, winner per channel
-    winner: Tuple[str, str, str]       #: "diffuse" or "gloss" per channel
+    winner: Tuple[str, str, str]       #: "diffuse" or "gloss" per channel (see ``pair_rule``)
     alphas: np.ndarray                 #: (3,) alpha per channel (of the winner)
     relative_residual: np.ndarray      #: (3,) of the winner
     pairs: Dict[str, PairSolution]     #: every pair's solution
@@ -76,6 +87,8 @@ class SolveResult:
     timings: Dict[str, float] = field(default_factory=dict)  #: seconds
     #: how the discrepancy principle chose alpha (``None`` for another rule)
     alpha_choice: Optional[DiscrepancyChoice] = None
+    #: how the pair was kept per channel: "evidence", "residual", "gcv" or "given"
+    pair_rule: str = DEFAULT_PAIR_RULE
 
     @property
     def alpha(self) -> float:
@@ -108,10 +121,12 @@ class SolveResult:
         return np.array([self.pairs[w].kkt_violation[k] for k, w in enumerate(self.winner)])
 
     def summary(self) -> str:
-        lines = [f"alpha ({self.alpha_rule}) R/G/B {' '.join(f'{a:.3g}' for a in self.alphas)}  "
+        lines = [f"alpha ({self.alpha_rule}) R/G/B {' '.join(f'{a:.3g}' for a in self.alphas)}, "
+                 f"pair kept by {self.pair_rule}  "
                  f"total {self.timings.get('total', 0.0):.2f} s"]
         for k, ch in enumerate("RGB"):
-            parts = [f"{p}: alpha {s.alpha[k]:.3g} gcv {s.gcv[k]:.4g} rel.res {s.relative_residual[k]:.4g} "
+            parts = [f"{p}: alpha {s.alpha[k]:.3g} gcv {s.gcv[k]:.4g} log ev {s.log_evidence[k]:.6g} "
+                     f"rel.res {s.relative_residual[k]:.4g} "
                      f"it {s.iterations[k]} kkt {s.kkt_violation[k]:.1e} {s.method[k]}"
                      for p, s in self.pairs.items()]
             lines.append(f"{ch}: winner {self.winner[k]:7s} | " + " | ".join(parts))
@@ -127,6 +142,11 @@ class _ChannelSolve:
     gcv: float
     lam: float
     data_term: float
+    objective: float  #: Phi: the data term plus every prior term at the solution
+
+    def log_det(self) -> float:
+        """``log det`` of the system (from the NNLS solve's own factorisation when it had one)."""
+        return self.result.log_det if self.result.log_det is not None else log_det_spd(self.system)
 
 
 def _solve_channel(data: DataTerm, penalty: np.ndarray, alpha: Optional[float], k: int, start: np.ndarray,
@@ -151,12 +171,15 @@ def _solve_channel(data: DataTerm, penalty: np.ndarray, alpha: Optional[float], 
         rhs = rhs + extra[1]
     res = nnls_gram(x, rhs, passive=np.full(n, start[k] > 0) if mean is None else mean[:, k] > 0)
     f = res.x
-    data_term = data.yy[k] - 2 * f @ data.rhs[k] + f @ data.gram[k] @ f
-    return _ChannelSolve(res, x, float(alpha), float(score), lam, float(data_term))
+    data_term = max(float(data.yy[k] - 2 * f @ data.rhs[k] + f @ data.gram[k] @ f), 0.0)
+    objective = data_term + lam * float(f @ penalty @ f)
+    if extra is not None:
+        objective += float(np.sum(extra[0] * (f - mean[:, k]) ** 2))
+    return _ChannelSolve(res, x, float(alpha), float(score), lam, data_term, objective)
 
 
 def _pair_solution(data: DataTerm, regulariser, channels: List[_ChannelSolve], confidence: Confidence,
-                   grid: Tuple[int, int], seconds: float) -> PairSolution:
+                   grid: Tuple[int, int], seconds: float, evidence: Sequence[Optional[float]]) -> PairSolution:
     """Assemble one variant's three channels, with its residuals."""
     n = data.n_nodes
     f = np.stack([c.result.x for c in channels], axis=-1)
@@ -173,13 +196,15 @@ def _pair_solution(data: DataTerm, regulariser, channels: List[_ChannelSolve], c
         data_term=np.maximum(np.array([c.data_term for c in channels]), 0.0), prior_term=prior_term,
         relative_residual=rel, iterations=np.array([c.result.iterations for c in channels]),
         kkt_violation=np.array([c.result.kkt_violation for c in channels]),
-        method=tuple(c.result.method for c in channels), time_s=seconds, confidence=confidence)
+        method=tuple(c.result.method for c in channels), time_s=seconds, confidence=confidence,
+        log_evidence=np.array([np.nan if e is None else e for e in evidence]))
 
 
 def solve_prepared(data: DataTerm, prior: Optional[Prior] = None, alpha=None, *,
                    n_t: Optional[int] = None, n_s: Optional[int] = None,
                    pairs: Sequence[str] = PAIRS, mean: Optional[np.ndarray] = None,
-                   mean_std: Optional[np.ndarray] = None) -> SolveResult:
+                   mean_std: Optional[np.ndarray] = None, pair_rule: str = DEFAULT_PAIR_RULE,
+                   winner: Optional[Sequence[str]] = None) -> SolveResult:
     """:func:`solve` on a prepared :class:`~mi_bivariate.solve.data_term.DataTerm`.
 
     Channel by channel: every prior variant is solved, the kept one is chosen, and its
@@ -190,6 +215,12 @@ def solve_prepared(data: DataTerm, prior: Optional[Prior] = None, alpha=None, *,
     t0 = time.perf_counter()
     prior = default_prior() if prior is None else prior
     rule = check_alpha(alpha)
+    if pair_rule not in PAIR_RULES:
+        raise InputError("pair_rule", f"unknown rule {pair_rule!r}", f"use one of {', '.join(PAIR_RULES)}")
+    if winner is not None:
+        winner = tuple(winner)
+        if len(winner) != 3 or any(w not in pairs for w in winner):
+            raise InputError("winner", f"must name one of the solved pairs {tuple(pairs)} per channel, got {winner}")
     n_t, n_s = grid_shape(data.n_nodes, prior, n_t, n_s)
     if (prior.n_t, prior.n_s) != (n_t, n_s):
         prior = prior.resampled(n_t, n_s)
@@ -209,7 +240,11 @@ def solve_prepared(data: DataTerm, prior: Optional[Prior] = None, alpha=None, *,
     channels: Dict[str, List[_ChannelSolve]] = {p: [] for p in pairs}
     seconds = {p: 0.0 for p in pairs}
     confidences = {p: Confidence(data, penalties[p], np.zeros(3), precision, (n_t, n_s)) for p in pairs}
-    winner = []
+    kept: List[str] = []
+    evidence: Dict[str, List[Optional[float]]] = {p: [] for p in pairs}
+    use_evidence = winner is None and pair_rule == "evidence" and len(pairs) > 1 and not (
+        isinstance(rule, str) and rule == "gcv")
+    pdets = {p: penalty_log_pdet(penalties[p]) for p in pairs} if use_evidence and precision is None else {}
     choice: Optional[DiscrepancyChoice] = None
     if isinstance(rule, str) and rule == "discrepancy":  # one alpha for every channel, on the first pair's curve
         extra = None if precision is None else (precision, precision * mean)
@@ -225,13 +260,23 @@ def solve_prepared(data: DataTerm, prior: Optional[Prior] = None, alpha=None, *,
             t1 = time.perf_counter()
             channels[p].append(_solve_channel(data, penalties[p], alpha_k, k, data.level, precision, mean))
             seconds[p] += time.perf_counter() - t1
-        if isinstance(rule, str) and rule == "gcv":
+        for p in pairs:
+            c = channels[p][k]
+            evidence[p].append(None if not use_evidence else channel_log_evidence(
+                c.objective, data.n_rows, c.log_det(), c.lam, penalties[p], pdets.get(p),
+                None if precision is None else precision[:, k]))
+        if winner is not None:
+            w = winner[k]
+        elif isinstance(rule, str) and rule == "gcv":
             # The pair whose prior explains the image better in the cross-validation sense.
             w = min(pairs, key=lambda p: (channels[p][k].gcv, p != pairs[0]))
+        elif use_evidence:
+            # The pair under whose prior the image is likelier (fit and Occam factor together).
+            w = max(pairs, key=lambda p: (evidence[p][k], p == pairs[0]))
         else:
             # The paper's rule: the lower data residual.
-            w = min(pairs, key=lambda p: (max(channels[p][k].data_term, 0.0), p != pairs[0]))
-        winner.append(w)
+            w = min(pairs, key=lambda p: (channels[p][k].data_term, p != pairs[0]))
+        kept.append(w)
         for p in pairs:
             c = channels[p][k]
             confidences[p].set_weight(k, c.lam)
@@ -239,23 +284,26 @@ def solve_prepared(data: DataTerm, prior: Optional[Prior] = None, alpha=None, *,
                 confidences[p].keep_factor(k, c.result.factor, c.system)
                 confidences[p].channel("resolution", k)
             c.result.factor, c.system = None, None
-    solutions = {p: _pair_solution(data, regularisers[p], channels[p], confidences[p], (n_t, n_s), seconds[p])
-                 for p in pairs}
-    winner = tuple(winner)
+    solutions = {p: _pair_solution(data, regularisers[p], channels[p], confidences[p], (n_t, n_s), seconds[p],
+                                   evidence[p]) for p in pairs}
+    kept_rule = ("given" if winner is not None else "gcv" if isinstance(rule, str) and rule == "gcv"
+                 else pair_rule if len(pairs) > 1 else "given")
+    winner = tuple(kept)
     table = np.stack([solutions[w].table[:, :, k] for k, w in enumerate(winner)], axis=-1)
     rel = np.array([solutions[w].relative_residual[k] for k, w in enumerate(winner)])
     alphas = np.array([solutions[w].alpha[k] for k, w in enumerate(winner)])
     timings = {"normal_equations": data.time_s, **seconds}
     timings["total"] = data.time_s + time.perf_counter() - t0
     return SolveResult(table, winner, alphas, rel, solutions, data.level.copy(), data.level.copy(),
-                       rule if isinstance(rule, str) else "given", timings, choice)
+                       rule if isinstance(rule, str) else "given", timings, choice, kept_rule)
 
 
 def solve(L: np.ndarray, I: np.ndarray, prior: Optional[Prior] = None, alpha=None, *,
           sigma: Optional[np.ndarray] = None, image_index: Optional[np.ndarray] = None,
           n_t: Optional[int] = None, n_s: Optional[int] = None,
           pairs: Sequence[str] = PAIRS, mean: Optional[np.ndarray] = None,
-          mean_std: Optional[np.ndarray] = None) -> SolveResult:
+          mean_std: Optional[np.ndarray] = None, pair_rule: str = DEFAULT_PAIR_RULE,
+          winner: Optional[Sequence[str]] = None) -> SolveResult:
     """Recover the bivariate table from ``I = L f`` (Eq. 6), per channel, every weight pair.
 
     Minimises ``(1/M) ||(I - L f) / sigma||^2 + alpha (1/N) ||R f / level||^2``, f >= 0,
@@ -272,8 +320,7 @@ def solve(L: np.ndarray, I: np.ndarray, prior: Optional[Prior] = None, alpha=Non
         alpha: the smoothness prior's weight, or how it is chosen: ``"discrepancy"``
             (default, ``None``): one alpha for the three channels by the discrepancy
             principle (:func:`discrepancy_alpha`), at most :data:`DEFAULT_ALPHA`; a number,
-            or three (per channel); with either the pair with the lower data residual
-            wins (the paper's rule). ``"gcv"``: chosen per channel and pair by generalised
+            or three (per channel). ``"gcv"``: chosen per channel and pair by generalised
             cross-validation (:func:`gcv_curve`), and the pair with the lower GCV score wins.
         sigma: ``(M, 3)`` per-row noise std (default: :func:`row_sigma` of ``I``).
         image_index: ``(M,)`` image of each row (for the default ``sigma``).
@@ -282,12 +329,19 @@ def solve(L: np.ndarray, I: np.ndarray, prior: Optional[Prior] = None, alpha=Non
         mean, mean_std: ``(n_t, n_s, 3)`` 1/sr, a per-node Gaussian prior on the
             table (:meth:`mi_bivariate.basis_prior.BasisPrior.predict`), added as
             ``(1/M) sum ((f - mean) / mean_std)^2``.
+        pair_rule: which pair is kept per channel (unless alpha is ``"gcv"``):
+            ``"evidence"`` (default; the higher marginal likelihood of the image,
+            :mod:`~mi_bivariate.solve.evidence`) or ``"residual"`` (the paper's: the lower
+            data residual).
+        winner: the pair to keep per channel, e.g. an earlier stage's ``result.winner``
+            (overrides ``pair_rule``).
 
     Raises:
         InputError: shapes, NaN/inf, negative alpha, no observations, grid mismatch.
     """
     return solve_prepared(prepare_data_term(L, I, sigma, image_index), prior, alpha,
-                          n_t=n_t, n_s=n_s, pairs=pairs, mean=mean, mean_std=mean_std)
+                          n_t=n_t, n_s=n_s, pairs=pairs, mean=mean, mean_std=mean_std, pair_rule=pair_rule,
+                          winner=winner)
 
 
 @dataclass

@@ -1,0 +1,55 @@
+"""Eq. 1 on observed cells against alpha: how close a table fitted to one image can come to the exact reduction.
+
+    MI_BIVARIATE_DATA=../shared/data OPENBLAS_NUM_THREADS=1 python benchmarks/eq1_alpha.py \
+        alum-bronze,black-fabric,red-phenolic,white-paint 1,0.1,1e-2,1e-4,1e-6,1e-8
+
+Row level (3000 normals of a 128 px sphere, clean input under grace_latlong_1k, K = 8000, the
+32 x 32 grid, leave-one-out priors). For each alpha, the smoothness prior alone (stage 1, pair
+kept by the evidence); then the default solve (``recover.solve_stages``: discrepancy alpha and
+basis prior). Eq. 1 over the cells of the observed nodes (``adequacy.observed_nodes``) against
+the 3D truth, and its ratio to the exact reduction's Eq. 1 over all cells (the ratio issue 9
+scores). A diagnostic for development materials: it chooses nothing.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+from ablation import full_table, render_rows
+
+from mi_bivariate import adequacy, capture, lighting, nbrdf, probes, solve, training_set
+from mi_bivariate.bivariate import BivariateBRDF
+from mi_bivariate.geometry import SphereGeometry
+from mi_bivariate.metrics import BRDFErrors
+from mi_bivariate.recover import solve_stages
+from mi_bivariate.variants import ensure_variant
+
+
+def main() -> None:
+    if len(sys.argv) != 3:
+        sys.exit(__doc__)
+    names, alphas = sys.argv[1].split(","), [float(a) for a in sys.argv[2].split(",")]
+    ensure_variant()
+    obs = capture.image_observations(np.ones((128, 128, 3), np.float32), SphereGeometry(64, 64, 60),
+                                     n_normals=3000, seed=0, saturation=2.0)
+    grace = probes.shared_probe("grace_latlong_1k")
+    L = lighting.lighting_matrix(obs, grace, n_dirs=8000)
+    observed = adequacy.observed_nodes(L, 32, 32)
+    tables = training_set.reduced_tables(32, 32)
+    for name in names:
+        errors = BRDFErrors(nbrdf.nbrdf_merl(name))
+        floor = errors(BivariateBRDF(tables[name]), observed_nodes=observed)
+        prior, basis = training_set.learn_priors(tables, exclude=(name,))
+        data = solve.prepare_data_term(L, render_rows(obs, grace, full_table(name)))
+        cells = [f"{name}: exact floor {floor['eq1']:.3f} (observed cells {floor['eq1_observed']:.3f})"]
+        for alpha in alphas:
+            e = errors(BivariateBRDF(solve.solve_prepared(data, prior, alpha).table), observed_nodes=observed)
+            cells.append(f"alpha {alpha:.0e}: {e['eq1_observed']:.3f} ({e['eq1_observed'] / floor['eq1']:.2f}x)")
+        e = errors(BivariateBRDF(solve_stages(data, prior, None, basis).table), observed_nodes=observed)
+        cells.append(f"default: {e['eq1_observed']:.3f} ({e['eq1_observed'] / floor['eq1']:.2f}x)")
+        print(" | ".join(cells), flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,176 @@
+"""The prior variant is kept by the evidence of the image (mi_bivariate.solve.evidence).
+
+Checked against independent truths: the marginal likelihood written out in data space
+(``M x M``, the Gaussian model integrated in closed form), the
+pseudo-determinant against the eigenvalues, the NNLS solve's log det against LAPACK, and
+``recover``'s two stages keeping the first stage's pair.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mi_bivariate import solve
+from mi_bivariate.basis_prior import BasisPrior
+from mi_bivariate.errors import InputError
+from mi_bivariate.prior import default_prior
+from mi_bivariate.recover import solve_stages
+from mi_bivariate.solve import nnls_gram
+from mi_bivariate.solve.evidence import channel_log_evidence, log_det_banded, log_evidence, penalty_log_pdet
+
+N_T = N_S = 6
+N = N_T * N_S
+
+
+def _data_space_log_evidence(A: np.ndarray, y: np.ndarray, Q: np.ndarray) -> float:
+    """log p(y) of y ~ N(A f, 1/M), f ~ N(0, Q^-1 / M), written out in data space.
+
+    y ~ N(0, C / M) with C = I + A Q^-1 A^T: -1/2 log|C| - (M/2) y^T C^-1 y up to a constant of M.
+    """
+    m = len(y)
+    c = np.eye(m) + A @ np.linalg.solve(Q, A.T)
+    sign, log_det = np.linalg.slogdet(c)
+    assert sign > 0
+    return -0.5 * log_det - 0.5 * m * (y @ np.linalg.solve(c, y))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_log_evidence_is_the_marginal_likelihood(seed):
+    """Differences of log_evidence between priors equal those of the data-space formula."""
+    rng = np.random.default_rng(seed)
+    m = 60
+    A = rng.standard_normal((m, N)) / np.sqrt(m)
+    y = A @ rng.uniform(0.5, 2.0, N) + 0.05 * rng.standard_normal(m)
+    prior = default_prior().resampled(N_T, N_S)
+    values, truths = [], []
+    for pair, lam in (("diffuse", 0.3), ("gloss", 0.3), ("gloss", 3.0)):
+        p = prior.penalty_matrix(pair)
+        d = rng.uniform(0.01, 0.1, N)  # a diagonal table prior: the precision is then of full rank
+        q = lam * p + np.diag(d)
+        g = A.T @ A
+        f = np.linalg.solve(g + q, A.T @ y)
+        phi = np.sum((y - A @ f) ** 2) + f @ q @ f
+        sign, ld = np.linalg.slogdet(g + q)
+        values.append(channel_log_evidence(phi, m, ld, lam, p, penalty_log_pdet(p), precision=d))
+        truths.append(_data_space_log_evidence(A, y, q))
+    np.testing.assert_allclose(np.diff(values), np.diff(truths), rtol=1e-9, atol=1e-8)
+    assert abs(np.diff(truths)).max() > 0.1  # the priors differ in evidence
+
+
+def test_improper_prior_is_the_limit_of_proper_ones():
+    """The smoothness prior alone (constants unpenalised): the eps -> 0 limit of lambda P + eps J / N."""
+    rng = np.random.default_rng(3)
+    m = 50
+    A = rng.standard_normal((m, N)) / np.sqrt(m)
+    y = A @ rng.uniform(0.5, 2.0, N) + 0.05 * rng.standard_normal(m)
+    prior = default_prior().resampled(N_T, N_S)
+    g = A.T @ A
+    got, limit = [], []
+    eps = 1e-6  # small enough for the limit, large enough for C = I + A Q^-1 A^T to stay well conditioned
+    for pair in ("diffuse", "gloss"):
+        p, lam = prior.penalty_matrix(pair), 0.5
+        f = np.linalg.solve(g + lam * p, A.T @ y)
+        phi = np.sum((y - A @ f) ** 2) + lam * f @ p @ f
+        got.append(channel_log_evidence(phi, m, np.linalg.slogdet(g + lam * p)[1], lam, p, penalty_log_pdet(p)))
+        q = lam * p + eps * np.ones((N, N)) / N
+        limit.append(_data_space_log_evidence(A, y, q))
+    np.testing.assert_allclose(got[1] - got[0], limit[1] - limit[0], rtol=1e-4)
+    assert abs(got[1] - got[0]) > 0.1
+
+
+def test_penalty_log_pdet_against_eigenvalues():
+    prior = default_prior().resampled(N_T, N_S)
+    for pair in ("diffuse", "gloss"):
+        p = prior.penalty_matrix(pair)
+        w = np.linalg.eigvalsh(p)
+        keep = w > 1e-10 * w.max()
+        value, rank = penalty_log_pdet(p)
+        assert rank == N - 1 == keep.sum()
+        assert value == pytest.approx(np.sum(np.log(w[keep])), rel=1e-10)
+    full = prior.penalty_matrix("gloss") + np.diag(np.linspace(0.1, 1.0, N))  # not a Laplacian
+    value, rank = penalty_log_pdet(full)
+    assert rank == N and value == pytest.approx(np.linalg.slogdet(full)[1], rel=1e-10)
+    assert log_det_banded(full) == pytest.approx(np.linalg.slogdet(full)[1], rel=1e-12)
+    assert penalty_log_pdet(np.zeros((4, 4))) == (0.0, 0)
+
+
+def test_log_evidence_prefers_the_better_fit_and_the_tighter_prior():
+    assert log_evidence(1.0, 0.0, 0.0, 100) > log_evidence(1.01, 0.0, 0.0, 100)
+    assert log_evidence(1.0, 0.0, 5.0, 100) > log_evidence(1.0, 2.0, 5.0, 100)
+
+
+def test_nnls_reports_the_systems_log_det():
+    rng = np.random.default_rng(4)
+    a = rng.standard_normal((40, 12))
+    g = a.T @ a + 0.1 * np.eye(12)
+    b = a.T @ rng.standard_normal(40)
+    res = nnls_gram(g, b, passive=np.ones(12, bool))
+    assert res.log_det == pytest.approx(np.linalg.slogdet(g)[1], rel=1e-12)
+    assert nnls_gram(g, b).log_det is None or res.log_det == pytest.approx(nnls_gram(g, b).log_det)
+
+
+def _problem(seed: int):
+    rng = np.random.default_rng(seed)
+    m = 400
+    L = (rng.random((m, N)) ** 3 * (rng.random((m, N)) < 0.5))[:, :, None] * np.array([1.0, 0.8, 0.6])
+    t = np.linspace(0, 1, N_T)[:, None, None]
+    table = (0.3 + 20.0 * np.exp(-(t / 0.2) ** 2)) * np.ones((1, N_S, 3))
+    I = np.einsum("mnc,nc->mc", L, table.reshape(N, 3)) * (1 + 0.02 * rng.standard_normal((m, 3)))
+    return L.astype(np.float32), I
+
+
+def test_solve_keeps_the_pair_with_the_higher_evidence_and_a_given_winner():
+    L, I = _problem(5)
+    prior = default_prior().resampled(N_T, N_S)
+    data = solve.prepare_data_term(L, I)
+    result = solve.solve_prepared(data, prior, 1e-2)
+    assert result.pair_rule == "evidence"
+    for k, w in enumerate(result.winner):
+        ev = {p: s.log_evidence[k] for p, s in result.pairs.items()}
+        assert np.all(np.isfinite(list(ev.values())))
+        assert ev[w] == max(ev.values())
+    forced = solve.solve_prepared(data, prior, 1e-2, winner=("gloss", "diffuse", "gloss"))
+    assert forced.winner == ("gloss", "diffuse", "gloss") and forced.pair_rule == "given"
+    np.testing.assert_array_equal(forced.table[:, :, 1], forced.pairs["diffuse"].table[:, :, 1])
+    with pytest.raises(InputError, match="winner"):
+        solve.solve_prepared(data, prior, 1e-2, winner=("gloss", "shiny", "gloss"))
+    with pytest.raises(InputError, match="pair_rule"):
+        solve.solve_prepared(data, prior, 1e-2, pair_rule="coin")
+
+
+def test_recover_stages_keep_the_first_stage_pairs():
+    """Stage 2 (the basis prior) solves only the pairs stage 1 kept, and keeps them per channel."""
+    L, I = _problem(6)
+    prior = default_prior().resampled(N_T, N_S)
+    rng = np.random.default_rng(7)
+    t = np.linspace(0, 1, N_T)[:, None, None]
+    tables = {f"m{i}": (rng.uniform(0.05, 0.5) + rng.uniform(1, 30) * np.exp(-(t / rng.uniform(0.1, 0.4)) ** 2))
+              * rng.uniform(0.5, 1.0, 3) * np.ones((1, N_S, 1)) for i in range(8)}
+    basis = BasisPrior.learn(tables, components=3)
+    data = solve.prepare_data_term(L, I)
+    first = solve.solve_prepared(data, prior)
+    both = solve_stages(data, prior, None, basis)
+    assert both.winner == first.winner
+    assert both.pair_rule == first.pair_rule == "evidence"
+    assert both.alpha_rule == first.alpha_rule == "discrepancy"
+    np.testing.assert_array_equal(both.alphas, first.alphas)
+    assert set(both.pairs) == set(first.winner)
+    assert not np.array_equal(both.table, first.table)  # the basis prior did act
+
+
+def test_cli_offers_the_pair_rules(capsys):
+    from mi_bivariate.cli import build_parser, main
+
+    parser = build_parser()
+    args = parser.parse_args(["recover", "img.exr", "--probe", "p.exr", "--pair-rule", "residual"])
+    assert args.pair_rule == "residual"
+    assert parser.parse_args(["recover", "img.exr", "--probe", "p.exr"]).pair_rule == solve.DEFAULT_PAIR_RULE
+    action = next(a for sub in parser._subparsers._group_actions for name, p in sub.choices.items()
+                  if name == "recover" for a in p._actions if a.dest == "pair_rule")
+    assert tuple(action.choices) == solve.PAIR_RULES
+    with pytest.raises(SystemExit) as stop:
+        main(["recover", "img.exr", "--probe", "p.exr", "--pair-rule", "coin"])
+    assert stop.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("mi-bivariate: error:") and "pair-rule" in err[0]
