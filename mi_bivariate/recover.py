@@ -110,6 +110,7 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
             grid: Tuple[int, int] = (32, 32),
             alpha: Union[None, float, str] = None,
             pair_rule: str = solve_mod.DEFAULT_PAIR_RULE,
+            image_weights: str = "cross",
             prior: Optional[prior_mod.Prior] = None,
             basis_prior: Union[BasisPrior, None, str] = "default",
             noise: Any = "auto",
@@ -146,6 +147,9 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
             ``"evidence"`` (default; the pair under which the image is likelier,
             :mod:`mi_bivariate.solve.evidence`) or ``"residual"`` (the paper's: the lower
             data residual). The second stage keeps the first stage's pairs.
+        image_weights: with several images, how their rows are weighted beyond each image's
+            own scale and noise: ``"cross"`` (default; :func:`cross_image_factors`: an image
+            whose table alone predicts the other images worse counts less) or ``"equal"``.
         prior: smoothness prior (default: the packaged one, resampled to ``grid``).
         basis_prior: the data-driven table prior (:mod:`mi_bivariate.basis_prior`):
             ``"default"`` the packaged one (learnt from the 73 shared MERL-NBRDF
@@ -189,6 +193,8 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
     if n_t < 2 or n_s < 2:
         raise InputError("grid", f"{n_t}x{n_s} is too small", "each st axis needs at least 2 nodes")
     solve_mod.check_alpha(alpha)  # fail before the lighting matrix
+    if image_weights not in IMAGE_WEIGHTS:
+        raise InputError("image_weights", f"unknown rule {image_weights!r}", f"use one of {', '.join(IMAGE_WEIGHTS)}")
 
     timings: Dict[str, float] = {}
     t0 = time.perf_counter()
@@ -221,6 +227,15 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
     noise_models = _noise_list(noise, images)
     with blas_threads():  # no BLAS oversubscription on a shared machine (mi_bivariate.threads)
         sigma = solve_mod.row_sigma(observations.values, observations.image_index, noise=noise_models)
+        factors = np.ones(n)
+        if image_weights == "cross" and n > 1:
+            t1 = time.perf_counter()
+            found = cross_image_factors(L, observations.values, observations.image_index, sigma, prior, alpha,
+                                        basis, pair_rule)
+            factors[: len(found)] = found
+            sigma = sigma * factors[observations.image_index][:, None]
+            timings["image weights"] = time.perf_counter() - t1
+            t0 += timings["image weights"]
         data = solve_mod.prepare_data_term(L, observations.values, sigma)
         timings["normal equations"] = time.perf_counter() - t0
         solution = solve_stages(data, prior, alpha, basis, pair_rule)
@@ -239,6 +254,7 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
         "images": n, "normals": int(len(observations.values)), "light_directions": int(n_dirs),
         "sampling": sampling, "alpha": [float(a) for a in solution.alphas], "alpha_rule": solution.alpha_rule,
         "prior_winner": list(solution.winner), "prior_pair_rule": solution.pair_rule, "seed": int(seed),
+        "image_weights": image_weights, "image_sigma_factors": [float(v) for v in factors],
         "basis_prior": None if basis is None else {"materials": len(basis.materials),
                                                     "components": int(basis.basis.shape[1])},
         "noise": None if noise_models is None else [None if v is None else [np.asarray(x).tolist() for x in v]
@@ -274,6 +290,75 @@ def solve_stages(data: solve_mod.DataTerm, prior: prior_mod.Prior, alpha: Any = 
                                       winner=first.winner)
     second.alpha_rule, second.pair_rule, second.alpha_choice = first.alpha_rule, first.pair_rule, first.alpha_choice
     return second
+
+
+#: How several images' rows are weighted beyond their own scale and noise (:func:`recover`).
+IMAGE_WEIGHTS = ("cross", "equal")
+#: The smallest cross-prediction excess :func:`cross_image_factors` divides by (relative: 0.1%,
+#: below the lighting matrix's own quadrature error, so nothing real is finer).
+CROSS_FLOOR = 1e-3
+
+
+def cross_image_factors(L: np.ndarray, values: np.ndarray, image_index: np.ndarray, sigma: np.ndarray,
+                        prior: prior_mod.Prior, alpha: Any = None, basis: Optional[BasisPrior] = None,
+                        pair_rule: str = solve_mod.DEFAULT_PAIR_RULE) -> np.ndarray:
+    """``(max(image_index) + 1,) >= 1``: each image's sigma factor, by leave-one-image-out prediction
+    (1 for an image without rows).
+
+    Each image is solved alone (:func:`solve_stages`), and its table predicts the rows of
+    every other image. What counts is how much worse image ``i``'s table predicts image ``j``
+    than ``j``'s own noise allows: ``d_ij^2 = (||L_j f_i - I_j||^2 - s_j^2) / ||I_j||^2`` (0 if
+    negative), with ``s_j^2 = RSS_j M_j / (M_j - dof_j)`` per channel, ``j``'s own residual with
+    the degrees of freedom its fit used given back (the trace of its model resolution matrix), and
+    ``d_i`` is the RMS over ``j`` of ``d_ij``. Image ``i``'s rows get their sigma multiplied by
+    ``d_i / min d`` (``min d`` at least :data:`CROSS_FLOOR`): the image whose table carries
+    over best to other light keeps its weight; one whose table does not (the bivariate model
+    fitted to its lighting in ways no other image confirms) counts less. Relative errors: an
+    image's brightness changes nothing. Costs one extra solve per image.
+
+    Measured on training materials (``benchmarks/image_weight.py``, ``docs/recovery.md``
+    section 4c): with grace_latlong_1k + uffizi_256, uffizi's rows weighed too much; these
+    weights (uffizi's factor 1.5-10) relit 14 of 15 better than equal ones.
+
+    Args:
+        L: ``(M, N, 3)``; values: ``(M, 3)``; image_index: ``(M,)`` int; sigma: ``(M, 3)`` the rows'
+            noise. prior, alpha, basis, pair_rule: as :func:`solve_stages`.
+    """
+    index = np.asarray(image_index, np.int64)
+    images = np.unique(index)
+    factors = np.ones(int(index.max()) + 1 if index.size else 0)
+    if len(images) < 2:
+        return factors
+    tables, dof = [], []
+    for i in images:
+        rows = index == i
+        data = solve_mod.prepare_data_term(L[rows], values[rows], sigma[rows])
+        result = solve_stages(data, prior, alpha, basis, pair_rule)
+        tables.append(result.table.reshape(-1, 3).astype(np.float32))
+        dof.append(np.sum(result.resolution.reshape(-1, 3), axis=0))  # trace of the hat matrix per channel
+    # misfit[a, b]: ||L_b f_a - I_b||^2 / ||I_b||^2, table of image a on the rows of image b;
+    # floor[b]: image b's own misfit with its degrees of freedom given back, RSS M / (M - dof)
+    # per channel (an image whose rows pin few nodes fits its own noise: its RSS under-states it).
+    misfit = np.empty((len(images), len(images)))
+    floor = np.empty(len(images))
+    for b, j in enumerate(images):
+        rows = index == j
+        observed = values[rows].astype(np.float64)
+        norm2 = max(float(np.sum(observed**2)), 1e-300)
+        for a, table in enumerate(tables):
+            predicted = np.einsum("mnc,nc->mc", L[rows], table, optimize=True).astype(np.float64)
+            rss = np.sum((predicted - observed) ** 2, axis=0)
+            misfit[a, b] = float(rss.sum()) / norm2
+            if a == b:
+                m = float(rows.sum())
+                floor[b] = float(np.sum(rss * m / np.maximum(m - dof[b], 1.0))) / norm2
+    excess = np.maximum(misfit - floor[None, :], 0.0)
+    off = ~np.eye(len(images), dtype=bool)
+    d = np.sqrt(np.array([excess[a][off[a]].mean() for a in range(len(images))]))
+    if np.all(np.isfinite(d)):
+        factors[images] = d / max(float(d.min()), CROSS_FLOOR)
+        factors[images] = np.maximum(factors[images], 1.0)
+    return factors
 
 
 def _basis_prior(value: Union[BasisPrior, None, str], n_t: int, n_s: int) -> Optional[BasisPrior]:

@@ -1,0 +1,85 @@
+"""Several images weighted by how well each one's table predicts the others (recover.cross_image_factors)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mi_bivariate import solve
+from mi_bivariate.prior import default_prior
+from mi_bivariate.recover import IMAGE_WEIGHTS, cross_image_factors, solve_stages
+
+N_T = N_S = 8
+N = N_T * N_S
+
+
+def _lighting(seed: int, m: int = 300) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    base = rng.random((m, N)) ** 3 * (rng.random((m, N)) < 0.5)
+    return (base[:, :, None] * np.array([1.0, 0.8, 0.6])).astype(np.float32)
+
+
+def _truth() -> np.ndarray:
+    t = np.linspace(0, 1, N_T)[:, None, None]
+    return ((0.2 + 8.0 * np.exp(-(t / 0.25) ** 2)) * np.ones((1, N_S, 3))).reshape(N, 3)
+
+
+def _images(bias: float = 0.4, noise: float = 0.0):
+    """Three images under independent lights; images 0 and 1 follow the bivariate model, image 2
+    carries a model error its own fit absorbs (its pixels follow a table whose peak is ``bias``
+    higher, as a lighting-specific phi_d weighting would)."""
+    rng = np.random.default_rng(3)
+    f = _truth()
+    t = np.repeat(np.linspace(0, 1, N_T), N_S)[:, None]
+    f_seen = f * (1.0 + bias * np.exp(-(t / 0.25) ** 2))
+    Ls, Is = [], []
+    for k in range(3):
+        L = _lighting(10 + k)
+        I = np.einsum("mnc,nc->mc", L.astype(np.float64), f_seen if k == 2 else f)
+        Ls.append(L)
+        Is.append(I * (1.0 + noise * rng.standard_normal(I.shape)))
+    return np.concatenate(Ls), np.concatenate(Is), np.repeat([0, 1, 2], len(Ls[0])), f
+
+
+def test_the_image_the_others_do_not_confirm_counts_less():
+    L, I, index, f = _images()
+    prior = default_prior().resampled(N_T, N_S)
+    sigma = solve.row_sigma(I, index)
+    factors = cross_image_factors(L, I, index, sigma, prior, 1e-2)
+    assert factors.shape == (3,) and factors.min() == 1.0 and factors[2] > 1.3 * factors[:2].max(), factors
+    # ... and the weighted joint solve is closer to the truth than the equally weighted one.
+    equal = solve_stages(solve.prepare_data_term(L, I, sigma), prior, 1e-2).table.reshape(-1, 3)
+    weighted = solve_stages(solve.prepare_data_term(L, I, sigma * factors[index][:, None]), prior,
+                            1e-2).table.reshape(-1, 3)
+    assert np.linalg.norm(weighted - f) < 0.9 * np.linalg.norm(equal - f)
+
+
+def test_factors_ignore_brightness_and_noise_and_need_two_images():
+    L, I, index, _ = _images()
+    prior = default_prior().resampled(N_T, N_S)
+    sigma = solve.row_sigma(I, index)
+    factors = cross_image_factors(L, I, index, sigma, prior, 1e-2)
+    # Image 1 and its lighting 50x brighter: its sigma follows its own scale; nothing changes.
+    L2, I2 = L.copy(), I.copy()
+    L2[index == 1] *= 50.0
+    I2[index == 1] *= 50.0
+    brighter = cross_image_factors(L2, I2, index, solve.row_sigma(I2, index), prior, 1e-2)
+    np.testing.assert_allclose(brighter, factors, rtol=1e-4)
+    # Model-consistent images with 5% pixel noise: each image's own noise is discounted, factors near 1.
+    L3, I3, _, _ = _images(bias=0.0, noise=0.05)
+    same = cross_image_factors(L3, I3, index, solve.row_sigma(I3, index), prior, 1e-2)
+    assert np.all(same < 1.3), same
+    one = index == 0
+    assert np.array_equal(cross_image_factors(L[one], I[one], index[one], sigma[one], prior, 1e-2), np.ones(1))
+
+
+def test_recover_refuses_an_unknown_image_weighting():
+    from mi_bivariate.errors import InputError
+    from mi_bivariate.geometry import SphereGeometry
+    from mi_bivariate.recover import recover
+    from mi_bivariate.sources import synthetic_environment
+
+    assert IMAGE_WEIGHTS == ("cross", "equal")
+    with pytest.raises(InputError, match="image_weights"):
+        recover(np.ones((16, 16, 3), np.float32), synthetic_environment(), SphereGeometry(8, 8, 6),
+                image_weights="loudest")
