@@ -329,10 +329,12 @@ def cross_image_factors(L: np.ndarray, values: np.ndarray, image_index: np.ndarr
     factors = np.ones(int(index.max()) + 1 if index.size else 0)
     if len(images) < 2:
         return factors
+    rows_of = [index == i for i in images]
+    L_of = [L[rows] for rows in rows_of]  # one copy of each image's rows, used by both loops
+    observed_of = [values[rows].astype(np.float64) for rows in rows_of]
     tables, dof = [], []
-    for i in images:
-        rows = index == i
-        data = solve_mod.prepare_data_term(L[rows], values[rows], sigma[rows])
+    for rows, L_i, observed in zip(rows_of, L_of, observed_of):
+        data = solve_mod.prepare_data_term(L_i, observed, sigma[rows])
         result = solve_stages(data, prior, alpha, basis, pair_rule)
         tables.append(result.table.reshape(-1, 3).astype(np.float32))
         dof.append(np.sum(result.resolution.reshape(-1, 3), axis=0))  # trace of the hat matrix per channel
@@ -341,16 +343,14 @@ def cross_image_factors(L: np.ndarray, values: np.ndarray, image_index: np.ndarr
     # per channel (an image whose rows pin few nodes fits its own noise: its RSS under-states it).
     misfit = np.empty((len(images), len(images)))
     floor = np.empty(len(images))
-    for b, j in enumerate(images):
-        rows = index == j
-        observed = values[rows].astype(np.float64)
+    for b, (L_b, observed) in enumerate(zip(L_of, observed_of)):
         norm2 = max(float(np.sum(observed**2)), 1e-300)
         for a, table in enumerate(tables):
-            predicted = np.einsum("mnc,nc->mc", L[rows], table, optimize=True).astype(np.float64)
+            predicted = np.einsum("mnc,nc->mc", L_b, table, optimize=True).astype(np.float64)
             rss = np.sum((predicted - observed) ** 2, axis=0)
             misfit[a, b] = float(rss.sum()) / norm2
             if a == b:
-                m = float(rows.sum())
+                m = float(len(observed))
                 floor[b] = float(np.sum(rss * m / np.maximum(m - dof[b], 1.0))) / norm2
     excess = np.maximum(misfit - floor[None, :], 0.0)
     off = ~np.eye(len(images), dtype=bool)

@@ -38,9 +38,8 @@ from __future__ import annotations
 from typing import Optional, Tuple
 
 import numpy as np
-import scipy.linalg as sla
 
-from mi_bivariate.solve.common import banded_cholesky, bandwidth
+from mi_bivariate.solve.common import banded_cholesky, bandwidth, cholesky
 
 #: How the prior variant (weight pair) is chosen per channel: ``"evidence"`` (the default,
 #: :func:`log_evidence`) or ``"residual"`` (the paper's: the lower data residual).
@@ -50,13 +49,9 @@ DEFAULT_PAIR_RULE = "evidence"
 
 def log_det_spd(x: np.ndarray) -> float:
     """``log det X`` of a symmetric positive definite ``(N, N)`` matrix (Cholesky; slogdet if not SPD)."""
-    try:
-        c, _ = sla.cho_factor(x, check_finite=False)
-        value = 2.0 * float(np.sum(np.log(np.diag(c))))
-        if np.isfinite(value):
-            return value
-    except np.linalg.LinAlgError:
-        pass
+    factor = cholesky(x)
+    if factor is not None:
+        return 2.0 * float(np.sum(np.log(np.diag(factor[0]))))
     sign, value = np.linalg.slogdet(x)
     return float(value) if sign > 0 else -np.inf
 
