@@ -34,13 +34,20 @@ def _problem(kind: str, seed: int, m: int = 120, n: int = 40):
     return a_mat, rhs
 
 
+@pytest.mark.parametrize("start", ["empty", "full"])  # full: the one-factor (Schur) route
 @pytest.mark.parametrize("kind", ["well", "ill", "collinear", "active"])
-def test_nnls_gram_matches_scipy_nnls(kind):
+def test_nnls_gram_matches_scipy_nnls(kind, start):
     for seed in range(4):
         a_mat, rhs = _problem(kind, seed)
         expected, _ = sopt.nnls(a_mat, rhs, maxiter=100 * a_mat.shape[1])
-        res = nnls_gram(a_mat.T @ a_mat, a_mat.T @ rhs)
+        g, b = a_mat.T @ a_mat, a_mat.T @ rhs
+        res = nnls_gram(g, b, passive=np.full(b.size, start == "full"))
         assert res.method == "bpp"
+        if start == "full":  # the factor handed to the confidence is the whole G's
+            assert res.factor is not None
+            c, lower = res.factor
+            u = np.tril(c).T if lower else np.triu(c)
+            np.testing.assert_allclose(u.T @ u, g, rtol=0, atol=1e-12 * np.abs(g).max())
         assert res.kkt_violation < 1e-12
         assert np.all(res.x >= 0)
         # Both exact: they differ by the conditioning times round-off only.
@@ -337,12 +344,12 @@ def test_discrepancy_search_brackets_the_target_with_few_evaluations(monkeypatch
         target = float(rng.uniform(0.0, 55.0))
         calls = []
 
-        def fake(data, penalty, channels, alpha, extra, values=values, calls=calls):
+        def fake(data, entries, channels, alpha, extra, values=values, calls=calls):
             calls.append(alpha)
             return float(np.interp(np.log10(alpha), logs, values))
 
         monkeypatch.setattr(disc, "_data_term", fake)
-        choice = disc.discrepancy_alpha(None, None, target=target)
+        choice = disc.discrepancy_alpha(None, np.eye(4), target=target)
         below = values <= target
         if below[-1]:
             assert choice.alpha == pytest.approx(DEFAULT_ALPHA) and choice.bounded == "high" and len(calls) == 1
@@ -352,3 +359,26 @@ def test_discrepancy_search_brackets_the_target_with_few_evaluations(monkeypatch
             j = int(np.nonzero(~below)[0][0])
             assert DISCREPANCY_ALPHAS[j - 1] * (1 - 1e-12) <= choice.alpha <= DISCREPANCY_ALPHAS[j] * (1 + 1e-12)
             assert len(calls) <= 2 + int(np.ceil(np.log2(len(logs)))) + 1
+
+
+def test_nnls_one_factor_route_hands_over_to_direct_solves(monkeypatch):
+    """If the active-set system of the one-factor route is not numerically SPD mid-way, the
+    pivoting continues with direct passive-set factorisations and still reaches the optimum."""
+    import mi_bivariate.solve.nnls as nnls_mod
+
+    a_mat, rhs = _problem("active", 1)
+    g, b = a_mat.T @ a_mat, a_mat.T @ rhs
+    expected, _ = sopt.nnls(a_mat, rhs, maxiter=100 * a_mat.shape[1])
+    calls = []
+    original = nnls_mod._SchurSolver.__call__
+
+    def failing(self, passive):
+        calls.append(int(np.sum(~passive)))
+        if len(calls) > 1:
+            raise np.linalg.LinAlgError("forced")
+        return original(self, passive)
+
+    monkeypatch.setattr(nnls_mod._SchurSolver, "__call__", failing)
+    res = nnls_gram(g, b, passive=np.ones(b.size, bool))
+    assert len(calls) == 2 and res.method == "bpp" and res.kkt_violation < 1e-12
+    np.testing.assert_allclose(res.x, expected, rtol=0, atol=1e-9 * np.abs(expected).max())

@@ -117,41 +117,84 @@ def cholesky(x: np.ndarray) -> Optional[Tuple[np.ndarray, bool]]:
     return factor
 
 
-def inverse_from_cholesky(factor: Tuple[np.ndarray, bool], full: bool = True) -> np.ndarray:
-    """``X^-1`` from ``cho_factor(X)``, by LAPACK ``potri``.
-
-    ``full=False`` returns only the factor's triangle of the inverse (zeros elsewhere),
-    which is all that :func:`inverse_diagonals` needs.
-    """
+def _potri(factor: Tuple[np.ndarray, bool]) -> np.ndarray:
+    """LAPACK ``potri`` of ``cho_factor(X)``: ``X^-1`` in the factor's triangle, leftovers elsewhere."""
     c, lower = factor
     inv, info = lapack.dpotri(c, lower=lower)
     if info != 0:
         raise np.linalg.LinAlgError(f"potri failed (info {info})")
+    return inv
+
+
+def inverse_from_cholesky(factor: Tuple[np.ndarray, bool], full: bool = True) -> np.ndarray:
+    """``X^-1`` from ``cho_factor(X)``, by LAPACK ``potri``.
+
+    ``full=False`` returns only the factor's triangle of the inverse (zeros elsewhere).
+    """
+    inv = _potri(factor)
     # potri fills one triangle; the other holds the factor's leftovers.
-    tri = np.tril(inv) if lower else np.triu(inv)
+    tri = np.tril(inv) if factor[1] else np.triu(inv)
     if not full:
         return tri
     return tri + tri.T - np.diag(np.diag(tri))
 
 
+def sparse_entries(x: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(rows, cols, values)`` of the non-zero entries of a dense ``(N, N)`` matrix.
+
+    The priors' matrices (``R^T R`` of the smoothness prior, the table prior's diagonal)
+    have a few entries per row: adding them to a Gram matrix, or evaluating ``f^T P f``,
+    by their entries costs ``O(nnz)`` instead of ``O(N^2)``.
+    """
+    rows, cols = np.nonzero(x)
+    return rows, cols, x[rows, cols]
+
+
+def add_entries(x: np.ndarray, entries: Tuple[np.ndarray, np.ndarray, np.ndarray],
+                weight: float = 1.0) -> np.ndarray:
+    """``x += weight * P`` in place for ``P`` given by :func:`sparse_entries`; returns ``x``."""
+    rows, cols, values = entries
+    x[rows, cols] += weight * values
+    return x
+
+
+def quadratic_form(entries: Tuple[np.ndarray, np.ndarray, np.ndarray], f: np.ndarray) -> float:
+    """``f^T P f`` for ``P`` given by :func:`sparse_entries`."""
+    rows, cols, values = entries
+    return float(np.dot(values, f[rows] * f[cols]))
+
+
 def inverse_diagonals(x: np.ndarray, gram: np.ndarray,
-                      factor: Optional[Tuple[np.ndarray, bool]] = None) -> Tuple[np.ndarray, np.ndarray]:
+                      factor: Optional[Tuple[np.ndarray, bool]] = None,
+                      prior: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None
+                      ) -> Tuple[np.ndarray, np.ndarray]:
     """``diag(X^-1)`` and ``diag(X^-1 gram)`` (gram symmetric) from one factorisation of ``X``.
 
-    With ``T`` one triangle of ``X^-1`` (its diagonal included) and ``P = T * gram``
-    elementwise: ``diag(X^-1 gram)_i = sum_j P_ij + sum_j P_ji - P_ii``. Falls back to
-    the pseudo-inverse when ``X`` is singular.
+    ``prior``: the entries (:func:`sparse_entries`) of ``Q = X - gram`` (symmetric and
+    sparse: the priors' part of the system). Then ``diag(X^-1 gram) = 1 - diag(X^-1 Q)``
+    reads ``X^-1`` only where ``Q`` is non-zero (``O(nnz)`` after ``potri``). Without it:
+    with ``T`` one triangle of ``X^-1`` and ``P = T * gram`` elementwise,
+    ``diag(X^-1 gram)_i = sum_j P_ij + sum_j P_ji - P_ii`` (``O(N^2)``). Falls back to the
+    pseudo-inverse when ``X`` is singular.
     """
     factor = cholesky(x) if factor is None else factor
-    tri = None
+    inv = None
     if factor is not None:
         try:
-            tri = inverse_from_cholesky(factor, full=False)
+            inv = _potri(factor)
         except np.linalg.LinAlgError:
-            tri = None
-    if tri is None:
-        inv = np.linalg.pinv(x)
-        return np.diag(inv).copy(), np.einsum("ij,ij->i", inv, gram)
+            inv = None
+    if inv is None:
+        pinv = np.linalg.pinv(x)
+        return np.diag(pinv).copy(), np.einsum("ij,ij->i", pinv, gram)
+    lower = factor[1]
+    if prior is not None:
+        rows, cols, values = prior
+        lo, hi = np.minimum(rows, cols), np.maximum(rows, cols)
+        inside = inv[hi, lo] if lower else inv[lo, hi]  # (X^-1)_ij from the valid triangle
+        x_inv_q = np.bincount(rows, weights=inside * values, minlength=x.shape[0])
+        return np.diag(inv).copy(), 1.0 - x_inv_q
+    tri = np.tril(inv) if lower else np.triu(inv)
     prod = tri * gram
     return np.diag(tri).copy(), prod.sum(axis=1) + prod.sum(axis=0) - np.diag(prod)
 

@@ -11,8 +11,9 @@ For one channel with system matrix ``X = gram + lambda P [+ diag(precision)]``
   the smoothness prior alone is improper, so a ridge of 1e-6 of the data's mean
   diagonal stands in where no table prior is given).
 
-All three come from one Cholesky factorisation of ``X`` (reused from the NNLS
-solve when its final passive set was every node) and one ``potri`` inverse; the
+All three come from one Cholesky factorisation of ``X`` (the NNLS solve's own,
+which factorises the whole ``X`` when it starts with every node passive, as the
+solve does) and one ``potri`` inverse; the
 prior's matrix is banded (bandwidth ``n_s``), so its inverse's diagonal costs
 ``O(N n_s^2)`` (:func:`~mi_bivariate.solve.common.banded_inverse_diagonal`).
 Nothing is computed before it is asked for: a solve uses the kept variant's
@@ -25,7 +26,13 @@ from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
-from mi_bivariate.solve.common import banded_inverse_diagonal, bandwidth, inverse_diagonals, spd_inverse
+from mi_bivariate.solve.common import (
+    add_entries,
+    banded_inverse_diagonal,
+    inverse_diagonals,
+    sparse_entries,
+    spd_inverse,
+)
 from mi_bivariate.solve.data_term import DataTerm
 
 #: The confidence maps, in the order of :class:`Confidence`'s ``(n_t, n_s, 3)`` arrays.
@@ -43,12 +50,15 @@ class Confidence:
         lam: ``(3,)`` the penalty's weight per channel.
         precision: ``(N, 3)`` diagonal table-prior precision, or ``None``.
         grid: ``(n_t, n_s)``.
+        entries: ``penalty``'s non-zero entries if the caller has them
+            (:func:`~mi_bivariate.solve.common.sparse_entries`).
     """
 
     def __init__(self, data: DataTerm, penalty: np.ndarray, lam: np.ndarray,
-                 precision: Optional[np.ndarray], grid: Tuple[int, int]):
+                 precision: Optional[np.ndarray], grid: Tuple[int, int], entries: Optional[tuple] = None):
         self._data = data
         self._penalty = penalty
+        self._entries = sparse_entries(penalty) if entries is None else entries
         self._lam = np.array(lam, np.float64)
         self._precision = precision
         self._grid = grid
@@ -57,8 +67,8 @@ class Confidence:
         self._post_var: Dict[int, np.ndarray] = {}
 
     def keep_factor(self, k: int, factor: Optional[Tuple[np.ndarray, bool]], x: np.ndarray) -> None:
-        """Remember ``X_k`` and ``cho_factor(X_k)`` (from the NNLS solve; ``None`` if it ended with a
-        smaller passive set) until :meth:`release_factors`."""
+        """Remember ``X_k`` and ``cho_factor(X_k)`` (from the NNLS solve; ``None`` if it had no factor
+        of the whole ``X_k``) until :meth:`release_factors`."""
         self._factors[k] = (factor, x)
 
     def set_weight(self, k: int, lam: float) -> None:
@@ -69,16 +79,25 @@ class Confidence:
         self._factors = [None, None, None]
 
     def _system(self, k: int) -> np.ndarray:
-        x = self._data.gram[k] + self._lam[k] * self._penalty
+        x = add_entries(self._data.gram[k].copy(), self._entries, self._lam[k])
         if self._precision is not None:
             x[np.diag_indices_from(x)] += self._precision[:, k]
         return x
+
+    def _prior_entries(self, k: int):
+        """The entries of ``X_k - gram_k`` (the priors' part of the system)."""
+        rows, cols, values = self._entries
+        if self._precision is None:
+            return rows, cols, self._lam[k] * values
+        diag = np.arange(self._data.n_nodes)
+        return (np.concatenate([rows, diag]), np.concatenate([cols, diag]),
+                np.concatenate([self._lam[k] * values, self._precision[:, k]]))
 
     def _posterior(self, k: int) -> None:
         kept = self._factors[k]
         self._factors[k] = None
         x, factor = (self._system(k), None) if kept is None else (kept[1], kept[0])
-        var, resolution = inverse_diagonals(x, self._data.gram[k], factor)
+        var, resolution = inverse_diagonals(x, self._data.gram[k], factor, prior=self._prior_entries(k))
         self._values["resolution", k] = np.clip(resolution, 0.0, 1.0)
         self._values["posterior_std", k] = np.sqrt(np.maximum(var, 0.0) / self._data.n_rows)
         self._post_var[k] = var
@@ -89,7 +108,8 @@ class Confidence:
         ridge = (self._precision[:, k] if self._precision is not None
                  else np.full(n, PRIOR_RIDGE * float(np.mean(np.diag(self._data.gram[k])))))
         prior_x[np.diag_indices(n)] += ridge
-        band = bandwidth(prior_x)
+        rows, cols, _ = self._entries
+        band = int(np.abs(rows - cols).max(initial=0))
         diag = banded_inverse_diagonal(prior_x, band) if 4 * band < n else None
         if diag is None:
             diag = np.diag(spd_inverse(prior_x))

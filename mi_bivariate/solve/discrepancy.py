@@ -42,7 +42,7 @@ from typing import Dict, Optional, Sequence, Tuple
 import numpy as np
 import scipy.linalg as sla
 
-from mi_bivariate.solve.common import DEFAULT_ALPHA, penalty_weight
+from mi_bivariate.solve.common import DEFAULT_ALPHA, add_entries, penalty_weight, sparse_entries
 from mi_bivariate.solve.data_term import DataTerm
 
 #: The log grid walked (half decades from 1e-4 to DEFAULT_ALPHA = 1e-2): the range alpha is chosen in.
@@ -64,14 +64,15 @@ class DiscrepancyChoice:
     bounded: str
 
 
-def _data_term(data: DataTerm, penalty: np.ndarray, channels: Sequence[int], alpha: float,
+def _data_term(data: DataTerm, entries: tuple, channels: Sequence[int], alpha: float,
                extra: Optional[Tuple[np.ndarray, np.ndarray]]) -> float:
-    """The mean over ``channels`` of the unconstrained solution's data term at ``alpha``."""
+    """The mean over ``channels`` of the unconstrained solution's data term at ``alpha``
+    (``entries``: the penalty's, :func:`~mi_bivariate.solve.common.sparse_entries`)."""
     n = data.n_nodes
     total = 0.0
     for k in channels:
         g, b = data.gram[k], data.rhs[k]
-        x = g + penalty_weight(alpha, n, data.level[k]) * penalty
+        x = add_entries(g.copy(), entries, penalty_weight(alpha, n, data.level[k]))
         rhs = b
         if extra is not None:
             x[np.diag_indices(n)] += extra[0][:, k]
@@ -83,8 +84,8 @@ def _data_term(data: DataTerm, penalty: np.ndarray, channels: Sequence[int], alp
 
 def discrepancy_alpha(data: DataTerm, penalty: np.ndarray, channels: Sequence[int] = (0, 1, 2),
                       target: float = DISCREPANCY_TARGET, alphas: Sequence[float] = DISCREPANCY_ALPHAS,
-                      start: float = DEFAULT_ALPHA, extra: Optional[Tuple[np.ndarray, np.ndarray]] = None
-                      ) -> DiscrepancyChoice:
+                      start: float = DEFAULT_ALPHA, extra: Optional[Tuple[np.ndarray, np.ndarray]] = None,
+                      entries: Optional[tuple] = None) -> DiscrepancyChoice:
     """The largest alpha with data term ``rho(alpha) <= target``, ``rho`` the mean over ``channels``.
 
     One alpha serves every channel: chosen per channel, a material's colour channels were
@@ -100,13 +101,16 @@ def discrepancy_alpha(data: DataTerm, penalty: np.ndarray, channels: Sequence[in
             then bisects the grid between them.
         extra: ``(precision, shift)`` ``(N, 3)`` each: a fixed diagonal Gaussian term (the
             basis prior) in the system and the right-hand side.
+        entries: ``penalty``'s non-zero entries if the caller has them
+            (:func:`~mi_bivariate.solve.common.sparse_entries`).
     """
     grid = np.asarray(alphas, np.float64)
     seen: Dict[float, float] = {}  # alpha -> rho
+    entries = sparse_entries(penalty) if entries is None else entries
 
     def rho(alpha: float) -> float:
         if alpha not in seen:
-            seen[alpha] = _data_term(data, penalty, channels, alpha, extra)
+            seen[alpha] = _data_term(data, entries, channels, alpha, extra)
         return seen[alpha]
 
     def choice(alpha: float, bounded: str) -> DiscrepancyChoice:

@@ -6,10 +6,15 @@ Murty's single-exchange fallback. Every answer's KKT conditions are verified;
 if they fail, the problem is re-solved with ``scipy.optimize.nnls`` on an
 eigen-reduced ``N x N`` system and the result says so.
 
-The Cholesky factor of the last passive-set solve is returned with the answer:
-when every variable ended passive it is the factor of ``G`` itself, which the
-confidence (:mod:`mi_bivariate.solve.confidence`) reuses instead of factorising
-``G`` again.
+From a start with every variable passive (the solve's usual start: the Lambertian
+level or the basis prior's mean, all positive), ``G`` is factorised once and every
+later passive-set solve works on that one factor (:class:`_SchurSolver`): with ``A``
+the active set, ``x = z + G^-1 E mu``, ``z = G^-1 b``, ``(G^-1)_AA mu = -z_A``, where
+``E`` selects ``A`` and ``mu`` is the gradient on ``A``. A passive-set solve then costs
+the columns of ``G^-1`` for variables new to ``A`` (two triangular solves each) and an
+``|A| x |A|`` factorisation, instead of a factorisation of ``G_FF``. That factor of
+``G`` is returned with the answer, and the confidence
+(:mod:`mi_bivariate.solve.confidence`) reuses it instead of factorising ``G`` again.
 """
 
 from __future__ import annotations
@@ -39,7 +44,8 @@ class NNLSResult:
     iterations: int          #: passive-set linear solves
     kkt_violation: float     #: relative, see :func:`kkt_violation`
     method: str              #: "bpp" or "bpp+nnls-fallback"
-    #: ``cho_factor`` of ``G`` when the final passive set is every variable (else ``None``)
+    #: ``cho_factor`` of the whole ``G`` when the solve had it (the one-factor route, or a
+    #: final passive set of every variable), else ``None``
     factor: Optional[Tuple[np.ndarray, bool]] = None
     #: ``log det G`` when some passive-set solve factorised all of ``G`` (the usual first
     #: one, from a positive start), else ``None``
@@ -85,6 +91,47 @@ def _passive_solve(G: np.ndarray, b: np.ndarray, passive: np.ndarray):
     y = G @ x - b
     y[idx] = 0.0
     return x, y, factor
+
+
+class _SchurSolver:
+    """Passive-set solves of ``min 1/2 x^T G x - b^T x`` s.t. ``x_A = 0`` from one factor of ``G``.
+
+    Lagrange: ``G x - b = E mu``, ``E^T x = 0`` give ``x = z + C mu`` with ``z = G^-1 b``,
+    ``C = G^-1 E`` (``(N, |A|)``) and ``C_A mu = -z_A``; ``mu`` is then the gradient
+    ``G x - b`` on ``A`` (0 on the passive set). Columns of ``G^-1`` are computed once,
+    when their variable first turns active (one ``cho_solve`` for all of them).
+    """
+
+    def __init__(self, b: np.ndarray, factor: Tuple[np.ndarray, bool]):
+        self.factor = factor
+        self.z = sla.cho_solve(factor, b, check_finite=False)
+        self.slot = np.full(b.size, -1)
+        self.columns = np.empty((b.size, 0))
+
+    def _columns(self, active: np.ndarray) -> np.ndarray:
+        new = active[self.slot[active] < 0]
+        if new.size:
+            unit = np.zeros((self.z.size, new.size))
+            unit[new, np.arange(new.size)] = 1.0
+            self.slot[new] = self.columns.shape[1] + np.arange(new.size)
+            self.columns = np.hstack([self.columns, sla.cho_solve(self.factor, unit, check_finite=False)])
+        return self.columns[:, self.slot[active]]
+
+    def __call__(self, passive: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+        """``x`` and the gradient ``y = G x - b`` (0 on the passive set)."""
+        x, y = self.z.copy(), np.zeros_like(self.z)
+        active = np.flatnonzero(~passive)
+        if active.size:
+            c = self._columns(active)
+            c_aa = c[active]
+            mu = sla.cho_solve(sla.cho_factor(0.5 * (c_aa + c_aa.T), check_finite=False), -self.z[active],
+                               check_finite=False)
+            if not np.all(np.isfinite(mu)):
+                raise np.linalg.LinAlgError("singular active-set system")
+            x += c @ mu
+            x[active] = 0.0
+            y[active] = mu
+        return x, y
 
 
 def _full_log_det(factor: Optional[Tuple[np.ndarray, bool]], passive: np.ndarray) -> Optional[float]:
@@ -142,7 +189,14 @@ def nnls_gram(G: np.ndarray, b: np.ndarray, passive: Optional[np.ndarray] = None
     abs_g = np.abs(G)
     b_scale = np.abs(b).max(initial=0.0)
 
-    x, y, factor = _passive_solve(G, b, passive)
+    schur = None
+    if np.all(passive):
+        x, y, factor = _passive_solve(G, b, passive)
+        if factor is not None:
+            schur = _SchurSolver(b, factor)
+            x, y = schur(passive)
+    else:
+        x, y, factor = _passive_solve(G, b, passive)
     log_det = _full_log_det(factor, passive)
     iterations, best, backup = 1, n + 1, _BPP_BACKUP
     while iterations < max_iter:
@@ -161,16 +215,29 @@ def nnls_gram(G: np.ndarray, b: np.ndarray, passive: Optional[np.ndarray] = None
         else:
             last = np.flatnonzero(infeasible)[-1]
             passive[last] = ~passive[last]
-        x, y, factor = _passive_solve(G, b, passive)
-        log_det = _full_log_det(factor, passive) if log_det is None else log_det
+        if schur is not None:
+            try:
+                x, y = schur(passive)
+            except np.linalg.LinAlgError:
+                schur = None  # (G^-1)_AA not numerically SPD: factorise G_FF from here on
+        if schur is None:
+            x, y, factor = _passive_solve(G, b, passive)
+            log_det = _full_log_det(factor, passive) if log_det is None else log_det
         iterations += 1
 
     x = np.maximum(x, 0.0)
     violation = kkt_violation(G, b, x, abs_g)
+    if schur is not None and not violation <= tol and not np.all(passive):
+        # Round-off of the one-factor route (cond(G) rather than cond(G_FF)): one direct solve
+        # on the final passive set.
+        x_f, _, _ = _passive_solve(G, b, passive)
+        x = np.maximum(x_f, 0.0)
+        violation = kkt_violation(G, b, x, abs_g)
     method = "bpp"
     if not violation <= tol:
         x = _nnls_fallback(G, b)
         violation = kkt_violation(G, b, x, abs_g)
         method = "bpp+nnls-fallback"
-    full = method == "bpp" and bool(np.all(passive))
-    return NNLSResult(x, iterations, violation, method, factor if full else None, log_det)
+    full = method == "bpp" and (schur is not None or bool(np.all(passive)))
+    return NNLSResult(x, iterations, violation, method, (schur.factor if schur is not None else factor)
+                      if full else None, log_det)

@@ -20,7 +20,14 @@ import numpy as np
 
 from mi_bivariate.errors import InputError
 from mi_bivariate.prior import PAIRS, Prior, default_prior
-from mi_bivariate.solve.common import check_alpha, grid_shape, penalty_weight
+from mi_bivariate.solve.common import (
+    add_entries,
+    check_alpha,
+    grid_shape,
+    penalty_weight,
+    quadratic_form,
+    sparse_entries,
+)
 from mi_bivariate.solve.confidence import Confidence
 from mi_bivariate.solve.data_term import DataTerm, prepare_data_term
 from mi_bivariate.solve.discrepancy import DiscrepancyChoice, discrepancy_alpha
@@ -150,8 +157,11 @@ class _ChannelSolve:
 
 
 def _solve_channel(data: DataTerm, penalty: np.ndarray, alpha: Optional[float], k: int, start: np.ndarray,
-                   precision: Optional[np.ndarray], mean: Optional[np.ndarray]) -> _ChannelSolve:
+                   precision: Optional[np.ndarray], mean: Optional[np.ndarray],
+                   entries: Optional[tuple] = None) -> _ChannelSolve:
     """Alpha (GCV unless given) and the constrained solve of one variant and channel.
+
+    ``entries``: ``penalty``'s non-zero entries (:func:`~mi_bivariate.solve.common.sparse_entries`).
 
     ``precision``, ``mean`` ``(N, 3)``: the diagonal Gaussian table prior (the basis prior),
     added as ``(1/M) sum_n ((f_n - mean_n) / mean_std_n)^2`` with ``precision = 1 / (M std^2)``.
@@ -163,8 +173,8 @@ def _solve_channel(data: DataTerm, penalty: np.ndarray, alpha: Optional[float], 
         curve = gcv_curve(data, penalty, k, extra=extra)
         alpha, score = curve.alpha, curve.score
     lam = penalty_weight(alpha, n, data.level[k])
-    x = lam * penalty
-    x += data.gram[k]
+    entries = sparse_entries(penalty) if entries is None else entries
+    x = add_entries(data.gram[k].copy(), entries, lam)
     rhs = data.rhs[k]
     if extra is not None:
         x[np.diag_indices(n)] += extra[0]
@@ -172,7 +182,7 @@ def _solve_channel(data: DataTerm, penalty: np.ndarray, alpha: Optional[float], 
     res = nnls_gram(x, rhs, passive=np.full(n, start[k] > 0) if mean is None else mean[:, k] > 0)
     f = res.x
     data_term = max(float(data.yy[k] - 2 * f @ data.rhs[k] + f @ data.gram[k] @ f), 0.0)
-    objective = data_term + lam * float(f @ penalty @ f)
+    objective = data_term + lam * quadratic_form(entries, f)
     if extra is not None:
         objective += float(np.sum(extra[0] * (f - mean[:, k]) ** 2))
     return _ChannelSolve(res, x, float(alpha), float(score), lam, data_term, objective)
@@ -236,10 +246,16 @@ def solve_prepared(data: DataTerm, prior: Optional[Prior] = None, alpha=None, *,
             raise InputError("mean", "the table prior's mean and std must be finite (std > 0)")
         precision = 1.0 / (data.n_rows * np.maximum(mean_std, 1e-30) ** 2)
     regularisers = {p: prior.regulariser(p) for p in pairs}
-    penalties = {p: (r.T @ r).toarray() for p, r in regularisers.items()}
+    sparse = {p: (r.T @ r).tocsr() for p, r in regularisers.items()}
+    for m in sparse.values():
+        m.sum_duplicates()  # one entry per (row, col): add_entries adds each once
+    sparse = {p: m.tocoo() for p, m in sparse.items()}
+    penalties = {p: m.toarray() for p, m in sparse.items()}
+    entries = {p: (m.row, m.col, m.data) for p, m in sparse.items()}
     channels: Dict[str, List[_ChannelSolve]] = {p: [] for p in pairs}
     seconds = {p: 0.0 for p in pairs}
-    confidences = {p: Confidence(data, penalties[p], np.zeros(3), precision, (n_t, n_s)) for p in pairs}
+    confidences = {p: Confidence(data, penalties[p], np.zeros(3), precision, (n_t, n_s), entries[p])
+                   for p in pairs}
     kept: List[str] = []
     evidence: Dict[str, List[Optional[float]]] = {p: [] for p in pairs}
     use_evidence = winner is None and pair_rule == "evidence" and len(pairs) > 1 and not (
@@ -248,7 +264,7 @@ def solve_prepared(data: DataTerm, prior: Optional[Prior] = None, alpha=None, *,
     choice: Optional[DiscrepancyChoice] = None
     if isinstance(rule, str) and rule == "discrepancy":  # one alpha for every channel, on the first pair's curve
         extra = None if precision is None else (precision, precision * mean)
-        choice = discrepancy_alpha(data, penalties[pairs[0]], extra=extra)
+        choice = discrepancy_alpha(data, penalties[pairs[0]], extra=extra, entries=entries[pairs[0]])
     for k in range(3):
         if choice is not None:
             alpha_k = choice.alpha
@@ -258,7 +274,8 @@ def solve_prepared(data: DataTerm, prior: Optional[Prior] = None, alpha=None, *,
             alpha_k = float(rule[k])
         for p in pairs:
             t1 = time.perf_counter()
-            channels[p].append(_solve_channel(data, penalties[p], alpha_k, k, data.level, precision, mean))
+            channels[p].append(_solve_channel(data, penalties[p], alpha_k, k, data.level, precision, mean,
+                                              entries[p]))
             seconds[p] += time.perf_counter() - t1
         for p in pairs:
             c = channels[p][k]

@@ -1,0 +1,178 @@
+"""How far Eq. 1 on observed cells falls if the lighting matrix models phi_d (issue 9's Eq. 1 target).
+
+    MI_BIVARIATE_DATA=../shared/data OPENBLAS_NUM_THREADS=1 python benchmarks/eq1_phi_d.py \
+        alum-bronze,black-fabric,red-phenolic,white-paint,gold-metallic-paint3,pink-jasper [--fit 3]
+
+The bivariate model treats each pixel as seeing the phi_d average of the BRDF. A real
+material varies with phi_d, so a table fitted to the pixels absorbs that variation
+(docs/recovery.md section 4d). This diagnostic puts a phi_d shape
+``s(theta_h, theta_d, phi_d) = f / f_bar`` (mean 1 over the valid phi_d of each node)
+into the lighting matrix, weighting each light direction by the shape at its
+Rusinkiewicz angles, and solves for the bivariate table as ``recover`` does
+(``solve_stages``: discrepancy alpha, basis prior, evidence). Shapes compared:
+
+- ``plain``: none (the product's lighting matrix);
+- ``oracle``: the material's own shape (the best any phi_d model could do);
+- ``mean``: the mean shape of the 50 training materials;
+- ``pcaK``: the material's own shape projected onto the mean plus the first K principal
+  components of the training materials' shapes (luminance, MERL grid subsampled 2 x 2 x 4):
+  the best a K-parameter model could do if its coefficients were known;
+- ``fitK`` (with ``--fit K``): the K coefficients fitted from the image, alternating with the
+  table solve (4 rounds): given the table, the coefficients by least squares on the rows
+  (relative weights); given the coefficients, the table with the shaped matrix (linear in
+  the coefficients: the matrices of the mean shape and of each component, combined).
+
+Row level as in ``eq1_alpha.py``: 3000 normals of a 128 px sphere, clean input under
+grace_latlong_1k rendered from the 3D table by the MIS quadrature (65536 directions,
+independent seed), K = 8000, 32 x 32, leave-one-out priors. Prints Eq. 1 over observed
+cells / the exact reduction's Eq. 1 (the ratio issue 9 scores), and over all cells.
+Development materials only (the shapes and priors never saw them); it chooses nothing.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+from ablation import full_table, render_rows
+
+from mi_bivariate import adequacy, capture, lighting, nbrdf, probes, solve, training_set
+from mi_bivariate.bivariate import BivariateBRDF, phi_d_average
+from mi_bivariate.geometry import SphereGeometry
+from mi_bivariate.lighting import _row_packets, hemisphere_offsets
+from mi_bivariate.lighting.kernels import _splat
+from mi_bivariate.metrics import BRDFErrors
+from mi_bivariate.recover import solve_stages
+from mi_bivariate.variants import ensure_variant
+
+#: MERL-grid subsampling of the shapes for the principal components (theta_h, theta_d, phi_d).
+STEP = (2, 2, 4)
+COMPONENTS = (1, 3, 8)
+
+
+def phi_d_shape(name: str) -> np.ndarray:
+    """``f / f_bar`` on the MERL grid, ``(90, 90, 180, 3) float32``; 1 where invalid or f_bar ~ 0."""
+    merl = nbrdf.nbrdf_merl(name)
+    f_bar = phi_d_average(merl)[:, :, None, :]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        shape = merl.table / f_bar
+    keep = merl.valid_mask()[..., None] & np.isfinite(shape) & (f_bar > 1e-6)
+    return np.clip(np.where(keep, shape, 1.0), 0.0, 50.0).astype(np.float32)
+
+
+def shaped_lighting_matrix(obs, probe, shape: np.ndarray, n_dirs: int = 8000, seed: int = 0,
+                           chunk: int = 256, n_t: int = 32, n_s: int = 32) -> np.ndarray:
+    """The MIS lighting matrix with each direction weighted by ``shape`` (a (.., .., .., 3) MERL-layout grid)."""
+    tex = mi.Texture3f(mi.TensorXf(np.ascontiguousarray(shape)), filter_mode=dr.FilterMode.Linear,
+                       wrap_mode=dr.WrapMode.Clamp)
+    packets = _row_packets(obs.normals, obs.views, hemisphere_offsets(len(obs), seed))
+    counts = lighting.strategy_counts(n_dirs)
+    n_nodes = n_t * n_s
+    out = np.empty((len(obs), n_nodes, 3), np.float32)
+    for c0 in range(0, len(obs), chunk):
+        m = len(packets[c0:c0 + chunk])
+        data = mi.Float(packets[c0:c0 + chunk].reshape(-1))
+        target = dr.zeros(mi.Float, m * n_nodes * 4)
+        for strategy in counts:
+            row, lx, ly, lz, d, weight, sin_v, cos_v, above = lighting._mis_lanes(data, m, probe, strategy, counts)
+            radiance = probe.eval_dr(d, above) * weight
+            # Rusinkiewicz angles (as ablation.render_rows): rotate l into the half vector's frame.
+            hx, hy, hz = lx + sin_v, ly, lz + cos_v
+            norm = dr.sqrt(hx * hx + hy * hy + hz * hz)
+            hx, hy, hz = hx / norm, hy / norm, hz / norm
+            theta_h = dr.atan2(dr.sqrt(hx * hx + hy * hy), hz)
+            sin_p, cos_p = dr.sincos(-dr.atan2(hy, hx))
+            sin_t, cos_t = dr.sincos(-theta_h)
+            ax, ay, az = lx * cos_p - ly * sin_p, lx * sin_p + ly * cos_p, lz
+            bx, by, bz = ax * cos_t + az * sin_t, ay, -ax * sin_t + az * cos_t
+            theta_d = dr.atan2(dr.sqrt(bx * bx + by * by), bz)
+            phi_d = dr.atan2(by, bx)
+            phi_d = dr.select(phi_d < 0, phi_d + math.pi, phi_d)
+            pos = mi.Point3f((phi_d / math.pi * 180 + 0.5) / 180, (theta_d * (2 / math.pi) * 90 + 0.5) / 90,
+                             (dr.sqrt(dr.maximum(theta_h, 0) * (2 / math.pi)) * 90 + 0.5) / 90)
+            s = tex.eval(pos)
+            value = mi.Color3f(radiance[0] * s[0], radiance[1] * s[1], radiance[2] * s[2])
+            _splat(m, row, lx, ly, lz, sin_v, cos_v, value, n_t, n_s, active=above, target=target)
+        out[c0:c0 + m] = target.numpy().reshape(m, n_nodes, 4)[:, :, :3]
+    return out
+
+
+def _subsampled(shape: np.ndarray) -> np.ndarray:
+    return shape[::STEP[0], ::STEP[1], ::STEP[2]].mean(-1)
+
+
+FIT_ROUNDS = 4
+
+
+def fitted(obs, grace, pixels, plain, prior, basis, mean, components, k, as_rgb, errors, observed, floor):
+    """Eq. 1 ratios over the rounds of fitting ``k`` shape coefficients with the table."""
+    base = shaped_lighting_matrix(obs, grace, as_rgb(1.0 + mean))
+    parts = [shaped_lighting_matrix(obs, grace, as_rgb(components[j])) for j in range(k)]
+    weight = 1.0 / (0.01 * pixels + 1e-3 * pixels.mean(0))
+    result = solve_stages(solve.prepare_data_term(plain, pixels), prior, None, basis)
+    out = []
+    for _ in range(FIT_ROUNDS):
+        f = result.table.reshape(-1, 3).astype(np.float32)
+        design = np.stack([np.einsum("mnc,nc->mc", p, f) for p in parts], -1) * weight[..., None]
+        target = (pixels - np.einsum("mnc,nc->mc", base, f)) * weight
+        coeffs = np.linalg.lstsq(design.reshape(-1, k), target.reshape(-1), rcond=None)[0]
+        L = base + sum(c * p for c, p in zip(coeffs, parts))
+        result = solve_stages(solve.prepare_data_term(L, pixels), prior, None, basis)
+        out.append(errors(BivariateBRDF(result.table), observed_nodes=observed)["eq1_observed"] / floor)
+    return out, coeffs
+
+
+def main() -> None:
+    fit = 0
+    if "--fit" in sys.argv:
+        at = sys.argv.index("--fit")
+        fit = int(sys.argv[at + 1])
+        del sys.argv[at:at + 2]
+    if len(sys.argv) != 2:
+        sys.exit(__doc__)
+    ensure_variant()
+    obs = capture.image_observations(np.ones((128, 128, 3), np.float32), SphereGeometry(64, 64, 60),
+                                     n_normals=3000, seed=0, saturation=2.0)
+    grace = probes.shared_probe("grace_latlong_1k")
+    plain = lighting.lighting_matrix(obs, grace, n_dirs=8000)
+    observed = adequacy.observed_nodes(plain, 32, 32)
+    tables = training_set.reduced_tables(32, 32)
+    train = np.array([_subsampled(phi_d_shape(n)).ravel() - 1.0 for n in nbrdf.NBRDF_TRAIN_MATERIALS])
+    mean = train.mean(0)
+    _, sv, components = np.linalg.svd(train - mean, full_matrices=False)
+    energy = np.cumsum(sv**2) / np.sum(sv**2)
+    print("training shapes: energy about the mean in the first " +
+          ", ".join(f"{k}: {energy[k - 1]:.2f}" for k in COMPONENTS), flush=True)
+    grid = _subsampled(np.zeros((90, 90, 180, 1))).shape
+    as_rgb = lambda s: np.repeat(np.clip(s.reshape(grid), 0, 50)[..., None], 3, -1).astype(np.float32)
+    mean_matrix = shaped_lighting_matrix(obs, grace, as_rgb(1.0 + mean))
+    for name in sys.argv[1].split(","):
+        errors = BRDFErrors(nbrdf.nbrdf_merl(name))
+        floor = errors(BivariateBRDF(tables[name]), observed_nodes=observed)["eq1"]
+        prior, basis = training_set.learn_priors(tables, exclude=(name,))
+        pixels = render_rows(obs, grace, full_table(name))
+        own = phi_d_shape(name)
+        matrices = {"plain": plain, "oracle": shaped_lighting_matrix(obs, grace, own), "mean": mean_matrix}
+        centred = _subsampled(own).ravel() - 1.0 - mean
+        for k in COMPONENTS:
+            coeffs = components[:k] @ centred
+            matrices[f"pca{k}"] = shaped_lighting_matrix(obs, grace, as_rgb(1.0 + mean + coeffs @ components[:k]))
+        cells = [f"{name}: exact floor {floor:.3f}"]
+        for tag, L in matrices.items():
+            e = errors(BivariateBRDF(solve_stages(solve.prepare_data_term(L, pixels), prior, None, basis).table),
+                       observed_nodes=observed)
+            cells.append(f"{tag} {e['eq1_observed'] / floor:.2f}x (all cells {e['eq1'] / floor:.2f}x)")
+        if fit:
+            rounds, coeffs = fitted(obs, grace, pixels, plain, prior, basis, mean, components, fit, as_rgb,
+                                    errors, observed, floor)
+            cells.append(f"fit{fit} by round " + " ".join(f"{r:.2f}x" for r in rounds) +
+                         f" (coefficients {np.round(coeffs, 2).tolist()}, own "
+                         f"{np.round(components[:fit] @ centred, 2).tolist()})")
+        print(" | ".join(cells), flush=True)
+
+
+if __name__ == "__main__":
+    main()
