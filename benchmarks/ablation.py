@@ -71,7 +71,8 @@ def render_rows(obs, probe, table: np.ndarray, n_dirs: int = 65536, seed: int = 
         data = mi.Float(pk.reshape(-1))
         target = dr.zeros(mi.Float, m * 4)
         for strategy in counts:
-            row, lx, ly, lz, d, weight, sin_v, cos_v, above = lighting._mis_lanes(data, m, probe, strategy, counts)
+            lanes = lighting._mis_lanes(data, m, probe, strategy, counts)
+            row, lx, ly, lz, d, weight, sin_v, cos_v, above, _ = lanes
             rad = probe.eval_dr(d) * weight
             hx, hy, hz = lx + sin_v, ly, lz + cos_v
             hn = dr.sqrt(hx * hx + hy * hy + hz * hz)

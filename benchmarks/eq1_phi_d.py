@@ -77,7 +77,8 @@ def shaped_lighting_matrix(obs, probe, shape: np.ndarray, n_dirs: int = 8000, se
         data = mi.Float(packets[c0:c0 + chunk].reshape(-1))
         target = dr.zeros(mi.Float, m * n_nodes * 4)
         for strategy in counts:
-            row, lx, ly, lz, d, weight, sin_v, cos_v, above = lighting._mis_lanes(data, m, probe, strategy, counts)
+            lanes = lighting._mis_lanes(data, m, probe, strategy, counts)
+            row, lx, ly, lz, d, weight, sin_v, cos_v, above, _ = lanes
             radiance = probe.eval_dr(d, above) * weight
             # Rusinkiewicz angles (as ablation.render_rows): rotate l into the half vector's frame.
             hx, hy, hz = lx + sin_v, ly, lz + cos_v

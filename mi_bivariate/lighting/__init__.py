@@ -66,11 +66,19 @@ from mi_bivariate.errors import InputError
 from mi_bivariate.lighting.directions import direction_pairs, hemisphere_offsets, light_directions, row_frames
 from mi_bivariate.lighting.kernels import _lighting_chunk, _row_packets, _spatial_order, _texel_chunk
 from mi_bivariate.lighting.mis import _mis_lanes  # noqa: F401  (benchmarks/ablation.py)
-from mi_bivariate.lighting.mis import MIS_FRACTIONS, PEAK_T_MAX, SAMPLINGS, _mis_chunk, strategy_counts
+from mi_bivariate.lighting.mis import (
+    ENV_SHIFTS,
+    MIS_FRACTIONS,
+    PEAK_T_MAX,
+    SAMPLINGS,
+    _mis_chunk,
+    environment_pool,
+    strategy_counts,
+)
 from mi_bivariate.variants import ensure_variant
 
-__all__ = ["CHUNK_BYTES", "MIS_FRACTIONS", "PEAK_T_MAX", "PROGRESS_PAIRS", "SAMPLINGS", "direction_pairs",
-           "hemisphere_offsets", "light_directions", "lighting_matrix", "row_frames", "strategy_counts",
+__all__ = ["CHUNK_BYTES", "ENV_SHIFTS", "MIS_FRACTIONS", "PEAK_T_MAX", "PROGRESS_PAIRS", "SAMPLINGS", "direction_pairs",
+           "environment_pool", "hemisphere_offsets", "light_directions", "lighting_matrix", "row_frames", "strategy_counts",
            "texel_lighting_matrix"]
 
 #: Size of one chunk's scatter target (one thread's copy).
@@ -169,7 +177,8 @@ def lighting_matrix(obs: Observations, probes: Union[Any, Sequence[Any]], n_t: i
             ``obs.probe_index``.
         n_t, n_s: st grid size.
         n_dirs: light directions K per normal.
-        seed: seeds the per-row shifts of the direction lattice.
+        seed: seeds the per-row shifts of the direction lattice (and, with ``"mis"``, the
+            :data:`ENV_SHIFTS` shifts of the environment's pooled directions).
         chunk: normals per kernel (default: sized to :data:`CHUNK_BYTES`).
         progress: show a tqdm bar over chunks (default: for big jobs on a tty).
         occluder: the observed object for visibility: a ``mi.Scene`` (or an
@@ -221,9 +230,15 @@ def lighting_matrix(obs: Observations, probes: Union[Any, Sequence[Any]], n_t: i
 
         jobs = tqdm(jobs, desc="lighting matrix", unit="chunk")
 
+    pools = {}
+    if sampling == "mis" and strategy_counts(n_dirs).get("environment"):
+        # The environment's directions, sampled once per probe (see lighting.mis).
+        pools = {p: environment_pool(probes[p], strategy_counts(n_dirs)["environment"], seed)
+                 for p in np.unique(obs.probe_index).tolist()}
     L = np.empty((m_total, n_nodes, 3), dtype=np.float32)
     for p, o, rows in jobs:
-        L[rows] = chunk_fn(packets[rows], probes[p], n_t, n_s, n_dirs, scenes[o] if o >= 0 else None)
+        extra = {"pool": pools[p]} if pools else {}
+        L[rows] = chunk_fn(packets[rows], probes[p], n_t, n_s, n_dirs, scenes[o] if o >= 0 else None, **extra)
     if obs.has_footprints:
         _footprint_rows(L, obs, n_nodes, chunk, lambda sub, b: lighting_matrix(
             sub, probes, n_t=n_t, n_s=n_s, n_dirs=n_dirs, seed=seed + 1 + b, chunk=chunk, progress=False,
