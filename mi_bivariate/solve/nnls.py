@@ -25,7 +25,7 @@ from typing import Optional, Tuple
 import numpy as np
 import scipy.linalg as sla
 
-from mi_bivariate.solve.common import KKT_TOLERANCE
+from mi_bivariate.solve.common import KKT_TOLERANCE, cholesky
 
 # Sign threshold (relative) for moving a variable between sets: below it, a negative x
 # or gradient is round-off, and exchanging it would only make the pivoting cycle.
@@ -190,11 +190,10 @@ def nnls_gram(G: np.ndarray, b: np.ndarray, passive: Optional[np.ndarray] = None
     b_scale = np.abs(b).max(initial=0.0)
 
     schur = None
-    if np.all(passive):
-        x, y, factor = _passive_solve(G, b, passive)
-        if factor is not None:
-            schur = _SchurSolver(b, factor)
-            x, y = schur(passive)
+    factor = cholesky(G) if np.all(passive) else None
+    if factor is not None:
+        schur = _SchurSolver(b, factor)
+        x, y = schur(passive)
     else:
         x, y, factor = _passive_solve(G, b, passive)
     log_det = _full_log_det(factor, passive)

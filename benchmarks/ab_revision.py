@@ -1,0 +1,113 @@
+"""Time the solve and the lighting matrix of this checkout against another git revision, A/B.
+
+    MI_BIVARIATE_DATA=../shared/data OPENBLAS_NUM_THREADS=1 python benchmarks/ab_revision.py REV [--rounds 3]
+
+The inputs are ``bench_speed.py``'s (a 256 px gold-metallic-paint3 sphere under
+grace_latlong_1k, recovered once here for its observations, lighting matrix and pixels).
+Each round runs, alternately, one fresh process per side (``REV`` checked out in a temporary
+``git worktree``, this checkout as it is); each process times its stage 3 times and reports the
+median. Printed: the median over rounds per side, their ratio, and how far the sides'
+answers differ (the solve's table and confidence, the lighting matrix's rows). A shared,
+noisy machine slows both sides alike within a round, which is why the sides alternate.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import pickle
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+
+#: What a child process runs: ``python -c CHILD STAGE INPUTS OUTPUT`` with the side's package first on the path.
+CHILD = r"""
+import json, pickle, sys, time
+import numpy as np
+stage, inputs, output = sys.argv[1:4]
+from mi_bivariate.variants import ensure_variant
+ensure_variant()
+times = []
+if stage == "solve":
+    from mi_bivariate import solve
+    from mi_bivariate.basis_prior import default_basis_prior
+    from mi_bivariate.prior import default_prior
+    from mi_bivariate.recover import solve_stages
+    from mi_bivariate.threads import blas_threads
+    z = np.load(inputs + ".npz")
+    with blas_threads():
+        data = solve.prepare_data_term(z["L"], z["I"])
+        for _ in range(3):
+            t = time.perf_counter()
+            r = solve_stages(data, default_prior(), None, default_basis_prior())
+            answer = np.concatenate([r.table.ravel(), r.measured.ravel(), r.posterior_std.ravel()])
+            times.append(time.perf_counter() - t)
+else:
+    from mi_bivariate import lighting, probes
+    obs = pickle.load(open(inputs + ".obs", "rb"))
+    probe = probes.shared_probe("grace_latlong_1k")
+    lighting.lighting_matrix(obs, probe)
+    for _ in range(3):
+        t = time.perf_counter()
+        L = lighting.lighting_matrix(obs, probe)
+        times.append(time.perf_counter() - t)
+    answer = L[::7]
+np.save(output, answer)
+print(json.dumps(float(np.median(times))))
+"""
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("revision")
+    parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--stages", default="solve,lighting")
+    args = parser.parse_args()
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import bench_speed
+
+    from mi_bivariate.recover import recover
+    from mi_bivariate.variants import ensure_variant
+
+    ensure_variant()
+    with tempfile.TemporaryDirectory() as tmp:
+        tree = Path(tmp) / "tree"
+        subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", "-q", str(tree), args.revision],
+                       check=True)
+        try:
+            _, probe, shot = bench_speed.load_inputs()
+            rec = recover(shot.image, probe, shot.geometry)
+            inputs = str(Path(tmp) / "inputs")
+            np.savez(inputs + ".npz", L=rec.lighting_matrix, I=rec.observations.values)
+            with open(inputs + ".obs", "wb") as fh:
+                pickle.dump(rec.observations, fh)
+            print(f"A/B against {args.revision}; {args.rounds} rounds; load average "
+                  f"{', '.join(f'{v:.1f}' for v in os.getloadavg())}\n")
+            print(f"| stage | {args.revision} (s) | this checkout (s) | ratio | max answer difference / max |")
+            print("|---|---:|---:|---:|---:|")
+            for stage in args.stages.split(","):
+                times = {"rev": [], "here": []}
+                for _ in range(args.rounds):
+                    for side, root in (("rev", tree), ("here", ROOT)):
+                        env = dict(os.environ, PYTHONPATH=str(root))
+                        out = subprocess.run([sys.executable, "-c", CHILD, stage, inputs, f"{tmp}/{side}.npy"],
+                                             env=env, capture_output=True, text=True, cwd=tmp)
+                        if out.returncode:
+                            sys.exit(f"{side} side failed:\n{out.stderr[-3000:]}")
+                        times[side].append(json.loads(out.stdout.strip().splitlines()[-1]))
+                a, b = np.load(f"{tmp}/rev.npy"), np.load(f"{tmp}/here.npy")
+                diff = float(np.abs(a - b).max() / np.abs(a).max()) if a.shape == b.shape else float("nan")
+                rev, here = np.median(times["rev"]), np.median(times["here"])
+                print(f"| {stage} | {rev:.3f} | {here:.3f} | {rev / here:.2f}x | {diff:.1e} |", flush=True)
+        finally:
+            subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)], check=False)
+
+
+if __name__ == "__main__":
+    main()
