@@ -55,6 +55,34 @@ def full_table(name: str) -> np.ndarray:
     return np.maximum(model.eval_inputs(x).reshape(90, 90, 180, 3), 0).astype(np.float32)
 
 
+def sphere_rows(n_normals: int):
+    """The row-level protocol's observations (a 128 px orthographic sphere) and grace_latlong_1k."""
+    obs = capture.image_observations(np.ones((128, 128, 3), np.float32), SphereGeometry(64, 64, 60),
+                                     n_normals=n_normals, seed=0, saturation=2.0)
+    return obs, probes.shared_probe("grace_latlong_1k")
+
+
+def merl_position(lx, ly, lz, sin_v, cos_v):
+    """Texture coordinates on the MERL grid ``(phi_d, theta_d, theta_h)`` of lanes with light
+    ``(lx, ly, lz)`` in the row frame whose view is ``(sin_v, 0, cos_v)`` (``mi.Point3f``)."""
+    import drjit as dr
+    import mitsuba as mi
+
+    hx, hy, hz = lx + sin_v, ly, lz + cos_v
+    hn = dr.sqrt(hx * hx + hy * hy + hz * hz)
+    hx, hy, hz = hx / hn, hy / hn, hz / hn
+    th = dr.atan2(dr.sqrt(hx * hx + hy * hy), hz)
+    sph, cph = dr.sincos(-dr.atan2(hy, hx))
+    sth, cth = dr.sincos(-th)
+    ax, ay, az = lx * cph - ly * sph, lx * sph + ly * cph, lz
+    bx, by, bz = ax * cth + az * sth, ay, -ax * sth + az * cth
+    td = dr.atan2(dr.sqrt(bx * bx + by * by), bz)
+    pd = dr.atan2(by, bx)
+    pd = dr.select(pd < 0, pd + math.pi, pd)
+    return mi.Point3f((pd / math.pi * 180 + 0.5) / 180, (td * (2 / math.pi) * 90 + 0.5) / 90,
+                      (dr.sqrt(dr.maximum(th, 0) * (2 / math.pi)) * 90 + 0.5) / 90)
+
+
 def render_rows(obs, probe, table: np.ndarray, n_dirs: int = 65536, seed: int = 77, chunk: int = 512):
     """Row values of a 3D MERL-grid table by the lighting matrix's MIS quadrature, ``(M, 3)``."""
     import drjit as dr
@@ -74,19 +102,7 @@ def render_rows(obs, probe, table: np.ndarray, n_dirs: int = 65536, seed: int = 
             lanes = lighting._mis_lanes(data, m, probe, strategy, counts)
             row, lx, ly, lz, d, weight, sin_v, cos_v, above, _ = lanes
             rad = probe.eval_dr(d) * weight
-            hx, hy, hz = lx + sin_v, ly, lz + cos_v
-            hn = dr.sqrt(hx * hx + hy * hy + hz * hz)
-            hx, hy, hz = hx / hn, hy / hn, hz / hn
-            th = dr.atan2(dr.sqrt(hx * hx + hy * hy), hz)
-            sph, cph = dr.sincos(-dr.atan2(hy, hx))
-            sth, cth = dr.sincos(-th)
-            ax, ay, az = lx * cph - ly * sph, lx * sph + ly * cph, lz
-            bx, by, bz = ax * cth + az * sth, ay, -ax * sth + az * cth
-            td = dr.atan2(dr.sqrt(bx * bx + by * by), bz)
-            pd = dr.atan2(by, bx)
-            pd = dr.select(pd < 0, pd + math.pi, pd)
-            pos = mi.Point3f((pd / math.pi * 180 + 0.5) / 180, (td * (2 / math.pi) * 90 + 0.5) / 90,
-                             (dr.sqrt(dr.maximum(th, 0) * (2 / math.pi)) * 90 + 0.5) / 90)
+            pos = merl_position(lx, ly, lz, sin_v, cos_v)
             f = tex.eval(pos)
             dr.scatter_reduce(dr.ReduceOp.Add, target, mi.Vector4f(f[0] * rad[0], f[1] * rad[1], f[2] * rad[2], 0),
                               row, active=above, mode=dr.ReduceMode.Expand)
@@ -104,9 +120,7 @@ def main() -> None:
     parser.add_argument("--normals", type=int, default=1000)
     args = parser.parse_args()
     ensure_variant()
-    obs = capture.image_observations(np.ones((128, 128, 3), np.float32), SphereGeometry(64, 64, 60),
-                                     n_normals=args.normals, seed=0, saturation=2.0)
-    grace = probes.shared_probe("grace_latlong_1k")
+    obs, grace = sphere_rows(args.normals)
     novel = {p: probes.shared_probe(p) for p in NOVEL}
     L_in = {s: lighting.lighting_matrix(obs, grace, n_dirs=32768, sampling=s) for s in ("uniform", "mis")}
     L_novel = {p: lighting.lighting_matrix(obs, novel[p], n_dirs=32768, seed=5) for p in NOVEL}

@@ -24,11 +24,10 @@ from __future__ import annotations
 import argparse
 
 import numpy as np
-from ablation import NOVEL, full_table, rel, render_rows
+from ablation import NOVEL, full_table, rel, render_rows, sphere_rows
 
-from mi_bivariate import capture, lighting, probes, solve, training_set
+from mi_bivariate import lighting, probes, solve, training_set
 from mi_bivariate.common import luminance
-from mi_bivariate.geometry import SphereGeometry
 from mi_bivariate.lighting import _row_packets, hemisphere_offsets
 from mi_bivariate.lighting.mis import _mis_chunk
 from mi_bivariate.recover import solve_stages
@@ -56,9 +55,7 @@ def main() -> None:
     parser.add_argument("--normals", type=int, default=1000)
     args = parser.parse_args()
     ensure_variant()
-    obs = capture.image_observations(np.ones((128, 128, 3), np.float32), SphereGeometry(64, 64, 60),
-                                     n_normals=args.normals, seed=0, saturation=2.0)
-    grace = probes.shared_probe("grace_latlong_1k")
+    obs, grace = sphere_rows(args.normals)
     novel = {p: probes.shared_probe(p) for p in NOVEL}
     seeds = range(4)
     by_seed = {"per row": [per_row_matrix(obs, grace, K, s) for s in seeds],

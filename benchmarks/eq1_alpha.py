@@ -15,15 +15,21 @@ from __future__ import annotations
 
 import sys
 
-import numpy as np
-from ablation import full_table, render_rows
+from ablation import full_table, render_rows, sphere_rows
 
-from mi_bivariate import adequacy, capture, lighting, nbrdf, probes, solve, training_set
+from mi_bivariate import adequacy, lighting, nbrdf, solve, training_set
 from mi_bivariate.bivariate import BivariateBRDF
-from mi_bivariate.geometry import SphereGeometry
 from mi_bivariate.metrics import BRDFErrors
 from mi_bivariate.recover import solve_stages
 from mi_bivariate.variants import ensure_variant
+
+
+def row_setup():
+    """``(obs, grace, L, observed, tables)``: 3000 normals, their K = 8000 lighting matrix under
+    grace_latlong_1k, its observed nodes and the exact reductions of the shared materials."""
+    obs, grace = sphere_rows(3000)
+    L = lighting.lighting_matrix(obs, grace, n_dirs=8000)
+    return obs, grace, L, adequacy.observed_nodes(L, 32, 32), training_set.reduced_tables(32, 32)
 
 
 def main() -> None:
@@ -31,12 +37,7 @@ def main() -> None:
         sys.exit(__doc__)
     names, alphas = sys.argv[1].split(","), [float(a) for a in sys.argv[2].split(",")]
     ensure_variant()
-    obs = capture.image_observations(np.ones((128, 128, 3), np.float32), SphereGeometry(64, 64, 60),
-                                     n_normals=3000, seed=0, saturation=2.0)
-    grace = probes.shared_probe("grace_latlong_1k")
-    L = lighting.lighting_matrix(obs, grace, n_dirs=8000)
-    observed = adequacy.observed_nodes(L, 32, 32)
-    tables = training_set.reduced_tables(32, 32)
+    obs, grace, L, observed, tables = row_setup()
     for name in names:
         errors = BRDFErrors(nbrdf.nbrdf_merl(name))
         floor = errors(BivariateBRDF(tables[name]), observed_nodes=observed)

@@ -31,17 +31,16 @@ Development materials only (the shapes and priors never saw them); it chooses no
 
 from __future__ import annotations
 
-import math
 import sys
 
 import drjit as dr
 import mitsuba as mi
 import numpy as np
-from ablation import full_table, render_rows
+from ablation import full_table, merl_position, render_rows
+from eq1_alpha import row_setup
 
-from mi_bivariate import adequacy, capture, lighting, nbrdf, probes, solve, training_set
+from mi_bivariate import lighting, nbrdf, solve, training_set
 from mi_bivariate.bivariate import BivariateBRDF, phi_d_average
-from mi_bivariate.geometry import SphereGeometry
 from mi_bivariate.lighting import _row_packets, hemisphere_offsets
 from mi_bivariate.lighting.kernels import _splat
 from mi_bivariate.metrics import BRDFErrors
@@ -80,20 +79,7 @@ def shaped_lighting_matrix(obs, probe, shape: np.ndarray, n_dirs: int = 8000, se
             lanes = lighting._mis_lanes(data, m, probe, strategy, counts)
             row, lx, ly, lz, d, weight, sin_v, cos_v, above, _ = lanes
             radiance = probe.eval_dr(d, above) * weight
-            # Rusinkiewicz angles (as ablation.render_rows): rotate l into the half vector's frame.
-            hx, hy, hz = lx + sin_v, ly, lz + cos_v
-            norm = dr.sqrt(hx * hx + hy * hy + hz * hz)
-            hx, hy, hz = hx / norm, hy / norm, hz / norm
-            theta_h = dr.atan2(dr.sqrt(hx * hx + hy * hy), hz)
-            sin_p, cos_p = dr.sincos(-dr.atan2(hy, hx))
-            sin_t, cos_t = dr.sincos(-theta_h)
-            ax, ay, az = lx * cos_p - ly * sin_p, lx * sin_p + ly * cos_p, lz
-            bx, by, bz = ax * cos_t + az * sin_t, ay, -ax * sin_t + az * cos_t
-            theta_d = dr.atan2(dr.sqrt(bx * bx + by * by), bz)
-            phi_d = dr.atan2(by, bx)
-            phi_d = dr.select(phi_d < 0, phi_d + math.pi, phi_d)
-            pos = mi.Point3f((phi_d / math.pi * 180 + 0.5) / 180, (theta_d * (2 / math.pi) * 90 + 0.5) / 90,
-                             (dr.sqrt(dr.maximum(theta_h, 0) * (2 / math.pi)) * 90 + 0.5) / 90)
+            pos = merl_position(lx, ly, lz, sin_v, cos_v)
             s = tex.eval(pos)
             value = mi.Color3f(radiance[0] * s[0], radiance[1] * s[1], radiance[2] * s[2])
             _splat(m, row, lx, ly, lz, sin_v, cos_v, value, n_t, n_s, active=above, target=target)
@@ -135,12 +121,7 @@ def main() -> None:
     if len(sys.argv) != 2:
         sys.exit(__doc__)
     ensure_variant()
-    obs = capture.image_observations(np.ones((128, 128, 3), np.float32), SphereGeometry(64, 64, 60),
-                                     n_normals=3000, seed=0, saturation=2.0)
-    grace = probes.shared_probe("grace_latlong_1k")
-    plain = lighting.lighting_matrix(obs, grace, n_dirs=8000)
-    observed = adequacy.observed_nodes(plain, 32, 32)
-    tables = training_set.reduced_tables(32, 32)
+    obs, grace, plain, observed, tables = row_setup()
     train = np.array([_subsampled(phi_d_shape(n)).ravel() - 1.0 for n in nbrdf.NBRDF_TRAIN_MATERIALS])
     mean = train.mean(0)
     _, sv, components = np.linalg.svd(train - mean, full_matrices=False)
