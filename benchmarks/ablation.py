@@ -114,6 +114,19 @@ def rel(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.sqrt(np.mean((a - b) ** 2)) / np.sqrt(np.mean(b**2)))
 
 
+def material_rows(name: str, obs, grace, novel: dict, L_novel: dict, tables: dict):
+    """One material under the protocol: ``(prior, basis, pixels, truth, floors, exact)`` with
+    leave-one-out priors, the input rows under grace, the truth rows under each novel probe,
+    the exact reduction's relight error there and the reduction itself ``(N, 3)``."""
+    prior, basis = training_set.learn_priors(tables, exclude=(name,))
+    table3d = full_table(name)
+    pixels = render_rows(obs, grace, table3d)
+    truth = {p: render_rows(obs, novel[p], table3d) for p in novel}
+    exact = tables[name].reshape(-1, 3)
+    floors = np.array([rel(np.einsum("mnc,nc->mc", L_novel[p], exact), truth[p]) for p in novel])
+    return prior, basis, pixels, truth, floors, exact
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--materials", default=",".join(nbrdf.NBRDF_TRAIN_MATERIALS[:8]))
@@ -128,12 +141,7 @@ def main() -> None:
     scores = {c[0]: [] for c in CONFIGS}
     for name in args.materials.split(","):
         t0 = time.perf_counter()
-        prior, basis = training_set.learn_priors(tables, exclude=(name,))
-        table3d = full_table(name)
-        I = render_rows(obs, grace, table3d)
-        truth = {p: render_rows(obs, novel[p], table3d) for p in NOVEL}
-        exact = tables[name].reshape(-1, 3)
-        floors = np.array([rel(np.einsum("mnc,nc->mc", L_novel[p], exact), truth[p]) for p in NOVEL])
+        prior, basis, I, truth, floors, _ = material_rows(name, obs, grace, novel, L_novel, tables)
         for label, sampling, form, alpha, use_basis, pair_rule in CONFIGS:
             data = solve.prepare_data_term(L_in[sampling], I, solve.row_sigma(I, form=form))
             r = solve_stages(data, prior, alpha, basis if use_basis else None, pair_rule)  # as recover() does

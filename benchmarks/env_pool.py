@@ -24,7 +24,7 @@ from __future__ import annotations
 import argparse
 
 import numpy as np
-from ablation import NOVEL, full_table, rel, render_rows, sphere_rows
+from ablation import NOVEL, material_rows, rel, sphere_rows
 
 from mi_bivariate import lighting, probes, solve, training_set
 from mi_bivariate.common import luminance
@@ -66,12 +66,7 @@ def main() -> None:
     print("| material | quadrature RMS, per row | pooled | 95th pct, per row | pooled "
           "| relight / floor, per row | pooled |\n|---|---:|---:|---:|---:|---:|---:|")
     for name in args.materials.split(","):
-        prior, basis = training_set.learn_priors(tables, exclude=(name,))
-        table3d = full_table(name)
-        pixels = render_rows(obs, grace, table3d)
-        truth = {p: render_rows(obs, novel[p], table3d) for p in NOVEL}
-        exact = tables[name].reshape(-1, 3)
-        floors = np.array([rel(np.einsum("mnc,nc->mc", L_novel[p], exact), truth[p]) for p in NOVEL])
+        prior, basis, pixels, truth, floors, exact = material_rows(name, obs, grace, novel, L_novel, tables)
         cells = {}
         for tag, Ls in by_seed.items():
             f = solve_stages(solve.prepare_data_term(Ls[0], pixels), prior, None, basis).table.reshape(-1, 3)
