@@ -11,7 +11,7 @@ into the lighting matrix, weighting each light direction by the shape at its
 Rusinkiewicz angles, and solves for the bivariate table as ``recover`` does
 (``solve_stages``: discrepancy alpha, basis prior, evidence). Shapes compared:
 
-- ``plain``: none (the product's lighting matrix);
+- ``plain``: none (a shape of 1: the product's estimator, sampled like the others, per row);
 - ``oracle``: the material's own shape (the best any phi_d model could do);
 - ``mean``: the mean shape of the 50 training materials;
 - ``pcaK``: the material's own shape projected onto the mean plus the first K principal
@@ -121,7 +121,10 @@ def main() -> None:
     if len(sys.argv) != 2:
         sys.exit(__doc__)
     ensure_variant()
-    obs, grace, plain, observed, tables = row_setup()
+    obs, grace, _, observed, tables = row_setup()
+    # Every column through the same per-row sampler (the product's lighting matrix pools the
+    # environment's directions: another realisation of the quadrature).
+    plain = shaped_lighting_matrix(obs, grace, np.ones((2, 2, 2, 3), np.float32))
     train = np.array([_subsampled(phi_d_shape(n)).ravel() - 1.0 for n in nbrdf.NBRDF_TRAIN_MATERIALS])
     mean = train.mean(0)
     _, sv, components = np.linalg.svd(train - mean, full_matrices=False)

@@ -165,7 +165,6 @@ def test_mis_is_unbiased_and_far_less_noisy_on_sharp_light_and_lobes():
     assert rel(mis[0], reference) < rel(uni[0], reference)
 
 
-
 def test_pooled_environment_directions_are_the_per_row_estimator():
     """lighting_matrix reads the environment strategy's directions from a pool sampled once per
     lattice shift (lighting.mis.environment_pool). Per row it is the estimator of sampling the
@@ -203,6 +202,45 @@ def test_pooled_environment_directions_are_the_per_row_estimator():
     np.testing.assert_array_equal(a, b)
     assert not np.array_equal(a, np.array(mis.environment_pool(probe, 100, 5)))
     assert a.size == 100 * mis.ENV_SHIFTS * 8 and np.all(np.isfinite(a))
+
+
+def test_rows_pick_their_pooled_shift_from_bits_independent_of_their_lattice_shift():
+    """The pooled environment set a row reads depends on frac(4096 shift_1) only, not on the
+    first bits of shift_1 that place its uniform and peak lattices: three rows with one normal,
+    (a) and (c) sharing the pooled slot but not the first bits, (a) and (b) the reverse."""
+    from mi_bivariate.lighting import kernels, mis
+
+    probe = synthetic_probe()
+    normal, view = np.array([[0.3, 0.2, 0.93]]), np.array([[0.0, 0.0, 1.0]])
+    shifts = np.array([[0.25 + 0.1 / 4096, 0.5], [0.25 + 0.6 / 4096, 0.5], [0.75 + 0.1 / 4096, 0.5]], np.float32)
+    fine = np.float64(shifts[:, 0]) * 4096
+    slots = np.minimum(((fine - np.floor(fine)) * mis.ENV_SHIFTS).astype(int), mis.ENV_SHIFTS - 1)
+    assert slots[0] == slots[2] != slots[1] and int(64 * shifts[0, 0]) == int(64 * shifts[1, 0])
+    packets = kernels._row_packets(np.repeat(normal, 3, 0), np.repeat(view, 3, 0), shifts)
+    only_environment = {"environment": 1.0}
+    pool = mis.environment_pool(probe, 400, seed=2)
+    rows = np.array(mis._mis_chunk(packets, probe, 8, 8, 400, fractions=only_environment, pool=pool))
+    np.testing.assert_allclose(rows[0], rows[2], rtol=1e-6, atol=1e-7 * rows.max())
+    assert np.abs(rows[0] - rows[1]).max() > 1e-3 * rows.max()
+    # Another probe stream draws other shifts.
+    assert not np.array_equal(np.array(pool), np.array(mis.environment_pool(probe, 400, seed=2, stream=1)))
+
+
+def test_pool_too_big_falls_back_to_per_row_sampling(monkeypatch):
+    """Past lighting.mis.POOL_BYTES the environment is sampled per row: lighting_matrix then
+    equals the per-row sampler (chunked differently, so up to float summation order)."""
+    from mi_bivariate.lighting import kernels, mis
+
+    obs = random_observations(30, seed=4)
+    probe = synthetic_probe()
+    monkeypatch.setattr(lighting, "POOL_BYTES", 0)
+    got = lighting.lighting_matrix(obs, probe, n_t=8, n_s=8, n_dirs=600, seed=6)
+    packets = kernels._row_packets(obs.normals, obs.views, lighting.hemisphere_offsets(len(obs), 6))
+    expected = np.array(mis._mis_chunk(packets, probe, 8, 8, 600))
+    np.testing.assert_allclose(got, expected, rtol=1e-5, atol=1e-6 * expected.max())
+    monkeypatch.undo()
+    pooled = lighting.lighting_matrix(obs, probe, n_t=8, n_s=8, n_dirs=600, seed=6)
+    assert np.abs(pooled - expected).max() > 1e-4 * expected.max()  # the pool is another realisation
 
 
 # ----------------------------------------------------- texel quadrature

@@ -382,3 +382,52 @@ def test_nnls_one_factor_route_hands_over_to_direct_solves(monkeypatch):
     res = nnls_gram(g, b, passive=np.ones(b.size, bool))
     assert len(calls) == 2 and res.method == "bpp" and res.kkt_violation < 1e-12
     np.testing.assert_allclose(res.x, expected, rtol=0, atol=1e-9 * np.abs(expected).max())
+    c, lower = res.factor  # still the whole G's factor, not the last passive set's
+    u = np.tril(c).T if lower else np.triu(c)
+    np.testing.assert_allclose(u.T @ u, g, rtol=0, atol=1e-12 * np.abs(g).max())
+
+
+def test_nnls_one_factor_route_polishes_round_off_with_one_direct_solve(monkeypatch):
+    """Nearly collinear columns (cond ~1e12): the one-factor route's answer misses the KKT
+    tolerance by round-off (cond(G), not cond(G_FF)); one direct solve on the final passive set
+    restores it, and the result says 'bpp', not the fallback."""
+    import mi_bivariate.solve.nnls as nnls_mod
+
+    rng = np.random.default_rng(0)
+    a_mat = rng.standard_normal((120, 40))
+    rhs = a_mat @ np.r_[3 * np.ones(5), -np.abs(rng.standard_normal(35))] + 0.1 * rng.standard_normal(120)
+    a_mat = a_mat[:, :1] + 1e-6 * a_mat
+    expected, _ = sopt.nnls(a_mat, rhs, maxiter=100 * a_mat.shape[1])
+    direct = []
+    original = nnls_mod._passive_solve
+    monkeypatch.setattr(nnls_mod, "_passive_solve", lambda *args: direct.append(1) or original(*args))
+    res = nnls_gram(a_mat.T @ a_mat, a_mat.T @ rhs, passive=np.ones(40, bool))
+    assert res.method == "bpp" and res.kkt_violation < 1e-12 and len(direct) == 1
+    np.testing.assert_allclose(res.x, expected, rtol=0, atol=1e-9 * np.abs(expected).max())
+    assert res.factor is not None  # the whole G's factor, for the confidence
+
+
+@pytest.mark.parametrize("lower", [False, True])
+def test_inverse_diagonals_from_the_priors_entries_match_dense(lower):
+    """diag(X^-1) and diag(X^-1 gram) by 1 - diag(X^-1 Q) (Q = X - gram given by its entries,
+    repeated diagonal entries included) equal the dense computation, for both triangles of the
+    factor."""
+    import scipy.linalg as sla
+
+    from mi_bivariate.solve.common import inverse_diagonals, sparse_entries
+
+    rng = np.random.default_rng(3)
+    n = 50
+    b_mat = rng.standard_normal((200, n))
+    gram = b_mat.T @ b_mat
+    r_mat = np.diff(np.eye(n), 2, axis=0)
+    penalty = 0.3 * r_mat.T @ r_mat
+    precision = rng.uniform(0.1, 1.0, n)
+    x = gram + penalty + np.diag(precision)
+    rows, cols, values = sparse_entries(penalty)
+    diag = np.arange(n)
+    prior = (np.r_[rows, diag], np.r_[cols, diag], np.r_[values, precision])  # the diagonal twice
+    var, resolution = inverse_diagonals(x, gram, sla.cho_factor(x, lower=lower), prior=prior)
+    inv = np.linalg.inv(x)
+    np.testing.assert_allclose(var, np.diag(inv), rtol=1e-10)
+    np.testing.assert_allclose(resolution, np.diag(inv @ gram), rtol=0, atol=1e-10)

@@ -71,8 +71,10 @@ from mi_bivariate.lighting.mis import (
     MIS_FRACTIONS,
     PEAK_T_MAX,
     SAMPLINGS,
+    POOL_BYTES,
     _mis_chunk,
     environment_pool,
+    pool_bytes,
     strategy_counts,
 )
 from mi_bivariate.variants import ensure_variant
@@ -230,14 +232,17 @@ def lighting_matrix(obs: Observations, probes: Union[Any, Sequence[Any]], n_t: i
 
         jobs = tqdm(jobs, desc="lighting matrix", unit="chunk")
 
-    pools = {}
-    if sampling == "mis" and strategy_counts(n_dirs).get("environment"):
-        # The environment's directions, sampled once per probe (see lighting.mis).
-        pools = {p: environment_pool(probes[p], strategy_counts(n_dirs)["environment"], seed)
-                 for p in np.unique(obs.probe_index).tolist()}
+    n_env = strategy_counts(n_dirs).get("environment", 0) if sampling == "mis" else 0
+    pooled = n_env > 0 and pool_bytes(n_env) <= POOL_BYTES
+    pool, pool_of = None, None
     L = np.empty((m_total, n_nodes, 3), dtype=np.float32)
-    for p, o, rows in jobs:
-        extra = {"pool": pools[p]} if pools else {}
+    for p, o, rows in jobs:  # grouped by probe: one probe's pool is held at a time
+        extra = {}
+        if pooled:
+            if pool_of != p:  # the environment's directions, sampled once per probe (lighting.mis)
+                pool, pool_of = None, p
+                pool = environment_pool(probes[p], n_env, seed, stream=p)
+            extra = {"pool": pool}
         L[rows] = chunk_fn(packets[rows], probes[p], n_t, n_s, n_dirs, scenes[o] if o >= 0 else None, **extra)
     if obs.has_footprints:
         _footprint_rows(L, obs, n_nodes, chunk, lambda sub, b: lighting_matrix(

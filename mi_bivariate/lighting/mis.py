@@ -34,25 +34,43 @@ MIS_FRACTIONS = {"uniform": 0.25, "environment": 0.5, "peak": 0.25}
 PEAK_T_MAX = 0.5
 SAMPLINGS = ("mis", "uniform")
 #: Lattice shifts of the environment strategy's pooled directions (:func:`environment_pool`).
-#: Rows pick one at random, so a given shift serves about 1/64 of the rows, spread over the
-#: sphere (the pick is independent of the normal).
+#: Rows pick one at random (:func:`_pool_slot`), so a given shift serves about 1/64 of the
+#: rows, spread over the sphere (the pick is independent of the normal).
 ENV_SHIFTS = 64
 #: Floats per pooled direction: ``(d.x, d.y, d.z, pdf, radiance r, g, b, 0)``.
 _POOL_FLOATS = 8
+#: The largest pool :func:`~mi_bivariate.lighting.lighting_matrix` builds (bytes, per probe);
+#: beyond it (K above ~2 million) the environment is sampled per row.
+POOL_BYTES = 256 * 2**20
 
 
-def environment_pool(probe: Any, n_points: int, seed: int = 0) -> Any:
+def pool_bytes(n_points: int) -> int:
+    """Bytes of :func:`environment_pool` for ``n_points`` environment directions per row."""
+    return int(n_points) * ENV_SHIFTS * _POOL_FLOATS * 4
+
+
+def _pool_slot(shift: Any) -> Any:
+    """The pooled shift (``mi.UInt32`` in ``[0, ENV_SHIFTS)``) a row reads, from its own random
+    shift ``shift_1`` in [0, 1): the bits below its first 12 (``frac(4096 shift_1)``), so the
+    pick is independent of where ``shift_1`` puts the row's uniform and peak lattices."""
+    fine = shift * 4096.0
+    return dr.minimum(mi.UInt32((fine - dr.floor(fine)) * ENV_SHIFTS), ENV_SHIFTS - 1)
+
+
+def environment_pool(probe: Any, n_points: int, seed: int = 0, stream: int = 0) -> Any:
     """The environment strategy's directions for :data:`ENV_SHIFTS` lattice shifts (``mi.Float``).
 
-    For shift ``q`` (drawn from ``seed``) and lattice point ``k`` of ``n_points``, the
+    For shift ``q`` (drawn from ``seed`` and ``stream``: one stream per probe, so two images
+    under rotated copies of one map do not share their lattices) and lattice point ``k`` of
+    ``n_points``, the
     Fibonacci point shifted by ``q`` (as :func:`~mi_bivariate.lighting.kernels._lattice_lanes`
     shifts a row's) through ``envmap.sample_direction``: the world direction, its solid-angle
     density and the radiance there (``weight * pdf``), :data:`_POOL_FLOATS` floats at entry
     ``k * ENV_SHIFTS + q`` (the shifts of one point side by side: the rows of a chunk read
     neighbouring entries).
     """
-    shifts = mi.Float(np.random.default_rng([int(seed), 0x5EED]).random((ENV_SHIFTS, 2), dtype=np.float32)
-                      .reshape(-1))
+    rng = np.random.default_rng([int(seed), int(stream), 0x5EED])
+    shifts = mi.Float(rng.random((ENV_SHIFTS, 2), dtype=np.float32).reshape(-1))
     idx = dr.arange(mi.UInt32, int(n_points) * ENV_SHIFTS)
     k = idx // ENV_SHIFTS
     q = idx - k * ENV_SHIFTS
@@ -115,8 +133,8 @@ def _mis_lanes(data: Any, m: int, probe: Any, strategy: str, counts: dict, seed_
     env_pdf = radiance = None
     if strategy == "environment" and pool is not None:
         k = dr.arange(mi.UInt32, m * counts[strategy]) // m
-        shift = dr.gather(mi.Float, data, row * (4 * _PACKETS) + 11)  # the row's own random shift
-        entry = k * ENV_SHIFTS + dr.minimum(mi.UInt32(shift * ENV_SHIFTS), ENV_SHIFTS - 1)
+        shift = dr.gather(mi.Float, data, row * (4 * _PACKETS) + 11)  # the row's own random shift_1
+        entry = k * ENV_SHIFTS + _pool_slot(shift)
         head = dr.gather(mi.Vector4f, pool, 2 * entry)
         tail = dr.gather(mi.Vector4f, pool, 2 * entry + 1)
         d, env_pdf, radiance = mi.Vector3f(head.x, head.y, head.z), head.w, mi.Color3f(tail.x, tail.y, tail.z)

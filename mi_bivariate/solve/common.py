@@ -152,9 +152,10 @@ def sparse_entries(x: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 def add_entries(x: np.ndarray, entries: Tuple[np.ndarray, np.ndarray, np.ndarray],
                 weight: float = 1.0) -> np.ndarray:
-    """``x += weight * P`` in place for ``P`` given by :func:`sparse_entries`; returns ``x``."""
+    """``x += weight * P`` in place for ``P`` given by its entries (repeated entries add up);
+    returns ``x``."""
     rows, cols, values = entries
-    x[rows, cols] += weight * values
+    np.add.at(x, (rows, cols), weight * values)
     return x
 
 

@@ -7,7 +7,8 @@ if they fail, the problem is re-solved with ``scipy.optimize.nnls`` on an
 eigen-reduced ``N x N`` system and the result says so.
 
 From a start with every variable passive (the solve's usual start: the Lambertian
-level or the basis prior's mean, all positive), ``G`` is factorised once and every
+level, or the basis prior's mean where it is positive everywhere; a zero entry sends
+the solve to direct factorisations), ``G`` is factorised once and every
 later passive-set solve works on that one factor (:class:`_SchurSolver`): with ``A``
 the active set, ``x = z + G^-1 E mu``, ``z = G^-1 b``, ``(G^-1)_AA mu = -z_A``, where
 ``E`` selects ``A`` and ``mu`` is the gradient on ``A``. A passive-set solve then costs
@@ -190,10 +191,11 @@ def nnls_gram(G: np.ndarray, b: np.ndarray, passive: Optional[np.ndarray] = None
     b_scale = np.abs(b).max(initial=0.0)
 
     schur = None
-    factor = cholesky(G) if np.all(passive) else None
-    if factor is not None:
-        schur = _SchurSolver(b, factor)
+    whole = cholesky(G) if np.all(passive) else None  # the factor of all of G, kept for the result
+    if whole is not None:
+        schur = _SchurSolver(b, whole)
         x, y = schur(passive)
+        factor = whole
     else:
         x, y, factor = _passive_solve(G, b, passive)
     log_det = _full_log_det(factor, passive)
@@ -237,6 +239,10 @@ def nnls_gram(G: np.ndarray, b: np.ndarray, passive: Optional[np.ndarray] = None
         x = _nnls_fallback(G, b)
         violation = kkt_violation(G, b, x, abs_g)
         method = "bpp+nnls-fallback"
-    full = method == "bpp" and (schur is not None or bool(np.all(passive)))
-    return NNLSResult(x, iterations, violation, method, (schur.factor if schur is not None else factor)
-                      if full else None, log_det)
+    if method != "bpp":
+        kept = None
+    elif whole is not None:
+        kept = whole
+    else:
+        kept = factor if bool(np.all(passive)) else None
+    return NNLSResult(x, iterations, violation, method, kept, log_det)
