@@ -97,7 +97,8 @@ FIT_ROUNDS = 4
 def fitted(obs, grace, pixels, plain, prior, basis, mean, components, k, as_rgb, errors, observed, floor):
     """Eq. 1 ratios over the rounds of fitting ``k`` shape coefficients with the table."""
     base = shaped_lighting_matrix(obs, grace, as_rgb(1.0 + mean))
-    parts = [shaped_lighting_matrix(obs, grace, as_rgb(components[j])) for j in range(k)]
+    # A component is a signed direction in shape space: not clipped like a shape.
+    parts = [shaped_lighting_matrix(obs, grace, as_rgb(components[j], clip=False)) for j in range(k)]
     weight = 1.0 / (0.01 * pixels + 1e-3 * pixels.mean(0))
     result = solve_stages(solve.prepare_data_term(plain, pixels), prior, None, basis)
     out = []
@@ -132,7 +133,10 @@ def main() -> None:
     print("training shapes: energy about the mean in the first " +
           ", ".join(f"{k}: {energy[k - 1]:.2f}" for k in COMPONENTS), flush=True)
     grid = _subsampled(np.zeros((90, 90, 180, 1))).shape
-    as_rgb = lambda s: np.repeat(np.clip(s.reshape(grid), 0, 50)[..., None], 3, -1).astype(np.float32)
+    def as_rgb(s, clip=True):
+        s = np.clip(s, 0, 50) if clip else s
+        return np.repeat(s.reshape(grid)[..., None], 3, -1).astype(np.float32)
+
     mean_matrix = shaped_lighting_matrix(obs, grace, as_rgb(1.0 + mean))
     for name in sys.argv[1].split(","):
         errors = BRDFErrors(nbrdf.nbrdf_merl(name))
