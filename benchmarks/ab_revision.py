@@ -78,6 +78,8 @@ def main() -> None:
     ensure_variant()
     with tempfile.TemporaryDirectory() as tmp:
         tree = Path(tmp) / "tree"
+        # A run killed before its cleanup leaves a registered worktree whose folder is gone.
+        subprocess.run(["git", "-C", str(ROOT), "worktree", "prune"], check=False)
         subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", "-q", str(tree), args.revision],
                        check=True)
         try:
