@@ -269,7 +269,8 @@ def cmd_recover(args: argparse.Namespace) -> int:
             result = rec.recover(
                 image, probe, fit.geometry, masks=mask, n_normals=args.normals, n_dirs=args.dirs,
                 grid=tuple(args.grid), alpha=args.alpha, pair_rule=args.pair_rule, seed=args.seed,
-                max_view_angle_deg=args.max_view_angle, footprint=args.footprint, saturation=args.saturation, noise=args.noise, sampling=args.sampling,
+                max_view_angle_deg=args.max_view_angle, footprint=args.footprint, saturation=args.saturation,
+                noise=args.noise, sampling=args.sampling,
                 prior=smooth_prior, basis_prior=None if args.no_basis_prior else basis_prior)
     except InputError as exc:
         # The library names its arguments ("image", "lighting matrix L"); name the user's files.

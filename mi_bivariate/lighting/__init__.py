@@ -79,9 +79,9 @@ from mi_bivariate.lighting.mis import (
 )
 from mi_bivariate.variants import ensure_variant
 
-__all__ = ["CHUNK_BYTES", "ENV_SHIFTS", "MIS_FRACTIONS", "PEAK_T_MAX", "PROGRESS_PAIRS", "SAMPLINGS", "direction_pairs",
-           "environment_pool", "hemisphere_offsets", "light_directions", "lighting_matrix", "row_frames", "strategy_counts",
-           "texel_lighting_matrix"]
+__all__ = ["CHUNK_BYTES", "ENV_SHIFTS", "MIS_FRACTIONS", "PEAK_T_MAX", "PROGRESS_PAIRS", "SAMPLINGS",
+           "direction_pairs", "environment_pool", "hemisphere_offsets", "light_directions", "lighting_matrix",
+           "row_frames", "strategy_counts", "texel_lighting_matrix"]
 
 #: Size of one chunk's scatter target (one thread's copy).
 CHUNK_BYTES = 2 * 2**20

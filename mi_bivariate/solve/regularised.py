@@ -26,7 +26,6 @@ from mi_bivariate.solve.common import (
     grid_shape,
     penalty_weight,
     quadratic_form,
-    sparse_entries,
 )
 from mi_bivariate.solve.confidence import Confidence
 from mi_bivariate.solve.data_term import DataTerm, prepare_data_term
@@ -157,8 +156,7 @@ class _ChannelSolve:
 
 
 def _solve_channel(data: DataTerm, penalty: np.ndarray, alpha: Optional[float], k: int, start: np.ndarray,
-                   precision: Optional[np.ndarray], mean: Optional[np.ndarray],
-                   entries: Optional[tuple] = None) -> _ChannelSolve:
+                   precision: Optional[np.ndarray], mean: Optional[np.ndarray], entries: tuple) -> _ChannelSolve:
     """Alpha (GCV unless given) and the constrained solve of one variant and channel.
 
     ``entries``: ``penalty``'s non-zero entries (:func:`~mi_bivariate.solve.common.sparse_entries`).
@@ -173,7 +171,6 @@ def _solve_channel(data: DataTerm, penalty: np.ndarray, alpha: Optional[float], 
         curve = gcv_curve(data, penalty, k, extra=extra)
         alpha, score = curve.alpha, curve.score
     lam = penalty_weight(alpha, n, data.level[k])
-    entries = sparse_entries(penalty) if entries is None else entries
     x = add_entries(data.gram[k].copy(), entries, lam)
     rhs = data.rhs[k]
     if extra is not None:
@@ -246,10 +243,7 @@ def solve_prepared(data: DataTerm, prior: Optional[Prior] = None, alpha=None, *,
             raise InputError("mean", "the table prior's mean and std must be finite (std > 0)")
         precision = 1.0 / (data.n_rows * np.maximum(mean_std, 1e-30) ** 2)
     regularisers = {p: prior.regulariser(p) for p in pairs}
-    sparse = {p: (r.T @ r).tocsr() for p, r in regularisers.items()}
-    for m in sparse.values():
-        m.sum_duplicates()  # one entry per (row, col): add_entries adds each once
-    sparse = {p: m.tocoo() for p, m in sparse.items()}
+    sparse = {p: (r.T @ r).tocoo() for p, r in regularisers.items()}
     penalties = {p: m.toarray() for p, m in sparse.items()}
     entries = {p: (m.row, m.col, m.data) for p, m in sparse.items()}
     channels: Dict[str, List[_ChannelSolve]] = {p: [] for p in pairs}
