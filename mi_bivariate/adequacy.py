@@ -118,8 +118,8 @@ def _luminance_statistics(L: np.ndarray, block_rows: int = gram_mod.BLOCK_ROWS) 
         L: ``(M, N, 3)`` (RGB, luminance by :data:`LUMINANCE_WEIGHTS`) or ``(M, N)``.
 
     Returns:
-        ``(gram, shares)``: ``(N, N) float64`` with its upper triangle filled (the lower
-        is zero) and ``(N,) float64``, the :func:`observation_map` before reshaping.
+        ``(gram, shares)``: ``(N, N) float64`` (symmetric; :func:`_spectrum_from_gram` reads its upper
+        triangle) and ``(N,) float64``, the :func:`observation_map` before reshaping.
     """
     L = np.asarray(L)
     if not (L.ndim == 2 or (L.ndim == 3 and L.shape[2] == 3)):

@@ -11,6 +11,13 @@ afterwards. Dr.Jit's own thread pool is not affected.
 The default is :data:`DEFAULT_BLAS_THREADS` (1), overridable with the
 environment variable ``MI_BIVARIATE_BLAS_THREADS`` (a positive integer, or
 ``0``/``default`` to leave the libraries' own setting alone).
+
+The solve's channels are independent, and its LAPACK calls release the GIL
+(:mod:`mi_bivariate.solve.lapack`), so they run on Python worker threads instead:
+:func:`thread_map`, with :func:`solve_threads` workers (one per core up to three,
+the channels; ``MI_BIVARIATE_SOLVE_THREADS`` overrides, ``1`` runs them one after
+another). Each worker's BLAS calls stay single-threaded, so the cores are never
+oversubscribed by more than the workers themselves.
 """
 
 from __future__ import annotations
@@ -18,14 +25,22 @@ from __future__ import annotations
 import contextlib
 import functools
 import os
-from typing import Any, Callable, Iterator, Optional, TypeVar
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any, Callable, Iterable, Iterator, List, Optional, TypeVar
 
 #: BLAS threads inside :func:`blas_threads` when neither the argument nor the environment says.
 DEFAULT_BLAS_THREADS = 1
 #: Environment variable overriding :data:`DEFAULT_BLAS_THREADS`.
 ENV_VAR = "MI_BIVARIATE_BLAS_THREADS"
 
+#: Environment variable setting :func:`solve_threads`.
+SOLVE_ENV_VAR = "MI_BIVARIATE_SOLVE_THREADS"
+#: Most worker threads :func:`solve_threads` gives by default: the three colour channels.
+MAX_SOLVE_THREADS = 3
+
 F = TypeVar("F", bound=Callable[..., Any])
+T = TypeVar("T")
+R = TypeVar("R")
 
 
 @functools.lru_cache(maxsize=1)
@@ -78,3 +93,33 @@ def with_blas_threads(func: F) -> F:
             return func(*args, **kwargs)
 
     return wrapper  # type: ignore[return-value]
+
+
+def solve_threads() -> int:
+    """Worker threads for the solve's independent channels: ``MI_BIVARIATE_SOLVE_THREADS`` (a positive
+    integer), else one per core up to :data:`MAX_SOLVE_THREADS`."""
+    text = os.environ.get(SOLVE_ENV_VAR, "").strip()
+    try:
+        n = int(text) if text else 0
+    except ValueError:
+        n = 0
+    if n > 0:
+        return n
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return max(1, min(MAX_SOLVE_THREADS, cores))
+
+
+def thread_map(fn: Callable[[T], R], items: Iterable[T], threads: Optional[int] = None) -> List[R]:
+    """``[fn(item) for item in items]``, on up to ``threads`` worker threads (default
+    :func:`solve_threads`), in the items' order; the first exception is raised.
+
+    Only worth it for work that releases the GIL (LAPACK through :mod:`mi_bivariate.solve.lapack`,
+    numpy's large products). The BLAS thread limit in force (:func:`blas_threads`) applies to
+    every worker.
+    """
+    items = list(items)
+    threads = solve_threads() if threads is None else max(1, int(threads))
+    if threads == 1 or len(items) <= 1:
+        return [fn(item) for item in items]
+    with ThreadPoolExecutor(max_workers=min(threads, len(items))) as pool:
+        return list(pool.map(fn, items))

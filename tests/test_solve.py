@@ -431,3 +431,28 @@ def test_inverse_diagonals_from_the_priors_entries_match_dense(lower):
     inv = np.linalg.inv(x)
     np.testing.assert_allclose(var, np.diag(inv), rtol=1e-10)
     np.testing.assert_allclose(resolution, np.diag(inv @ gram), rtol=0, atol=1e-10)
+
+
+def test_solve_is_the_same_on_any_number_of_worker_threads(monkeypatch):
+    """The channels run on worker threads (mi_bivariate.threads): every result is bit-identical to
+    the one-after-another solve, for the discrepancy rule, the two stages and the confidence."""
+    L = _lighting(200, 31)
+    I = np.einsum("mnk,nk->mk", L.astype(np.float64), _truth(32).reshape(N, 3))
+    I *= 1 + 0.02 * np.random.default_rng(33).standard_normal(I.shape)
+    mean = np.full((N_T, N_S, 3), float(np.mean(_truth(32))))
+    results = {}
+    for threads in ("1", "2", "3"):
+        monkeypatch.setenv("MI_BIVARIATE_SOLVE_THREADS", threads)
+        first = solve(L, I, _prior(), n_t=N_T, n_s=N_S)
+        second = solve(L, I, _prior(), first.alphas, n_t=N_T, n_s=N_S, mean=mean, mean_std=0.5 * mean,
+                       pairs=tuple(sorted(set(first.winner))), winner=first.winner)
+        results[threads] = (first, second)
+    for threads in ("2", "3"):
+        for one, many in zip(results["1"], results[threads]):
+            assert one.winner == many.winner
+            np.testing.assert_array_equal(one.alphas, many.alphas)
+            np.testing.assert_array_equal(one.table, many.table)
+            for name in ("resolution", "posterior_std", "measured"):
+                np.testing.assert_array_equal(getattr(one, name), getattr(many, name))
+            for pair in one.pairs:
+                np.testing.assert_array_equal(one.pairs[pair].log_evidence, many.pairs[pair].log_evidence)

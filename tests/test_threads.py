@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from threadpoolctl import threadpool_info
 
 from mi_bivariate import threads
@@ -34,3 +35,29 @@ def test_environment_variable(monkeypatch):
         assert _blas_threads() == before
     monkeypatch.setenv(threads.ENV_VAR, "nonsense")
     assert threads.configured_threads() == threads.DEFAULT_BLAS_THREADS
+
+
+def test_thread_map_keeps_order_and_raises(monkeypatch):
+    import time
+
+    def slow_square(i):
+        time.sleep(0.01 * (3 - i))  # later items finish first
+        return i * i
+
+    for n in (1, 2, 3, 8):
+        assert threads.thread_map(slow_square, range(4), n) == [0, 1, 4, 9]
+
+    def boom(i):
+        if i == 2:
+            raise ValueError("item 2")
+        return i
+
+    with pytest.raises(ValueError, match="item 2"):
+        threads.thread_map(boom, range(4), 2)
+    monkeypatch.setenv(threads.SOLVE_ENV_VAR, "1")
+    assert threads.solve_threads() == 1
+    monkeypatch.setenv(threads.SOLVE_ENV_VAR, "5")
+    assert threads.solve_threads() == 5
+    for text in ("", "0", "nonsense", "-2"):
+        monkeypatch.setenv(threads.SOLVE_ENV_VAR, text)
+        assert 1 <= threads.solve_threads() <= threads.MAX_SOLVE_THREADS

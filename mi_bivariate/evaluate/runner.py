@@ -51,6 +51,7 @@ from mi_bivariate.evaluate.results import (
 )
 from mi_bivariate.merl import MERLBRDF
 from mi_bivariate.sources import MaterialSpec, load_probe, resolve_materials
+from mi_bivariate.threads import SOLVE_ENV_VAR
 from mi_bivariate.variants import ensure_variant
 
 #: Folder (under the output folder) of cached reference renders of truths and exact reductions.
@@ -136,8 +137,9 @@ def _folder_lock(out: Path) -> Iterator[None]:
 
 @contextlib.contextmanager
 def _blas_threads(n: int) -> Iterator[None]:
-    """Environment for spawned workers: BLAS/OpenMP pools of ``n`` threads (restored afterwards)."""
-    keys = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+    """Environment for spawned workers: BLAS/OpenMP pools and the solve's worker threads
+    (:func:`mi_bivariate.threads.solve_threads`) of ``n`` threads (restored afterwards)."""
+    keys = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", SOLVE_ENV_VAR)
     old = {k: os.environ.get(k) for k in keys}
     os.environ.update({k: str(n) for k in keys})
     try:

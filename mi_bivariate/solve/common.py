@@ -14,11 +14,11 @@ from __future__ import annotations
 from typing import Optional, Tuple, Union
 
 import numpy as np
-import scipy.linalg as sla
 from scipy.linalg import lapack
 
 from mi_bivariate.errors import InputError
 from mi_bivariate.prior import Prior
+from mi_bivariate.solve import lapack as gil_free
 
 #: The learnt weight alpha of the normalised smoothness term (see :mod:`mi_bivariate.solve`):
 #: the upper bound of the discrepancy principle's alpha, and the fixed weight where residuals of
@@ -107,9 +107,11 @@ def penalty_weight(alpha: float, n_nodes: int, level: float) -> float:
 
 
 def cholesky(x: np.ndarray) -> Optional[Tuple[np.ndarray, bool]]:
-    """``scipy.linalg.cho_factor`` of a float64 SPD matrix, or ``None`` if it is not (numerically) SPD."""
+    """The Cholesky factor ``(c, lower)`` (as ``scipy.linalg.cho_factor``, computed without the GIL:
+    :mod:`~mi_bivariate.solve.lapack`) of a float64 SPD matrix, or ``None`` if it is not
+    (numerically) SPD."""
     try:
-        factor = sla.cho_factor(x, check_finite=False)
+        factor = gil_free.cho_factor(x)
     except np.linalg.LinAlgError:
         return None
     if not np.all(np.isfinite(np.diag(factor[0]))):
@@ -119,11 +121,7 @@ def cholesky(x: np.ndarray) -> Optional[Tuple[np.ndarray, bool]]:
 
 def _potri(factor: Tuple[np.ndarray, bool]) -> np.ndarray:
     """LAPACK ``potri`` of ``cho_factor(X)``: ``X^-1`` in the factor's triangle, leftovers elsewhere."""
-    c, lower = factor
-    inv, info = lapack.dpotri(c, lower=lower)
-    if info != 0:
-        raise np.linalg.LinAlgError(f"potri failed (info {info})")
-    return inv
+    return gil_free.potri(factor)
 
 
 def inverse_from_cholesky(factor: Tuple[np.ndarray, bool], full: bool = True) -> np.ndarray:

@@ -19,6 +19,7 @@ import numpy as np
 from mi_bivariate.errors import InputError
 from mi_bivariate.lighting.gram import weighted_gram
 from mi_bivariate.solve.common import validate_problem
+from mi_bivariate.threads import thread_map
 
 #: Relative error of one pixel's model prediction ``L f`` even for noise-free input
 #: (a 3D BRDF is not bivariate: the exact phi_d average predicts MERL-NBRDF pixels to
@@ -136,13 +137,17 @@ def prepare_data_term(L: np.ndarray, I: np.ndarray, sigma: Optional[np.ndarray] 
     yy = np.empty(3)
     level = np.empty(3)
     ones = np.ones(n)
-    for k in range(3):
+
+    def channel(k: int) -> None:
         w = 1.0 / (sigma[:, k] * np.sqrt(m))
         y_k = I[:, k].astype(np.float64) * w
         # By blocks of rows over the st nodes they touch (lighting.gram): ~1/6 of the dense flops.
         gram[k], rhs[k] = weighted_gram(L[:, :, k], w, y_k)
+        yy[k] = y_k @ y_k
+
+    thread_map(channel, range(3))  # the channels' products release the GIL (mi_bivariate.threads)
+    for k in range(3):
         if not np.any(np.diag(gram[k]) > 0):
             raise InputError("lighting matrix L", f"channel {k} is all zero: the probe sheds no light in it")
-        yy[k] = y_k @ y_k
         level[k] = max(0.0, float(ones @ rhs[k]) / float(ones @ gram[k] @ ones))
     return DataTerm(gram, rhs, yy, level, sigma, L, I, time.perf_counter() - start)

@@ -40,10 +40,11 @@ from dataclasses import dataclass
 from typing import Dict, Optional, Sequence, Tuple
 
 import numpy as np
-import scipy.linalg as sla
 
 from mi_bivariate.solve.common import DEFAULT_ALPHA, add_entries, penalty_weight, sparse_entries
 from mi_bivariate.solve.data_term import DataTerm
+from mi_bivariate.solve.lapack import cho_factor, cho_solve
+from mi_bivariate.threads import thread_map
 
 #: The log grid walked (half decades from 1e-4 to DEFAULT_ALPHA = 1e-2): the range alpha is chosen in.
 DISCREPANCY_ALPHAS = tuple(10.0 ** np.arange(-4.0, -1.99, 0.5))
@@ -67,19 +68,21 @@ class DiscrepancyChoice:
 def _data_term(data: DataTerm, entries: tuple, channels: Sequence[int], alpha: float,
                extra: Optional[Tuple[np.ndarray, np.ndarray]]) -> float:
     """The mean over ``channels`` of the unconstrained solution's data term at ``alpha``
-    (``entries``: the penalty's, :func:`~mi_bivariate.solve.common.sparse_entries`)."""
+    (``entries``: the penalty's, :func:`~mi_bivariate.solve.common.sparse_entries`); the
+    channels on worker threads (:func:`~mi_bivariate.threads.thread_map`)."""
     n = data.n_nodes
-    total = 0.0
-    for k in channels:
+
+    def channel(k: int) -> float:
         g, b = data.gram[k], data.rhs[k]
         x = add_entries(g.copy(), entries, penalty_weight(alpha, n, data.level[k]))
         rhs = b
         if extra is not None:
             x[np.diag_indices(n)] += extra[0][:, k]
             rhs = b + extra[1][:, k]
-        f = sla.cho_solve(sla.cho_factor(x, check_finite=False, overwrite_a=True), rhs, check_finite=False)
-        total += max(data.yy[k] - 2.0 * f @ b + f @ g @ f, 0.0)
-    return float(total / len(channels))
+        f = cho_solve(cho_factor(x, overwrite=True), rhs)
+        return max(data.yy[k] - 2.0 * f @ b + f @ g @ f, 0.0)
+
+    return float(sum(thread_map(channel, channels)) / len(channels))
 
 
 def discrepancy_alpha(data: DataTerm, penalty: np.ndarray, channels: Sequence[int] = (0, 1, 2),

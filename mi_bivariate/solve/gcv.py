@@ -12,10 +12,10 @@ from dataclasses import dataclass
 from typing import Optional, Sequence, Tuple
 
 import numpy as np
-import scipy.linalg as sla
 
 from mi_bivariate.solve.common import penalty_weight
 from mi_bivariate.solve.data_term import DataTerm
+from mi_bivariate.solve.lapack import cho_factor, cho_solve
 
 #: The alphas GCV scans (log-spaced; refined by a parabola through the best three).
 GCV_ALPHAS = tuple(10.0 ** np.arange(-8.0, 2.01, 1.0))
@@ -58,12 +58,12 @@ def gcv_curve(data: DataTerm, penalty: np.ndarray, k: int, alphas: Sequence[floa
         lam = penalty_weight(alpha, data.n_nodes, data.level[k])
         x = g + lam * penalty
         x[np.diag_indices(n)] += fixed
-        factor = sla.cho_factor(x, check_finite=False)
-        f = sla.cho_solve(factor, b + shift, check_finite=False)
+        factor = cho_factor(x)
+        f = cho_solve(factor, b + shift)
         rho = max(data.yy[k] - 2.0 * f @ b + f @ g @ f, 0.0)
         # tr(X^-1 gram) = N - tr(X^-1 (lam P + diag(fixed)))
         other = lam * pz + fixed[:, None] * z
-        trace = n - float(np.mean(np.sum(z * sla.cho_solve(factor, other, check_finite=False), axis=0)))
+        trace = n - float(np.mean(np.sum(z * cho_solve(factor, other), axis=0)))
         dof = float(np.clip(trace, 0.0, min(n, m - 1)))
         dofs.append(dof)
         scores.append(rho / (1.0 - dof / m) ** 2)

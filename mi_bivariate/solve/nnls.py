@@ -27,6 +27,7 @@ import numpy as np
 import scipy.linalg as sla
 
 from mi_bivariate.solve.common import KKT_TOLERANCE, cholesky
+from mi_bivariate.solve.lapack import cho_factor, cho_solve
 
 # Sign threshold (relative) for moving a variable between sets: below it, a negative x
 # or gradient is round-off, and exchanging it would only make the pivoting cycle.
@@ -80,8 +81,8 @@ def _passive_solve(G: np.ndarray, b: np.ndarray, passive: np.ndarray):
     if idx.size:
         g_ff = G if idx.size == b.size else G[np.ix_(idx, idx)]
         try:
-            factor = sla.cho_factor(g_ff, check_finite=False)
-            x_f = sla.cho_solve(factor, b[idx], check_finite=False)
+            factor = cho_factor(g_ff)
+            x_f = cho_solve(factor, b[idx])
             if not np.all(np.isfinite(x_f)):
                 raise np.linalg.LinAlgError
         except np.linalg.LinAlgError:
@@ -105,7 +106,7 @@ class _SchurSolver:
 
     def __init__(self, b: np.ndarray, factor: Tuple[np.ndarray, bool]):
         self.factor = factor
-        self.z = sla.cho_solve(factor, b, check_finite=False)
+        self.z = cho_solve(factor, b)
         self.slot = np.full(b.size, -1)
         self.columns = np.empty((b.size, 0))
 
@@ -115,7 +116,7 @@ class _SchurSolver:
             unit = np.zeros((self.z.size, new.size))
             unit[new, np.arange(new.size)] = 1.0
             self.slot[new] = self.columns.shape[1] + np.arange(new.size)
-            self.columns = np.hstack([self.columns, sla.cho_solve(self.factor, unit, check_finite=False)])
+            self.columns = np.hstack([self.columns, cho_solve(self.factor, unit)])
         return self.columns[:, self.slot[active]]
 
     def __call__(self, passive: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
@@ -125,8 +126,7 @@ class _SchurSolver:
         if active.size:
             c = self._columns(active)
             c_aa = c[active]
-            mu = sla.cho_solve(sla.cho_factor(0.5 * (c_aa + c_aa.T), check_finite=False), -self.z[active],
-                               check_finite=False)
+            mu = cho_solve(cho_factor(0.5 * (c_aa + c_aa.T), overwrite=True), -self.z[active])
             if not np.all(np.isfinite(mu)):
                 raise np.linalg.LinAlgError("singular active-set system")
             x += c @ mu

@@ -39,6 +39,7 @@ from mi_bivariate.solve.evidence import (
 )
 from mi_bivariate.solve.gcv import gcv_curve
 from mi_bivariate.solve.nnls import NNLSResult, nnls_gram
+from mi_bivariate.threads import thread_map
 
 
 @dataclass
@@ -217,7 +218,8 @@ def solve_prepared(data: DataTerm, prior: Optional[Prior] = None, alpha=None, *,
     Channel by channel: every prior variant is solved, the kept one is chosen, and its
     posterior (resolution, posterior spread) is computed from the NNLS solve's own
     factorisation; the other variants' confidence, and ``measured``, on first access.
-    At most one channel's systems and factors (2 per variant) are held at a time.
+    The channels run on worker threads (:func:`~mi_bivariate.threads.thread_map`); each holds
+    its own systems and factors (2 per variant) until its kept variant's posterior is computed.
     """
     t0 = time.perf_counter()
     prior = default_prior() if prior is None else prior
@@ -259,42 +261,51 @@ def solve_prepared(data: DataTerm, prior: Optional[Prior] = None, alpha=None, *,
     if isinstance(rule, str) and rule == "discrepancy":  # one alpha for every channel, on the first pair's curve
         extra = None if precision is None else (precision, precision * mean)
         choice = discrepancy_alpha(data, penalties[pairs[0]], extra=extra, entries=entries[pairs[0]])
-    for k in range(3):
+    def channel(k: int) -> Tuple[Dict[str, _ChannelSolve], Dict[str, float], Dict[str, Optional[float]], str]:
+        """Every pair's solve of channel ``k``, their evidence, the kept pair, and its posterior while its
+        factorisation is at hand (the other pairs' systems and factors are dropped)."""
         if choice is not None:
             alpha_k = choice.alpha
         elif isinstance(rule, str):
             alpha_k = None  # GCV, per channel and pair
         else:
             alpha_k = float(rule[k])
+        solves: Dict[str, _ChannelSolve] = {}
+        times: Dict[str, float] = {}
         for p in pairs:
             t1 = time.perf_counter()
-            channels[p].append(_solve_channel(data, penalties[p], alpha_k, k, data.level, precision, mean,
-                                              entries[p]))
-            seconds[p] += time.perf_counter() - t1
-        for p in pairs:
-            c = channels[p][k]
-            evidence[p].append(None if not use_evidence else channel_log_evidence(
-                c.objective, data.n_rows, c.log_det(), c.lam, penalties[p], pdets.get(p),
-                None if precision is None else precision[:, k]))
+            solves[p] = _solve_channel(data, penalties[p], alpha_k, k, data.level, precision, mean, entries[p])
+            times[p] = time.perf_counter() - t1
+        logev = {p: None if not use_evidence else channel_log_evidence(
+            solves[p].objective, data.n_rows, solves[p].log_det(), solves[p].lam, penalties[p], pdets.get(p),
+            None if precision is None else precision[:, k]) for p in pairs}
         if winner is not None:
             w = winner[k]
         elif isinstance(rule, str) and rule == "gcv":
             # The pair whose prior explains the image better in the cross-validation sense.
-            w = min(pairs, key=lambda p: (channels[p][k].gcv, p != pairs[0]))
+            w = min(pairs, key=lambda p: (solves[p].gcv, p != pairs[0]))
         elif use_evidence:
             # The pair under whose prior the image is likelier (fit and Occam factor together).
-            w = max(pairs, key=lambda p: (evidence[p][k], p == pairs[0]))
+            w = max(pairs, key=lambda p: (logev[p], p == pairs[0]))
         else:
             # The paper's rule: the lower data residual.
-            w = min(pairs, key=lambda p: (channels[p][k].data_term, p != pairs[0]))
-        kept.append(w)
+            w = min(pairs, key=lambda p: (solves[p].data_term, p != pairs[0]))
         for p in pairs:
-            c = channels[p][k]
+            c = solves[p]
             confidences[p].set_weight(k, c.lam)
             if p == w:  # while its factorisation is at hand
                 confidences[p].keep_factor(k, c.result.factor, c.system)
                 confidences[p].channel("resolution", k)
             c.result.factor, c.system = None, None
+        return solves, times, logev, w
+
+    # The channels are independent; their LAPACK runs without the GIL (mi_bivariate.solve.lapack).
+    for solves, times, logev, w in thread_map(channel, range(3)):
+        for p in pairs:
+            channels[p].append(solves[p])
+            seconds[p] += times[p]
+            evidence[p].append(logev[p])
+        kept.append(w)
     solutions = {p: _pair_solution(data, regularisers[p], channels[p], confidences[p], (n_t, n_s), seconds[p],
                                    evidence[p]) for p in pairs}
     kept_rule = ("given" if winner is not None else "gcv" if isinstance(rule, str) and rule == "gcv"
