@@ -61,3 +61,16 @@ def test_thread_map_keeps_order_and_raises(monkeypatch):
     for text in ("", "0", "nonsense", "-2"):
         monkeypatch.setenv(threads.SOLVE_ENV_VAR, text)
         assert 1 <= threads.solve_threads() <= threads.MAX_SOLVE_THREADS
+
+
+def test_solve_threads_share_the_cores_with_blas(monkeypatch):
+    """Workers times BLAS threads never exceed the cores (oversubscription made the solve 3x slower)."""
+    import os
+
+    monkeypatch.delenv(threads.SOLVE_ENV_VAR, raising=False)
+    cores = len(os.sched_getaffinity(0))
+    _blas_threads()
+    with threads.blas_threads(1):
+        assert threads.solve_threads() == max(1, min(threads.MAX_SOLVE_THREADS, cores))
+    with threads.blas_threads(cores):
+        assert threads.solve_threads() == 1
