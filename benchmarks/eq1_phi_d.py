@@ -113,7 +113,46 @@ def fitted(obs, grace, pixels, plain, prior, basis, mean, components, k, as_rgb,
     return out, coeffs
 
 
+def projected(obs, grace, pixels, plain, prior, basis, mean, components, scale, k, as_rgb, errors, observed,
+              floor, max_evaluations: int = 80):
+    """Eq. 1 ratio with ``k`` shape coefficients fitted jointly with the table, by variable projection.
+
+    The table is eliminated: for coefficients ``c`` the smoothness-prior solve at the plain
+    solve's alpha and pairs gives the table ``f(c)`` and its penalised objective
+    ``Phi(c) = sum_k data_k + alpha prior_k`` (rows weighted by the plain image's sigma,
+    fixed across ``c``), and Nelder-Mead minimises ``Phi`` over ``c`` in units of the training
+    coefficients' spread (``scale``), from 0 (the mean shape). The table at the best ``c``
+    is then solved as ``recover`` does (both stages).
+    """
+    from scipy.optimize import minimize
+
+    base = shaped_lighting_matrix(obs, grace, as_rgb(1.0 + mean))
+    parts = [shaped_lighting_matrix(obs, grace, as_rgb(components[j], clip=False)) for j in range(k)]
+    sigma = solve.row_sigma(pixels)
+    first = solve_stages(solve.prepare_data_term(plain, pixels, sigma), prior, None, basis)
+    pairs = tuple(sorted(set(first.winner)))
+
+    def matrix(z):
+        return base + sum(zj * sj * p for zj, sj, p in zip(z, scale, parts))
+
+    def objective(z):
+        result = solve.solve_prepared(solve.prepare_data_term(matrix(z), pixels, sigma), prior, first.alphas,
+                                      pairs=pairs, winner=first.winner)
+        kept = [result.pairs[w] for w in result.winner]
+        return float(sum(p.data_term[c] + a * p.prior_term[c] for c, (p, a) in enumerate(zip(kept, first.alphas))))
+
+    best = minimize(objective, np.zeros(k), method="Nelder-Mead",
+                    options={"maxfev": max_evaluations, "initial_simplex": np.vstack([np.zeros(k), np.eye(k)]),
+                             "xatol": 0.05, "fatol": 1e-6})
+    result = solve_stages(solve.prepare_data_term(matrix(best.x), pixels), prior, None, basis)
+    ratio = errors(BivariateBRDF(result.table), observed_nodes=observed)["eq1_observed"] / floor
+    return ratio, best.x * scale[:k], best.nfev, objective(np.zeros(k)), best.fun
+
+
 def main() -> None:
+    projection = "--projection" in sys.argv
+    if projection:
+        sys.argv.remove("--projection")
     fit = 0
     if "--fit" in sys.argv:
         at = sys.argv.index("--fit")
@@ -154,7 +193,14 @@ def main() -> None:
             e = errors(BivariateBRDF(solve_stages(solve.prepare_data_term(L, pixels), prior, None, basis).table),
                        observed_nodes=observed)
             cells.append(f"{tag} {e['eq1_observed'] / floor:.2f}x (all cells {e['eq1'] / floor:.2f}x)")
-        if fit:
+        if fit and projection:
+            ratio, coeffs, nfev, phi0, phi = projected(obs, grace, pixels, plain, prior, basis, mean, components,
+                                                       sv / np.sqrt(len(train)), fit, as_rgb, errors, observed,
+                                                       floor)
+            cells.append(f"fit{fit} by projection {ratio:.2f}x ({nfev} solves, Phi {phi0:.4g} -> {phi:.4g}; "
+                         f"coefficients {np.round(coeffs, 2).tolist()}, own "
+                         f"{np.round(components[:fit] @ centred, 2).tolist()})")
+        elif fit:
             rounds, coeffs = fitted(obs, grace, pixels, plain, prior, basis, mean, components, fit, as_rgb,
                                     errors, observed, floor)
             cells.append(f"fit{fit} by round " + " ".join(f"{r:.2f}x" for r in rounds) +

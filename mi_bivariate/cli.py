@@ -144,8 +144,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--saturation", type=float, default=None, help="drop pixels with any channel >= this value")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=None,
-                   help="Dr.Jit threads (1: bit-identical outputs from run to run; default: all cores, where "
-                        "the lighting matrix's parallel sums vary at float32 rounding)")
+                   help="Dr.Jit threads, and at most as many solve workers (1: bit-identical outputs from run "
+                        "to run; default: all cores, where the lighting matrix's parallel sums vary at float32 "
+                        "rounding)")
     p.add_argument("--deterministic", dest="threads", action="store_const", const=1,
                    help="same as --threads 1")
     _add_variant(p)

@@ -34,7 +34,7 @@ from mi_bivariate.errors import InputError
 from mi_bivariate.images import load_image, load_mask
 from mi_bivariate.prior import Prior
 from mi_bivariate.sources import have_shared_data, load_brdf, load_probe
-from mi_bivariate.threads import blas_threads
+from mi_bivariate.threads import blas_threads, solve_thread_limit
 from mi_bivariate.training_set import basis_path_for
 from mi_bivariate.variants import ensure_variant
 
@@ -250,7 +250,6 @@ def cmd_recover(args: argparse.Namespace) -> int:
     check_outputs(outputs, _existing_files(args.image, args.probe, args.mask, args.prior))
     ensure_variant(args.variant)
     if args.threads is not None:
-
         dr.set_thread_count(args.threads)
     probe = load_probe(args.probe, args.data)
     image = load_image(args.image)
@@ -265,7 +264,8 @@ def cmd_recover(args: argparse.Namespace) -> int:
         basis_file = basis_path_for(args.prior)
         basis_prior = BasisPrior.load(basis_file) if basis_file.is_file() else None
     try:
-        with blas_threads():  # no BLAS oversubscription on a shared machine (mi_bivariate.threads)
+        # No BLAS oversubscription on a shared machine; --threads also caps the solve's workers.
+        with blas_threads(), solve_thread_limit(args.threads):
             result = rec.recover(
                 image, probe, fit.geometry, masks=mask, n_normals=args.normals, n_dirs=args.dirs,
                 grid=tuple(args.grid), alpha=args.alpha, pair_rule=args.pair_rule, seed=args.seed,

@@ -95,21 +95,38 @@ def with_blas_threads(func: F) -> F:
     return wrapper  # type: ignore[return-value]
 
 
+_solve_limit: Optional[int] = None
+
+
+@contextlib.contextmanager
+def solve_thread_limit(n: Optional[int]) -> Iterator[None]:
+    """At most ``n`` solve workers inside the block (``None``: no change; nested limits: the smaller),
+    whatever :func:`solve_threads` would give; e.g. the CLI's ``--threads``."""
+    global _solve_limit
+    old = _solve_limit
+    _solve_limit = old if n is None else max(1, int(n)) if old is None else min(old, max(1, int(n)))
+    try:
+        yield
+    finally:
+        _solve_limit = old
+
+
 def solve_threads() -> int:
     """Worker threads for the solve's independent channels: ``MI_BIVARIATE_SOLVE_THREADS`` (a positive
     integer), else the cores shared out among the BLAS threads in force (inside :func:`blas_threads`:
     one per core), at most :data:`MAX_SOLVE_THREADS`. Measured on the 2-core VM: two workers with two
-    BLAS threads each ran the solve 3x slower than with one each."""
+    BLAS threads each ran the solve 3x slower than with one each. Inside :func:`solve_thread_limit`,
+    at most its limit."""
     text = os.environ.get(SOLVE_ENV_VAR, "").strip()
     try:
         n = int(text) if text else 0
     except ValueError:
         n = 0
-    if n > 0:
-        return n
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    blas = [lib.num_threads for lib in _controller().select(user_api="blas").lib_controllers]
-    return max(1, min(MAX_SOLVE_THREADS, cores // max(blas + [1])))
+    if n <= 0:
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+        blas = [lib.num_threads for lib in _controller().select(user_api="blas").lib_controllers]
+        n = max(1, min(MAX_SOLVE_THREADS, cores // max(blas + [1])))
+    return n if _solve_limit is None else min(n, _solve_limit)
 
 
 def thread_map(fn: Callable[[T], R], items: Iterable[T], threads: Optional[int] = None) -> List[R]:

@@ -74,3 +74,16 @@ def test_solve_threads_share_the_cores_with_blas(monkeypatch):
         assert threads.solve_threads() == max(1, min(threads.MAX_SOLVE_THREADS, cores))
     with threads.blas_threads(cores):
         assert threads.solve_threads() == 1
+
+
+def test_solve_thread_limit_caps_and_restores(monkeypatch):
+    monkeypatch.setenv(threads.SOLVE_ENV_VAR, "3")
+    with threads.solve_thread_limit(1):
+        assert threads.solve_threads() == 1
+        with threads.solve_thread_limit(None):  # no change inside a limit
+            assert threads.solve_threads() == 1
+        with threads.solve_thread_limit(5):  # nested: the smaller limit holds
+            assert threads.solve_threads() == 1
+    with threads.solve_thread_limit(5):  # a cap, never a raise
+        assert threads.solve_threads() == 3
+    assert threads.solve_threads() == 3
