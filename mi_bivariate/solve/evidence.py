@@ -56,15 +56,19 @@ def log_det_spd(x: np.ndarray) -> float:
     return float(value) if sign > 0 else -np.inf
 
 
-def log_det_banded(x: np.ndarray) -> float:
-    """``log det X`` of a banded SPD ``(N, N)`` matrix (LAPACK ``pbtrf``, ``O(N b^2)``; dense if that fails)."""
-    b = max(bandwidth(x), 1)
+def log_det_banded(x: np.ndarray, band: Optional[int] = None) -> float:
+    """``log det X`` of a banded SPD ``(N, N)`` matrix (LAPACK ``pbtrf``, ``O(N b^2)``; dense if that fails).
+
+    ``band``: the bandwidth if the caller knows it (finding it scans all ``N^2`` entries).
+    """
+    b = max(bandwidth(x) if band is None else int(band), 1)
     u = banded_cholesky(x, b)
     return 2.0 * float(np.sum(np.log(u[b]))) if u is not None else log_det_spd(x)
 
 
-def penalty_log_pdet(penalty: np.ndarray) -> Tuple[float, int]:
-    """``(log pdet P, rank P)`` of a prior precision ``P`` ``(N, N)`` (symmetric, PSD).
+def penalty_log_pdet(penalty: np.ndarray, band: Optional[int] = None) -> Tuple[float, int]:
+    """``(log pdet P, rank P)`` of a prior precision ``P`` ``(N, N)`` (symmetric, PSD); ``band``: its
+    bandwidth if the caller knows it.
 
     A weighted graph Laplacian (rows summing to 0, as the smoothness prior's ``R^T R`` on a
     connected grid) has the constant table as its only null vector; then ``pdet P = N det
@@ -78,7 +82,7 @@ def penalty_log_pdet(penalty: np.ndarray) -> Tuple[float, int]:
         return 0.0, 0
     if n > 1 and float(np.abs(p.sum(axis=1)).max()) <= 1e-10 * scale * n:
         sub = p[1:, 1:]
-        log_det = log_det_banded(sub)
+        log_det = log_det_banded(sub, band)
         if np.isfinite(log_det):
             return float(np.log(n)) + log_det, n - 1
     w = np.linalg.eigvalsh(p)

@@ -150,6 +150,7 @@ class _ChannelSolve:
     lam: float
     data_term: float
     objective: float  #: Phi: the data term plus every prior term at the solution
+    residual: float   #: ||I - L f||, unweighted (float32 products, as the tables are stored)
 
     def log_det(self) -> float:
         """``log det`` of the system (from the NNLS solve's own factorisation when it had one)."""
@@ -183,7 +184,10 @@ def _solve_channel(data: DataTerm, penalty: np.ndarray, alpha: Optional[float], 
     objective = data_term + lam * quadratic_form(entries, f)
     if extra is not None:
         objective += float(np.sum(extra[0] * (f - mean[:, k]) ** 2))
-    return _ChannelSolve(res, x, float(alpha), float(score), lam, data_term, objective)
+    # The residual, here on the channel's worker thread (the products release the GIL).
+    predicted = data.lighting[:, :, k] @ f.astype(data.lighting.dtype)
+    residual = float(np.linalg.norm(data.observations[:, k].astype(np.float64) - predicted))
+    return _ChannelSolve(res, x, float(alpha), float(score), lam, data_term, objective, residual)
 
 
 def _pair_solution(data: DataTerm, regulariser, channels: List[_ChannelSolve], confidence: Confidence,
@@ -193,9 +197,8 @@ def _pair_solution(data: DataTerm, regulariser, channels: List[_ChannelSolve], c
     f = np.stack([c.result.x for c in channels], axis=-1)
     level = np.where(data.level > 0, data.level, 1.0)
     prior_term = np.sum((regulariser @ f) ** 2, axis=0) / (n * level**2)
-    predicted = np.einsum("mnc,nc->mc", data.lighting, f.astype(data.lighting.dtype), optimize=True)
     norm_i = np.linalg.norm(data.observations.astype(np.float64), axis=0)
-    r = np.linalg.norm(data.observations.astype(np.float64) - predicted, axis=0)
+    r = np.array([c.residual for c in channels])
     with np.errstate(divide="ignore", invalid="ignore"):
         rel = np.where(norm_i > 0, r / np.where(norm_i > 0, norm_i, 1.0), np.where(r == 0, 0.0, np.inf))
     return PairSolution(
@@ -256,7 +259,8 @@ def solve_prepared(data: DataTerm, prior: Optional[Prior] = None, alpha=None, *,
     evidence: Dict[str, List[Optional[float]]] = {p: [] for p in pairs}
     use_evidence = winner is None and pair_rule == "evidence" and len(pairs) > 1 and not (
         isinstance(rule, str) and rule == "gcv")
-    pdets = {p: penalty_log_pdet(penalties[p]) for p in pairs} if use_evidence and precision is None else {}
+    pdets = ({p: penalty_log_pdet(penalties[p], int(np.abs(entries[p][0] - entries[p][1]).max(initial=0)))
+              for p in pairs} if use_evidence and precision is None else {})
     choice: Optional[DiscrepancyChoice] = None
     if isinstance(rule, str) and rule == "discrepancy":  # one alpha for every channel, on the first pair's curve
         extra = None if precision is None else (precision, precision * mean)
