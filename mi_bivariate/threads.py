@@ -45,7 +45,13 @@ R = TypeVar("R")
 
 @functools.lru_cache(maxsize=1)
 def _controller() -> Any:
-    """One :class:`threadpoolctl.ThreadpoolController` per process (scanning the libraries costs ~ms)."""
+    """One :class:`threadpoolctl.ThreadpoolController` per process (scanning the libraries costs ~ms).
+
+    It sees the BLAS libraries loaded when it is built, so numpy's and scipy's (scipy bundles its
+    own OpenBLAS, the one :mod:`mi_bivariate.solve.lapack` calls) are loaded first.
+    """
+    import numpy  # noqa: F401  (loads numpy's BLAS)
+    import scipy.linalg  # noqa: F401  (loads scipy's)
     from threadpoolctl import ThreadpoolController
 
     return ThreadpoolController()
@@ -133,7 +139,8 @@ def thread_map(fn: Callable[[T], R], items: Iterable[T], threads: Optional[int] 
     """``[fn(item) for item in items]``, on up to ``threads`` worker threads (default
     :func:`solve_threads`), in the items' order; the first exception is raised.
 
-    Only worth it for work that releases the GIL (LAPACK through :mod:`mi_bivariate.solve.lapack`,
+    An error (or Ctrl-C) in one item cancels the items not yet started, then is raised once the
+    running ones end (a thread cannot be interrupted). Only worth it for work that releases the GIL (LAPACK through :mod:`mi_bivariate.solve.lapack`,
     numpy's large products). The BLAS thread limit in force (:func:`blas_threads`) applies to
     every worker.
     """
@@ -141,5 +148,9 @@ def thread_map(fn: Callable[[T], R], items: Iterable[T], threads: Optional[int] 
     threads = solve_threads() if threads is None else max(1, int(threads))
     if threads == 1 or len(items) <= 1:
         return [fn(item) for item in items]
-    with ThreadPoolExecutor(max_workers=min(threads, len(items))) as pool:
+    pool = ThreadPoolExecutor(max_workers=min(threads, len(items)))
+    try:
         return list(pool.map(fn, items))
+    finally:
+        # On an error (or Ctrl-C) items not yet started are dropped; running ones cannot be stopped.
+        pool.shutdown(wait=True, cancel_futures=True)

@@ -433,9 +433,10 @@ def test_inverse_diagonals_from_the_priors_entries_match_dense(lower):
     np.testing.assert_allclose(resolution, np.diag(inv @ gram), rtol=0, atol=1e-10)
 
 
-def test_solve_is_the_same_on_any_number_of_worker_threads(monkeypatch):
+@pytest.mark.parametrize("alpha, pair_rule", [(None, "evidence"), ("gcv", "evidence"), (None, "residual")])
+def test_solve_is_the_same_on_any_number_of_worker_threads(monkeypatch, alpha, pair_rule):
     """The channels run on worker threads (mi_bivariate.threads): every result is bit-identical to
-    the one-after-another solve, for the discrepancy rule, the two stages and the confidence."""
+    the one-after-another solve, for each alpha and pair rule, the two stages and the confidence."""
     L = _lighting(200, 31)
     I = np.einsum("mnk,nk->mk", L.astype(np.float64), _truth(32).reshape(N, 3))
     I *= 1 + 0.02 * np.random.default_rng(33).standard_normal(I.shape)
@@ -443,7 +444,7 @@ def test_solve_is_the_same_on_any_number_of_worker_threads(monkeypatch):
     results = {}
     for threads in ("1", "2", "3"):
         monkeypatch.setenv("MI_BIVARIATE_SOLVE_THREADS", threads)
-        first = solve(L, I, _prior(), n_t=N_T, n_s=N_S)
+        first = solve(L, I, _prior(), alpha, n_t=N_T, n_s=N_S, pair_rule=pair_rule)
         second = solve(L, I, _prior(), first.alphas, n_t=N_T, n_s=N_S, mean=mean, mean_std=0.5 * mean,
                        pairs=tuple(sorted(set(first.winner))), winner=first.winner)
         results[threads] = (first, second)
@@ -455,4 +456,5 @@ def test_solve_is_the_same_on_any_number_of_worker_threads(monkeypatch):
             for name in ("resolution", "posterior_std", "measured"):
                 np.testing.assert_array_equal(getattr(one, name), getattr(many, name))
             for pair in one.pairs:
-                np.testing.assert_array_equal(one.pairs[pair].log_evidence, many.pairs[pair].log_evidence)
+                for name in ("log_evidence", "gcv", "relative_residual", "data_term"):
+                    np.testing.assert_array_equal(getattr(one.pairs[pair], name), getattr(many.pairs[pair], name))

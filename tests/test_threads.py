@@ -37,6 +37,14 @@ def test_environment_variable(monkeypatch):
     assert threads.configured_threads() == threads.DEFAULT_BLAS_THREADS
 
 
+def test_thread_map_runs_items_at_once():
+    """Two items that each wait for the other finish only if they run concurrently."""
+    import threading
+
+    barrier = threading.Barrier(2, timeout=10)
+    assert threads.thread_map(lambda i: (barrier.wait(), i)[1], range(2), 2) == [0, 1]
+
+
 def test_thread_map_keeps_order_and_raises(monkeypatch):
     import time
 
@@ -69,7 +77,6 @@ def test_solve_threads_share_the_cores_with_blas(monkeypatch):
 
     monkeypatch.delenv(threads.SOLVE_ENV_VAR, raising=False)
     cores = len(os.sched_getaffinity(0))
-    _blas_threads()
     with threads.blas_threads(1):
         assert threads.solve_threads() == max(1, min(threads.MAX_SOLVE_THREADS, cores))
     with threads.blas_threads(cores):

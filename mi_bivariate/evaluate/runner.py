@@ -184,10 +184,10 @@ def _run_tasks(tasks: List[MaterialTask], jobs: int, dask: Any) -> Iterator[Tupl
                 result = exc
             yield t, result
         return
-    with _blas_threads(tasks[0].threads or threads_per_job(jobs)):
-        pool = ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("spawn"),
-                                   initializer=_init_worker, initargs=(mi.variant(), os.getpid()))
-    with pool:
+    # The environment stays set while the pool lives: spawned workers start at the first submit.
+    with _blas_threads(tasks[0].threads or threads_per_job(jobs)), ProcessPoolExecutor(
+            max_workers=jobs, mp_context=multiprocessing.get_context("spawn"),
+            initializer=_init_worker, initargs=(mi.variant(), os.getpid())) as pool:
         futures = {pool.submit(evaluate_material, t): t for t in tasks}
         try:
             for fut in cf_completed(futures):

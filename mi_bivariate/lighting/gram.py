@@ -40,7 +40,7 @@ def add_block_gram(gram: np.ndarray, cols: np.ndarray, a: np.ndarray) -> None:
     """``gram[cols][:, cols] += a^T a`` in place (both triangles; callers read the upper one).
 
     Args:
-        gram: ``(N, N) float64``, C-contiguous; only its upper triangle is updated.
+        gram: ``(N, N) float64``, C-contiguous; both triangles are updated.
         cols: ``(n,)`` ascending column indices (so the block's upper triangle
             lands in the upper triangle).
         a: ``(B, n) float64``, the block's compacted columns.

@@ -119,9 +119,10 @@ def cholesky(x: np.ndarray) -> Optional[Tuple[np.ndarray, bool]]:
     return factor
 
 
-def _potri(factor: Tuple[np.ndarray, bool]) -> np.ndarray:
-    """LAPACK ``potri`` of ``cho_factor(X)``: ``X^-1`` in the factor's triangle, leftovers elsewhere."""
-    return gil_free.potri(factor)
+def _potri(factor: Tuple[np.ndarray, bool], overwrite: bool = False) -> np.ndarray:
+    """LAPACK ``potri`` of ``cho_factor(X)``: ``X^-1`` in the factor's triangle, leftovers elsewhere
+    (``overwrite``: in the factor's array, which is then lost)."""
+    return gil_free.potri(factor, overwrite=overwrite)
 
 
 def inverse_from_cholesky(factor: Tuple[np.ndarray, bool], full: bool = True) -> np.ndarray:
@@ -165,8 +166,8 @@ def quadratic_form(entries: Tuple[np.ndarray, np.ndarray, np.ndarray], f: np.nda
 
 def inverse_diagonals(x: np.ndarray, gram: np.ndarray,
                       factor: Optional[Tuple[np.ndarray, bool]] = None,
-                      prior: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None
-                      ) -> Tuple[np.ndarray, np.ndarray]:
+                      prior: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None,
+                      overwrite_factor: bool = False) -> Tuple[np.ndarray, np.ndarray]:
     """``diag(X^-1)`` and ``diag(X^-1 gram)`` (gram symmetric) from one factorisation of ``X``.
 
     ``prior``: the entries (:func:`sparse_entries`) of ``Q = X - gram`` (symmetric and
@@ -174,13 +175,15 @@ def inverse_diagonals(x: np.ndarray, gram: np.ndarray,
     reads ``X^-1`` only where ``Q`` is non-zero (``O(nnz)`` after ``potri``). Without it:
     with ``T`` one triangle of ``X^-1`` and ``P = T * gram`` elementwise,
     ``diag(X^-1 gram)_i = sum_j P_ij + sum_j P_ji - P_ii`` (``O(N^2)``). Falls back to the
-    pseudo-inverse when ``X`` is singular.
+    pseudo-inverse when ``X`` is singular. ``overwrite_factor``: the inverse takes the given
+    factor's memory (one ``N x N`` array less alive; the factor is lost).
     """
+    own = factor is None
     factor = cholesky(x) if factor is None else factor
     inv = None
     if factor is not None:
         try:
-            inv = _potri(factor)
+            inv = _potri(factor, overwrite=own or overwrite_factor)
         except np.linalg.LinAlgError:
             inv = None
     if inv is None:

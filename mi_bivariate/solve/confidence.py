@@ -97,7 +97,9 @@ class Confidence:
         kept = self._factors[k]
         self._factors[k] = None
         x, factor = (self._system(k), None) if kept is None else (kept[1], kept[0])
-        var, resolution = inverse_diagonals(x, self._data.gram[k], factor, prior=self._prior_entries(k))
+        # The factor is dropped here: its memory takes the inverse.
+        var, resolution = inverse_diagonals(x, self._data.gram[k], factor, prior=self._prior_entries(k),
+                                            overwrite_factor=True)
         self._values["resolution", k] = np.clip(resolution, 0.0, 1.0)
         self._values["posterior_std", k] = np.sqrt(np.maximum(var, 0.0) / self._data.n_rows)
         self._post_var[k] = var

@@ -43,10 +43,11 @@ def _functions() -> Dict[str, Callable[..., None]]:
         from scipy.linalg import cython_lapack
 
         capsules = cython_lapack.__pyx_capi__
-        get_name = ctypes.pythonapi.PyCapsule_GetName
-        get_name.restype, get_name.argtypes = ctypes.c_char_p, [ctypes.py_object]
-        get_pointer = ctypes.pythonapi.PyCapsule_GetPointer
-        get_pointer.restype, get_pointer.argtypes = ctypes.c_void_p, [ctypes.py_object, ctypes.c_char_p]
+        # Private prototypes: setting restype/argtypes on ctypes.pythonapi's shared function objects
+        # would change them for every other ctypes user in the process.
+        get_name = ctypes.PYFUNCTYPE(ctypes.c_char_p, ctypes.py_object)(("PyCapsule_GetName", ctypes.pythonapi))
+        get_pointer = ctypes.PYFUNCTYPE(ctypes.c_void_p, ctypes.py_object, ctypes.c_char_p)(
+            ("PyCapsule_GetPointer", ctypes.pythonapi))
         out = {}
         for name, argtypes in _SIGNATURES.items():
             capsule = capsules[name]
@@ -72,11 +73,24 @@ def _fortran_view(c: np.ndarray, lower: bool) -> Tuple[np.ndarray, bytes]:
     return c, b"U" if lower else b"L"
 
 
-def _square_float64(a: np.ndarray, overwrite: bool) -> np.ndarray:
-    """A contiguous float64 square array: ``a`` itself when ``overwrite`` allows, else a copy."""
+#: Largest dimension LAPACK's 32-bit integers can describe.
+_MAX_DIM = 2**31 - 1
+
+
+def _square_float64(a: np.ndarray, overwrite: bool, what: str = "matrix") -> np.ndarray:
+    """A contiguous float64 square array: ``a`` itself when ``overwrite`` allows, else a copy.
+
+    Raises:
+        ValueError: not a real square 2-D array, or too large for LAPACK's integers.
+    """
     if a.ndim != 2 or a.shape[0] != a.shape[1]:
-        raise ValueError(f"expected a square matrix, got shape {a.shape}")
-    ok = a.dtype == np.float64 and (a.flags.c_contiguous or a.flags.f_contiguous) and a.flags.writeable
+        raise ValueError(f"expected a square {what}, got shape {a.shape}")
+    if not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)):
+        raise ValueError(f"expected a real {what}, got dtype {a.dtype}")
+    if a.shape[0] > _MAX_DIM or a.size > _MAX_DIM:
+        raise ValueError(f"{what} of shape {a.shape} is too large for LAPACK's 32-bit integers")
+    ok = (a.dtype == np.float64 and (a.flags.c_contiguous or a.flags.f_contiguous) and a.flags.writeable
+          and a.dtype.isnative)
     return a if overwrite and ok else np.array(a, dtype=np.float64, order="C", copy=True)
 
 
@@ -84,7 +98,7 @@ def cho_factor(a: np.ndarray, overwrite: bool = False) -> Tuple[np.ndarray, bool
     """Cholesky factorisation ``a = L L^T`` (LAPACK ``dpotrf``) of a float64 SPD matrix.
 
     Args:
-        a: ``(N, N)``, symmetric (only its lower triangle is read).
+        a: ``(N, N)`` real, symmetric (only its lower triangle is read); computed in float64.
         overwrite: factorise ``a`` in place when it is a writeable contiguous float64 array.
 
     Returns:
@@ -92,6 +106,7 @@ def cho_factor(a: np.ndarray, overwrite: bool = False) -> Tuple[np.ndarray, bool
 
     Raises:
         numpy.linalg.LinAlgError: ``a`` is not (numerically) positive definite.
+        ValueError: ``a`` is not a real square matrix.
     """
     if not GIL_FREE:
         return sla.cho_factor(a, lower=True, overwrite_a=overwrite, check_finite=False)
@@ -109,18 +124,23 @@ def cho_factor(a: np.ndarray, overwrite: bool = False) -> Tuple[np.ndarray, bool
 
 def cho_solve(factor: Tuple[np.ndarray, bool], b: np.ndarray) -> np.ndarray:
     """``a^-1 b`` from ``factor = cho_factor(a)`` (LAPACK ``dpotrs``); ``b`` ``(N,)`` or ``(N, K)``,
-    returned as a new float64 array of its shape."""
+    returned as a new float64 array of its shape.
+
+    Raises:
+        ValueError: a factor that is not square, or a right-hand side that does not match it.
+    """
     c, lower = factor
     if not GIL_FREE:
         return sla.cho_solve(factor, b, check_finite=False)
+    c = _square_float64(np.asarray(c), overwrite=True, what="factor")  # no copy when already usable
     b = np.asarray(b)
-    if b.shape[0] != c.shape[0]:
-        raise ValueError(f"right-hand side has {b.shape[0]} rows, the factor {c.shape[0]}")
+    if b.ndim not in (1, 2) or b.shape[0] != c.shape[0]:
+        raise ValueError(f"right-hand side of shape {b.shape} does not match the factor's {c.shape}")
+    if not (np.issubdtype(b.dtype, np.floating) or np.issubdtype(b.dtype, np.integer)) or b.size > _MAX_DIM:
+        raise ValueError(f"right-hand side must be real and at most {_MAX_DIM} entries, got {b.dtype} {b.shape}")
     x = np.array(b, dtype=np.float64, order="F", copy=True)
     if x.size == 0:
         return x
-    if not (c.flags.c_contiguous or c.flags.f_contiguous) or c.dtype != np.float64:
-        c = np.ascontiguousarray(c, dtype=np.float64)
     c, uplo = _fortran_view(c, lower)
     n, nrhs, info = ctypes.c_int(c.shape[0]), ctypes.c_int(1 if x.ndim == 1 else x.shape[1]), ctypes.c_int(0)
     _LAPACK["dpotrs"](uplo, ctypes.byref(n), ctypes.byref(nrhs), c.ctypes.data, ctypes.byref(n),
@@ -132,18 +152,17 @@ def cho_solve(factor: Tuple[np.ndarray, bool], b: np.ndarray) -> np.ndarray:
 
 def potri(factor: Tuple[np.ndarray, bool], overwrite: bool = False) -> np.ndarray:
     """``a^-1`` from ``factor = cho_factor(a)`` (LAPACK ``dpotri``), in the factor's triangle
-    (numpy's indexing); the other triangle holds leftovers.
+    (numpy's indexing); the other triangle holds leftovers. ``overwrite``: in the factor's own
+    array when it is a writeable contiguous float64 one (the factor is then lost).
 
     Raises:
         numpy.linalg.LinAlgError: the factor has a zero on its diagonal.
     """
     c, lower = factor
     if not GIL_FREE:
-        inv, info = lapack.dpotri(c, lower=lower)
+        inv, info = lapack.dpotri(c, lower=lower, overwrite_c=overwrite)
     else:
-        inv = c if overwrite and c.dtype == np.float64 and c.flags.writeable and (
-            c.flags.c_contiguous or c.flags.f_contiguous) else np.array(c, dtype=np.float64, order="C", copy=True)
-        inv, uplo = _fortran_view(inv, lower)
+        inv, uplo = _fortran_view(_square_float64(np.asarray(c), overwrite, what="factor"), lower)
         n, status = ctypes.c_int(inv.shape[0]), ctypes.c_int(0)
         if inv.shape[0]:
             _LAPACK["dpotri"](uplo, ctypes.byref(n), inv.ctypes.data, ctypes.byref(n), ctypes.byref(status))

@@ -39,7 +39,12 @@ from mi_bivariate.solve.evidence import (
 )
 from mi_bivariate.solve.gcv import gcv_curve
 from mi_bivariate.solve.nnls import NNLSResult, nnls_gram
-from mi_bivariate.threads import thread_map
+from mi_bivariate.threads import solve_threads, thread_map
+
+
+#: Memory the solve's channel workers may hold together (bytes): a 32 x 32 grid's channel peaks at
+#: ~40 MB (any number of workers), a 64 x 64 grid's at ~640 MB (one worker, as before threads).
+SOLVE_MEMORY = 1 << 30
 
 
 @dataclass
@@ -58,7 +63,7 @@ class PairSolution:
     iterations: np.ndarray         #: (3,) int
     kkt_violation: np.ndarray      #: (3,)
     method: Tuple[str, str, str]
-    time_s: float
+    time_s: float                  #: its channels' solve times summed (they run concurrently)
     confidence: Confidence = field(repr=False)
     #: (3,) log evidence of the image under this pair (:mod:`~mi_bivariate.solve.evidence`,
     #: up to a constant shared by the pairs); NaN where the pair rule did not need it
@@ -91,7 +96,9 @@ class SolveResult:
     lambertian: np.ndarray             #: (3,) 1/sr, the Lambertian start (best constant table)
     scale: np.ndarray                  #: (3,) the prior's scale (the Lambertian level)
     alpha_rule: str = "discrepancy"    #: "discrepancy", "gcv" or "given"
-    timings: Dict[str, float] = field(default_factory=dict)  #: seconds
+    #: seconds: ``normal_equations``, ``total`` (wall), and per pair the sum of its channels' solve times
+    #: (the channels run concurrently, so these can add up to more than the wall time)
+    timings: Dict[str, float] = field(default_factory=dict)
     #: how the discrepancy principle chose alpha (``None`` for another rule)
     alpha_choice: Optional[DiscrepancyChoice] = None
     #: how the pair was kept per channel: "evidence", "residual", "gcv" or "given"
@@ -294,7 +301,7 @@ def solve_prepared(data: DataTerm, prior: Optional[Prior] = None, alpha=None, *,
         else:
             # The paper's rule: the lower data residual.
             w = min(pairs, key=lambda p: (solves[p].data_term, p != pairs[0]))
-        for p in pairs:
+        for p in sorted(pairs, key=lambda p: p == w):  # the other pairs' systems and factors go first
             c = solves[p]
             confidences[p].set_weight(k, c.lam)
             if p == w:  # while its factorisation is at hand
@@ -304,7 +311,9 @@ def solve_prepared(data: DataTerm, prior: Optional[Prior] = None, alpha=None, *,
         return solves, times, logev, w
 
     # The channels are independent; their LAPACK runs without the GIL (mi_bivariate.solve.lapack).
-    for solves, times, logev, w in thread_map(channel, range(3)):
+    # Each holds ~5 N x N float64 arrays at its peak: as many workers as SOLVE_MEMORY allows.
+    workers = min(solve_threads(), max(1, SOLVE_MEMORY // (5 * 8 * data.n_nodes**2)))
+    for solves, times, logev, w in thread_map(channel, range(3), workers):
         for p in pairs:
             channels[p].append(solves[p])
             seconds[p] += times[p]
