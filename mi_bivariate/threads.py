@@ -50,9 +50,12 @@ def _controller() -> Any:
     It sees the BLAS libraries loaded when it is built, so numpy's and scipy's (scipy bundles its
     own OpenBLAS, the one :mod:`mi_bivariate.solve.lapack` calls) are loaded first.
     """
-    import numpy  # noqa: F401  (loads numpy's BLAS)
-    import scipy.linalg  # noqa: F401  (loads scipy's)
+    import importlib
+
     from threadpoolctl import ThreadpoolController
+
+    for module in ("numpy", "scipy.linalg"):  # load numpy's BLAS, and scipy's
+        importlib.import_module(module)
 
     return ThreadpoolController()
 

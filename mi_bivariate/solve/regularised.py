@@ -41,7 +41,6 @@ from mi_bivariate.solve.gcv import gcv_curve
 from mi_bivariate.solve.nnls import NNLSResult, nnls_gram
 from mi_bivariate.threads import solve_threads, thread_map
 
-
 #: Memory the solve's channel workers may hold together (bytes): a 32 x 32 grid's channel peaks at
 #: ~40 MB (any number of workers), a 64 x 64 grid's at ~640 MB (one worker, as before threads).
 SOLVE_MEMORY = 1 << 30
