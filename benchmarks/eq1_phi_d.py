@@ -1,7 +1,8 @@
 """How far Eq. 1 on observed cells falls if the lighting matrix models phi_d (issue 9's Eq. 1 target).
 
     MI_BIVARIATE_DATA=../shared/data OPENBLAS_NUM_THREADS=1 python benchmarks/eq1_phi_d.py \
-        alum-bronze,black-fabric,red-phenolic,white-paint,gold-metallic-paint3,pink-jasper [--fit 3]
+        alum-bronze,black-fabric,red-phenolic,white-paint,gold-metallic-paint3,pink-jasper \
+        [--fit 3 [--projection]] [--relight]
 
 The bivariate model treats each pixel as seeing the phi_d average of the BRDF. A real
 material varies with phi_d, so a table fitted to the pixels absorbs that variation
@@ -22,6 +23,12 @@ Rusinkiewicz angles, and solves for the bivariate table as ``recover`` does
   (relative weights); given the coefficients, the table with the shaped matrix (linear in
   the coefficients: the matrices of the mean shape and of each component, combined).
 
+- ``--projection``: the ``K`` coefficients fitted jointly with the table instead, by variable
+  projection (:func:`projected`).
+- ``--relight``: each table also relit under ``ablation.py``'s three novel probes (same view),
+  the median over probes of its relative RMS error against the 3D truth divided by the exact
+  reduction's (the bivariate model renders the table, whatever shape fitted it).
+
 Row level as in ``eq1_alpha.py``: 3000 normals of a 128 px sphere, clean input under
 grace_latlong_1k rendered from the 3D table by the MIS quadrature (65536 directions,
 independent seed), K = 8000, 32 x 32, leave-one-out priors. Prints Eq. 1 over observed
@@ -36,10 +43,10 @@ import sys
 import drjit as dr
 import mitsuba as mi
 import numpy as np
-from ablation import full_table, merl_position, render_rows
+from ablation import NOVEL, full_table, material_rows, merl_position, rel, render_rows
 from eq1_alpha import row_setup
 
-from mi_bivariate import lighting, nbrdf, solve, training_set
+from mi_bivariate import lighting, nbrdf, probes, solve, training_set
 from mi_bivariate.bivariate import BivariateBRDF, phi_d_average
 from mi_bivariate.lighting import _row_packets, hemisphere_offsets
 from mi_bivariate.lighting.kernels import _splat
@@ -146,13 +153,16 @@ def projected(obs, grace, pixels, plain, prior, basis, mean, components, scale, 
                              "xatol": 0.05, "fatol": 1e-6})
     result = solve_stages(solve.prepare_data_term(matrix(best.x), pixels), prior, None, basis)
     ratio = errors(BivariateBRDF(result.table), observed_nodes=observed)["eq1_observed"] / floor
-    return ratio, best.x * scale[:k], best.nfev, objective(np.zeros(k)), best.fun
+    return ratio, best.x * scale[:k], best.nfev, objective(np.zeros(k)), best.fun, result.table
 
 
 def main() -> None:
     projection = "--projection" in sys.argv
     if projection:
         sys.argv.remove("--projection")
+    relight = "--relight" in sys.argv
+    if relight:
+        sys.argv.remove("--relight")
     fit = 0
     if "--fit" in sys.argv:
         at = sys.argv.index("--fit")
@@ -177,6 +187,9 @@ def main() -> None:
         return np.repeat(s.reshape(grid)[..., None], 3, -1).astype(np.float32)
 
     mean_matrix = shaped_lighting_matrix(obs, grace, as_rgb(1.0 + mean))
+    if relight:  # the tables relit under ablation.py's novel probes, against the 3D truth, per exact floor
+        novel = {p: probes.shared_probe(p) for p in NOVEL}
+        L_novel = {p: lighting.lighting_matrix(obs, novel[p], n_dirs=32768, seed=5) for p in NOVEL}
     for name in sys.argv[1].split(","):
         errors = BRDFErrors(nbrdf.nbrdf_merl(name))
         floor = errors(BivariateBRDF(tables[name]), observed_nodes=observed)["eq1"]
@@ -189,16 +202,25 @@ def main() -> None:
             coeffs = components[:k] @ centred
             matrices[f"pca{k}"] = shaped_lighting_matrix(obs, grace, as_rgb(1.0 + mean + coeffs @ components[:k]))
         cells = [f"{name}: exact floor {floor:.3f}"]
+        if relight:
+            _, _, _, truth, floors, _ = material_rows(name, obs, grace, novel, L_novel, tables)
+
+            def relit_ratio(table):
+                f = np.asarray(table, np.float64).reshape(-1, 3)
+                return float(np.median([rel(np.einsum("mnc,nc->mc", L_novel[p], f), truth[p]) / fl
+                                        for p, fl in zip(NOVEL, floors)]))
         for tag, L in matrices.items():
-            e = errors(BivariateBRDF(solve_stages(solve.prepare_data_term(L, pixels), prior, None, basis).table),
-                       observed_nodes=observed)
-            cells.append(f"{tag} {e['eq1_observed'] / floor:.2f}x (all cells {e['eq1'] / floor:.2f}x)")
+            table = solve_stages(solve.prepare_data_term(L, pixels), prior, None, basis).table
+            e = errors(BivariateBRDF(table), observed_nodes=observed)
+            cells.append(f"{tag} {e['eq1_observed'] / floor:.2f}x (all cells {e['eq1'] / floor:.2f}x"
+                         + (f", relight / floor {relit_ratio(table):.3f})" if relight else ")"))
         if fit and projection:
-            ratio, coeffs, nfev, phi0, phi = projected(obs, grace, pixels, plain, prior, basis, mean, components,
+            ratio, coeffs, nfev, phi0, phi, table = projected(obs, grace, pixels, plain, prior, basis, mean, components,
                                                        sv / np.sqrt(len(train)), fit, as_rgb, errors, observed,
                                                        floor)
             cells.append(f"fit{fit} by projection {ratio:.2f}x ({nfev} solves, Phi {phi0:.4g} -> {phi:.4g}; "
-                         f"coefficients {np.round(coeffs, 2).tolist()}, own "
+                         + (f"relight / floor {relit_ratio(table):.3f}; " if relight else "")
+                         + f"coefficients {np.round(coeffs, 2).tolist()}, own "
                          f"{np.round(components[:fit] @ centred, 2).tolist()})")
         elif fit:
             rounds, coeffs = fitted(obs, grace, pixels, plain, prior, basis, mean, components, fit, as_rgb,
