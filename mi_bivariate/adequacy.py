@@ -68,8 +68,12 @@ from mi_bivariate.common import LUMINANCE_WEIGHTS, luminance
 from mi_bivariate.coordinates import ST_REGIONS
 from mi_bivariate.errors import InputError, InputWarning
 from mi_bivariate.lighting import gram as gram_mod
-from mi_bivariate.threads import blas_threads, with_blas_threads
+from mi_bivariate.threads import blas_threads, thread_map, with_blas_threads
 
+#: Parts of the rows whose luminance Gram matrices are summed on worker threads (fixed, so the sums
+#: are the same on any machine), and the memory their matrices may take together (bytes).
+PARTS = 2
+PARTS_MEMORY = 1 << 28
 #: Singular values below this fraction of the largest do not count towards the rank.
 RANK_TOL = 1e-3
 #: Flag L when its numerical rank is below this fraction of the st nodes.
@@ -112,7 +116,7 @@ def _luminance_statistics(L: np.ndarray, block_rows: int = gram_mod.BLOCK_ROWS) 
     Blocks of ``block_rows`` rows; each block's luminance, Gram update and shares are
     computed on the columns it touches only (:mod:`mi_bivariate.lighting.gram`: a block
     of neighbouring pixels reaches a small part of the st domain; 15% of the dense
-    Gram's flops on the benchmark sphere).
+    Gram's flops on the benchmark sphere), in :data:`PARTS` parts of the rows on worker threads.
 
     Args:
         L: ``(M, N, 3)`` (RGB, luminance by :data:`LUMINANCE_WEIGHTS`) or ``(M, N)``.
@@ -125,19 +129,30 @@ def _luminance_statistics(L: np.ndarray, block_rows: int = gram_mod.BLOCK_ROWS) 
     if not (L.ndim == 2 or (L.ndim == 3 and L.shape[2] == 3)):
         raise InputError(None, f"lighting matrix must be (M, N, 3) or (M, N), got shape {L.shape}")
     m, n = L.shape[:2]
-    gram = np.zeros((n, n))
-    shares = np.zeros(n)
     step = max(1, int(block_rows))
-    for start in range(0, m, step):
-        block = L[start:start + step]
-        cols = gram_mod.touched_columns(block)
-        if not len(cols):
-            continue
-        lum = _luminance(np.take(block, cols, axis=1))
-        totals = lum.sum(axis=1)
-        inv = np.divide(1.0, totals, out=np.zeros_like(totals), where=totals > 0)
-        shares[cols] += inv @ lum
-        gram_mod.add_block_gram(gram, cols, lum)
+
+    def part(starts: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+        gram, shares = np.zeros((n, n)), np.zeros(n)
+        for start in starts:
+            block = L[start:start + step]
+            cols = gram_mod.touched_columns(block)
+            if not len(cols):
+                continue
+            lum = _luminance(np.take(block, cols, axis=1))
+            totals = lum.sum(axis=1)
+            inv = np.divide(1.0, totals, out=np.zeros_like(totals), where=totals > 0)
+            shares[cols] += inv @ lum
+            gram_mod.add_block_gram(gram, cols, lum)
+        return gram, shares
+
+    # The rows in a fixed number of parts (the sums do not depend on the threads), each part's Gram
+    # matrix on a worker thread (its products release the GIL), added in order.
+    parts = PARTS if n * n * 8 * PARTS <= PARTS_MEMORY else 1
+    results = thread_map(part, np.array_split(np.arange(0, m, step), parts))
+    gram, shares = results[0]
+    for g, sh in results[1:]:
+        gram += g
+        shares += sh
     return gram, shares
 
 
