@@ -286,8 +286,9 @@ def solve_stages(data: solve_mod.DataTerm, prior: prior_mod.Prior, alpha: Any = 
         return first
     mean, std = basis.predict(first.table, first.resolution, first.posterior_std)
     pairs = tuple(p for p in first.pairs if p in first.winner)
+    # recover() saves every confidence map of the second stage: computed on the channels' threads.
     second = solve_mod.solve_prepared(data, prior, first.alphas, mean=mean, mean_std=std, pairs=pairs,
-                                      winner=first.winner)
+                                      winner=first.winner, maps=("resolution", "posterior_std", "measured"))
     second.alpha_rule, second.pair_rule, second.alpha_choice = first.alpha_rule, first.pair_rule, first.alpha_choice
     return second
 

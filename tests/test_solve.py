@@ -346,15 +346,21 @@ def test_discrepancy_search_brackets_the_target_with_few_evaluations(monkeypatch
 
         def fake(data, entries, channels, alpha, extra, values=values, calls=calls):
             calls.append(alpha)
-            return float(np.interp(np.log10(alpha), logs, values))
+            return float(np.interp(np.log10(alpha), logs, values)), [("factor at", alpha)] * 3
 
         monkeypatch.setattr(disc, "_data_term", fake)
         choice = disc.discrepancy_alpha(None, np.eye(4), target=target)
         below = values <= target
+        # The factors at the chosen alpha come with it when it was the last alpha evaluated.
+        assert (choice.factors is not None) == (choice.alpha == calls[-1])
+        if choice.factors is not None:
+            assert choice.factors == [("factor at", choice.alpha)] * 3
         if below[-1]:
             assert choice.alpha == pytest.approx(DEFAULT_ALPHA) and choice.bounded == "high" and len(calls) == 1
+            assert choice.factors is not None
         elif not below[0]:
             assert choice.alpha == pytest.approx(1e-4) and choice.bounded == "low" and len(calls) == 2
+            assert choice.factors is not None
         else:
             j = int(np.nonzero(~below)[0][0])
             assert DISCREPANCY_ALPHAS[j - 1] * (1 - 1e-12) <= choice.alpha <= DISCREPANCY_ALPHAS[j] * (1 + 1e-12)
@@ -448,6 +454,8 @@ def test_solve_is_the_same_on_any_number_of_worker_threads(monkeypatch, alpha, p
         second = solve(L, I, _prior(), first.alphas, n_t=N_T, n_s=N_S, mean=mean, mean_std=0.5 * mean,
                        pairs=tuple(sorted(set(first.winner))), winner=first.winner)
         results[threads] = (first, second)
+        # The discrepancy principle's factors were handed to the solve, not kept with the result.
+        assert first.alpha_choice is None or first.alpha_choice.factors is None
     for threads in ("2", "3"):
         for one, many in zip(results["1"], results[threads]):
             assert one.winner == many.winner

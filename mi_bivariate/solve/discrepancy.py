@@ -36,7 +36,7 @@ neighbouring pixels.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Dict, Optional, Sequence, Tuple
 
 import numpy as np
@@ -63,26 +63,33 @@ class DiscrepancyChoice:
     #: "" (target met inside the range), "low" (rho > target at the smallest alpha) or "high"
     #: (rho <= target at the largest)
     bounded: str
+    #: the channels' Cholesky factors of ``gram + lambda P [+ extra]`` at :attr:`alpha` when it was
+    #: the last alpha evaluated (the constrained solve with the same prior starts from them and
+    #: drops them), else ``None``
+    factors: Optional[list] = field(default=None, repr=False, compare=False)
 
 
 def _data_term(data: DataTerm, entries: tuple, channels: Sequence[int], alpha: float,
-               extra: Optional[Tuple[np.ndarray, np.ndarray]]) -> float:
+               extra: Optional[Tuple[np.ndarray, np.ndarray]]) -> Tuple[float, list]:
     """The mean over ``channels`` of the unconstrained solution's data term at ``alpha``
-    (``entries``: the penalty's, :func:`~mi_bivariate.solve.common.sparse_entries`); the
-    channels on worker threads (:func:`~mi_bivariate.threads.thread_map`)."""
+    (``entries``: the penalty's, :func:`~mi_bivariate.solve.common.sparse_entries`), and each
+    channel's Cholesky factor of its system; the channels on worker threads
+    (:func:`~mi_bivariate.threads.thread_map`)."""
     n = data.n_nodes
 
-    def channel(k: int) -> float:
+    def channel(k: int) -> Tuple[float, tuple]:
         g, b = data.gram[k], data.rhs[k]
         x = add_entries(g.copy(), entries, penalty_weight(alpha, n, data.level[k]))
         rhs = b
         if extra is not None:
             x[np.diag_indices(n)] += extra[0][:, k]
             rhs = b + extra[1][:, k]
-        f = cho_solve(cho_factor(x, overwrite=True), rhs)
-        return max(data.yy[k] - 2.0 * f @ b + f @ g @ f, 0.0)
+        factor = cho_factor(x, overwrite=True)
+        f = cho_solve(factor, rhs)
+        return max(data.yy[k] - 2.0 * f @ b + f @ g @ f, 0.0), factor
 
-    return float(sum(thread_map(channel, channels)) / len(channels))
+    results = thread_map(channel, channels)
+    return float(sum(r[0] for r in results) / len(channels)), [r[1] for r in results]
 
 
 def discrepancy_alpha(data: DataTerm, penalty: np.ndarray, channels: Sequence[int] = (0, 1, 2),
@@ -109,16 +116,19 @@ def discrepancy_alpha(data: DataTerm, penalty: np.ndarray, channels: Sequence[in
     """
     grid = np.asarray(alphas, np.float64)
     seen: Dict[float, float] = {}  # alpha -> rho
+    last: Dict[float, list] = {}   # the last alpha evaluated -> its factors (one alpha's at a time)
     entries = sparse_entries(penalty) if entries is None else entries
 
     def rho(alpha: float) -> float:
         if alpha not in seen:
-            seen[alpha] = _data_term(data, entries, channels, alpha, extra)
+            last.clear()
+            seen[alpha], last[alpha] = _data_term(data, entries, channels, alpha, extra)
         return seen[alpha]
 
     def choice(alpha: float, bounded: str) -> DiscrepancyChoice:
         evaluated = np.array(sorted(seen))
-        return DiscrepancyChoice(float(alpha), evaluated, np.array([seen[v] for v in evaluated]), bounded)
+        return DiscrepancyChoice(float(alpha), evaluated, np.array([seen[v] for v in evaluated]), bounded,
+                                 last.get(float(alpha)) if list(channels) == [0, 1, 2] else None)
 
     # From the start, the far end of the grid in the direction of the target first (often the
     # answer), then bisection of the grid between the last point below the target and the first above.

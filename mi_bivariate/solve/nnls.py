@@ -157,7 +157,8 @@ def _nnls_fallback(G: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def nnls_gram(G: np.ndarray, b: np.ndarray, passive: Optional[np.ndarray] = None, *,
-              max_iter: Optional[int] = None, tol: float = KKT_TOLERANCE) -> NNLSResult:
+              max_iter: Optional[int] = None, tol: float = KKT_TOLERANCE,
+              factor: Optional[Tuple[np.ndarray, bool]] = None) -> NNLSResult:
     """Non-negative least squares from its normal equations by block principal pivoting.
 
     Solves ``min 1/2 x^T G x - b^T x`` s.t. ``x >= 0`` (i.e. ``min ||A x - a||^2`` with
@@ -174,6 +175,8 @@ def nnls_gram(G: np.ndarray, b: np.ndarray, passive: Optional[np.ndarray] = None
             default empty (x = 0).
         max_iter: passive-set solves before giving up on pivoting (default 100).
         tol: accepted :func:`kkt_violation`; beyond it the fallback solver runs.
+        factor: the Cholesky factor of ``G`` (``(c, lower)``) if the caller has it: the start with
+            every variable passive uses it instead of factorising ``G`` again.
     """
     n = b.size
     passive = np.zeros(n, dtype=bool) if passive is None else np.array(passive, dtype=bool)
@@ -191,7 +194,8 @@ def nnls_gram(G: np.ndarray, b: np.ndarray, passive: Optional[np.ndarray] = None
     b_scale = np.abs(b).max(initial=0.0)
 
     schur = None
-    whole = cholesky(G) if np.all(passive) else None  # the factor of all of G, kept for the result
+    # The factor of all of G (the caller's, or computed), kept for the result.
+    whole = (factor if factor is not None else cholesky(G)) if np.all(passive) else None
     if whole is not None:
         schur = _SchurSolver(b, whole)
         x, y = schur(passive)

@@ -27,6 +27,7 @@ from mi_bivariate.solve.common import (
     penalty_weight,
     quadratic_form,
 )
+from mi_bivariate.solve.confidence import NAMES as CONFIDENCE_NAMES
 from mi_bivariate.solve.confidence import Confidence
 from mi_bivariate.solve.data_term import DataTerm, prepare_data_term
 from mi_bivariate.solve.discrepancy import DiscrepancyChoice, discrepancy_alpha
@@ -164,10 +165,13 @@ class _ChannelSolve:
 
 
 def _solve_channel(data: DataTerm, penalty: np.ndarray, alpha: Optional[float], k: int, start: np.ndarray,
-                   precision: Optional[np.ndarray], mean: Optional[np.ndarray], entries: tuple) -> _ChannelSolve:
+                   precision: Optional[np.ndarray], mean: Optional[np.ndarray], entries: tuple,
+                   factor: Optional[tuple] = None) -> _ChannelSolve:
     """Alpha (GCV unless given) and the constrained solve of one variant and channel.
 
     ``entries``: ``penalty``'s non-zero entries (:func:`~mi_bivariate.solve.common.sparse_entries`).
+    ``factor``: the Cholesky factor of this very system if the caller has it (the discrepancy
+    principle's at the alpha it chose, built by the same operations).
 
     ``precision``, ``mean`` ``(N, 3)``: the diagonal Gaussian table prior (the basis prior),
     added as ``(1/M) sum_n ((f_n - mean_n) / mean_std_n)^2`` with ``precision = 1 / (M std^2)``.
@@ -184,7 +188,7 @@ def _solve_channel(data: DataTerm, penalty: np.ndarray, alpha: Optional[float], 
     if extra is not None:
         x[np.diag_indices(n)] += extra[0]
         rhs = rhs + extra[1]
-    res = nnls_gram(x, rhs, passive=np.full(n, start[k] > 0) if mean is None else mean[:, k] > 0)
+    res = nnls_gram(x, rhs, passive=np.full(n, start[k] > 0) if mean is None else mean[:, k] > 0, factor=factor)
     f = res.x
     data_term = max(float(data.yy[k] - 2 * f @ data.rhs[k] + f @ data.gram[k] @ f), 0.0)
     objective = data_term + lam * quadratic_form(entries, f)
@@ -221,7 +225,8 @@ def solve_prepared(data: DataTerm, prior: Optional[Prior] = None, alpha=None, *,
                    n_t: Optional[int] = None, n_s: Optional[int] = None,
                    pairs: Sequence[str] = PAIRS, mean: Optional[np.ndarray] = None,
                    mean_std: Optional[np.ndarray] = None, pair_rule: str = DEFAULT_PAIR_RULE,
-                   winner: Optional[Sequence[str]] = None) -> SolveResult:
+                   winner: Optional[Sequence[str]] = None,
+                   maps: Sequence[str] = ("resolution",)) -> SolveResult:
     """:func:`solve` on a prepared :class:`~mi_bivariate.solve.data_term.DataTerm`.
 
     Channel by channel: every prior variant is solved, the kept one is chosen, and its
@@ -229,12 +234,19 @@ def solve_prepared(data: DataTerm, prior: Optional[Prior] = None, alpha=None, *,
     factorisation; the other variants' confidence, and ``measured``, on first access.
     The channels run on worker threads (:func:`~mi_bivariate.threads.thread_map`); each holds
     its own systems and factors (2 per variant) until its kept variant's posterior is computed.
+
+    ``maps``: the kept variant's confidence maps (:data:`~mi_bivariate.solve.confidence.NAMES`)
+    computed on the channels' threads; ``resolution`` brings ``posterior_std`` with it, and any
+    other is computed on first access.
     """
     t0 = time.perf_counter()
     prior = default_prior() if prior is None else prior
     rule = check_alpha(alpha)
     if pair_rule not in PAIR_RULES:
         raise InputError("pair_rule", f"unknown rule {pair_rule!r}", f"use one of {', '.join(PAIR_RULES)}")
+    if any(name not in CONFIDENCE_NAMES for name in maps):
+        raise InputError("maps", f"unknown confidence maps {tuple(maps)}", f"use some of {', '.join(CONFIDENCE_NAMES)}")
+    maps = ("resolution",) + tuple(name for name in maps if name != "resolution")  # the posterior first
     if winner is not None:
         winner = tuple(winner)
         if len(winner) != 3 or any(w not in pairs for w in winner):
@@ -284,7 +296,12 @@ def solve_prepared(data: DataTerm, prior: Optional[Prior] = None, alpha=None, *,
         times: Dict[str, float] = {}
         for p in pairs:
             t1 = time.perf_counter()
-            solves[p] = _solve_channel(data, penalties[p], alpha_k, k, data.level, precision, mean, entries[p])
+            factor = None
+            if p == pairs[0] and choice is not None and choice.factors is not None:
+                # The discrepancy principle factorised this system at the alpha it chose: taken, not copied.
+                factor, choice.factors[k] = choice.factors[k], None
+            solves[p] = _solve_channel(data, penalties[p], alpha_k, k, data.level, precision, mean, entries[p],
+                                       factor)
             times[p] = time.perf_counter() - t1
         logev = {p: None if not use_evidence else channel_log_evidence(
             solves[p].objective, data.n_rows, solves[p].log_det(), solves[p].lam, penalties[p], pdets.get(p),
@@ -305,7 +322,8 @@ def solve_prepared(data: DataTerm, prior: Optional[Prior] = None, alpha=None, *,
             confidences[p].set_weight(k, c.lam)
             if p == w:  # while its factorisation is at hand
                 confidences[p].keep_factor(k, c.result.factor, c.system)
-                confidences[p].channel("resolution", k)
+                for name in maps:
+                    confidences[p].channel(name, k)
             c.result.factor, c.system = None, None
         return solves, times, logev, w
 
@@ -318,6 +336,8 @@ def solve_prepared(data: DataTerm, prior: Optional[Prior] = None, alpha=None, *,
             seconds[p] += times[p]
             evidence[p].append(logev[p])
         kept.append(w)
+    if choice is not None:
+        choice.factors = None  # used (or not needed): never kept with the result
     solutions = {p: _pair_solution(data, regularisers[p], channels[p], confidences[p], (n_t, n_s), seconds[p],
                                    evidence[p]) for p in pairs}
     kept_rule = ("given" if winner is not None else "gcv" if isinstance(rule, str) and rule == "gcv"
