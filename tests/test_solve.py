@@ -454,8 +454,17 @@ def test_solve_is_the_same_on_any_number_of_worker_threads(monkeypatch, alpha, p
         second = solve(L, I, _prior(), first.alphas, n_t=N_T, n_s=N_S, mean=mean, mean_std=0.5 * mean,
                        pairs=tuple(sorted(set(first.winner))), winner=first.winner)
         results[threads] = (first, second)
-        # The discrepancy principle's factors were handed to the solve, not kept with the result.
+        # The discrepancy principle's factors were handed to the solve, not kept with the result, and
+        # the solve from them is the solve at that alpha given.
         assert first.alpha_choice is None or first.alpha_choice.factors is None
+        if alpha is None:
+            given = solve(L, I, _prior(), first.alphas, n_t=N_T, n_s=N_S, pair_rule=pair_rule)
+            np.testing.assert_array_equal(given.table, first.table)
+            np.testing.assert_array_equal(given.resolution, first.resolution)
+            for pair in first.pairs:  # the float32 table alone would not see a fallback's answer
+                assert given.pairs[pair].method == first.pairs[pair].method
+                np.testing.assert_array_equal(given.pairs[pair].iterations, first.pairs[pair].iterations)
+                np.testing.assert_array_equal(given.pairs[pair].log_evidence, first.pairs[pair].log_evidence)
     for threads in ("2", "3"):
         for one, many in zip(results["1"], results[threads]):
             assert one.winner == many.winner
