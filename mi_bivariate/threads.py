@@ -122,8 +122,8 @@ def solve_thread_limit(n: Optional[int]) -> Iterator[None]:
 
 def solve_threads() -> int:
     """Worker threads for the solve's independent channels: ``MI_BIVARIATE_SOLVE_THREADS`` (a positive
-    integer), else :data:`MAX_SOLVE_THREADS` (one per channel) where the cores leave room for at least
-    two workers beside the BLAS threads in force (inside :func:`blas_threads`: one each), else one.
+    integer), else, with single-threaded BLAS (inside :func:`blas_threads`), :data:`MAX_SOLVE_THREADS`
+    (one per channel) on two or more cores; with more BLAS threads, the cores shared out among them.
     Measured on the 2-core VM: two workers with two BLAS threads each ran the solve 3x slower than
     with one each; three workers with one each beat two by 10%. Inside :func:`solve_thread_limit`,
     at most its limit."""
@@ -135,9 +135,12 @@ def solve_threads() -> int:
     if n <= 0:
         cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
         blas = [lib.num_threads for lib in _controller().select(user_api="blas").lib_controllers]
-        # One worker per channel where two cores are free for them: three CPU-bound workers on two
-        # cores balance the three channels (0.38 s against 0.42 s with two workers, 0.67 s with one).
-        n = MAX_SOLVE_THREADS if cores // max(blas + [1]) >= 2 else 1
+        # With single-threaded BLAS, one worker per channel where two cores are free: three CPU-bound
+        # workers on two cores balance the three channels (0.38 s against 0.42 s with two workers, 0.67 s
+        # with one). With more BLAS threads each, never more threads than cores.
+        per_worker = max(blas + [1])
+        n = MAX_SOLVE_THREADS if per_worker == 1 and cores >= 2 else max(1, min(MAX_SOLVE_THREADS,
+                                                                               cores // per_worker))
     return n if _solve_limit is None else min(n, _solve_limit)
 
 

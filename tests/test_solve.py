@@ -349,7 +349,9 @@ def test_discrepancy_search_brackets_the_target_with_few_evaluations(monkeypatch
             return float(np.interp(np.log10(alpha), logs, values)), [("factor at", alpha)] * 3
 
         monkeypatch.setattr(disc, "_data_term", fake)
-        choice = disc.discrepancy_alpha(None, np.eye(4), target=target)
+        assert disc.discrepancy_alpha(None, np.eye(4), target=target).factors is None  # not asked for
+        calls.clear()
+        choice = disc.discrepancy_alpha(None, np.eye(4), target=target, keep_factors=True)
         below = values <= target
         # The factors at the chosen alpha come with it when it was the last alpha evaluated.
         assert (choice.factors is not None) == (choice.alpha == calls[-1])
@@ -475,3 +477,50 @@ def test_solve_is_the_same_on_any_number_of_worker_threads(monkeypatch, alpha, p
             for pair in one.pairs:
                 for name in ("log_evidence", "gcv", "relative_residual", "data_term"):
                     np.testing.assert_array_equal(getattr(one.pairs[pair], name), getattr(many.pairs[pair], name))
+
+
+def test_stage_one_starts_from_the_discrepancy_factors_of_its_own_systems(monkeypatch):
+    """With a table prior (its diagonal in every system) and alpha at the bottom of its range, the
+    discrepancy principle's factors are taken by the first variant's solves (three factorisations
+    fewer) and give what the solve at that alpha given gives: tables, NNLS method and iterations,
+    and the evidence (whose log det comes from the factor)."""
+    from functools import partial
+
+    import mi_bivariate.solve.nnls as nnls_mod
+    import mi_bivariate.solve.regularised as reg
+
+    monkeypatch.setenv("MI_BIVARIATE_SOLVE_THREADS", "3")
+    monkeypatch.setattr(reg, "discrepancy_alpha", partial(reg.discrepancy_alpha, target=1e-12))  # "low"
+    L = _lighting(200, 41)
+    truth = _truth(42)
+    I = np.einsum("mnk,nk->mk", L.astype(np.float64), truth.reshape(N, 3))
+    I *= 1 + 0.02 * np.random.default_rng(43).standard_normal(I.shape)
+    mean = np.clip(truth, 0.05, None) * np.array([0.8, 1.0, 1.3])  # differs per channel
+    calls = []
+    real = nnls_mod.cholesky
+    monkeypatch.setattr(nnls_mod, "cholesky", lambda x: calls.append(1) or real(x))
+    first = solve(L, I, _prior(), n_t=N_T, n_s=N_S, mean=mean, mean_std=0.5 * mean)
+    from_discrepancy = len(calls)
+    calls.clear()
+    given = solve(L, I, _prior(), first.alphas, n_t=N_T, n_s=N_S, mean=mean, mean_std=0.5 * mean)
+    assert first.alpha_choice.bounded == "low" and first.alpha_choice.factors is None
+    assert from_discrepancy == len(calls) - 3
+    np.testing.assert_array_equal(given.table, first.table)
+    for pair in first.pairs:
+        assert given.pairs[pair].method == first.pairs[pair].method
+        np.testing.assert_array_equal(given.pairs[pair].iterations, first.pairs[pair].iterations)
+        np.testing.assert_array_equal(given.pairs[pair].log_evidence, first.pairs[pair].log_evidence)
+
+
+def test_nnls_ignores_a_factor_of_another_system():
+    a_mat, rhs = _problem("well", 5)
+    g, b = a_mat.T @ a_mat, a_mat.T @ rhs
+    other = g + np.diag(np.full(g.shape[0], 1e-3 * np.mean(np.diag(g))))
+    from mi_bivariate.solve.lapack import cho_factor
+
+    plain = nnls_gram(g, b, np.ones(b.size, bool))
+    right = nnls_gram(g, b, np.ones(b.size, bool), factor=cho_factor(g))
+    wrong = nnls_gram(g, b, np.ones(b.size, bool), factor=cho_factor(other))
+    for result in (right, wrong):
+        np.testing.assert_array_equal(result.x, plain.x)
+        assert result.log_det == plain.log_det and result.iterations == plain.iterations

@@ -75,7 +75,8 @@ def test_thread_map_keeps_order_and_raises(monkeypatch):
 
 
 def test_solve_threads_share_the_cores_with_blas(monkeypatch):
-    """Workers times BLAS threads never exceed the cores (oversubscription made the solve 3x slower)."""
+    """With multi-threaded BLAS, workers times BLAS threads never exceed the cores (oversubscription
+    made the solve 3x slower); with one BLAS thread each, one worker per channel on 2+ cores."""
     import os
 
     monkeypatch.delenv(threads.SOLVE_ENV_VAR, raising=False)
@@ -84,6 +85,12 @@ def test_solve_threads_share_the_cores_with_blas(monkeypatch):
         assert threads.solve_threads() == (threads.MAX_SOLVE_THREADS if cores >= 2 else 1)
     with threads.blas_threads(cores):
         assert threads.solve_threads() == 1
+    for fake_cores, blas, expected in ((4, 2, 2), (3, 2, 1), (6, 3, 2), (8, 4, 2), (1, 1, 1), (2, 1, 3), (16, 2, 3)):
+        monkeypatch.setattr(os, "sched_getaffinity", lambda pid, n=fake_cores: set(range(n)))
+        with threads.blas_threads(blas):
+            got = threads.solve_threads()
+        assert got == expected, (fake_cores, blas, got)
+        assert blas == 1 or got * blas <= fake_cores
 
 
 def test_solve_thread_limit_caps_and_restores(monkeypatch):

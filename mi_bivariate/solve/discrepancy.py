@@ -95,7 +95,7 @@ def _data_term(data: DataTerm, entries: tuple, channels: Sequence[int], alpha: f
 def discrepancy_alpha(data: DataTerm, penalty: np.ndarray, channels: Sequence[int] = (0, 1, 2),
                       target: float = DISCREPANCY_TARGET, alphas: Sequence[float] = DISCREPANCY_ALPHAS,
                       start: float = DEFAULT_ALPHA, extra: Optional[Tuple[np.ndarray, np.ndarray]] = None,
-                      entries: Optional[tuple] = None) -> DiscrepancyChoice:
+                      entries: Optional[tuple] = None, keep_factors: bool = False) -> DiscrepancyChoice:
     """The largest alpha with data term ``rho(alpha) <= target``, ``rho`` the mean over ``channels``.
 
     One alpha serves every channel: chosen per channel, a material's colour channels were
@@ -113,6 +113,8 @@ def discrepancy_alpha(data: DataTerm, penalty: np.ndarray, channels: Sequence[in
             basis prior) in the system and the right-hand side.
         entries: ``penalty``'s non-zero entries if the caller has them
             (:func:`~mi_bivariate.solve.common.sparse_entries`).
+        keep_factors: return the channels' factors at the chosen alpha when it was the last one
+            evaluated (:attr:`DiscrepancyChoice.factors`; 3 ``N x N`` arrays for the caller to take).
     """
     grid = np.asarray(alphas, np.float64)
     seen: Dict[float, float] = {}  # alpha -> rho
@@ -127,8 +129,9 @@ def discrepancy_alpha(data: DataTerm, penalty: np.ndarray, channels: Sequence[in
 
     def choice(alpha: float, bounded: str) -> DiscrepancyChoice:
         evaluated = np.array(sorted(seen))
+        keep = keep_factors and list(channels) == [0, 1, 2]
         return DiscrepancyChoice(float(alpha), evaluated, np.array([seen[v] for v in evaluated]), bounded,
-                                 last.get(float(alpha)) if list(channels) == [0, 1, 2] else None)
+                                 last.get(float(alpha)) if keep else None)
 
     # From the start, the far end of the grid in the direction of the target first (often the
     # answer), then bisection of the grid between the last point below the target and the first above.

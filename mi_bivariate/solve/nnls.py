@@ -135,6 +135,17 @@ class _SchurSolver:
         return x, y
 
 
+def _factors(factor: Tuple[np.ndarray, bool], G: np.ndarray) -> bool:
+    """Whether ``factor`` (``(c, lower)``) is, to round-off, a Cholesky factor of ``G``: ``diag(L L^T)
+    = diag(G)`` (``O(N^2)``; a factor of another system fails it)."""
+    c, lower = factor
+    if c.shape != G.shape:
+        return False
+    tri = np.tril(c) if lower else np.triu(c)
+    norms = np.einsum("ij,ij->i", tri, tri) if lower else np.einsum("ij,ij->j", tri, tri)
+    return bool(np.allclose(norms, np.diag(G), rtol=1e-10, atol=0.0))
+
+
 def _full_log_det(factor: Optional[Tuple[np.ndarray, bool]], passive: np.ndarray) -> Optional[float]:
     """``log det G`` from the passive-set factor when the passive set is every variable."""
     if factor is None or not bool(np.all(passive)):
@@ -194,7 +205,10 @@ def nnls_gram(G: np.ndarray, b: np.ndarray, passive: Optional[np.ndarray] = None
     b_scale = np.abs(b).max(initial=0.0)
 
     schur = None
-    # The factor of all of G (the caller's, or computed), kept for the result.
+    # The factor of all of G (the caller's, checked to be G's: its rows' norms are G's diagonal; or
+    # computed), kept for the result.
+    if factor is not None and not _factors(factor, G):
+        factor = None
     whole = (factor if factor is not None else cholesky(G)) if np.all(passive) else None
     if whole is not None:
         schur = _SchurSolver(b, whole)

@@ -244,6 +244,7 @@ def solve_prepared(data: DataTerm, prior: Optional[Prior] = None, alpha=None, *,
     rule = check_alpha(alpha)
     if pair_rule not in PAIR_RULES:
         raise InputError("pair_rule", f"unknown rule {pair_rule!r}", f"use one of {', '.join(PAIR_RULES)}")
+    maps = (maps,) if isinstance(maps, str) else tuple(maps)
     if any(name not in CONFIDENCE_NAMES for name in maps):
         raise InputError("maps", f"unknown confidence maps {tuple(maps)}", f"use some of {', '.join(CONFIDENCE_NAMES)}")
     maps = ("resolution",) + tuple(name for name in maps if name != "resolution")  # the posterior first
@@ -279,10 +280,16 @@ def solve_prepared(data: DataTerm, prior: Optional[Prior] = None, alpha=None, *,
         isinstance(rule, str) and rule == "gcv")
     pdets = ({p: penalty_log_pdet(penalties[p], int(np.abs(entries[p][0] - entries[p][1]).max(initial=0)))
               for p in pairs} if use_evidence and precision is None else {})
+    # The channels are independent; their LAPACK runs without the GIL (mi_bivariate.solve.lapack).
+    # Each holds ~5 N x N float64 arrays at its peak: as many workers as SOLVE_MEMORY allows.
+    workers = min(solve_threads(), max(1, SOLVE_MEMORY // (5 * 8 * data.n_nodes**2)))
     choice: Optional[DiscrepancyChoice] = None
     if isinstance(rule, str) and rule == "discrepancy":  # one alpha for every channel, on the first pair's curve
         extra = None if precision is None else (precision, precision * mean)
-        choice = discrepancy_alpha(data, penalties[pairs[0]], extra=extra, entries=entries[pairs[0]])
+        # Its factors are handed to stage 1 only when every channel takes its own at once: with fewer
+        # workers the waiting channels' factors would add to the peak memory.
+        choice = discrepancy_alpha(data, penalties[pairs[0]], extra=extra, entries=entries[pairs[0]],
+                                   keep_factors=workers >= 3)
     def channel(k: int) -> Tuple[Dict[str, _ChannelSolve], Dict[str, float], Dict[str, Optional[float]], str]:
         """Every pair's solve of channel ``k``, their evidence, the kept pair, and its posterior while its
         factorisation is at hand (the other pairs' systems and factors are dropped)."""
@@ -327,9 +334,6 @@ def solve_prepared(data: DataTerm, prior: Optional[Prior] = None, alpha=None, *,
             c.result.factor, c.system = None, None
         return solves, times, logev, w
 
-    # The channels are independent; their LAPACK runs without the GIL (mi_bivariate.solve.lapack).
-    # Each holds ~5 N x N float64 arrays at its peak: as many workers as SOLVE_MEMORY allows.
-    workers = min(solve_threads(), max(1, SOLVE_MEMORY // (5 * 8 * data.n_nodes**2)))
     for solves, times, logev, w in thread_map(channel, range(3), workers):
         for p in pairs:
             channels[p].append(solves[p])
