@@ -61,7 +61,7 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import mitsuba as mi
 import numpy as np
-from scipy.linalg import blas, eigvalsh
+from scipy.linalg import eigvalsh
 
 from mi_bivariate.capture import hemisphere_lattice
 from mi_bivariate.common import LUMINANCE_WEIGHTS, luminance
@@ -103,15 +103,10 @@ def _luminance(L: np.ndarray) -> np.ndarray:
     raise InputError(None, f"lighting matrix must be (M, N, 3) or (M, N), got shape {L.shape}")
 
 
-def _gram(lum: np.ndarray) -> np.ndarray:
-    """``lum.T @ lum``, ``(N, N) float64``, upper triangle only (BLAS ``dsyrk``: half the flops)."""
-    return blas.dsyrk(1.0, np.asarray(lum, np.float64).T, trans=0, lower=0)
-
-
 def _luminance_statistics(L: np.ndarray, block_rows: int = gram_mod.BLOCK_ROWS) -> Tuple[np.ndarray, np.ndarray]:
     """The luminance Gram matrix and the observation shares of L in one pass over its rows.
 
-    Equal to ``(_gram(lum), sum_m lum[m] / sum(lum[m]))`` of ``lum = _luminance(L)`` up to
+    Equal to ``(lum.T @ lum, sum_m lum[m] / sum(lum[m]))`` of ``lum = _luminance(L)`` up to
     the order of float64 summation (~1e-16 relative), without the ``(M, N) float64`` copy.
     Blocks of ``block_rows`` rows; each block's luminance, Gram update and shares are
     computed on the columns it touches only (:mod:`mi_bivariate.lighting.gram`: a block

@@ -119,18 +119,12 @@ def cholesky(x: np.ndarray) -> Optional[Tuple[np.ndarray, bool]]:
     return factor
 
 
-def _potri(factor: Tuple[np.ndarray, bool], overwrite: bool = False) -> np.ndarray:
-    """LAPACK ``potri`` of ``cho_factor(X)``: ``X^-1`` in the factor's triangle, leftovers elsewhere
-    (``overwrite``: in the factor's array, which is then lost)."""
-    return gil_free.potri(factor, overwrite=overwrite)
-
-
 def inverse_from_cholesky(factor: Tuple[np.ndarray, bool], full: bool = True) -> np.ndarray:
     """``X^-1`` from ``cho_factor(X)``, by LAPACK ``potri``.
 
     ``full=False`` returns only the factor's triangle of the inverse (zeros elsewhere).
     """
-    inv = _potri(factor)
+    inv = gil_free.potri(factor)
     # potri fills one triangle; the other holds the factor's leftovers.
     tri = np.tril(inv) if factor[1] else np.triu(inv)
     if not full:
@@ -183,7 +177,7 @@ def inverse_diagonals(x: np.ndarray, gram: np.ndarray,
     inv = None
     if factor is not None:
         try:
-            inv = _potri(factor, overwrite=own or overwrite_factor)
+            inv = gil_free.potri(factor, overwrite=own or overwrite_factor)
         except np.linalg.LinAlgError:
             inv = None
     if inv is None:
@@ -210,6 +204,12 @@ def spd_inverse(x: np.ndarray, factor: Optional[Tuple[np.ndarray, bool]] = None)
         return inverse_from_cholesky(factor)
     except np.linalg.LinAlgError:
         return np.linalg.pinv(x)
+
+
+def entries_bandwidth(entries: Tuple[np.ndarray, np.ndarray, np.ndarray]) -> int:
+    """:func:`bandwidth` of a matrix given by its entries (:func:`sparse_entries`), in ``O(nnz)``."""
+    rows, cols, _ = entries
+    return int(np.abs(rows - cols).max(initial=0))
 
 
 def bandwidth(x: np.ndarray) -> int:

@@ -29,6 +29,7 @@ import numpy as np
 from mi_bivariate.solve.common import (
     add_entries,
     banded_inverse_diagonal,
+    entries_bandwidth,
     inverse_diagonals,
     sparse_entries,
     spd_inverse,
@@ -68,15 +69,12 @@ class Confidence:
 
     def keep_factor(self, k: int, factor: Optional[Tuple[np.ndarray, bool]], x: np.ndarray) -> None:
         """Remember ``X_k`` and ``cho_factor(X_k)`` (from the NNLS solve; ``None`` if it had no factor
-        of the whole ``X_k``) until :meth:`release_factors`."""
+        of the whole ``X_k``) until its posterior is computed (which consumes it)."""
         self._factors[k] = (factor, x)
 
     def set_weight(self, k: int, lam: float) -> None:
         """The penalty's weight of channel ``k`` (known once its alpha is chosen)."""
         self._lam[k] = lam
-
-    def release_factors(self) -> None:
-        self._factors = [None, None, None]
 
     def _system(self, k: int) -> np.ndarray:
         x = add_entries(self._data.gram[k].copy(), self._entries, self._lam[k])
@@ -110,8 +108,7 @@ class Confidence:
         ridge = (self._precision[:, k] if self._precision is not None
                  else np.full(n, PRIOR_RIDGE * float(np.mean(np.diag(self._data.gram[k])))))
         prior_x[np.diag_indices(n)] += ridge
-        rows, cols, _ = self._entries
-        band = int(np.abs(rows - cols).max(initial=0))
+        band = entries_bandwidth(self._entries)
         diag = banded_inverse_diagonal(prior_x, band) if 4 * band < n else None
         if diag is None:
             diag = np.diag(spd_inverse(prior_x))

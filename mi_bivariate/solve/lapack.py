@@ -172,7 +172,3 @@ def potri(factor: Tuple[np.ndarray, bool], overwrite: bool = False) -> np.ndarra
     return inv
 
 
-def log_det(factor: Tuple[np.ndarray, bool]) -> float:
-    """``log det a`` from ``factor = cho_factor(a)``."""
-    return 2.0 * float(np.sum(np.log(np.diag(factor[0]))))
-

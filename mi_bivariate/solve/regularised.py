@@ -23,6 +23,7 @@ from mi_bivariate.prior import PAIRS, Prior, default_prior
 from mi_bivariate.solve.common import (
     add_entries,
     check_alpha,
+    entries_bandwidth,
     grid_shape,
     penalty_weight,
     quadratic_form,
@@ -278,8 +279,8 @@ def solve_prepared(data: DataTerm, prior: Optional[Prior] = None, alpha=None, *,
     evidence: Dict[str, List[Optional[float]]] = {p: [] for p in pairs}
     use_evidence = winner is None and pair_rule == "evidence" and len(pairs) > 1 and not (
         isinstance(rule, str) and rule == "gcv")
-    pdets = ({p: penalty_log_pdet(penalties[p], int(np.abs(entries[p][0] - entries[p][1]).max(initial=0)))
-              for p in pairs} if use_evidence and precision is None else {})
+    pdets = ({p: penalty_log_pdet(penalties[p], entries_bandwidth(entries[p])) for p in pairs}
+             if use_evidence and precision is None else {})
     # The channels are independent; their LAPACK runs without the GIL (mi_bivariate.solve.lapack).
     # Each holds ~5 N x N float64 arrays at its peak: as many workers as SOLVE_MEMORY allows.
     workers = min(solve_threads(), max(1, SOLVE_MEMORY // (5 * 8 * data.n_nodes**2)))
