@@ -23,8 +23,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mi_bivariate.lighting.directions import _GOLDEN_U32, _TWO_PI
-from mi_bivariate.lighting.kernels import _PACKETS, _lattice_lanes, _splat
+from mi_bivariate.lighting.directions import _TWO_PI
+from mi_bivariate.lighting.kernels import _PACKETS, _fibonacci_point, _lattice_lanes, _splat
 
 #: Light-direction sampling of :func:`lighting_matrix`: the fraction of the K
 #: directions drawn by each strategy of the ``"mis"`` mixture (see :func:`_mis_chunk`).
@@ -74,10 +74,8 @@ def environment_pool(probe: Any, n_points: int, seed: int = 0, stream: int = 0) 
     idx = dr.arange(mi.UInt32, int(n_points) * ENV_SHIFTS)
     k = idx // ENV_SHIFTS
     q = idx - k * ENV_SHIFTS
-    u1 = mi.Float(k) * (1.0 / n_points) + (0.5 / n_points) + dr.gather(mi.Float, shifts, 2 * q)
-    u1 = u1 - dr.floor(u1)
-    u2 = mi.Float(k * _GOLDEN_U32) * 2.0**-32 + dr.gather(mi.Float, shifts, 2 * q + 1)
-    u2 = u2 - dr.floor(u2)
+    u1, u2 = _fibonacci_point(k, n_points, dr.gather(mi.Float, shifts, 2 * q),
+                              dr.gather(mi.Float, shifts, 2 * q + 1))
     ds, weight = probe.emitter().sample_direction(dr.zeros(mi.Interaction3f), mi.Point2f(u1, u2))
     radiance = weight * ds.pdf
     pool = dr.zeros(mi.Float, int(n_points) * ENV_SHIFTS * _POOL_FLOATS)
