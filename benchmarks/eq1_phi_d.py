@@ -101,11 +101,10 @@ def _subsampled(shape: np.ndarray) -> np.ndarray:
 FIT_ROUNDS = 4
 
 
-def fitted(obs, grace, pixels, plain, prior, basis, mean, components, k, as_rgb, errors, observed, floor):
-    """Eq. 1 ratios over the rounds of fitting ``k`` shape coefficients with the table."""
-    base = shaped_lighting_matrix(obs, grace, as_rgb(1.0 + mean))
-    # A component is a signed direction in shape space: not clipped like a shape.
-    parts = [shaped_lighting_matrix(obs, grace, as_rgb(components[j], clip=False)) for j in range(k)]
+def fitted(pixels, plain, prior, basis, base, parts, errors, observed, floor):
+    """Eq. 1 ratios over the rounds of fitting the coefficients of ``parts`` (the matrices of the
+    components, :func:`component_matrices`) with the table; ``base``: the mean shape's matrix."""
+    k = len(parts)
     weight = 1.0 / (0.01 * pixels + 1e-3 * pixels.mean(0))
     result = solve_stages(solve.prepare_data_term(plain, pixels), prior, None, basis)
     out = []
@@ -120,8 +119,14 @@ def fitted(obs, grace, pixels, plain, prior, basis, mean, components, k, as_rgb,
     return out, coeffs
 
 
-def projected(obs, grace, pixels, plain, prior, basis, mean, components, scale, k, as_rgb, errors, observed,
-              floor, max_evaluations: int = 80):
+def component_matrices(obs, grace, components, k, as_rgb):
+    """The lighting matrices of the first ``k`` principal components of the shapes (a component is
+    a signed direction in shape space: not clipped like a shape)."""
+    return [shaped_lighting_matrix(obs, grace, as_rgb(components[j], clip=False)) for j in range(k)]
+
+
+def projected(pixels, plain, prior, basis, base, parts, scale, errors, observed, floor,
+              max_evaluations: int = 80):
     """Eq. 1 ratio with ``k`` shape coefficients fitted jointly with the table, by variable projection.
 
     The table is eliminated: for coefficients ``c`` the smoothness-prior solve at the plain
@@ -133,8 +138,7 @@ def projected(obs, grace, pixels, plain, prior, basis, mean, components, scale, 
     """
     from scipy.optimize import minimize
 
-    base = shaped_lighting_matrix(obs, grace, as_rgb(1.0 + mean))
-    parts = [shaped_lighting_matrix(obs, grace, as_rgb(components[j], clip=False)) for j in range(k)]
+    k = len(parts)
     sigma = solve.row_sigma(pixels)
     first = solve_stages(solve.prepare_data_term(plain, pixels, sigma), prior, None, basis)
     pairs = tuple(sorted(set(first.winner)))
@@ -187,6 +191,7 @@ def main() -> None:
         return np.repeat(s.reshape(grid)[..., None], 3, -1).astype(np.float32)
 
     mean_matrix = shaped_lighting_matrix(obs, grace, as_rgb(1.0 + mean))
+    parts = component_matrices(obs, grace, components, fit, as_rgb) if fit else []
     if relight:  # the tables relit under ablation.py's novel probes, against the 3D truth, per exact floor
         novel = {p: probes.shared_probe(p) for p in NOVEL}
         L_novel = {p: lighting.lighting_matrix(obs, novel[p], n_dirs=32768, seed=5) for p in NOVEL}
@@ -215,16 +220,14 @@ def main() -> None:
             cells.append(f"{tag} {e['eq1_observed'] / floor:.2f}x (all cells {e['eq1'] / floor:.2f}x"
                          + (f", relight / floor {relit_ratio(table):.3f})" if relight else ")"))
         if fit and projection:
-            ratio, coeffs, nfev, phi0, phi, table = projected(obs, grace, pixels, plain, prior, basis, mean, components,
-                                                       sv / np.sqrt(len(train)), fit, as_rgb, errors, observed,
-                                                       floor)
+            ratio, coeffs, nfev, phi0, phi, table = projected(pixels, plain, prior, basis, mean_matrix, parts,
+                                                              sv / np.sqrt(len(train)), errors, observed, floor)
             cells.append(f"fit{fit} by projection {ratio:.2f}x ({nfev} solves, Phi {phi0:.4g} -> {phi:.4g}; "
                          + (f"relight / floor {relit_ratio(table):.3f}; " if relight else "")
                          + f"coefficients {np.round(coeffs, 2).tolist()}, own "
                          f"{np.round(components[:fit] @ centred, 2).tolist()})")
         elif fit:
-            rounds, coeffs = fitted(obs, grace, pixels, plain, prior, basis, mean, components, fit, as_rgb,
-                                    errors, observed, floor)
+            rounds, coeffs = fitted(pixels, plain, prior, basis, mean_matrix, parts, errors, observed, floor)
             cells.append(f"fit{fit} by round " + " ".join(f"{r:.2f}x" for r in rounds) +
                          f" (coefficients {np.round(coeffs, 2).tolist()}, own "
                          f"{np.round(components[:fit] @ centred, 2).tolist()})")
