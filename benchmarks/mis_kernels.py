@@ -9,6 +9,10 @@ radiance looked up, then with the bilinear splat, each evaluated on its own. Twi
 environment sampled per row (``_mis_chunk`` without a pool) and from the pool
 (``lighting.mis.environment_pool``, as ``lighting_matrix`` runs it). Each figure is the median
 of 5 repeats after a warm-up (kernel compilation excluded).
+
+Since the environment-density proxy (``docs/recovery.md``, Round 7) the lanes look the radiance
+up themselves (the balance heuristic's environment density is read from it), so "lanes" includes
+the radiance and "+ radiance" adds only the product with the weight.
 """
 
 from __future__ import annotations
