@@ -100,8 +100,8 @@ def render_rows(obs, probe, table: np.ndarray, n_dirs: int = 65536, seed: int = 
         target = dr.zeros(mi.Float, m * 4)
         for strategy in counts:
             lanes = lighting._mis_lanes(data, m, probe, strategy, counts)
-            row, lx, ly, lz, d, weight, sin_v, cos_v, above, _ = lanes
-            rad = probe.eval_dr(d) * weight
+            row, lx, ly, lz, d, weight, sin_v, cos_v, above, radiance = lanes
+            rad = radiance * weight
             pos = merl_position(lx, ly, lz, sin_v, cos_v)
             f = tex.eval(pos)
             dr.scatter_reduce(dr.ReduceOp.Add, target, mi.Vector4f(f[0] * rad[0], f[1] * rad[1], f[2] * rad[2], 0),

@@ -84,8 +84,8 @@ def shaped_lighting_matrix(obs, probe, shape: np.ndarray, n_dirs: int = 8000, se
         target = dr.zeros(mi.Float, m * n_nodes * 4)
         for strategy in counts:
             lanes = lighting._mis_lanes(data, m, probe, strategy, counts)
-            row, lx, ly, lz, d, weight, sin_v, cos_v, above, _ = lanes
-            radiance = probe.eval_dr(d, above) * weight
+            row, lx, ly, lz, d, weight, sin_v, cos_v, above, radiance = lanes
+            radiance = radiance * weight
             pos = merl_position(lx, ly, lz, sin_v, cos_v)
             s = tex.eval(pos)
             value = mi.Color3f(radiance[0] * s[0], radiance[1] * s[1], radiance[2] * s[2])

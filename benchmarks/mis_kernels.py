@@ -65,7 +65,7 @@ def main() -> None:
             if part == "lanes":
                 dr.eval(weight, d)
             else:
-                radiance = probe.eval_dr(d, above) if pooled is None else dr.select(above, pooled, 0.0)
+                radiance = dr.select(above, pooled, 0.0)
                 if part == "radiance":
                     dr.eval(radiance * weight)
                 else:

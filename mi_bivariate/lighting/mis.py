@@ -15,8 +15,10 @@ per row, becomes a gather.
 
 The heuristic's environment density is read from the radiance each lane looks up anyway,
 ``luminance(E) / Z`` (:func:`environment_scale`), not from a second map lookup
-(``pdf_direction``): any positive stand-in keeps the weights adding up to one, and this one is
-the true density up to the interpolation of ``sin theta`` between the map's rows
+(``pdf_direction``): any stand-in that is positive only where the environment can be sampled
+keeps the weights adding up to one (0 next to a pole row far brighter than the next,
+:func:`polar_bands`), and
+this one is the true density up to the interpolation of ``sin theta`` between the map's rows
 (``benchmarks/env_pool.py --compare density``: the same error to 0.01% on six materials). It
 took the uniform and peak lanes' kernel from 0.58 to 0.38 s on the bench input.
 """
@@ -25,7 +27,7 @@ from __future__ import annotations
 
 import math
 import weakref
-from typing import Any, Optional
+from typing import Any, Optional, Tuple
 
 import drjit as dr
 import mitsuba as mi
@@ -47,6 +49,11 @@ SAMPLINGS = ("mis", "uniform")
 ENV_SHIFTS = 64
 #: Mitsuba's luminance weights (``mi.luminance``), as its ``envmap`` weighs its sampling.
 _MI_LUMINANCE = (0.212671, 0.715160, 0.072169)
+#: A pole row brighter than this many times the next row's texels gets a band without the proxy
+#: (:func:`polar_bands`).
+POLE_RATIO = 4.0
+#: :func:`polar_bands` per probe.
+_POLES: "weakref.WeakKeyDictionary[Any, tuple]" = weakref.WeakKeyDictionary()
 #: :func:`environment_scale` per probe.
 _ENV_SCALE: "weakref.WeakKeyDictionary[Any, float]" = weakref.WeakKeyDictionary()
 #: Floats per pooled direction: ``(d.x, d.y, d.z, pdf, radiance r, g, b, 0)``.
@@ -136,12 +143,44 @@ def environment_scale(probe: Any) -> float:
     return z
 
 
+def polar_bands(probe: Any) -> Tuple[Tuple[float, float, float], float, float]:
+    """``(axis, cos_top, cos_bottom)``: where the environment proxy is set to 0.
+
+    ``axis`` is the world direction of the map's first row (its local ``+y``, theta = 0). Mitsuba
+    weighs the rows by ``sin theta``, 0 on the two pole rows, so between a pole row and the next
+    (``theta < pi / (H - 1)``) its sampling density follows the next row alone while the radiance
+    also has the pole row's: a pole row far brighter (more than :data:`POLE_RATIO` times) than the
+    next row's texels below it would make ``q / p_env`` large there, and unbounded where those are
+    black (``q > 0 = p_env``, a bias). For such a pole the band (widened by 1%) gets ``q = 0``:
+    ``d . axis > cos_top`` (``-d . axis > cos_bottom``); otherwise its cosine is 2 (no band).
+    Cached per probe."""
+    cached = _POLES.get(probe)
+    if cached is None:
+        lum = np.asarray(probe.data, dtype=np.float64) @ _MI_LUMINANCE
+
+        def needs_band(pole: np.ndarray, nxt: np.ndarray) -> bool:
+            # each pair of neighbouring columns (wrapping): the bilinear footprint of a direction
+            hi = np.maximum(pole, np.roll(pole, -1))
+            lo = np.minimum(nxt, np.roll(nxt, -1))
+            return bool(np.any(hi > POLE_RATIO * lo))
+
+        axis = np.asarray(probe.to_world, dtype=np.float64)[:3, 1]
+        axis = axis / np.linalg.norm(axis)
+        height = lum.shape[0]
+        band = float(math.cos(min(0.5 * math.pi, 1.01 * math.pi / max(1, height - 1))))
+        top = band if height < 3 or needs_band(lum[0], lum[1]) else 2.0
+        bottom = band if height < 3 or needs_band(lum[-1], lum[-2]) else 2.0
+        cached = ((float(axis[0]), float(axis[1]), float(axis[2])), top, bottom)
+        _POLES[probe] = cached
+    return cached
+
+
 def _inverse(z: float) -> float:
     """``1 / z``, and 0 where ``z`` is not a positive finite number (a black probe: no proxy density)."""
     return 1.0 / z if math.isfinite(z) and z > 0.0 else 0.0
 
 
-def _mis_lanes(data: Any, m: int, probe: Any, strategy: str, counts: dict, seed_shift: Any = None,
+def _mis_lanes(data: Any, m: int, probe: Any, strategy: str, counts: dict,
                pool: Any = None, env_density: str = "proxy"):
     """The lanes of one sampling strategy for ``m`` rows:
     ``(row, lx, ly, lz, d, weight, sin_v, cos_v, above, radiance)``.
@@ -157,8 +196,13 @@ def _mis_lanes(data: Any, m: int, probe: Any, strategy: str, counts: dict, seed_
     ``p_j`` each strategy's true density, ``q_j = p_j`` for the uniform and peak ones and
     ``Q = sum_j K_j q_j``, a lane of strategy ``i`` weighs ``cos theta (q_i / p_i) / Q``:
     the weights ``K_j q_j / Q`` add up to one wherever the integrand is non-zero, so the
-    estimator stays unbiased; ``q`` is the environment's density up to the interpolation of
-    ``sin theta`` between the map's rows (``benchmarks/env_pool.py`` measures the variance).
+    estimator stays unbiased provided ``q > 0`` only where the environment can be sampled
+    (``p_env > 0``). Mitsuba weighs the map's rows by ``sin theta``, which is 0 on the two pole
+    rows: between a pole row and the next, ``p_env`` can be 0 where ``E`` is not. Where a pole
+    row is far brighter than the next (:func:`polar_bands`; no shared probe), ``q = 0`` in that
+    band: the uniform and peak lanes carry those directions alone.
+    Elsewhere ``q`` is the environment's density up to the interpolation of ``sin theta``
+    between the rows (``benchmarks/env_pool.py`` measures the variance).
 
     ``env_density="exact"`` uses Mitsuba's ``pdf_direction`` instead (``q = p_env``: the
     plain balance heuristic; the estimator before the proxy, kept to compare against).
@@ -209,6 +253,10 @@ def _mis_lanes(data: Any, m: int, probe: Any, strategy: str, counts: dict, seed_
         if env_density == "proxy":
             proxy = (_MI_LUMINANCE[0] * radiance[0] + _MI_LUMINANCE[1] * radiance[1]
                      + _MI_LUMINANCE[2] * radiance[2]) * _inverse(environment_scale(probe))
+            axis, cos_top, cos_bottom = polar_bands(probe)
+            if cos_top <= 1.0 or cos_bottom <= 1.0:  # a pole row far brighter than the next (rare)
+                along = d.x * axis[0] + d.y * axis[1] + d.z * axis[2]
+                proxy = dr.select((along > cos_top) | (-along > cos_bottom), 0.0, proxy)
         elif env_density == "exact":
             if own is not None:
                 proxy = own
