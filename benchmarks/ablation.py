@@ -24,7 +24,9 @@ import time
 
 import numpy as np
 
-from mi_bivariate import capture, lighting, merl as merl_mod, nbrdf, probes, solve, training_set
+from mi_bivariate import capture, lighting
+from mi_bivariate import merl as merl_mod
+from mi_bivariate import nbrdf, probes, solve, training_set
 from mi_bivariate.geometry import SphereGeometry
 from mi_bivariate.lighting import _row_packets, hemisphere_offsets
 from mi_bivariate.recover import solve_stages

@@ -63,9 +63,8 @@ def errors(truth, estimate, truth_bsdf, novel, resolution: int, spp: int) -> Dic
 def bench_visibility(quick: bool) -> List[str]:
     import trimesh
 
-    from mi_bivariate import lighting, solve
+    from mi_bivariate import capture, lighting, solve
     from mi_bivariate.bivariate import BivariateBRDF
-    from mi_bivariate import capture
     from mi_bivariate.geometry import Camera
     from mi_bivariate.mesh import MeshShape, MeshView, render_mesh
     from mi_bivariate.metrics import brdf_errors, image_relative_rmse

@@ -27,7 +27,6 @@ from typing import Callable, Dict, List, Tuple
 
 import numpy as np
 
-
 ROUGHPLASTIC = {"type": "roughplastic", "distribution": "ggx", "alpha": 0.05,
                 "diffuse_reflectance": {"type": "rgb", "value": 0.5}}
 

@@ -16,6 +16,7 @@ import argparse
 import math
 import statistics
 import time
+
 from _machine import machine as _machine  # benchmarks/_machine.py
 
 BASE = {"M": 2000, "K": 8000, "nodes": 256}

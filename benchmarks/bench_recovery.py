@@ -85,10 +85,10 @@ def main() -> None:
     args = parser.parse_args()
 
     import drjit as dr
+    from reference_lighting import lighting_matrix_reference
 
     from mi_bivariate import lighting
     from mi_bivariate.variants import ensure_variant
-    from reference_lighting import lighting_matrix_reference
 
     variant = ensure_variant()
     probe, probe_name = load_probe()

@@ -178,8 +178,9 @@ def pipeline_import_time(repeats: int = 3) -> float:
 
 def lighting_peer(obs, probe, rows: int) -> Dict[str, float]:
     """Both samplings (median of 3 each) and the numpy reference (uniform quadrature) on ``rows`` rows."""
-    from mi_bivariate import lighting
     from reference_lighting import lighting_matrix_reference
+
+    from mi_bivariate import lighting
 
     out: Dict[str, object] = {}
     for sampling in ("uniform", "mis"):
@@ -197,10 +198,10 @@ def lighting_peer(obs, probe, rows: int) -> Dict[str, float]:
 def solve_peer(L: np.ndarray, values: np.ndarray) -> Dict[str, float]:
     """The normal equations and the two-stage solve of ``recover`` (median of 3), solver v2 on the same
     problem (one run), and scipy's NNLS on one channel and variant of it."""
+    import reference_solve as v2  # tests/reference_solve.py: the solver before issue 10
     from scipy.linalg import cho_factor, solve_triangular
     from scipy.optimize import nnls
 
-    import reference_solve as v2  # tests/reference_solve.py: the solver before issue 10
     from mi_bivariate import solve as solve_mod
     from mi_bivariate.basis_prior import default_basis_prior
     from mi_bivariate.prior import default_prior

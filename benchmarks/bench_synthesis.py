@@ -22,6 +22,7 @@ import json
 import sys
 from pathlib import Path
 from typing import List, Sequence
+
 from _machine import machine as _machine  # benchmarks/_machine.py
 
 ROOT = Path(__file__).resolve().parents[1]

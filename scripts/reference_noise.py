@@ -10,7 +10,8 @@ import sys
 
 import drjit as dr
 
-from mi_bivariate import evaluate as ev, nbrdf, reference
+from mi_bivariate import evaluate as ev
+from mi_bivariate import nbrdf, reference
 from mi_bivariate.variants import ensure_variant
 
 MATERIALS = ("blue-acrylic", "gold-metallic-paint3", "specular-white-phenolic", "tungsten-carbide",

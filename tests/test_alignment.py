@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from test_mesh import sky_probe
 
 from mi_bivariate import alignment
 from mi_bivariate.analytic import BivariateLobe
 from mi_bivariate.bivariate import BivariateBRDF
 from mi_bivariate.errors import InputError
 from mi_bivariate.render import render_sphere
-from test_mesh import sky_probe
 
 
 @pytest.fixture(scope="module")

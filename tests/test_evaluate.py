@@ -12,9 +12,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mi_bivariate import analytic, baselines, metrics
-from mi_bivariate.bivariate import BivariateBRDF
+from mi_bivariate import analytic, baselines
 from mi_bivariate import evaluate as ev
+from mi_bivariate import metrics
+from mi_bivariate.bivariate import BivariateBRDF
 from mi_bivariate.cli import main
 
 # Tiny protocol for the mechanics tests (one input probe, no baselines): seconds per material.

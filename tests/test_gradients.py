@@ -28,8 +28,8 @@ import pytest
 
 from mi_bivariate.analytic import BivariateLobe
 from mi_bivariate.bivariate import BivariateBRDF
-from mi_bivariate.probes import Probe
 from mi_bivariate.geometry import SphereCamera
+from mi_bivariate.probes import Probe
 from mi_bivariate.render import bsdf_dict, sphere_scene_dict
 from mi_bivariate.variants import ensure_variant
 

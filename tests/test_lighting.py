@@ -14,6 +14,7 @@ import os
 
 import numpy as np
 import pytest
+from reference_lighting import lighting_matrix_reference
 
 from mi_bivariate import capture, lighting
 from mi_bivariate.capture import Observations
@@ -21,7 +22,6 @@ from mi_bivariate.coordinates import grid_nodes, half_diff_from_dirs, half_diff_
 from mi_bivariate.errors import InputError
 from mi_bivariate.geometry import SphereGeometry
 from mi_bivariate.probes import Probe
-from reference_lighting import lighting_matrix_reference
 
 
 def synthetic_probe(height: int = 64, width: int = 128) -> Probe:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
+from test_mesh import sky_probe
 
 from mi_bivariate import mesh
 from mi_bivariate.analytic import BivariateLobe
@@ -14,7 +15,6 @@ from mi_bivariate.geometry import Camera, PerspectiveSphereGeometry
 from mi_bivariate.probes import rotation_matrix
 from mi_bivariate.recover import recover
 from mi_bivariate.render import bsdf_dict, render_sphere
-from test_mesh import sky_probe
 
 TRUTH = BivariateBRDF.reduce(BivariateLobe(diffuse=(0.3, 0.2, 0.1), specular=2.0, width=0.25))
 # noise=None: these tests judge poses, probes and visibility by how well one table fits every

@@ -13,9 +13,9 @@ from mitsuba.chi2 import BSDFAdapter, ChiSquareTest, SphericalDomain
 from mi_bivariate.analytic import BivariateLobe, CookTorranceGGX, Lambertian, to_merl
 from mi_bivariate.bivariate import BivariateBRDF
 from mi_bivariate.coordinates import half_diff_from_dirs, st_from_dirs
+from mi_bivariate.geometry import SphereCamera
 from mi_bivariate.merl import MERLBRDF
 from mi_bivariate.probes import Probe
-from mi_bivariate.geometry import SphereCamera
 from mi_bivariate.render import bsdf_dict, sphere_scene_dict
 from mi_bivariate.variants import ensure_variant
 

@@ -6,9 +6,8 @@ import numpy as np
 import pytest
 
 from mi_bivariate.errors import InputError
+from mi_bivariate.prior import PAIRS, Prior, default_prior, difference_operators, plot_prior, specular_ratio
 from mi_bivariate.training_set import learn_prior_from_merl
-from mi_bivariate.prior import (PAIRS, Prior, default_prior, difference_operators,
-                                plot_prior, specular_ratio)
 
 
 def test_difference_operators_on_ramps():

@@ -4,7 +4,6 @@ angular-map / mirror-ball conversion, quadrature, shared probes."""
 from __future__ import annotations
 
 import math
-import os
 from pathlib import Path
 
 import numpy as np
@@ -19,7 +18,6 @@ from mi_bivariate.probes import (
     rotation_matrix,
     shared_probe,
 )
-
 
 # ------------------------------------------------------------ independent truths
 

@@ -12,8 +12,8 @@ import pytest
 from mi_bivariate.analytic import Lambertian
 from mi_bivariate.bivariate import BivariateBRDF
 from mi_bivariate.errors import InputError
-from mi_bivariate.probes import Probe
 from mi_bivariate.geometry import SphereCamera
+from mi_bivariate.probes import Probe
 from mi_bivariate.render import bsdf_dict, render_sphere, write_exr, write_png_preview
 
 SCENES = Path(__file__).resolve().parents[1] / "scenes"

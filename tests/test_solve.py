@@ -8,9 +8,21 @@ import scipy.optimize as sopt
 
 from mi_bivariate.errors import InputError
 from mi_bivariate.prior import Prior
-from mi_bivariate.solve import (DEFAULT_ALPHA, DISCREPANCY_ALPHAS, DISCREPANCY_TARGET, KKT_TOLERANCE, alpha_sweep,
-                                check_alpha, discrepancy_alpha, gcv_curve, kkt_violation, nnls_gram, prepare_data_term,
-                                row_sigma, solve)
+from mi_bivariate.solve import (
+    DEFAULT_ALPHA,
+    DISCREPANCY_ALPHAS,
+    DISCREPANCY_TARGET,
+    KKT_TOLERANCE,
+    alpha_sweep,
+    check_alpha,
+    discrepancy_alpha,
+    gcv_curve,
+    kkt_violation,
+    nnls_gram,
+    prepare_data_term,
+    row_sigma,
+    solve,
+)
 
 N_T, N_S = 6, 5
 N = N_T * N_S

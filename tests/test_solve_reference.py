@@ -13,9 +13,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import reference_solve as old
 import scipy.linalg as sla
 
-import reference_solve as old
 from mi_bivariate import solve
 from mi_bivariate.prior import default_prior
 from mi_bivariate.solve.common import banded_inverse_diagonal, bandwidth, inverse_from_cholesky
