@@ -9,6 +9,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 
@@ -207,7 +208,7 @@ def test_pooled_environment_directions_are_the_per_row_estimator():
 
 def test_environment_density_proxy_keeps_the_estimator_unbiased(monkeypatch):
     """The balance heuristic reads the environment's density as luminance(E) / Z (lighting.mis,
-    environment_scale) rather than Mitsuba's pdf_direction. Any positive proxy keeps the estimator
+    EnvironmentProxy) rather than Mitsuba's pdf_direction. Any positive proxy keeps the estimator
     unbiased: with Z off by 20x either way every estimate still matches a 10^6-direction uniform
     reference (a lane that dropped its own q / p factor would not); with the true Z the noise is that
     of the exact density's heuristic (env_density="exact")."""
@@ -234,17 +235,20 @@ def test_environment_density_proxy_keeps_the_estimator_unbiased(monkeypatch):
 
     import mitsuba as mi
 
-    # The weights only change the variance (any positive proxy is unbiased): they are checked here.
-    assert np.allclose(mis._MI_LUMINANCE, [mi.luminance(mi.Color3f(*map(float, e)))[0] for e in np.eye(3)], atol=1e-6)
-    scale = mis.environment_scale(probe)
-    np.testing.assert_allclose(scale, np.sum((data.astype(float) @ mis._MI_LUMINANCE) * probe.solid_angles()))
+    # The weights only change the variance (any positive proxy is unbiased): Mitsuba's own are checked here.
+    assert np.allclose(mis.LUMINANCE_WEIGHTS, [mi.luminance(mi.Color3f(*map(float, e)))[0] for e in np.eye(3)],
+                       atol=1e-6)
+    env = mis.environment_proxy(probe)
+    scale = env.scale
+    np.testing.assert_allclose(scale, np.sum((data.astype(float) @ mis.LUMINANCE_WEIGHTS) * probe.solid_angles()))
     exact = [rows(s, env_density="exact") for s in (1, 2)]
     proxy = [rows(s) for s in (1, 2)]
     assert rel(proxy[0], proxy[1]) < 1.3 * rel(exact[0], exact[1])
     for estimate in exact + proxy:  # measured: within 0.03% (dropping the lanes' q / p below: 0.3%)
         assert abs(estimate.sum() / reference.sum() - 1) < 0.002
     for factor in (0.05, 20.0):
-        monkeypatch.setattr(mis, "environment_scale", lambda _probe, z=scale * factor: z)
+        off = dataclasses.replace(env, scale=scale * factor)
+        monkeypatch.setattr(mis, "environment_proxy", lambda _probe, off=off: off)
         for seed in (1, 2):  # measured: within 0.05%; without the environment lanes' q / p: 83% off
             assert abs(rows(seed).sum() / reference.sum() - 1) < 0.003, factor
     with pytest.raises(ValueError, match="env_density"):
@@ -254,7 +258,7 @@ def test_environment_density_proxy_keeps_the_estimator_unbiased(monkeypatch):
 def test_environment_density_proxy_is_unbiased_at_the_poles():
     """Mitsuba weighs the map's rows by sin theta, 0 on the pole rows: between a bright pole row and a
     black next row the environment is never sampled although the radiance is not 0. The proxy is 0
-    there (lighting.mis.polar_bands), so the uniform and peak lanes carry it: the estimate matches a
+    there (lighting.mis.EnvironmentProxy), so the uniform and peak lanes carry it: the estimate matches a
     10^6-direction uniform reference, also with the map turned (a proxy positive there: -44%)."""
     from mi_bivariate.lighting import mis
 
@@ -264,28 +268,31 @@ def test_environment_density_proxy_is_unbiased_at_the_poles():
     obs = capture.observations_from_sphere(np.ones((128, 128, 3), np.float32), capture.SphereGeometry(64.0, 64.0, 60.0),
                                            n_normals=150, saturation=2.0)
     for probe in (Probe(data), Probe(data).rotated(euler_deg=(0.0, 0.0, 90.0))):
-        axis, cos_top, cos_bottom = mis.polar_bands(probe)
-        np.testing.assert_allclose(axis, probe.to_world[:3, 1], atol=1e-12)
-        assert cos_top == cos_bottom and math.cos(math.pi / 63) > cos_top > math.cos(1.05 * math.pi / 63)
+        env = mis.environment_proxy(probe)
+        np.testing.assert_allclose(env.axis, probe.to_world[:3, 1], atol=1e-12)
+        assert env.cos_top == env.cos_bottom and math.cos(math.pi / 63) > env.cos_top > math.cos(1.05 * math.pi / 63)
         reference = lighting.lighting_matrix(obs, probe, n_dirs=1_000_000, seed=3, sampling="uniform").sum()
         estimate = lighting.lighting_matrix(obs, probe, n_dirs=16000, seed=1).sum()
         assert abs(estimate / reference - 1) < 0.02, estimate / reference
     # A smooth map (every shared probe) needs no band: the kernel is the plain proxy's.
     smooth = data.copy()
     smooth[1] = smooth[-2] = 60.0
-    assert mis.polar_bands(Probe(smooth))[1:] == (2.0, 2.0)
+    assert not mis.environment_proxy(Probe(smooth)).has_bands
 
 
 def test_polar_bands_of_the_shared_probes(data_dir_optional):
     """The default input probe's pole rows match their neighbours: its lighting matrices use the plain
     proxy everywhere. grace_256's last-but-one row has black texels below a lit pole row: its bottom
-    band gets no proxy (lighting.mis.polar_bands), the case the test above builds."""
+    band gets no proxy (lighting.mis.EnvironmentProxy), the case the test above builds."""
     from mi_bivariate.lighting import mis
     from mi_bivariate.probes import SHARED_PROBES, shared_probe
 
     if data_dir_optional is None:
         pytest.skip("needs the shared probes (MI_BIVARIATE_DATA)")
-    bands = {name: mis.polar_bands(shared_probe(name, data_dir_optional))[1:] for name in SHARED_PROBES}
+    bands = {}
+    for name in SHARED_PROBES:
+        env = mis.environment_proxy(shared_probe(name, data_dir_optional))
+        bands[name] = (env.cos_top, env.cos_bottom)
     assert bands["grace_latlong_1k"] == (2.0, 2.0)
     assert bands["grace_256"][0] == 2.0 and bands["grace_256"][1] < 1.0
     assert sum(b != (2.0, 2.0) for b in bands.values()) == 1, bands

@@ -14,10 +14,9 @@ stratified, unbiased estimator; the environment sampling, 58% of the kernels' ti
 per row, becomes a gather.
 
 The heuristic's environment density is read from the radiance each lane looks up anyway,
-``luminance(E) / Z`` (:func:`environment_scale`), not from a second map lookup
+``luminance(E) / Z`` (:class:`EnvironmentProxy`), not from a second map lookup
 (``pdf_direction``): any stand-in that is positive only where the environment can be sampled
-keeps the weights adding up to one (0 next to a pole row far brighter than the next,
-:func:`polar_bands`), and
+keeps the weights adding up to one (it is 0 next to a pole row far brighter than the next), and
 this one is the true density up to the interpolation of ``sin theta`` between the map's rows
 (``benchmarks/env_pool.py --compare density``: the same error to 0.01% on six materials). It
 took the uniform and peak lanes' kernel from 0.58 to 0.38 s on the bench input.
@@ -27,12 +26,14 @@ from __future__ import annotations
 
 import math
 import weakref
+from dataclasses import dataclass
 from typing import Any, Optional, Tuple
 
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from mi_bivariate.common import LUMINANCE_WEIGHTS, luminance
 from mi_bivariate.lighting.directions import _TWO_PI
 from mi_bivariate.lighting.kernels import _PACKETS, _fibonacci_point, _lattice_lanes, _splat
 
@@ -47,15 +48,11 @@ SAMPLINGS = ("mis", "uniform")
 #: Rows pick one at random (:func:`_pool_slot`), so a given shift serves about 1/64 of the
 #: rows, spread over the sphere (the pick is independent of the normal).
 ENV_SHIFTS = 64
-#: Mitsuba's luminance weights (``mi.luminance``), as its ``envmap`` weighs its sampling.
-_MI_LUMINANCE = (0.212671, 0.715160, 0.072169)
 #: A pole row brighter than this many times the next row's texels gets a band without the proxy
-#: (:func:`polar_bands`).
+#: (:class:`EnvironmentProxy`).
 POLE_RATIO = 4.0
-#: :func:`polar_bands` per probe.
-_POLES: "weakref.WeakKeyDictionary[Any, tuple]" = weakref.WeakKeyDictionary()
-#: :func:`environment_scale` per probe.
-_ENV_SCALE: "weakref.WeakKeyDictionary[Any, float]" = weakref.WeakKeyDictionary()
+#: :func:`environment_proxy` per probe.
+_PROXIES: "weakref.WeakKeyDictionary[Any, EnvironmentProxy]" = weakref.WeakKeyDictionary()
 #: Floats per pooled direction: ``(d.x, d.y, d.z, pdf, radiance r, g, b, 0)``.
 _POOL_FLOATS = 8
 #: The largest pool :func:`~mi_bivariate.lighting.lighting_matrix` builds (bytes, per probe);
@@ -131,32 +128,42 @@ def _peak_pdf(lx: Any, ly: Any, lz: Any, sin_v: Any, cos_v: Any) -> Any:
     return dr.select((t < PEAK_T_MAX) & (sin_h > 0.0) & (v_dot_h > 0.0), pdf, 0.0)
 
 
-def environment_scale(probe: Any) -> float:
-    """``Z = integral of luminance(E) over the sphere`` (sr times radiance): the environment
-    strategy's density is about ``luminance(E(d)) / Z`` (:func:`_mis_lanes`). Cached per probe;
-    0 for a black probe (whose lanes all add 0)."""
-    z = _ENV_SCALE.get(probe)
-    if z is None:
-        lum = np.asarray(probe.data, dtype=np.float64) @ _MI_LUMINANCE
-        z = float(np.sum(lum * probe.solid_angles()))
-        _ENV_SCALE[probe] = z
-    return z
+@dataclass(frozen=True)
+class EnvironmentProxy:
+    """What the balance heuristic needs of a probe to read the environment's density from the
+    radiance (:func:`_mis_lanes`): ``q(d) = luminance(E(d)) / scale``, and 0 in the polar bands.
+
+    ``scale`` is ``Z``, the integral of the luminance over the sphere (sr times radiance; 0 for a
+    black probe, whose lanes all add 0). ``axis`` is the world direction of the map's first row
+    (its local ``+y``, theta = 0). Mitsuba weighs the rows by ``sin theta``, 0 on the two pole
+    rows, so between a pole row and the next (``theta < pi / (H - 1)``) its sampling density
+    follows the next row alone while the radiance also has the pole row's: a pole row far brighter
+    (more than :data:`POLE_RATIO` times) than the next row's texels below it would make
+    ``q / p_env`` large there, and unbounded where those are black (``q > 0 = p_env``, a bias).
+    For such a pole the band (widened by 1%) gets ``q = 0``: ``d . axis > cos_top``
+    (``-d . axis > cos_bottom``); otherwise the cosine is 2 (no band).
+    """
+
+    scale: float
+    axis: Tuple[float, float, float]
+    cos_top: float
+    cos_bottom: float
+
+    @property
+    def inverse_scale(self) -> float:
+        """``1 / scale``, 0 for a black probe (no proxy density)."""
+        return 1.0 / self.scale if math.isfinite(self.scale) and self.scale > 0.0 else 0.0
+
+    @property
+    def has_bands(self) -> bool:
+        return self.cos_top <= 1.0 or self.cos_bottom <= 1.0
 
 
-def polar_bands(probe: Any) -> Tuple[Tuple[float, float, float], float, float]:
-    """``(axis, cos_top, cos_bottom)``: where the environment proxy is set to 0.
-
-    ``axis`` is the world direction of the map's first row (its local ``+y``, theta = 0). Mitsuba
-    weighs the rows by ``sin theta``, 0 on the two pole rows, so between a pole row and the next
-    (``theta < pi / (H - 1)``) its sampling density follows the next row alone while the radiance
-    also has the pole row's: a pole row far brighter (more than :data:`POLE_RATIO` times) than the
-    next row's texels below it would make ``q / p_env`` large there, and unbounded where those are
-    black (``q > 0 = p_env``, a bias). For such a pole the band (widened by 1%) gets ``q = 0``:
-    ``d . axis > cos_top`` (``-d . axis > cos_bottom``); otherwise its cosine is 2 (no band).
-    Cached per probe."""
-    cached = _POLES.get(probe)
+def environment_proxy(probe: Any) -> EnvironmentProxy:
+    """The probe's :class:`EnvironmentProxy` (cached per probe)."""
+    cached = _PROXIES.get(probe)
     if cached is None:
-        lum = np.asarray(probe.data, dtype=np.float64) @ _MI_LUMINANCE
+        lum = luminance(probe.data)
 
         def needs_band(pole: np.ndarray, nxt: np.ndarray) -> bool:
             # each pair of neighbouring columns (wrapping): the bilinear footprint of a direction
@@ -168,16 +175,13 @@ def polar_bands(probe: Any) -> Tuple[Tuple[float, float, float], float, float]:
         axis = axis / np.linalg.norm(axis)
         height = lum.shape[0]
         band = float(math.cos(min(0.5 * math.pi, 1.01 * math.pi / max(1, height - 1))))
-        top = band if height < 3 or needs_band(lum[0], lum[1]) else 2.0
-        bottom = band if height < 3 or needs_band(lum[-1], lum[-2]) else 2.0
-        cached = ((float(axis[0]), float(axis[1]), float(axis[2])), top, bottom)
-        _POLES[probe] = cached
+        cached = EnvironmentProxy(
+            scale=float(np.sum(lum * probe.solid_angles())),
+            axis=(float(axis[0]), float(axis[1]), float(axis[2])),
+            cos_top=band if height < 3 or needs_band(lum[0], lum[1]) else 2.0,
+            cos_bottom=band if height < 3 or needs_band(lum[-1], lum[-2]) else 2.0)
+        _PROXIES[probe] = cached
     return cached
-
-
-def _inverse(z: float) -> float:
-    """``1 / z``, and 0 where ``z`` is not a positive finite number (a black probe: no proxy density)."""
-    return 1.0 / z if math.isfinite(z) and z > 0.0 else 0.0
 
 
 def _mis_lanes(data: Any, m: int, probe: Any, strategy: str, counts: dict,
@@ -191,7 +195,7 @@ def _mis_lanes(data: Any, m: int, probe: Any, strategy: str, counts: dict,
     Fibonacci lattice (per-row Cranley-Patterson shift), so every strategy is stratified.
 
     The heuristic's environment density is the proxy ``q(d) = luminance(E(d)) / Z``
-    (:func:`environment_scale`), read from the radiance each lane looks up anyway, instead of
+    (:class:`EnvironmentProxy`), read from the radiance each lane looks up anyway, instead of
     Mitsuba's ``pdf_direction`` (a second map lookup per uniform and peak lane). With
     ``p_j`` each strategy's true density, ``q_j = p_j`` for the uniform and peak ones and
     ``Q = sum_j K_j q_j``, a lane of strategy ``i`` weighs ``cos theta (q_i / p_i) / Q``:
@@ -199,8 +203,8 @@ def _mis_lanes(data: Any, m: int, probe: Any, strategy: str, counts: dict,
     estimator stays unbiased provided ``q > 0`` only where the environment can be sampled
     (``p_env > 0``). Mitsuba weighs the map's rows by ``sin theta``, which is 0 on the two pole
     rows: between a pole row and the next, ``p_env`` can be 0 where ``E`` is not. Where a pole
-    row is far brighter than the next (:func:`polar_bands`; no shared probe), ``q = 0`` in that
-    band: the uniform and peak lanes carry those directions alone.
+    row is far brighter than the next (among the shared probes, grace_256's bottom), ``q = 0``
+    in that band: the uniform and peak lanes carry those directions alone.
     Elsewhere ``q`` is the environment's density up to the interpolation of ``sin theta``
     between the rows (``benchmarks/env_pool.py`` measures the variance).
 
@@ -251,12 +255,12 @@ def _mis_lanes(data: Any, m: int, probe: Any, strategy: str, counts: dict,
     proxy = None
     if counts.get("environment"):
         if env_density == "proxy":
-            proxy = (_MI_LUMINANCE[0] * radiance[0] + _MI_LUMINANCE[1] * radiance[1]
-                     + _MI_LUMINANCE[2] * radiance[2]) * _inverse(environment_scale(probe))
-            axis, cos_top, cos_bottom = polar_bands(probe)
-            if cos_top <= 1.0 or cos_bottom <= 1.0:  # a pole row far brighter than the next (rare)
-                along = d.x * axis[0] + d.y * axis[1] + d.z * axis[2]
-                proxy = dr.select((along > cos_top) | (-along > cos_bottom), 0.0, proxy)
+            env = environment_proxy(probe)
+            w = LUMINANCE_WEIGHTS * env.inverse_scale
+            proxy = float(w[0]) * radiance[0] + float(w[1]) * radiance[1] + float(w[2]) * radiance[2]
+            if env.has_bands:  # a pole row far brighter than the next (grace_256's bottom)
+                along = d.x * env.axis[0] + d.y * env.axis[1] + d.z * env.axis[2]
+                proxy = dr.select((along > env.cos_top) | (-along > env.cos_bottom), 0.0, proxy)
         elif env_density == "exact":
             if own is not None:
                 proxy = own
