@@ -149,8 +149,8 @@ def thread_map(fn: Callable[[T], R], items: Iterable[T], threads: Optional[int] 
     :func:`solve_threads`), in the items' order; the first exception is raised.
 
     An error (or Ctrl-C) in one item cancels the items not yet started, then is raised once the
-    running ones end (a thread cannot be interrupted). Only worth it for work that releases the GIL (LAPACK through :mod:`mi_bivariate.solve.lapack`,
-    numpy's large products). The BLAS thread limit in force (:func:`blas_threads`) applies to
+    running ones end (a thread cannot be interrupted). Only worth it for work that releases the
+    GIL (LAPACK through :mod:`mi_bivariate.solve.lapack`, numpy's large products). The BLAS thread limit in force (:func:`blas_threads`) applies to
     every worker.
     """
     items = list(items)
