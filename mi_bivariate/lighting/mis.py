@@ -156,6 +156,7 @@ class EnvironmentProxy:
 
     @property
     def has_bands(self) -> bool:
+        """Whether either pole has a band (else the kernels skip the test)."""
         return self.cos_top <= 1.0 or self.cos_bottom <= 1.0
 
 
