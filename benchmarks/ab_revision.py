@@ -1,13 +1,18 @@
-"""Time the solve and the lighting matrix of this checkout against another git revision, A/B.
+"""Time the solve, the lighting matrix and ``recover`` end to end of this checkout against another git
+revision, A/B.
 
-    MI_BIVARIATE_DATA=../shared/data OPENBLAS_NUM_THREADS=1 python benchmarks/ab_revision.py REV [--rounds 3]
+    MI_BIVARIATE_DATA=../shared/data OPENBLAS_NUM_THREADS=1 python benchmarks/ab_revision.py REV [--rounds 3] \
+        [--stages solve,lighting,end-to-end]
 
 The inputs are ``bench_speed.py``'s (a 256 px gold-metallic-paint3 sphere under
 grace_latlong_1k, recovered once here for its observations, lighting matrix and pixels).
 Each round runs, alternately, one fresh process per side (``REV`` checked out in a temporary
 ``git worktree``, this checkout as it is); each process times its stage 3 times and reports the
-median. Printed: the median over rounds per side, their ratio, and how far the sides'
-answers differ (the solve's table and confidence, the lighting matrix's rows). A shared,
+median. ``end-to-end`` is one ``mi-bivariate recover --no-report`` process per side and round
+(``python -m mi_bivariate.cli``, the side's package first on the path), timed by wall clock from
+outside: process start, imports and shutdown included. Printed: the median over rounds per side,
+their ratio, and how far the sides' answers differ (the solve's table and confidence, the
+lighting matrix's rows, the recovered table). A shared,
 noisy machine slows both sides alike within a round, which is why the sides alternate.
 """
 
@@ -20,6 +25,7 @@ import pickle
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
@@ -67,11 +73,12 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("revision")
     parser.add_argument("--rounds", type=int, default=3)
-    parser.add_argument("--stages", default="solve,lighting")
+    parser.add_argument("--stages", default="solve,lighting", help="any of solve, lighting, end-to-end")
     args = parser.parse_args()
     sys.path.insert(0, str(ROOT / "benchmarks"))
     import bench_speed
 
+    from mi_bivariate.images import write_exr
     from mi_bivariate.recover import recover
     from mi_bivariate.variants import ensure_variant
 
@@ -83,30 +90,51 @@ def main() -> None:
         subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", "-q", str(tree), args.revision],
                        check=True)
         try:
+            for root in (tree, ROOT):  # bytecode as an install has it, on both sides alike
+                subprocess.run([sys.executable, "-m", "compileall", "-q", str(root / "mi_bivariate")], check=True,
+                               capture_output=True)
             _, probe, shot = bench_speed.load_inputs()
             rec = recover(shot.image, probe, shot.geometry)
             inputs = str(Path(tmp) / "inputs")
             np.savez(inputs + ".npz", L=rec.lighting_matrix, I=rec.observations.values)
             with open(inputs + ".obs", "wb") as fh:
                 pickle.dump(rec.observations, fh)
+            write_exr(inputs + "_sphere.exr", shot.image)
+            probe.save_exr(inputs + "_probe.exr")
             print(f"A/B against {args.revision}; {args.rounds} rounds; load average "
                   f"{', '.join(f'{v:.1f}' for v in os.getloadavg())}\n")
             print(f"| stage | {args.revision} (s) | this checkout (s) | ratio | max answer difference / max |")
             print("|---|---:|---:|---:|---:|")
+            details = []  # every round's time, printed under the table
             for stage in args.stages.split(","):
                 times = {"rev": [], "here": []}
                 for _ in range(args.rounds):
                     for side, root in (("rev", tree), ("here", ROOT)):
                         env = dict(os.environ, PYTHONPATH=str(root))
-                        out = subprocess.run([sys.executable, "-c", CHILD, stage, inputs, f"{tmp}/{side}.npy"],
-                                             env=env, capture_output=True, text=True, cwd=tmp)
+                        if stage == "end-to-end":
+                            cmd = [sys.executable, "-m", "mi_bivariate.cli", "recover", inputs + "_sphere.exr",
+                                   "--probe", inputs + "_probe.exr", "--out", f"{tmp}/{side}_table.npz", "--no-report"]
+                            if os.path.exists(f"{tmp}/{side}_table.npz"):
+                                os.remove(f"{tmp}/{side}_table.npz")
+                            t0 = time.perf_counter()
+                            out = subprocess.run(cmd, env=env, capture_output=True, text=True, cwd=tmp)
+                            wall = time.perf_counter() - t0
+                            if out.returncode == 0:
+                                np.save(f"{tmp}/{side}.npy", np.load(f"{tmp}/{side}_table.npz")["table"])
+                        else:
+                            out = subprocess.run([sys.executable, "-c", CHILD, stage, inputs, f"{tmp}/{side}.npy"],
+                                                 env=env, capture_output=True, text=True, cwd=tmp)
                         if out.returncode:
                             sys.exit(f"{side} side failed:\n{out.stderr[-3000:]}")
-                        times[side].append(json.loads(out.stdout.strip().splitlines()[-1]))
+                        times[side].append(wall if stage == "end-to-end" else
+                                           json.loads(out.stdout.strip().splitlines()[-1]))
                 a, b = np.load(f"{tmp}/rev.npy"), np.load(f"{tmp}/here.npy")
                 diff = float(np.abs(a - b).max() / np.abs(a).max()) if a.shape == b.shape else float("nan")
                 rev, here = np.median(times["rev"]), np.median(times["here"])
+                details.append(f"{stage}: {args.revision} {sorted(round(v, 3) for v in times['rev'])}, "
+                               f"this checkout {sorted(round(v, 3) for v in times['here'])}")
                 print(f"| {stage} | {rev:.3f} | {here:.3f} | {rev / here:.2f}x | {diff:.1e} |", flush=True)
+            print("\nEvery round, sorted (s):\n" + "\n".join(f"- {line}" for line in details))
         finally:
             subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)], check=False)
 

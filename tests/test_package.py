@@ -93,3 +93,18 @@ def test_cli_import_is_cheap():
     out = _fresh_python("import sys, mi_bivariate.cli; print(sorted(m for m in sys.modules "
                         "if m.split('.')[0] in ('mitsuba', 'drjit', 'scipy', 'matplotlib')))", ROOT)
     assert out.returncode == 0 and out.stdout.strip() == "[]", out.stdout + out.stderr
+
+
+def test_console_script_freezes_the_imports_and_main_leaves_the_collector_alone():
+    """The console script (``run``) freezes what the pipeline imported out of the cyclic GC once
+    loaded; ``main`` called from Python (tests, notebooks) leaves the collector as it is."""
+    code = ("import gc, sys, mi_bivariate.cli as cli\n"
+            "before = gc.get_freeze_count()\n"
+            "assert cli.main(['info']) == 0 and gc.get_freeze_count() == before, 'main froze'\n"
+            "sys.argv = ['mi-bivariate', 'info']\n"
+            "assert cli.run() == 0\n"
+            "print('frozen', gc.get_freeze_count() > before + 10000)\n")
+    out = _fresh_python(code, ROOT)
+    assert out.returncode == 0 and "frozen True" in out.stdout, out.stdout[-2000:] + out.stderr[-2000:]
+    scripts = re.search(r"\[project\.scripts\]\s*\nmi-bivariate = \"([^\"]+)\"", (ROOT / "pyproject.toml").read_text())
+    assert scripts and scripts.group(1) == "mi_bivariate.cli:run"
