@@ -234,9 +234,10 @@ def main(argv: Optional[Sequence[str]] = None, *, own_process: bool = False) -> 
     pipeline imports then lives until the process ends, so it is frozen out of Python's cyclic
     garbage collector once loaded (:func:`gc.freeze`): each full collection, during the run and
     several times while the interpreter shuts down, would otherwise walk those ~10^6 objects
-    again (measured on ``recover --no-report``: 2.39 -> 1.92 s median of 6 fresh processes,
-    2 cores; ``benchmarks/bench_speed.py``). Tests and notebooks calling :func:`main` keep the
-    default, which leaves the collector as it is.
+    again (measured on ``recover --no-report``: 2.52 -> 2.20 s median of 10 fresh processes
+    alternating with the code before, 2 cores; ``benchmarks/ab_revision.py REV --stages
+    end-to-end``). Tests and notebooks calling :func:`main` keep the default, which leaves the
+    collector as it is.
     """
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -266,8 +267,15 @@ def main(argv: Optional[Sequence[str]] = None, *, own_process: bool = False) -> 
 
 def run() -> int:
     """The console script ``mi-bivariate`` (and ``python -m mi_bivariate.cli``): :func:`main` with
-    ``sys.argv`` in a process of its own."""
-    return main(own_process=True)
+    ``sys.argv`` in a process of its own.
+
+    What the command left alive (for ``recover``, the report's matplotlib) is frozen too before the
+    interpreter shuts down, whose collections would walk it once more (measured: shutdown 0.15-0.23 ->
+    0.05 s after ``recover`` with its report).
+    """
+    status = main(own_process=True)
+    gc.freeze()
+    return status
 
 
 if __name__ == "__main__":
