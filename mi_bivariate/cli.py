@@ -233,8 +233,8 @@ def main(argv: Optional[Sequence[str]] = None, *, own_process: bool = False) -> 
     ``own_process``: the process exists for this command alone (:func:`run`). Everything the
     pipeline imports then lives until the process ends, so it is frozen out of Python's cyclic
     garbage collector once loaded (:func:`gc.freeze`): each full collection, during the run and
-    several times while the interpreter shuts down, would otherwise walk those ~10^6 objects
-    again (measured on ``recover --no-report``: 2.52 -> 2.20 s median of 10 fresh processes
+    several times while the interpreter shuts down, would otherwise walk those ~7 x 10^4 objects
+    (~40 ms each time) (measured on ``recover --no-report``: 2.52 -> 2.20 s median of 10 fresh processes
     alternating with the code before, 2 cores; ``benchmarks/ab_revision.py REV --stages
     end-to-end``). Tests and notebooks calling :func:`main` keep the default, which leaves the
     collector as it is.
