@@ -12,7 +12,8 @@ it is), with the side's package first on the path (checked before the rounds).
 - ``solve``, ``lighting``: each process times its stage 3 times and reports the median.
 - ``end-to-end``: each process is ``mi-bivariate recover IMAGE --probe PROBE --out ... --no-report``
   (``python -m mi_bivariate.cli``, the sphere fitted from the image as a user's run would),
-  timed by wall clock from outside: process start, imports and shutdown included.
+  timed by wall clock from outside: process start, imports and shutdown included;
+  ``end-to-end-report``: the same with the report (``recover``'s default).
 
 Printed: the median over rounds per side, their ratio, and how far the sides' answers differ
 (the solve's table and confidence, the lighting matrix's rows, the recovered table), then every
@@ -87,7 +88,7 @@ def _check_side(root: Path, cwd: str) -> None:
 def _run_side(stage: str, side: str, root: Path, tmp: str, inputs: str) -> float:
     """One fresh process of ``stage`` with ``root``'s package: its time (s); its answer goes to ``tmp/side.npy``."""
     env = dict(os.environ, PYTHONPATH=str(root))
-    if stage != "end-to-end":
+    if not stage.startswith("end-to-end"):
         out = subprocess.run([sys.executable, "-c", CHILD, stage, inputs, f"{tmp}/{side}.npy"],
                              env=env, capture_output=True, text=True, cwd=tmp)
         if out.returncode:
@@ -95,8 +96,12 @@ def _run_side(stage: str, side: str, root: Path, tmp: str, inputs: str) -> float
         return float(json.loads(out.stdout.strip().splitlines()[-1]))
     table = Path(tmp) / f"{side}_table.npz"
     table.unlink(missing_ok=True)
+    for name in (table.with_suffix(".exr"), table.with_name(table.stem + "_report.png")):
+        name.unlink(missing_ok=True)
     cmd = [sys.executable, "-m", "mi_bivariate.cli", "recover", inputs + "_sphere.exr", "--probe",
-           inputs + "_probe.exr", "--out", str(table), "--no-report"]
+           inputs + "_probe.exr", "--out", str(table)]
+    if stage != "end-to-end-report":
+        cmd.append("--no-report")
     t0 = time.perf_counter()
     out = subprocess.run(cmd, env=env, capture_output=True, text=True, cwd=tmp)
     wall = time.perf_counter() - t0
@@ -110,7 +115,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("revision")
     parser.add_argument("--rounds", type=int, default=3)
-    parser.add_argument("--stages", default="solve,lighting", help="any of solve, lighting, end-to-end")
+    parser.add_argument("--stages", default="solve,lighting", help="any of solve, lighting, end-to-end, end-to-end-report")
     args = parser.parse_args()
     sys.path.insert(0, str(ROOT / "benchmarks"))
     import bench_speed
