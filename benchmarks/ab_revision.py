@@ -115,7 +115,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("revision")
     parser.add_argument("--rounds", type=int, default=3)
-    parser.add_argument("--stages", default="solve,lighting", help="any of solve, lighting, end-to-end, end-to-end-report")
+    parser.add_argument("--stages", default="solve,lighting",
+                        help="any of solve, lighting, end-to-end, end-to-end-report")
     args = parser.parse_args()
     sys.path.insert(0, str(ROOT / "benchmarks"))
     import bench_speed
