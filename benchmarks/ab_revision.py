@@ -1,4 +1,4 @@
-"""Time the solve, the lighting matrix or ``recover`` end to end against another git revision, A/B.
+r"""Time the solve, the lighting matrix or ``recover`` end to end against another git revision, A/B.
 
     MI_BIVARIATE_DATA=../shared/data OPENBLAS_NUM_THREADS=1 python benchmarks/ab_revision.py REV [--rounds 3] \
         [--stages solve,lighting,end-to-end]

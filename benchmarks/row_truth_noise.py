@@ -1,4 +1,4 @@
-"""The quadrature noise of the row-level benchmarks' relit truth and floor (``ablation.py``, ``eq1_phi_d.py``).
+r"""The quadrature noise of the row-level benchmarks' relit truth and floor (``ablation.py``, ``eq1_phi_d.py``).
 
     MI_BIVARIATE_DATA=../shared/data OPENBLAS_NUM_THREADS=1 python benchmarks/row_truth_noise.py \
         [alum-bronze,black-fabric,red-phenolic,white-paint,gold-metallic-paint3,pink-jasper] [--normals 3000]
