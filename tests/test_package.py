@@ -113,3 +113,14 @@ def test_console_script_freezes_the_imports_and_main_leaves_the_collector_alone(
     assert out.returncode == 0 and "during True after True" in out.stdout, out.stdout[-2000:] + out.stderr[-2000:]
     scripts = re.search(r"\[project\.scripts\]\s*\nmi-bivariate = \"([^\"]+)\"", (ROOT / "pyproject.toml").read_text())
     assert scripts and scripts.group(1) == "mi_bivariate.cli:run"
+
+
+def test_console_script_exit_status_on_bad_input(tmp_path):
+    """Through ``run`` (``python -m mi_bivariate.cli``), bad input still ends in one line and status 2."""
+    missing = tmp_path / "missing.exr"
+    out = subprocess.run([sys.executable, "-m", "mi_bivariate.cli", "recover", str(missing), "--probe",
+                          str(missing), "--out", str(tmp_path / "o.npz")], capture_output=True, text=True,
+                         cwd=ROOT, env=dict(os.environ, PYTHONPATH=str(ROOT)), timeout=120)
+    lines = out.stderr.strip().splitlines()
+    assert out.returncode == 2 and len(lines) == 1 and lines[0].startswith("mi-bivariate: error: "), out.stderr
+    assert str(missing) in lines[0] and not (tmp_path / "o.npz").exists()
