@@ -124,3 +124,10 @@ def test_console_script_exit_status_on_bad_input(tmp_path):
     lines = out.stderr.strip().splitlines()
     assert out.returncode == 2 and len(lines) == 1 and lines[0].startswith("mi-bivariate: error: "), out.stderr
     assert str(missing) in lines[0] and not (tmp_path / "o.npz").exists()
+
+
+def test_python_dash_m_package_runs_the_command():
+    """``python -m mi_bivariate`` is the ``mi-bivariate`` command."""
+    out = subprocess.run([sys.executable, "-m", "mi_bivariate", "--help"], capture_output=True, text=True,
+                         cwd=ROOT, env=dict(os.environ, PYTHONPATH=str(ROOT)), timeout=120)
+    assert out.returncode == 0 and "recover" in out.stdout, out.stdout[-2000:] + out.stderr[-2000:]
