@@ -1,7 +1,7 @@
 """The ``mi-bivariate`` command.
 
 Subcommands: ``info``, ``render``, ``reduce``, ``learn-prior``, ``recover``,
-``demo``. Every one has ``--help``. Problems with the user's input end in a
+``recover-batch``, ``demo``, ``evaluate``. Every one has ``--help``. Problems with the user's input end in a
 single line ``mi-bivariate: error: FILE: problem`` and exit status 2.
 """
 
@@ -69,6 +69,50 @@ def _add_data(p: argparse.ArgumentParser) -> None:
                    help="shared data folder with probes/ and merl_nbrdf/ (default: $MI_BIVARIATE_DATA)")
 
 
+def _add_recover_options(p: argparse.ArgumentParser) -> None:
+    """The options ``recover`` and ``recover-batch`` share."""
+    p.add_argument("--probe", required=True, help="environment map file or shared probe name")
+    p.add_argument("--sphere", default="auto", type=_parse_sphere, metavar="CX,CY,R",
+                   help="sphere centre and radius in pixels (pixel centres at i+0.5, y down); "
+                        "default 'auto': fitted to the image (or --mask), with the fit residual reported")
+    p.add_argument("--mask", default=None, help="optional mask image (non-zero = usable)")
+    p.add_argument("--merl", action="store_true", help="also write a MERL .binary")
+    p.add_argument("--no-report", action="store_true", help="skip the PNG report")
+    p.add_argument("--report-render", action="store_true",
+                   help="path-trace the report's re-render (seconds) instead of predicting it as L f")
+    p.add_argument("--normals", type=int, default=8000, help="number of normals M")
+    p.add_argument("--dirs", type=int, default=None, help="light directions per normal K (default 8000)")
+    p.add_argument("--grid", type=int, nargs=2, default=(32, 32), metavar=("N_T", "N_S"))
+    p.add_argument("--alpha", type=_parse_alpha, default=None,
+                   help="smoothness weight: a number, or how to choose it: 'discrepancy' (default: the largest "
+                        "weight, at most 1e-2, whose fit explains the image to within its expected error) or 'gcv'")
+    p.add_argument("--pair-rule", choices=("evidence", "residual"), default="evidence",
+                   help="which of the smoothness prior's two weight pairs each channel keeps: the one under which "
+                        "the image is likelier (evidence, default) or the lower data residual (the paper's rule)")
+    p.add_argument("--noise", type=_parse_noise, default="auto", metavar="auto|none|A,B",
+                   help="camera noise, variance A*I+B in image units: estimated from the image (auto, default), "
+                        "none (clean input) or given")
+    p.add_argument("--prior", default=None, metavar="FILE",
+                   help="smoothness prior from learn-prior (its _basis.npz beside it is the basis prior)")
+    p.add_argument("--no-basis-prior", action="store_true", help="smoothness prior alone (the paper's Eq. 6)")
+    p.add_argument("--sampling", choices=("mis", "uniform"), default="mis",
+                   help="light directions of the lighting matrix (default mis)")
+    p.add_argument("--max-view-angle", type=float, default=80.0, help="drop normals further from the view (deg)")
+    p.add_argument("--footprint", type=float, default=None, metavar="DEG",
+                   help="pixel-footprint model: rows whose pixel spans more than DEG degrees of normals average "
+                        "sub-pixel normals (default: centre normals, the paper's model)")
+    p.add_argument("--saturation", type=float, default=None, help="drop pixels with any channel >= this value")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threads", type=int, default=None,
+                   help="Dr.Jit threads, and at most as many solve workers (1: bit-identical outputs from run "
+                        "to run; default: all cores, where the lighting matrix's parallel sums vary at float32 "
+                        "rounding)")
+    p.add_argument("--deterministic", dest="threads", action="store_const", const=1,
+                   help="same as --threads 1")
+    _add_variant(p)
+    _add_data(p)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="mi-bivariate",
@@ -111,48 +155,20 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("recover", help="recover a bivariate BRDF from an HDR image of a sphere under a known probe")
     p.add_argument("image", help="linear HDR image (.exr/.hdr/.pfm)")
-    p.add_argument("--probe", required=True, help="environment map file or shared probe name")
-    p.add_argument("--sphere", default="auto", type=_parse_sphere, metavar="CX,CY,R",
-                   help="sphere centre and radius in pixels (pixel centres at i+0.5, y down); "
-                        "default 'auto': fitted to the image (or --mask), with the fit residual reported")
-    p.add_argument("--mask", default=None, help="optional mask image (non-zero = usable)")
     p.add_argument("--out", default="brdf.npz", help="output .npz (EXR view and PNG report beside it)")
-    p.add_argument("--merl", action="store_true", help="also write a MERL .binary")
-    p.add_argument("--no-report", action="store_true", help="skip the PNG report")
-    p.add_argument("--report-render", action="store_true",
-                   help="path-trace the report's re-render (seconds) instead of predicting it as L f")
-    p.add_argument("--normals", type=int, default=8000, help="number of normals M")
-    p.add_argument("--dirs", type=int, default=None, help="light directions per normal K (default 8000)")
-    p.add_argument("--grid", type=int, nargs=2, default=(32, 32), metavar=("N_T", "N_S"))
-    p.add_argument("--alpha", type=_parse_alpha, default=None,
-                   help="smoothness weight: a number, or how to choose it: 'discrepancy' (default: the largest "
-                        "weight, at most 1e-2, whose fit explains the image to within its expected error) or 'gcv'")
-    p.add_argument("--pair-rule", choices=("evidence", "residual"), default="evidence",
-                   help="which of the smoothness prior's two weight pairs each channel keeps: the one under which "
-                        "the image is likelier (evidence, default) or the lower data residual (the paper's rule)")
-    p.add_argument("--noise", type=_parse_noise, default="auto", metavar="auto|none|A,B",
-                   help="camera noise, variance A*I+B in image units: estimated from the image (auto, default), "
-                        "none (clean input) or given")
-    p.add_argument("--prior", default=None, metavar="FILE",
-                   help="smoothness prior from learn-prior (its _basis.npz beside it is the basis prior)")
-    p.add_argument("--no-basis-prior", action="store_true", help="smoothness prior alone (the paper's Eq. 6)")
-    p.add_argument("--sampling", choices=("mis", "uniform"), default="mis",
-                   help="light directions of the lighting matrix (default mis)")
-    p.add_argument("--max-view-angle", type=float, default=80.0, help="drop normals further from the view (deg)")
-    p.add_argument("--footprint", type=float, default=None, metavar="DEG",
-                   help="pixel-footprint model: rows whose pixel spans more than DEG degrees of normals average "
-                        "sub-pixel normals (default: centre normals, the paper's model)")
-    p.add_argument("--saturation", type=float, default=None, help="drop pixels with any channel >= this value")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--threads", type=int, default=None,
-                   help="Dr.Jit threads, and at most as many solve workers (1: bit-identical outputs from run "
-                        "to run; default: all cores, where the lighting matrix's parallel sums vary at float32 "
-                        "rounding)")
-    p.add_argument("--deterministic", dest="threads", action="store_const", const=1,
-                   help="same as --threads 1")
-    _add_variant(p)
-    _add_data(p)
-    
+    _add_recover_options(p)
+
+    p = sub.add_parser("recover-batch",
+                       help="recover one BRDF from each of several photos under one probe, in one process",
+                       description="recover on each photo in turn, in one process: the imports, the Mitsuba "
+                                   "variant's start and the kernels' compilation are paid once (about half the "
+                                   "time per photo of separate recover runs). --sphere and --mask apply to every "
+                                   "photo. A photo that fails gets its one-line error and the others go on; the "
+                                   "exit status is then 2.")
+    p.add_argument("images", nargs="+", help="linear HDR images (.exr/.hdr/.pfm), each of a sphere under --probe")
+    p.add_argument("--out-dir", required=True,
+                   help="output folder: STEM.npz per photo (EXR view, PNG report, .binary beside it)")
+    _add_recover_options(p)
 
     p = sub.add_parser("demo", help="render a measured material, recover it, re-render it under a novel probe")
     p.add_argument("--out", default="out/demo", help="output folder")

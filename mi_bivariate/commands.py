@@ -15,6 +15,8 @@ import json
 import math
 import os
 import platform
+import sys
+import time
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence
 
@@ -134,10 +136,10 @@ def _check_out_file(out: Optional[str]) -> None:
 #: Library names of inputs (``"image"``) -> the user's file names, for warnings (see :func:`_format_warning`).
 
 
-def _check_out_folder(out: Path) -> None:
-    """An output folder must not be an existing file and must be creatable/writable."""
+def _check_out_folder(out: Path, flag: str = "--out") -> None:
+    """An output folder (given by ``flag``) must not be an existing file and must be creatable/writable."""
     if out.exists() and not out.is_dir():
-        raise InputError(out, "--out must be a folder, but this is a file", "choose another --out")
+        raise InputError(out, f"{flag} must be a folder, but this is a file", f"choose another {flag}")
     check_outputs([out / ".probe-write"])
 
 
@@ -232,7 +234,8 @@ def cmd_learn_prior(args: argparse.Namespace) -> int:
 
 # --------------------------------------------------------------------------- recover
 
-def cmd_recover(args: argparse.Namespace) -> int:
+def _check_recover_args(args: argparse.Namespace) -> None:
+    """The checks ``recover`` and ``recover-batch`` share, before anything is loaded."""
     if args.dirs is None:
         args.dirs = lighting.DEFAULT_DIRS
     _check_recovery_sizes(args.normals, args.dirs, args.grid)
@@ -244,25 +247,29 @@ def cmd_recover(args: argparse.Namespace) -> int:
         _check_float("--alpha", args.alpha, float("-inf"), float("inf"))  # the sign is the library's check
     if args.threads is not None and not 1 <= args.threads <= 1024:
         raise InputError("--threads", f"must be from 1 to 1024, got {args.threads}")
-    _check_out_file(args.out)
-    outputs = rec.output_paths(args.out, merl=args.merl, report=not args.no_report)
-    args.source_names.update({"image": str(args.image), "lighting matrix L": str(args.probe)})
-    check_outputs(outputs, _existing_files(args.image, args.probe, args.mask, args.prior))
-    ensure_variant(args.variant)
-    if args.threads is not None:
-        dr.set_thread_count(args.threads)
-    probe = load_probe(args.probe, args.data)
-    image = load_image(args.image)
-    mask = load_mask(args.mask, image.shape) if args.mask else None
-    sphere = None if args.sphere in (None, "auto") else args.sphere
-    fit = spherefit.fit_sphere(image, mask, sphere=sphere, source=str(args.image))
-    print(fit.summary())
+
+
+def _recover_priors(args: argparse.Namespace) -> tuple:
+    """``(smoothness prior or None, basis prior or "default" or None)`` as ``--prior`` and ``--no-basis-prior`` say."""
     smooth_prior, basis_prior = None, "default"
     if args.prior is not None:
-
         smooth_prior = Prior.load(args.prior)
         basis_file = basis_path_for(args.prior)
         basis_prior = BasisPrior.load(basis_file) if basis_file.is_file() else None
+    return smooth_prior, None if args.no_basis_prior else basis_prior
+
+
+def _recover_image(args: argparse.Namespace, image_path: str, probe, priors: tuple, out: Path) -> tuple:
+    """One photo of ``recover`` / ``recover-batch``: fit its sphere, recover, write its outputs.
+
+    Returns ``(Recovery, paths written)``. Raises InputError naming the user's files.
+    """
+    args.source_names.update({"image": str(image_path), "lighting matrix L": str(args.probe)})
+    image = load_image(image_path)
+    mask = load_mask(args.mask, image.shape) if args.mask else None
+    sphere = None if args.sphere in (None, "auto") else args.sphere
+    fit = spherefit.fit_sphere(image, mask, sphere=sphere, source=str(image_path))
+    print(fit.summary())
     try:
         # No BLAS oversubscription on a shared machine; --threads also caps the solve's workers.
         with blas_threads(), solve_thread_limit(args.threads):
@@ -270,20 +277,67 @@ def cmd_recover(args: argparse.Namespace) -> int:
                 image, probe, fit.geometry, masks=mask, n_normals=args.normals, n_dirs=args.dirs,
                 grid=tuple(args.grid), alpha=args.alpha, pair_rule=args.pair_rule, seed=args.seed,
                 max_view_angle_deg=args.max_view_angle, footprint=args.footprint, saturation=args.saturation,
-                noise=args.noise, sampling=args.sampling,
-                prior=smooth_prior, basis_prior=None if args.no_basis_prior else basis_prior)
+                noise=args.noise, sampling=args.sampling, prior=priors[0], basis_prior=priors[1])
     except InputError as exc:
         # The library names its arguments ("image", "lighting matrix L"); name the user's files.
-        names = {"image": args.image, "lighting matrix L": args.probe}
+        names = {"image": image_path, "lighting matrix L": args.probe}
         if exc.source in names:
             raise InputError(names[exc.source], exc.problem, exc.hint) from None
         raise
-    paths = rec.write_outputs(result, args.out, merl=args.merl, report=not args.no_report,
+    paths = rec.write_outputs(result, out, merl=args.merl, report=not args.no_report,
                               report_render=args.report_render)
+    return result, paths
+
+
+def cmd_recover(args: argparse.Namespace) -> int:
+    _check_recover_args(args)
+    _check_out_file(args.out)
+    outputs = rec.output_paths(args.out, merl=args.merl, report=not args.no_report)
+    check_outputs(outputs, _existing_files(args.image, args.probe, args.mask, args.prior))
+    args.source_names.update({"image": str(args.image), "lighting matrix L": str(args.probe)})
+    ensure_variant(args.variant)
+    if args.threads is not None:
+        dr.set_thread_count(args.threads)
+    probe = load_probe(args.probe, args.data)
+    result, paths = _recover_image(args, args.image, probe, _recover_priors(args), Path(args.out))
     print(result.summary())
     for p in paths:
         print(f"wrote {p}")
     return 0
+
+
+def cmd_recover_batch(args: argparse.Namespace) -> int:
+    """``recover`` on each photo in turn, in one process: the imports, the variant's start and the
+    kernels' compilation are paid once. A photo that fails gets its one-line error and the others go
+    on; the exit status is 2 if any failed."""
+    _check_recover_args(args)
+    out_dir = Path(args.out_dir)
+    _check_out_folder(out_dir, "--out-dir")
+    outs = [out_dir / (Path(image).stem + ".npz") for image in args.images]
+    outputs = [p for out in outs for p in rec.output_paths(out, merl=args.merl, report=not args.no_report)]
+    check_outputs(outputs, _existing_files(*args.images, args.probe, args.mask, args.prior))
+    args.source_names.update({"lighting matrix L": str(args.probe)})
+    ensure_variant(args.variant)
+    if args.threads is not None:
+        dr.set_thread_count(args.threads)
+    probe = load_probe(args.probe, args.data)
+    priors = _recover_priors(args)
+    failed = []
+    for k, (image, out) in enumerate(zip(args.images, outs), 1):
+        t0 = time.perf_counter()
+        try:
+            result, paths = _recover_image(args, image, probe, priors, out)
+        except (InputError, OSError) as exc:
+            if isinstance(exc, OSError):  # a file the checks could not foresee (vanished, unreadable)
+                exc = InputError(exc.filename or image, exc.strerror or str(exc), "check the path and permissions")
+            print(f"mi-bivariate: error: {exc}", file=sys.stderr)
+            failed.append(image)
+            continue
+        print(f"[{k}/{len(args.images)}] {image}: relative residual {result.relative_residual():.4f}, "
+              f"{time.perf_counter() - t0:.1f} s; wrote {', '.join(str(p) for p in paths)}", flush=True)
+    print(f"recovered {len(args.images) - len(failed)} of {len(args.images)} photos"
+          + (f"; failed: {', '.join(failed)}" if failed else ""))
+    return 2 if failed else 0
 
 
 # --------------------------------------------------------------------------- demo
@@ -356,4 +410,4 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 #: Subcommand name -> function.
 COMMANDS = {"info": cmd_info, "render": cmd_render, "reduce": cmd_reduce, "learn-prior": cmd_learn_prior,
-            "recover": cmd_recover, "demo": cmd_demo, "evaluate": cmd_evaluate}
+            "recover": cmd_recover, "recover-batch": cmd_recover_batch, "demo": cmd_demo, "evaluate": cmd_evaluate}
