@@ -123,8 +123,11 @@ def same_file(a: PathLike, b: PathLike) -> bool:
     return Path(a).resolve() == Path(b).resolve()
 
 
-def check_outputs(outputs: Iterable[PathLike], inputs: Iterable[Optional[PathLike]] = ()) -> None:
+def check_outputs(outputs: Iterable[PathLike], inputs: Iterable[Optional[PathLike]] = (),
+                  flag: str = "--out") -> None:
     """Refuse outputs that would clobber an input or cannot be written, before any work is done.
+
+    ``flag``: the option that names the outputs, for the hint (``--out``, ``--out-dir``).
 
     Raises:
         InputError: naming the output, if it is one of ``inputs`` (same file by
@@ -137,10 +140,10 @@ def check_outputs(outputs: Iterable[PathLike], inputs: Iterable[Optional[PathLik
     for k, out in enumerate(outputs):
         for inp in inputs:
             if same_file(out, inp):
-                raise InputError(out, f"output would overwrite the input {inp}", "choose another --out")
+                raise InputError(out, f"output would overwrite the input {inp}", f"choose another {flag}")
         for other in outputs[:k]:
             if same_file(out, other):
-                raise InputError(out, "is written twice by this command", "choose another --out")
+                raise InputError(out, "is written twice by this command", f"choose another {flag}")
         if out.is_dir():
             raise InputError(out, "output is a directory", "give a file name")
         parent = out.parent
@@ -150,4 +153,4 @@ def check_outputs(outputs: Iterable[PathLike], inputs: Iterable[Optional[PathLik
             raise InputError(out, f"cannot be written: {parent} is not a folder")
         if not os.access(parent, os.W_OK | os.X_OK):
             raise InputError(out, f"cannot be written: the folder {parent} is not writable",
-                             "choose another --out")
+                             f"choose another {flag}")

@@ -140,7 +140,7 @@ def _check_out_folder(out: Path, flag: str = "--out") -> None:
     """An output folder (given by ``flag``) must not be an existing file and must be creatable/writable."""
     if out.exists() and not out.is_dir():
         raise InputError(out, f"{flag} must be a folder, but this is a file", f"choose another {flag}")
-    check_outputs([out / ".probe-write"])
+    check_outputs([out / ".probe-write"], flag=flag)
 
 
 # --------------------------------------------------------------------------- info
@@ -315,7 +315,7 @@ def cmd_recover_batch(args: argparse.Namespace) -> int:
     _check_out_folder(out_dir, "--out-dir")
     outs = [out_dir / (Path(image).stem + ".npz") for image in args.images]
     outputs = [p for out in outs for p in rec.output_paths(out, merl=args.merl, report=not args.no_report)]
-    check_outputs(outputs, _existing_files(*args.images, args.probe, args.mask, args.prior))
+    check_outputs(outputs, _existing_files(*args.images, args.probe, args.mask, args.prior), flag="--out-dir")
     args.source_names.update({"lighting matrix L": str(args.probe)})
     ensure_variant(args.variant)
     if args.threads is not None:

@@ -207,3 +207,8 @@ def test_cli_recover_batch_matches_recover_and_goes_on_past_a_bad_photo(tmp_path
     assert cli_main(["recover-batch", str(photos / "a.exr"), str(tmp_path / "a.exr"), "--probe", str(probe_file),
                      "--out-dir", str(tmp_path / "twice"), *small]) == 2
     assert "written twice" in capsys.readouterr().err and not (tmp_path / "twice").exists()
+    # The photos' own folder as --out-dir: each photo's EXR view would overwrite it; refused, photo intact.
+    before = (photos / "a.exr").read_bytes()
+    assert cli_main(["recover-batch", str(photos / "a.exr"), "--probe", str(probe_file), "--out-dir", str(photos),
+                     *small]) == 2
+    assert "overwrite the input" in capsys.readouterr().err and (photos / "a.exr").read_bytes() == before
