@@ -11,14 +11,16 @@ loads it only to run a command, so ``mi-bivariate --help`` stays fast.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
 import platform
 import sys
 import time
+import warnings
 from pathlib import Path
-from typing import Dict, List, Optional, Sequence
+from typing import Dict, Iterator, List, Optional, Sequence
 
 import drjit as dr
 import mitsuba as mi
@@ -234,6 +236,21 @@ def cmd_learn_prior(args: argparse.Namespace) -> int:
 
 # --------------------------------------------------------------------------- recover
 
+@contextlib.contextmanager
+def _jit_threads(n: Optional[int]) -> Iterator[None]:
+    """``--threads``: Dr.Jit's thread count inside the block (``None``: unchanged), restored after it, so that
+    :func:`mi_bivariate.cli.main` called in a process that goes on (tests, notebooks) leaves it as it was."""
+    if n is None:
+        yield
+        return
+    before = dr.thread_count()
+    dr.set_thread_count(n)
+    try:
+        yield
+    finally:
+        dr.set_thread_count(before)
+
+
 def _check_recover_args(args: argparse.Namespace) -> None:
     """The checks ``recover`` and ``recover-batch`` share, before anything is loaded."""
     if args.dirs is None:
@@ -296,10 +313,9 @@ def cmd_recover(args: argparse.Namespace) -> int:
     check_outputs(outputs, _existing_files(args.image, args.probe, args.mask, args.prior))
     args.source_names.update({"image": str(args.image), "lighting matrix L": str(args.probe)})
     ensure_variant(args.variant)
-    if args.threads is not None:
-        dr.set_thread_count(args.threads)
-    probe = load_probe(args.probe, args.data)
-    result, paths = _recover_image(args, args.image, probe, _recover_priors(args), Path(args.out))
+    with _jit_threads(args.threads):
+        probe = load_probe(args.probe, args.data)
+        result, paths = _recover_image(args, args.image, probe, _recover_priors(args), Path(args.out))
     print(result.summary())
     for p in paths:
         print(f"wrote {p}")
@@ -308,33 +324,52 @@ def cmd_recover(args: argparse.Namespace) -> int:
 
 def cmd_recover_batch(args: argparse.Namespace) -> int:
     """``recover`` on each photo in turn, in one process: the imports, the variant's start and the
-    kernels' compilation are paid once. A photo that fails gets its one-line error and the others go
-    on; the exit status is 2 if any failed."""
+    kernels' compilation are paid once.
+
+    A photo whose own file or sphere is the problem gets its one-line error, and the others go on (the
+    exit status is then 2). A problem shared by every photo (an option, the probe, the priors) stops
+    the batch at the first photo it shows in, with one line; so does anything unexpected. Photos
+    finished before are kept (each one's outputs are written all or none).
+    """
     _check_recover_args(args)
     out_dir = Path(args.out_dir)
     _check_out_folder(out_dir, "--out-dir")
     outs = [out_dir / (Path(image).stem + ".npz") for image in args.images]
+    first_of: Dict[Path, str] = {}
+    for image, out in zip(args.images, outs):
+        if out in first_of:
+            raise InputError(image, f"writes {out}, as {first_of[out]} does",
+                             "rename one of them, or recover them in separate batches")
+        first_of[out] = image
     outputs = [p for out in outs for p in rec.output_paths(out, merl=args.merl, report=not args.no_report)]
     check_outputs(outputs, _existing_files(*args.images, args.probe, args.mask, args.prior), flag="--out-dir")
     args.source_names.update({"lighting matrix L": str(args.probe)})
     ensure_variant(args.variant)
-    if args.threads is not None:
-        dr.set_thread_count(args.threads)
-    probe = load_probe(args.probe, args.data)
-    priors = _recover_priors(args)
-    failed = []
-    for k, (image, out) in enumerate(zip(args.images, outs), 1):
-        t0 = time.perf_counter()
-        try:
-            result, paths = _recover_image(args, image, probe, priors, out)
-        except (InputError, OSError) as exc:
-            if isinstance(exc, OSError):  # a file the checks could not foresee (vanished, unreadable)
-                exc = InputError(exc.filename or image, exc.strerror or str(exc), "check the path and permissions")
-            print(f"mi-bivariate: error: {exc}", file=sys.stderr)
-            failed.append(image)
-            continue
-        print(f"[{k}/{len(args.images)}] {image}: relative residual {result.relative_residual():.4f}, "
-              f"{time.perf_counter() - t0:.1f} s; wrote {', '.join(str(p) for p in paths)}", flush=True)
+    failed: List[str] = []
+    with _jit_threads(args.threads):
+        probe = load_probe(args.probe, args.data)
+        priors = _recover_priors(args)
+        for k, (image, out) in enumerate(zip(args.images, outs), 1):
+            t0 = time.perf_counter()
+            try:
+                with warnings.catch_warnings():  # each photo's warnings shown, not only the first photo's
+                    result, paths = _recover_image(args, image, probe, priors, out)
+            except OSError as exc:  # a file the checks could not foresee (vanished, unreadable)
+                name = exc.filename if exc.filename is not None else image
+                print(f"mi-bivariate: error: {name}: {exc.strerror or exc} (check the path, permissions and "
+                      "free space)", file=sys.stderr)
+                failed.append(image)
+                continue
+            except InputError as exc:
+                if str(exc.source) not in (str(image), str(args.mask)):  # shared by every photo: stop here
+                    print(f"recovered {k - 1 - len(failed)} of {len(args.images)} photos before this error",
+                          file=sys.stderr)
+                    raise
+                print(f"mi-bivariate: error: {exc}", file=sys.stderr)
+                failed.append(image)
+                continue
+            print(f"[{k}/{len(args.images)}] {image}: relative residual {result.relative_residual():.4f}, "
+                  f"{time.perf_counter() - t0:.1f} s; wrote {', '.join(str(p) for p in paths)}", flush=True)
     print(f"recovered {len(args.images) - len(failed)} of {len(args.images)} photos"
           + (f"; failed: {', '.join(failed)}" if failed else ""))
     return 2 if failed else 0

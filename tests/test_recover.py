@@ -6,6 +6,12 @@ MERL grid, Mitsuba renders of the full 3D tables, and the bivariate reduction.
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import drjit as dr
 import numpy as np
 import pytest
 
@@ -190,8 +196,10 @@ def test_cli_recover_batch_matches_recover_and_goes_on_past_a_bad_photo(tmp_path
     any_probe.save_exr(probe_file)
     small = ["--normals", "400", "--dirs", "2000", "--grid", "8", "8", "--no-report", "--threads", "1"]
     out = tmp_path / "batch"
+    threads = dr.thread_count()
     code = cli_main(["recover-batch", str(photos / "a.exr"), str(photos / "missing.exr"), str(photos / "b.exr"),
                      "--probe", str(probe_file), "--out-dir", str(out), *small])
+    assert dr.thread_count() == threads  # --threads is restored for whatever runs next in this process
     err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("mi-bivariate: error:")]
     assert code == 2 and len(err) == 1 and "missing.exr" in err[0], err
     assert sorted(p.name for p in out.iterdir()) == ["a.exr", "a.npz", "b.exr", "b.npz"]
@@ -206,9 +214,36 @@ def test_cli_recover_batch_matches_recover_and_goes_on_past_a_bad_photo(tmp_path
     capsys.readouterr()
     assert cli_main(["recover-batch", str(photos / "a.exr"), str(tmp_path / "a.exr"), "--probe", str(probe_file),
                      "--out-dir", str(tmp_path / "twice"), *small]) == 2
-    assert "written twice" in capsys.readouterr().err and not (tmp_path / "twice").exists()
+    assert "as " + str(photos / "a.exr") + " does" in capsys.readouterr().err and not (tmp_path / "twice").exists()
     # The photos' own folder as --out-dir: each photo's EXR view would overwrite it; refused, photo intact.
     before = (photos / "a.exr").read_bytes()
     assert cli_main(["recover-batch", str(photos / "a.exr"), "--probe", str(probe_file), "--out-dir", str(photos),
                      *small]) == 2
     assert "overwrite the input" in capsys.readouterr().err and (photos / "a.exr").read_bytes() == before
+
+
+def test_cli_recover_batch_stops_on_a_shared_problem_and_warns_for_every_photo(tmp_path):
+    """A problem every photo shares (here ``--grid 1 8``, which the library refuses) stops the batch with one
+    line and no outputs; and a warning the library gives for every photo is shown for every photo, not
+    only the first (Python shows a warning once per code location unless told otherwise). A fresh process,
+    as a user runs it: pytest records warnings itself."""
+    probe = probes.Probe.constant(1.0, 16)
+    shot = render.render_sphere(render.bsdf_dict(analytic.to_merl(analytic.Lambertian(0.5))), probe,
+                                resolution=48, spp=16, seed=0)
+    clipped = np.minimum(shot.image, 0.8 * float(shot.image.max()))  # a clipped photo: the capture warns
+    photos = [tmp_path / "a.exr", tmp_path / "b.exr"]
+    for photo in photos:
+        render.write_exr(photo, clipped)
+    probe.save_exr(tmp_path / "probe.exr")
+    run = [sys.executable, "-m", "mi_bivariate", "recover-batch", *map(str, photos), "--probe",
+           str(tmp_path / "probe.exr"), "--normals", "400", "--dirs", "2000", "--no-report"]
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    shared = subprocess.run(run + ["--out-dir", str(tmp_path / "o1"), "--grid", "1", "8"], capture_output=True,
+                            text=True, env=env, timeout=300)
+    errors = [line for line in shared.stderr.splitlines() if line.startswith("mi-bivariate: error:")]
+    assert shared.returncode == 2 and len(errors) == 1 and "grid" in errors[0], shared.stderr[-2000:]
+    assert not any((tmp_path / "o1").glob("*.npz"))
+    both = subprocess.run(run + ["--out-dir", str(tmp_path / "o2"), "--grid", "8", "8"], capture_output=True,
+                          text=True, env=env, timeout=300)
+    assert both.returncode == 0, both.stderr[-2000:]
+    assert both.stderr.count("sit exactly at the maximum") == 2, both.stderr[-3000:]
