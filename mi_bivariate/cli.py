@@ -1,8 +1,8 @@
 """The ``mi-bivariate`` command.
 
 Subcommands: ``info``, ``render``, ``reduce``, ``learn-prior``, ``recover``,
-``recover-batch``, ``demo``, ``evaluate``. Every one has ``--help``. Problems with the user's input end in a
-single line ``mi-bivariate: error: FILE: problem`` and exit status 2.
+``recover-batch``, ``demo``, ``evaluate``. Every one has ``--help``. Problems with the
+user's input end in a single line ``mi-bivariate: error: FILE: problem`` and exit status 2.
 """
 
 from __future__ import annotations
@@ -252,10 +252,10 @@ def main(argv: Optional[Sequence[str]] = None, *, own_process: bool = False) -> 
     pipeline imports then lives until the process ends, so it is frozen out of Python's cyclic
     garbage collector once loaded (:func:`gc.freeze`): each full collection, during the run and
     several times while the interpreter shuts down, would otherwise walk those ~7 x 10^4 objects
-    (~40 ms each time) (measured on ``recover --no-report``: 2.52 -> 2.20 s median of 10 fresh processes
-    alternating with the code before, 2 cores; ``benchmarks/ab_revision.py REV --stages
-    end-to-end``). Tests and notebooks calling :func:`main` keep the default, which leaves the
-    collector as it is.
+    (~40 ms each time). Measured on ``recover --no-report``, 10 fresh processes per side alternating
+    with the code before (``benchmarks/ab_revision.py REV --stages end-to-end,solve``, 2 cores):
+    2.30 -> 2.03 s median, with the unchanged solve as control at 1.07x, so a gain of ~6-13%.
+    Tests and notebooks calling :func:`main` keep the default, which leaves the collector as it is.
     """
     parser = build_parser()
     args = parser.parse_args(argv)

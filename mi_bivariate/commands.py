@@ -11,7 +11,6 @@ loads it only to run a command, so ``mi-bivariate --help`` stays fast.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import math
 import os
@@ -20,7 +19,7 @@ import sys
 import time
 import warnings
 from pathlib import Path
-from typing import Dict, Iterator, List, Optional, Sequence
+from typing import Dict, List, Optional, Sequence
 
 import drjit as dr
 import mitsuba as mi
@@ -38,7 +37,7 @@ from mi_bivariate.errors import InputError
 from mi_bivariate.images import load_image, load_mask
 from mi_bivariate.prior import Prior
 from mi_bivariate.sources import have_shared_data, load_brdf, load_probe
-from mi_bivariate.threads import blas_threads, solve_thread_limit
+from mi_bivariate.threads import blas_threads, jit_threads, solve_thread_limit
 from mi_bivariate.training_set import basis_path_for
 from mi_bivariate.variants import ensure_variant
 
@@ -236,21 +235,6 @@ def cmd_learn_prior(args: argparse.Namespace) -> int:
 
 # --------------------------------------------------------------------------- recover
 
-@contextlib.contextmanager
-def _jit_threads(n: Optional[int]) -> Iterator[None]:
-    """``--threads``: Dr.Jit's thread count inside the block (``None``: unchanged), restored after it, so that
-    :func:`mi_bivariate.cli.main` called in a process that goes on (tests, notebooks) leaves it as it was."""
-    if n is None:
-        yield
-        return
-    before = dr.thread_count()
-    dr.set_thread_count(n)
-    try:
-        yield
-    finally:
-        dr.set_thread_count(before)
-
-
 def _check_recover_args(args: argparse.Namespace) -> None:
     """The checks ``recover`` and ``recover-batch`` share, before anything is loaded."""
     if args.dirs is None:
@@ -281,7 +265,7 @@ def _recover_image(args: argparse.Namespace, image_path: str, probe, priors: tup
 
     Returns ``(Recovery, paths written)``. Raises InputError naming the user's files.
     """
-    args.source_names.update({"image": str(image_path), "lighting matrix L": str(args.probe)})
+    args.source_names["image"] = str(image_path)  # "lighting matrix L": the command set it
     image = load_image(image_path)
     mask = load_mask(args.mask, image.shape) if args.mask else None
     sphere = None if args.sphere in (None, "auto") else args.sphere
@@ -311,9 +295,9 @@ def cmd_recover(args: argparse.Namespace) -> int:
     _check_out_file(args.out)
     outputs = rec.output_paths(args.out, merl=args.merl, report=not args.no_report)
     check_outputs(outputs, _existing_files(args.image, args.probe, args.mask, args.prior))
-    args.source_names.update({"image": str(args.image), "lighting matrix L": str(args.probe)})
+    args.source_names["lighting matrix L"] = str(args.probe)
     ensure_variant(args.variant)
-    with _jit_threads(args.threads):
+    with jit_threads(args.threads):
         probe = load_probe(args.probe, args.data)
         result, paths = _recover_image(args, args.image, probe, _recover_priors(args), Path(args.out))
     print(result.summary())
@@ -343,10 +327,10 @@ def cmd_recover_batch(args: argparse.Namespace) -> int:
         first_of[out] = image
     outputs = [p for out in outs for p in rec.output_paths(out, merl=args.merl, report=not args.no_report)]
     check_outputs(outputs, _existing_files(*args.images, args.probe, args.mask, args.prior), flag="--out-dir")
-    args.source_names.update({"lighting matrix L": str(args.probe)})
+    args.source_names["lighting matrix L"] = str(args.probe)
     ensure_variant(args.variant)
     failed: List[str] = []
-    with _jit_threads(args.threads):
+    with jit_threads(args.threads):
         probe = load_probe(args.probe, args.data)
         priors = _recover_priors(args)
         for k, (image, out) in enumerate(zip(args.images, outs), 1):

@@ -28,6 +28,8 @@ import os
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any, Callable, Iterable, Iterator, List, Optional, TypeVar
 
+import drjit as dr
+
 #: BLAS threads inside :func:`blas_threads` when neither the argument nor the environment says.
 DEFAULT_BLAS_THREADS = 1
 #: Environment variable overriding :data:`DEFAULT_BLAS_THREADS`.
@@ -102,6 +104,22 @@ def with_blas_threads(func: F) -> F:
             return func(*args, **kwargs)
 
     return wrapper  # type: ignore[return-value]
+
+
+@contextlib.contextmanager
+def jit_threads(n: Optional[int]) -> Iterator[None]:
+    """Dr.Jit's thread count ``n`` inside the block (``None``: unchanged), restored after it (the CLI's
+    ``--threads``), so that a command run in a process that goes on (tests, notebooks) leaves it as it
+    was: left at 1, the next ``mi.Bitmap`` EXR write in that process never returns."""
+    if n is None:
+        yield
+        return
+    before = dr.thread_count()
+    dr.set_thread_count(n)
+    try:
+        yield
+    finally:
+        dr.set_thread_count(before)
 
 
 _solve_limit: Optional[int] = None
