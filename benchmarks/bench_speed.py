@@ -15,7 +15,10 @@ One table, every row with its peer measured in the same process run:
   ``"uniform"`` (the paper's mirrored lattice) against the numpy reference of
   ``tests/reference_lighting.py`` (the same quadrature, timed on a subset of rows and
   extrapolated, with the largest difference), and the default ``"mis"`` against the same
-  reference (a different quadrature of the same integral: its time only);
+  reference (a different quadrature of the same integral: its time only), and also against the
+  reference at K = 32000, the default before MIS (issue 10 measured 67x against it): 4x the
+  directions and still less accurate than MIS at 8000 (``env_pool.py --compare sampling``:
+  pixel quadrature error 5-23% on sharp materials against 0.2-0.3%);
 - the normal equations (3 channels, ``solve.prepare_data_term``: by row blocks over the st nodes
   they touch, :func:`lighting.gram.weighted_gram`) against the dense route of solver v2;
 - the solve as ``recover`` runs it (two stages with the
@@ -176,6 +179,10 @@ def pipeline_import_time(repeats: int = 3) -> float:
                                                   text=True).stdout) for _ in range(repeats))
 
 
+#: K of the uniform lattice before MIS became the default (the issue's own measurement).
+OLD_DEFAULT_DIRS = 32000
+
+
 def lighting_peer(obs, probe, rows: int) -> Dict[str, float]:
     """Both samplings (median of 3 each) and the numpy reference (uniform quadrature) on ``rows`` rows."""
     from reference_lighting import lighting_matrix_reference
@@ -192,6 +199,8 @@ def lighting_peer(obs, probe, rows: int) -> Dict[str, float]:
     t_ref, ref = timed(lambda: lighting_matrix_reference(obs, probe, n_dirs=lighting.DEFAULT_DIRS, rows=idx))
     out.update(reference=t_ref * m / rows, rows=rows,
                agreement=float(np.abs(out["L_uniform"][idx] - ref).max() / np.abs(ref).max()))
+    t_old, _ = timed(lambda: lighting_matrix_reference(obs, probe, n_dirs=OLD_DEFAULT_DIRS, rows=idx))
+    out["reference_old_default"] = t_old * m / rows
     return out
 
 
@@ -345,6 +354,10 @@ def peers(args: argparse.Namespace) -> None:
         rows.append(("lighting matrix, MIS (the default)", lit["mis"], lit["mis_cpu"],
                      "numpy reference (uniform quadrature)", lit["reference"], "<= 0.8 s, >= 80x",
                      "3 strategies, balance heuristic: ~2x the work per direction of the uniform lattice"))
+        rows.append(("lighting matrix, MIS (the default)", lit["mis"], lit["mis_cpu"],
+                     f"numpy reference, uniform K {OLD_DEFAULT_DIRS} (the default before MIS)",
+                     lit["reference_old_default"], "<= 0.8 s, >= 80x",
+                     "4x the directions, less accurate (env_pool.py --compare sampling); on the same rows"))
         L = lit["L_mis"]
         sol = solve_peer(L, obs.values)
         rows.append(("normal equations (3 channels, `solve.prepare_data_term`: row blocks, touched nodes)",

@@ -3,7 +3,12 @@ the environment-density proxy (issue 10).
 
     MI_BIVARIATE_DATA=../shared/data OPENBLAS_NUM_THREADS=1 python benchmarks/env_pool.py \\
         --materials gold-metallic-paint3,tungsten-carbide,red-phenolic,white-paint,alum-bronze,black-fabric \\
-        [--compare pool|density]
+        [--compare pool|density|sampling]
+
+``--compare sampling``: the paper's uniform mirrored lattice at K = 32000 (the default before MIS,
+and what ``tests/reference_lighting.py``, the numpy reference of ``bench_speed.py``, computes)
+against the default, MIS at K = 8000; the same protocol, columns "uniform 32000" and "MIS 8000".
+It says whether the numpy reference at K = 32000 is a peer of at most the default's accuracy.
 
 ``--compare density`` (the second shortcut): the balance heuristic reads the environment's density
 as ``luminance(E) / Z`` from the radiance each lane looks up (``lighting.mis._mis_lanes``) instead
@@ -73,7 +78,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--materials", default="gold-metallic-paint3,tungsten-carbide,red-phenolic,white-paint")
     parser.add_argument("--normals", type=int, default=1000)
-    parser.add_argument("--compare", choices=("pool", "density"), default="pool")
+    parser.add_argument("--compare", choices=("pool", "density", "sampling"), default="pool")
     args = parser.parse_args()
     ensure_variant()
     obs, grace = sphere_rows(args.normals)
@@ -82,6 +87,10 @@ def main() -> None:
     if args.compare == "pool":
         by_seed = {"per row": [per_row_matrix(obs, grace, K, s) for s in seeds],
                    "pooled": [lighting.lighting_matrix(obs, grace, n_dirs=K, seed=s) for s in seeds]}
+    elif args.compare == "sampling":
+        by_seed = {"uniform 32000": [lighting.lighting_matrix(obs, grace, n_dirs=32000, seed=s, sampling="uniform")
+                                     for s in seeds],
+                   "MIS 8000": [lighting.lighting_matrix(obs, grace, n_dirs=K, seed=s) for s in seeds]}
     else:
         by_seed = {"exact": [pooled_matrix(obs, grace, K, s, "exact") for s in seeds],
                    "proxy": [pooled_matrix(obs, grace, K, s, "proxy") for s in seeds]}

@@ -23,17 +23,28 @@ sphere matches the input image:
 The plugin's table gradients under ``prb`` with table importance sampling
 are checked against central finite differences in ``tests/test_gradients.py``.
 
-Errors are measured as in the evaluation: the relative RMSE of a render under
-a novel probe against the 3D truth rendered the same way (same resolution,
-spp and seed), and the BRDF errors of :class:`mi_bivariate.metrics.BRDFErrors`.
-The clock stops while errors are measured.
+The linear route is measured at the configuration's sizes and on a ladder
+of cheaper ones (:data:`LINEAR_LADDER`: fractions of the configuration's
+sampled normals ``M`` and lighting directions ``K``, the same for every
+material), so that both routes have a curve of error against wall time and
+"time to equal error" means, for each route, the least time at which it
+reached that error (:func:`time_to_error`).
+
+The input is path traced (the config's resolution and spp: a photo's noise and
+pixel footprint, the forward model analysis by synthesis itself uses). Errors are
+scored as the evaluation scores them: the relative RMSE of a render under a
+novel probe by the evaluation's renderer (by default the converged quadrature of
+:mod:`mi_bivariate.reference`, ~0.1% noise, measured and returned) against the
+3D truth rendered the same way, beside the exact reduction's (the relight
+floor), and the BRDF errors of :class:`mi_bivariate.metrics.BRDFErrors`. The
+clock stops while errors are measured.
 """
 
 from __future__ import annotations
 
 import time
 from dataclasses import asdict, dataclass
-from typing import Any, Callable, Dict, List, Optional
+from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 import drjit as dr
 import mitsuba as mi
@@ -43,10 +54,21 @@ from mi_bivariate import metrics, render
 from mi_bivariate.bivariate import BivariateBRDF
 from mi_bivariate.common import PathLike
 from mi_bivariate.evaluate.config import EvalConfig
+from mi_bivariate.evaluate.renders import Renderer, Shot
 from mi_bivariate.geometry import SphereCamera
 from mi_bivariate.recover import recover
 from mi_bivariate.sources import MaterialSpec, load_probe, load_truth, probe_label, resolve_materials
 from mi_bivariate.variants import ensure_variant
+
+#: Cheaper linear routes measured beside the configuration's: fractions of its
+#: ``(n_normals, n_dirs)`` (fixed in advance, the same for every material).
+LINEAR_LADDER: Tuple[float, ...] = (1 / 8, 1 / 4, 1 / 2)
+
+#: Smallest ``n_normals`` / ``n_dirs`` of a ladder rung.
+LADDER_MIN = 250
+
+#: Timed stages of the linear route (:attr:`mi_bivariate.recover.Recovery.timings`).
+LINEAR_STAGES = ("observations", "lighting matrix", "adequacy", "normal equations", "solve")
 
 
 @dataclass(frozen=True)
@@ -167,12 +189,51 @@ def optimise_table(image: np.ndarray, mask: np.ndarray, probe: Any, start: np.nd
     return {"iterations": it, "time_s": clock, "losses": losses, "table": table_now()}
 
 
-def relight_error(table_or_brdf: Any, probe: Any, reference: Any, spp: int, seed: int) -> float:
-    """Relative RMSE of a render of ``table_or_brdf`` under ``probe`` against ``reference`` (a SphereRender)."""
+def time_to_error(points: Sequence[dict], target: float) -> Optional[dict]:
+    """The fastest of ``points`` whose ``"relight"`` error is at most ``target``.
+
+    Args:
+        points: dicts with ``"time_s"`` (s) and ``"relight"`` (relative RMSE).
+        target: the error to reach.
+
+    Returns:
+        That point, or ``None`` when none reaches ``target``.
+    """
+    reached = [p for p in points if p["relight"] <= target]
+    return min(reached, key=lambda p: p["time_s"]) if reached else None
+
+
+def ladder_sizes(n_normals: int, n_dirs: int, fractions: Sequence[float] = LINEAR_LADDER) -> List[Tuple[int, int]]:
+    """The ladder's ``(n_normals, n_dirs)`` rungs below ``(n_normals, n_dirs)``, smallest first.
+
+    Each rung is ``fraction`` x both sizes, at least :data:`LADDER_MIN`;
+    rungs equal to each other or to the configuration itself are dropped.
+    """
+    rungs = {(max(LADDER_MIN, round(n_normals * f)), max(LADDER_MIN, round(n_dirs * f))) for f in fractions}
+    rungs.discard((n_normals, n_dirs))
+    return sorted(r for r in rungs if r[0] <= n_normals and r[1] <= n_dirs)
+
+
+def relight_error(table_or_brdf: Any, renderer: Renderer, probe: Any, probe_spec: str, truth: Shot,
+                  seed: int) -> float:
+    """Relative RMSE of ``table_or_brdf`` (an ``(n_t, n_s, 3)`` table or a BRDF) rendered under
+    ``probe`` by the evaluation's ``renderer`` at ``truth``'s resolution, against ``truth``."""
+    return metrics.image_relative_rmse(relit(table_or_brdf, renderer, probe, probe_spec, truth, seed),
+                                       truth.image, truth.mask)
+
+
+def render_noise(table_or_brdf: Any, renderer: Renderer, probe: Any, probe_spec: str, truth: Shot,
+                 seeds: Tuple[int, int]) -> float:
+    """One render's own noise: the relative RMSE between renders of ``table_or_brdf`` at the two
+    ``seeds`` (``truth``'s resolution and mask), over sqrt 2."""
+    a, b = (relit(table_or_brdf, renderer, probe, probe_spec, truth, seed) for seed in seeds)
+    return metrics.image_relative_rmse(a, b, truth.mask) / np.sqrt(2.0)
+
+
+def relit(table_or_brdf: Any, renderer: Renderer, probe: Any, probe_spec: str, truth: Shot, seed: int) -> np.ndarray:
+    """``table_or_brdf`` rendered under ``probe`` as ``truth`` was: ``(H, W, 3) float32``."""
     brdf = bivariate_brdf(table_or_brdf) if isinstance(table_or_brdf, np.ndarray) else table_or_brdf
-    img = render.render_sphere(render.bsdf_dict(brdf), probe, resolution=reference.image.shape[0], spp=spp,
-                               seed=seed).image
-    return metrics.image_relative_rmse(img, reference.image, reference.mask)
+    return renderer.render(brdf, probe, probe_spec, truth.image.shape[0], seed, renderer.cfg.novel_spp).image
 
 
 def analysis_by_synthesis(material: Any, input_probe: str = "grace_latlong_1k", config: Any = None,
@@ -180,23 +241,36 @@ def analysis_by_synthesis(material: Any, input_probe: str = "grace_latlong_1k", 
                           spp: Optional[int] = None, learning_rate: Optional[float] = None,
                           eval_every: int = 10, max_iterations: int = 100000,
                           novel_probe: str = "pisa_256", settings: Optional[SynthesisSettings] = None,
-                          budget_s: Optional[float] = None) -> dict:
+                          budget_s: Optional[float] = None,
+                          linear_ladder: Sequence[float] = LINEAR_LADDER, ladder_repeats: int = 3) -> dict:
     """The linear solve and analysis by synthesis on the same image, errors against wall time.
 
-    The input image is rendered and the table recovered exactly as in
-    :func:`mi_bivariate.evaluate.evaluate_material` (config resolution, spp,
-    normals, directions, grid, seed). Then :func:`optimise_table` starts from
+    The input image is path traced (config resolution, spp and seed) and the
+    table recovered with the config's normals, directions, grid and alpha. Then :func:`optimise_table` starts from
     the Lambertian fit and runs for ``budget_s`` (default ``time_factor`` x
     the linear route's time: observations + lighting matrix + adequacy +
     solve). Every ``eval_every`` iterations the table's relight error under
     ``novel_probe`` and its BRDF errors are measured (clock paused).
 
+    The linear route is also run at the cheaper sizes of
+    :func:`ladder_sizes` (``linear_ladder``: fractions of ``config.n_normals``
+    and ``config.n_dirs``; ``()`` for none), each timed ``ladder_repeats``
+    times (median), and relit the same way.
+
     Returns:
-        A JSON-friendly dict: ``linear`` (time, BRDF errors, ``relight``),
-        ``abs`` (iterations, time, settings, best and final errors, when the
-        linear errors were first reached), ``speedup`` (AbS time to its best
-        relight error / the linear route's time, when the linear route is at
-        least as good) and ``trace``.
+        A JSON-friendly dict: ``linear`` (time, BRDF errors, ``relight``, at
+        the configuration's sizes), ``linear_ladder`` (per rung:
+        ``n_normals``, ``n_dirs``, median ``time_s``, ``times_s``,
+        ``relight``), ``relight_floor`` (the exact reduction's relight
+        error), ``relight_noise`` (one render's own relative RMS noise,
+        :func:`render_noise`, of the truth and of the linear table),
+        ``scoring`` (the renderer's settings), ``abs``
+        (iterations, time, settings, best and final
+        errors, when the linear errors were first reached), ``speedup`` (AbS
+        time to its best relight error / the linear route's time at the
+        configuration's sizes, when that is at least as good),
+        ``ladder_speedup`` (the same over the fastest linear run, ladder
+        included, that reaches AbS's best) and ``trace``.
     """
     ensure_variant()
     config = config or EvalConfig()
@@ -208,24 +282,45 @@ def analysis_by_synthesis(material: Any, input_probe: str = "grace_latlong_1k", 
     truth = load_truth(spec, data_dir)
     probe = load_probe(input_probe, data_dir, cache=True)
     novel = load_probe(novel_probe, data_dir, cache=True)
-    res = config.resolution
-    truth_bsdf = render.bsdf_dict(truth)
-    shot = render.render_sphere(truth_bsdf, probe, resolution=res, spp=config.spp, seed=config.seed)
+    shot = render.render_sphere(render.bsdf_dict(truth), probe, resolution=config.resolution, spp=config.spp,
+                                seed=config.seed)
+    # Scored as the evaluation scores (its renderer: by default the converged quadrature of
+    # mi_bivariate.reference), at its novel resolution and first novel seed.
+    renderer = Renderer(config, spec, cache_dir=None)
     relight_seed = config.seed + 1
-    truth_novel = render.render_sphere(truth_bsdf, novel, resolution=res, spp=config.novel_spp, seed=relight_seed)
+    truth_novel = renderer.render(truth, novel, novel_probe, config.novel_resolution, relight_seed, config.novel_spp)
+
+    def relight(table_or_brdf: Any) -> float:
+        return relight_error(table_or_brdf, renderer, novel, novel_probe, truth_novel, relight_seed)
+
+    n_t, n_s = config.grid
+    relight_floor = relight(BivariateBRDF.reduce(truth, n_t=n_t, n_s=n_s))
 
     rec = recover(shot.image, probe, shot.geometry, n_normals=config.n_normals, n_dirs=config.n_dirs,
                   grid=config.grid, alpha=config.alpha, seed=config.seed, keep_inputs=False)
-    linear_s = sum(rec.timings.get(k, 0.0)
-                   for k in ("observations", "lighting matrix", "adequacy", "normal equations", "solve"))
+    linear_s = sum(rec.timings.get(k, 0.0) for k in LINEAR_STAGES)
     brdf_errors = metrics.BRDFErrors(truth)
     linear_errors = {k: v for k, v in brdf_errors(rec.brdf).items() if k != "eq1_rgb"}
-    linear_relight = relight_error(rec.brdf, novel, truth_novel, config.novel_spp, relight_seed)
+    linear_relight = relight(rec.brdf)
+    # The relight error's own noise: the truth's render and a table's (the linear one), each at two other seeds.
+    noise_seeds = (relight_seed + 101, relight_seed + 102)
+    relight_noise = {name: render_noise(x, renderer, novel, novel_probe, truth_novel, noise_seeds)
+                     for name, x in (("truth", truth), ("linear_table", rec.brdf))}
 
-    n_t, n_s = config.grid
     lam = lambertian_start(rec.lighting_matrix, rec.observations.values)
     start = np.broadcast_to(np.maximum(lam, 1e-4), (n_t, n_s, 3)).astype(np.float32)
     del rec
+
+    ladder: List[dict] = []
+    for m, k in ladder_sizes(config.n_normals, config.n_dirs, linear_ladder):
+        times = []
+        for _ in range(max(1, ladder_repeats)):
+            rung = recover(shot.image, probe, shot.geometry, n_normals=m, n_dirs=k, grid=config.grid,
+                           alpha=config.alpha, seed=config.seed, keep_inputs=False)
+            times.append(sum(rung.timings.get(stage, 0.0) for stage in LINEAR_STAGES))
+        ladder.append({"n_normals": m, "n_dirs": k, "time_s": float(np.median(times)), "times_s": times,
+                       "relight": relight(rung.brdf)})
+        del rung
 
     trace: List[dict] = []
 
@@ -233,12 +328,12 @@ def analysis_by_synthesis(material: Any, input_probe: str = "grace_latlong_1k", 
         brdf = bivariate_brdf(table)
         e = brdf_errors(brdf)
         trace.append({"iteration": it, "time_s": clock, "loss": loss,
-                      "relight": relight_error(brdf, novel, truth_novel, config.novel_spp, relight_seed),
+                      "relight": relight(brdf),
                       **{k: e[k] for k in ("eq1", "eq1_min", "log", "cosine")}})
         return False
 
     budget = float(budget_s) if budget_s is not None else time_factor * linear_s
-    start_relight = relight_error(start, novel, truth_novel, config.novel_spp, relight_seed)
+    start_relight = relight(start)
     e0 = brdf_errors(bivariate_brdf(start))
     trace.append({"iteration": 0, "time_s": 0.0, "loss": None, "relight": start_relight,
                   **{k: e0[k] for k in ("eq1", "eq1_min", "log", "cosine")}})
@@ -251,10 +346,20 @@ def analysis_by_synthesis(material: Any, input_probe: str = "grace_latlong_1k", 
     reached_log = first("log", linear_errors["log"])
     reached_relight = first("relight", linear_relight)
     speedup = best["time_s"] / linear_s if linear_relight <= best["relight"] and linear_s > 0 else None
+    linear_points = ladder + [{"n_normals": config.n_normals, "n_dirs": config.n_dirs, "time_s": linear_s,
+                               "relight": linear_relight}]
+    fastest = time_to_error(linear_points, best["relight"])
     last = trace[-1]
     return {"material": spec.label, "input_probe": probe_label(input_probe), "novel_probe": probe_label(novel_probe),
             "config_hash": config.hash(),
-            "linear": {"time_s": linear_s, "relight": linear_relight, **linear_errors},
+            "linear": {"time_s": linear_s, "relight": linear_relight, "n_normals": config.n_normals,
+                       "n_dirs": config.n_dirs, **linear_errors},
+            "linear_ladder": ladder,
+            "relight_floor": relight_floor,
+            "relight_noise": relight_noise,
+            "scoring": {"renderer": config.renderer, "resolution": config.novel_resolution,
+                        **({"directions": list(config.reference_directions)} if config.renderer == "reference"
+                           else {"spp": config.novel_spp})},
             "abs": {"iterations": run["iterations"], "time_s": run["time_s"], "budget_s": budget,
                     "settings": {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(settings).items()},
                     "spp": settings.spp, "learning_rate": settings.learning_rate,
@@ -268,6 +373,8 @@ def analysis_by_synthesis(material: Any, input_probe: str = "grace_latlong_1k", 
                     "loss_last": float(np.mean(run["losses"][-10:])) if run["losses"] else None,
                     "final": {k: last.get(k) for k in ("eq1", "eq1_min", "log", "cosine", "relight")}},
             "speedup": speedup,
+            "ladder_speedup": (best["time_s"] / fastest["time_s"] if fastest and fastest["time_s"] > 0 else None),
+            "linear_to_abs_best": fastest,
             "trace": trace}
 
 

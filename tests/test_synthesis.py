@@ -40,3 +40,50 @@ def test_adam_through_prb_recovers_a_scaled_table():
     # Seeded; the backward pass accumulates table gradients with atomic adds over threads, so
     # the sums are reproducible to float32 rounding, not bit for bit.
     np.testing.assert_allclose(again["table"], run["table"], rtol=1e-3)
+
+
+def test_time_to_error_picks_the_fastest_run_that_reaches_the_error():
+    points = [{"time_s": 0.3, "relight": 0.20}, {"time_s": 0.5, "relight": 0.10},
+              {"time_s": 1.0, "relight": 0.06}, {"time_s": 0.4, "relight": 0.12}]
+    assert synthesis.time_to_error(points, 0.12)["time_s"] == 0.4   # reached exactly counts
+    assert synthesis.time_to_error(points, 0.11)["time_s"] == 0.5
+    assert synthesis.time_to_error(points, 0.2)["time_s"] == 0.3
+    assert synthesis.time_to_error(points, 0.05) is None
+    assert synthesis.time_to_error([], 1.0) is None
+
+
+def test_ladder_sizes_are_cheaper_than_the_configuration_and_fixed_fractions_of_it():
+    assert synthesis.ladder_sizes(8000, 8000) == [(1000, 1000), (2000, 2000), (4000, 4000)]
+    # The evaluation's quick config: rungs are floored at LADDER_MIN and never above the config.
+    assert synthesis.ladder_sizes(1000, 3000) == [(250, 375), (250, 750), (500, 1500)]
+    assert synthesis.ladder_sizes(250, 250) == []
+    assert synthesis.ladder_sizes(8000, 8000, ()) == []
+    for m, k in synthesis.ladder_sizes(300, 20000):
+        assert m <= 300 and k <= 20000
+
+
+def test_relight_error_scores_with_the_evaluations_renderer_against_closed_forms():
+    """White furnace: a Lambertian table rho / pi under a constant probe of radiance 1 renders as
+    exactly rho at every pixel, so twice the table is 100% off and the truth itself 0%; the
+    converged renderer's own noise is far below the errors it scores (path tracing at these spp is not)."""
+    from mi_bivariate.evaluate.config import EvalConfig
+    from mi_bivariate.evaluate.renders import Renderer
+    from mi_bivariate.sources import MaterialSpec
+    from mi_bivariate.variants import ensure_variant
+
+    ensure_variant()
+    config = EvalConfig.quick(shared_data=False)
+    renderer = Renderer(config, MaterialSpec("furnace", "analytic", "lambert"), cache_dir=None)
+    probe = Probe.constant(1.0, 16)
+    rho = np.array([0.5, 0.3, 0.2])
+    table = np.broadcast_to(rho / np.pi, (6, 6, 3)).astype(np.float32)
+    truth = renderer.render(BivariateBRDF(table), probe, "constant", 24, 1, config.novel_spp)
+    pixels = truth.image[truth.mask]                      # the quick config's few directions: ~0.1% per pixel
+    np.testing.assert_allclose(pixels, np.broadcast_to(rho, pixels.shape), rtol=1e-2)
+    np.testing.assert_allclose(pixels.mean(axis=0), rho, rtol=1e-3)
+    assert synthesis.relight_error(table, renderer, probe, "constant", truth, 1) < 1e-6
+    assert abs(synthesis.relight_error(2.0 * table, renderer, probe, "constant", truth, 1) - 1.0) < 1e-3
+    noise = synthesis.render_noise(table, renderer, probe, "constant", truth, (5, 6))
+    assert noise < 2e-3
+    path = Renderer(EvalConfig.quick(shared_data=False, renderer="path"), MaterialSpec("f", "analytic", "l"), None)
+    assert synthesis.render_noise(table, path, probe, "constant", truth, (5, 6)) > 5 * noise
