@@ -416,8 +416,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
                                                      data_dir=data, time_factor=args.abs_time_factor)
             ev.append_record(out, result)
             a, lin = result["abs"], result["linear"]
-            print(f"analysis by synthesis, {record['material']}: linear solve Eq. 1 {lin['eq1']:.4g} in "
-                  f"{lin['time_s']:.1f} s; Adam+prb {a['final']['eq1']:.4g} after {a['time_s']:.1f} s "
+            print(f"analysis by synthesis, {record['material']}: linear solve Eq. 1 {lin['eq1']:.4g}, relight "
+                  f"{lin['relight']:.4g} (floor {result['relight_floor']:.4g}) in {lin['time_s']:.1f} s; Adam+prb "
+                  f"Eq. 1 {a['final']['eq1']:.4g}, best relight {a['best_relight']:.4g} after {a['time_s']:.1f} s "
                   f"({a['iterations']} iterations){' (reached)' if a['reached_linear_eq1'] else ''}")
     print(f"results: {Path(args.out) / ev.RESULTS_FILE}, {Path(args.out) / ev.SUMMARY_FILE}"
           + ("" if args.no_figures else f", figures in {Path(args.out) / 'figures'}"))

@@ -224,3 +224,25 @@ def test_bad_material_is_one_line_error(tmp_path, capsys):
     assert main(["evaluate", "no-such-material", "--out", str(tmp_path), *TINY_ARGS]) == 2
     err = capsys.readouterr().err
     assert err.startswith("mi-bivariate: error: no-such-material") and len(err.strip().splitlines()) == 1
+
+
+def test_evaluate_abs_records_both_routes_scored_by_the_converged_renderer(tmp_path, capsys):
+    """``evaluate --abs``: the analysis-by-synthesis record has the linear route's ladder, the relight
+    floor and the scoring renders' own noise. A Lambertian material is exactly bivariate, so its
+    exact reduction relights to the renderer's noise, and the ladder's rungs are cheaper than the config."""
+    out = tmp_path / "abs"
+    assert main(["evaluate", MATERIALS[0], "--out", str(out), *TINY_ARGS, "--abs", "1",
+                 "--abs-time-factor", "2"]) == 0
+    assert "analysis by synthesis" in capsys.readouterr().out
+    (r,) = [json.loads(line) for line in (out / "analysis_by_synthesis.jsonl").read_text().splitlines()]
+    assert r["scoring"]["renderer"] == "reference" and r["scoring"]["resolution"] == 16
+    assert max(r["relight_noise"].values()) < 5e-3
+    assert r["relight_floor"] < 0.01
+    assert 0 < r["linear"]["relight"] < 1 and 0 < r["abs"]["best_relight"] < 10
+    assert [(p["n_normals"], p["n_dirs"]) for p in r["linear_ladder"]] == [(250, 250), (250, 500)]
+    for p in r["linear_ladder"]:
+        assert len(p["times_s"]) == 3 and p["time_s"] == sorted(p["times_s"])[1] and np.isfinite(p["relight"])
+    fastest = r["linear_to_abs_best"]
+    if fastest is not None:
+        assert fastest["relight"] <= r["abs"]["best_relight"]
+        assert r["ladder_speedup"] == pytest.approx(r["abs"]["best_relight_time_s"] / fastest["time_s"])
