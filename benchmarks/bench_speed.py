@@ -18,7 +18,7 @@ One table, every row with its peer measured in the same process run:
   reference (a different quadrature of the same integral: its time only), and also against the
   reference at K = 32000, the default before MIS (issue 10 measured 67x against it): 4x the
   directions and still less accurate than MIS at 8000 (``env_pool.py --compare sampling``:
-  pixel quadrature error 5-23% on sharp materials against 0.2-0.3%);
+  pixel quadrature error 5-23% on sharp materials against 0.1-0.3%);
 - the normal equations (3 channels, ``solve.prepare_data_term``: by row blocks over the st nodes
   they touch, :func:`lighting.gram.weighted_gram`) against the dense route of solver v2;
 - the solve as ``recover`` runs it (two stages with the

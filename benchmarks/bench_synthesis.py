@@ -7,8 +7,9 @@ each: the linear route's own curve of error against time) and analysis by synthe
 (:func:`mi_bivariate.synthesis.analysis_by_synthesis`: Adam on log f through ``prb`` with table
 importance sampling, from the Lambertian fit) for ``--time-factor`` x the linear route's time.
 Every table is rendered under pisa_256 exactly as the 3D truth is, by the evaluation's renderer
-(the converged quadrature of ``mi_bivariate.reference``, 64 px; each render's own noise is
-measured at two other seeds and printed) and compared (relative RMSE, beside the exact
+(the converged quadrature of ``mi_bivariate.reference`` at its novel resolution, 64 px; the own
+noise of the truth's, the linear table's and AbS's best table's renders is measured at two other
+seeds and printed) and compared (relative RMSE, beside the exact
 reduction's: the relight floor); the clock stops while errors are measured. One setting of the
 optimiser for every material (chosen on gold-metallic-paint3's training loss).
 
@@ -26,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 from typing import List, Sequence
@@ -34,6 +36,7 @@ from _machine import machine as _machine  # benchmarks/_machine.py
 
 ROOT = Path(__file__).resolve().parents[1]
 MATERIALS = ("gold-metallic-paint3", "blue-acrylic", "red-phenolic")
+NOVEL = "pisa_256"
 
 
 def machine() -> str:
@@ -54,17 +57,22 @@ def ratio_row(r: dict) -> str:
     floor = f"{r['relight_floor']:.4f}" if "relight_floor" in r else "-"
     return (f"| {r['material']} | {lin['time_s']:.2f} | {lin['relight']:.4f} | {floor} | {a['start_relight']:.4f} | "
             f"{best:.4f} | {a['iterations']} | {a['time_s']:.1f} | {ratio} | {fastest_row(r)} | {equal} | "
-            f"{a['loss_first']:.3f} -> {a['loss_last']:.3f} |")
+            f"{loss(a['loss_first'])} -> {loss(a['loss_last'])} |")
+
+
+def loss(value) -> str:
+    return "-" if value is None else f"{value:.3f}"
 
 
 def fastest_row(r: dict) -> str:
     """The fastest linear run (ladder included) that reaches AbS's best relight error, as a table cell."""
-    if not r.get("linear_ladder"):
-        return "(no ladder)"
-    fastest = r.get("linear_to_abs_best")
+    if "linear_to_abs_best" not in r:
+        return "(not measured)"
+    fastest = r["linear_to_abs_best"]
     if fastest is None:
         return "AbS better"
-    return (f"{r['ladder_speedup']:.0f}x (M {fastest['n_normals']}, K {fastest['n_dirs']}: "
+    ratio = f"{r['ladder_speedup']:.0f}x" if r.get("ladder_speedup") is not None else "-"
+    return (f"{ratio} (M {fastest['n_normals']}, K {fastest['n_dirs']}: "
             f"{fastest['time_s']:.2f} s, {fastest['relight']:.4f})")
 
 
@@ -84,12 +92,11 @@ def plot(records: Sequence[dict], path: Path) -> None:
         lin = r["linear"]
         ladder = r.get("linear_ladder", [])
         if ladder:
-            ax.plot([p["time_s"] for p in ladder], [p["relight"] for p in ladder], "rs", ms=5, mfc="none",
-                    label="linear solve, 1/8, 1/4, 1/2 of M and K (median of 3)")
-            for p in ladder:
-                ax.annotate(f"{p['n_normals'] // 1000}k", (p["time_s"], p["relight"]), fontsize=6,
-                            xytext=(0, -9), textcoords="offset points", ha="center")
-        ax.plot([lin["time_s"]], [lin["relight"]], "r*", ms=12, label="linear solve (recover's defaults)")
+            top = max(p["n_normals"] for p in ladder)
+            for i, p in enumerate(sorted(ladder, key=lambda p: p["n_normals"])):
+                ax.plot([p["time_s"]], [p["relight"]], "rs", mfc="none", ms=4 + 3 * math.log2(top / p["n_normals"]),
+                        label="linear solve, 1/2, 1/4, 1/8 of M and K (larger: fewer)" if i == 0 else None)
+        ax.plot([lin["time_s"]], [lin["relight"]], "r*", ms=12, label=f"linear solve, M {lin.get('n_normals', 8000)}")
         ax.axhline(lin["relight"], color="r", lw=0.8, ls="--")
         if "relight_floor" in r:
             ax.axhline(r["relight_floor"], color="0.4", lw=0.8, ls=":", label="exact reduction (relight floor)")
@@ -99,12 +106,13 @@ def plot(records: Sequence[dict], path: Path) -> None:
         ax.set_ylabel(f"relight error under {r['novel_probe']} (rel. RMSE)")
         ax.set_title(r["material"], fontsize=10)
         ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=7)
+    handles, labels = axes[0][0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=len(labels), fontsize=8, frameon=False)
     scoring = records[0].get("scoring", {"renderer": "path"})
     how = ("converged quadrature (mi_bivariate.reference)" if scoring["renderer"] == "reference"
            else "path traced, same seed")
     fig.suptitle(f"input {records[0]['input_probe']}; truth and tables rendered alike: {how}", fontsize=9)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0.07, 1, 1))
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=110, format="png")
@@ -137,7 +145,7 @@ def main(argv: Sequence[str] = None) -> None:
         config = ev.EvalConfig.quick(shared_data=True) if args.quick else ev.EvalConfig()
         out.mkdir(parents=True, exist_ok=True)
         for material in args.materials:
-            r = synthesis.analysis_by_synthesis(material, "grace_latlong_1k", config=config,
+            r = synthesis.analysis_by_synthesis(material, "grace_latlong_1k", config=config, novel_probe=NOVEL,
                                                 time_factor=args.time_factor, budget_s=args.budget,
                                                 eval_every=args.eval_every)
             records.append(r)
@@ -147,11 +155,12 @@ def main(argv: Sequence[str] = None) -> None:
                   f"of {r['abs']['time_s']:.1f} s", flush=True)
             noise = r["relight_noise"]
             print(f"  relight floor (exact reduction) {r['relight_floor']:.4f}; one render's own noise (rel. RMS): "
-                  f"truth {noise['truth']:.5f}, linear table {noise['linear_table']:.5f}", flush=True)
-            for rung in r["linear_ladder"]:
+                  + ", ".join(f"{k.replace('_', ' ')} {v:.5f}" for k, v in noise.items()), flush=True)
+            for rung in r["linear_ladder"] + [r["linear"]]:
+                stages = ", ".join(f"{k} {v:.2f}" for k, v in rung["stages"].items())
                 print(f"  linear at M {rung['n_normals']}, K {rung['n_dirs']}: {rung['time_s']:.2f} s "
-                      f"(runs {', '.join(f'{t:.2f}' for t in rung['times_s'])}), relight {rung['relight']:.4f}",
-                      flush=True)
+                      f"(runs {', '.join(f'{t:.2f}' for t in rung['times_s'])}; medians: {stages}), "
+                      f"relight {rung['relight']:.4f}", flush=True)
         print(f"\nMachine after the run: {machine()}")
     print("\n| material | linear time (s) | linear relight | relight floor | AbS start relight | AbS best relight "
           "| AbS iterations | AbS time (s) | linear reaches AbS best | fastest linear run reaching AbS best "

@@ -56,7 +56,7 @@ from mi_bivariate.common import PathLike
 from mi_bivariate.evaluate.config import EvalConfig
 from mi_bivariate.evaluate.renders import Renderer, Shot
 from mi_bivariate.geometry import SphereCamera
-from mi_bivariate.recover import recover
+from mi_bivariate.recover import Recovery, recover
 from mi_bivariate.sources import MaterialSpec, load_probe, load_truth, probe_label, resolve_materials
 from mi_bivariate.variants import ensure_variant
 
@@ -214,6 +214,36 @@ def ladder_sizes(n_normals: int, n_dirs: int, fractions: Sequence[float] = LINEA
     return sorted(r for r in rungs if r[0] <= n_normals and r[1] <= n_dirs)
 
 
+def linear_run(shot: Any, probe: Any, config: EvalConfig, n_normals: int, n_dirs: int,
+               repeats: int) -> Tuple[Recovery, dict]:
+    """The linear route (:func:`~mi_bivariate.recover.recover`) at ``n_normals`` x ``n_dirs``, timed
+    ``repeats`` times in this process.
+
+    Returns:
+        The last :class:`~mi_bivariate.recover.Recovery` and a point: ``n_normals``, ``n_dirs``,
+        ``time_s`` (median over the runs of the :data:`LINEAR_STAGES` summed, s), ``times_s``,
+        ``stages`` (median of each stage, s).
+    """
+    runs: List[Dict[str, float]] = []
+    for _ in range(max(1, int(repeats))):
+        rec = recover(shot.image, probe, shot.geometry, n_normals=n_normals, n_dirs=n_dirs, grid=config.grid,
+                      alpha=config.alpha, seed=config.seed, keep_inputs=False)
+        runs.append({stage: float(rec.timings.get(stage, 0.0)) for stage in LINEAR_STAGES})
+    times = [sum(r.values()) for r in runs]
+    return rec, {"n_normals": int(n_normals), "n_dirs": int(n_dirs), "time_s": float(np.median(times)),
+                 "times_s": times, "stages": {k: float(np.median([r[k] for r in runs])) for k in LINEAR_STAGES}}
+
+
+def linear_reaches(points: Sequence[dict], best_relight: float,
+                   best_time_s: float) -> Tuple[Optional[dict], Optional[float]]:
+    """The fastest linear run at least as good as AbS's best relight error, and AbS's time to that
+    best over that run's time (``None``, ``None`` when no run reaches it)."""
+    fastest = time_to_error(points, best_relight)
+    if fastest is None or fastest["time_s"] <= 0:
+        return fastest, None
+    return fastest, best_time_s / fastest["time_s"]
+
+
 def relight_error(table_or_brdf: Any, renderer: Renderer, probe: Any, probe_spec: str, truth: Shot,
                   seed: int) -> float:
     """Relative RMSE of ``table_or_brdf`` (an ``(n_t, n_s, 3)`` table or a BRDF) rendered under
@@ -240,7 +270,7 @@ def analysis_by_synthesis(material: Any, input_probe: str = "grace_latlong_1k", 
                           data_dir: Optional[PathLike] = None, time_factor: float = 10.0,
                           spp: Optional[int] = None, learning_rate: Optional[float] = None,
                           eval_every: int = 10, max_iterations: int = 100000,
-                          novel_probe: str = "pisa_256", settings: Optional[SynthesisSettings] = None,
+                          novel_probe: Optional[str] = None, settings: Optional[SynthesisSettings] = None,
                           budget_s: Optional[float] = None,
                           linear_ladder: Sequence[float] = LINEAR_LADDER, ladder_repeats: int = 3) -> dict:
     """The linear solve and analysis by synthesis on the same image, errors against wall time.
@@ -252,18 +282,23 @@ def analysis_by_synthesis(material: Any, input_probe: str = "grace_latlong_1k", 
     solve). Every ``eval_every`` iterations the table's relight error under
     ``novel_probe`` and its BRDF errors are measured (clock paused).
 
-    The linear route is also run at the cheaper sizes of
+    ``novel_probe`` (default: the config's first novel probe) is rendered at
+    the seed the evaluation gives it (``config.seed + 1 + its index`` in
+    ``config.novel_probes``).
+
+    The linear route is timed after one warm-up run, ``ladder_repeats`` times
+    (median) at the config's sizes and at each of the cheaper sizes of
     :func:`ladder_sizes` (``linear_ladder``: fractions of ``config.n_normals``
-    and ``config.n_dirs``; ``()`` for none), each timed ``ladder_repeats``
-    times (median), and relit the same way.
+    and ``config.n_dirs``; ``()`` for none), all relit the same way. AbS's
+    clock includes its own first iteration (kernel compilation).
 
     Returns:
-        A JSON-friendly dict: ``linear`` (time, BRDF errors, ``relight``, at
-        the configuration's sizes), ``linear_ladder`` (per rung:
-        ``n_normals``, ``n_dirs``, median ``time_s``, ``times_s``,
-        ``relight``), ``relight_floor`` (the exact reduction's relight
-        error), ``relight_noise`` (one render's own relative RMS noise,
-        :func:`render_noise`, of the truth and of the linear table),
+        A JSON-friendly dict: ``linear`` (a :func:`linear_run` point with
+        the BRDF errors and ``relight``, at the configuration's sizes),
+        ``linear_ladder`` (the same per rung), ``relight_floor`` (the exact
+        reduction's relight error), ``relight_noise`` (one render's own
+        relative RMS noise, :func:`render_noise`, of the truth, the linear
+        table and AbS's best table),
         ``scoring`` (the renderer's settings), ``abs``
         (iterations, time, settings, best and final
         errors, when the linear errors were first reached), ``speedup`` (AbS
@@ -281,31 +316,36 @@ def analysis_by_synthesis(material: Any, input_probe: str = "grace_latlong_1k", 
     spec = material if isinstance(material, MaterialSpec) else resolve_materials([material], data_dir)[0]
     truth = load_truth(spec, data_dir)
     probe = load_probe(input_probe, data_dir, cache=True)
+    novel_probe = novel_probe or config.novel_probes[0]
     novel = load_probe(novel_probe, data_dir, cache=True)
     shot = render.render_sphere(render.bsdf_dict(truth), probe, resolution=config.resolution, spp=config.spp,
                                 seed=config.seed)
     # Scored as the evaluation scores (its renderer: by default the converged quadrature of
-    # mi_bivariate.reference), at its novel resolution and first novel seed.
+    # mi_bivariate.reference), at its novel resolution and the seed it gives this probe.
     renderer = Renderer(config, spec, cache_dir=None)
-    relight_seed = config.seed + 1
+    novels = list(config.novel_probes)
+    relight_seed = config.seed + 1 + (novels.index(novel_probe) if novel_probe in novels else 0)
     truth_novel = renderer.render(truth, novel, novel_probe, config.novel_resolution, relight_seed, config.novel_spp)
 
     def relight(table_or_brdf: Any) -> float:
         return relight_error(table_or_brdf, renderer, novel, novel_probe, truth_novel, relight_seed)
 
+    def noise(table_or_brdf: Any) -> float:
+        return render_noise(table_or_brdf, renderer, novel, novel_probe, truth_novel,
+                            (relight_seed + 101, relight_seed + 102))
+
     n_t, n_s = config.grid
     relight_floor = relight(BivariateBRDF.reduce(truth, n_t=n_t, n_s=n_s))
 
-    rec = recover(shot.image, probe, shot.geometry, n_normals=config.n_normals, n_dirs=config.n_dirs,
-                  grid=config.grid, alpha=config.alpha, seed=config.seed, keep_inputs=False)
-    linear_s = sum(rec.timings.get(k, 0.0) for k in LINEAR_STAGES)
+    # Every linear point is timed alike: after one warm-up run in this process, the median of
+    # ladder_repeats runs.
+    linear_run(shot, probe, config, config.n_normals, config.n_dirs, 1)
+    rec, linear = linear_run(shot, probe, config, config.n_normals, config.n_dirs, ladder_repeats)
+    linear_s = linear["time_s"]
     brdf_errors = metrics.BRDFErrors(truth)
     linear_errors = {k: v for k, v in brdf_errors(rec.brdf).items() if k != "eq1_rgb"}
     linear_relight = relight(rec.brdf)
-    # The relight error's own noise: the truth's render and a table's (the linear one), each at two other seeds.
-    noise_seeds = (relight_seed + 101, relight_seed + 102)
-    relight_noise = {name: render_noise(x, renderer, novel, novel_probe, truth_novel, noise_seeds)
-                     for name, x in (("truth", truth), ("linear_table", rec.brdf))}
+    relight_noise = {"truth": noise(truth), "linear_table": noise(rec.brdf)}
 
     lam = lambertian_start(rec.lighting_matrix, rec.observations.values)
     start = np.broadcast_to(np.maximum(lam, 1e-4), (n_t, n_s, 3)).astype(np.float32)
@@ -313,16 +353,12 @@ def analysis_by_synthesis(material: Any, input_probe: str = "grace_latlong_1k", 
 
     ladder: List[dict] = []
     for m, k in ladder_sizes(config.n_normals, config.n_dirs, linear_ladder):
-        times = []
-        for _ in range(max(1, ladder_repeats)):
-            rung = recover(shot.image, probe, shot.geometry, n_normals=m, n_dirs=k, grid=config.grid,
-                           alpha=config.alpha, seed=config.seed, keep_inputs=False)
-            times.append(sum(rung.timings.get(stage, 0.0) for stage in LINEAR_STAGES))
-        ladder.append({"n_normals": m, "n_dirs": k, "time_s": float(np.median(times)), "times_s": times,
-                       "relight": relight(rung.brdf)})
+        rung, point = linear_run(shot, probe, config, m, k, ladder_repeats)
+        ladder.append({**point, "relight": relight(rung.brdf)})
         del rung
 
     trace: List[dict] = []
+    best_table: Dict[str, Any] = {}
 
     def checkpoint(it: int, clock: float, loss: float, table: np.ndarray) -> bool:
         brdf = bivariate_brdf(table)
@@ -330,10 +366,13 @@ def analysis_by_synthesis(material: Any, input_probe: str = "grace_latlong_1k", 
         trace.append({"iteration": it, "time_s": clock, "loss": loss,
                       "relight": relight(brdf),
                       **{k: e[k] for k in ("eq1", "eq1_min", "log", "cosine")}})
+        if trace[-1]["relight"] < best_table.get("relight", np.inf):
+            best_table.update(relight=trace[-1]["relight"], table=np.array(table, copy=True))
         return False
 
     budget = float(budget_s) if budget_s is not None else time_factor * linear_s
     start_relight = relight(start)
+    best_table.update(relight=start_relight, table=start)
     e0 = brdf_errors(bivariate_brdf(start))
     trace.append({"iteration": 0, "time_s": 0.0, "loss": None, "relight": start_relight,
                   **{k: e0[k] for k in ("eq1", "eq1_min", "log", "cosine")}})
@@ -346,14 +385,13 @@ def analysis_by_synthesis(material: Any, input_probe: str = "grace_latlong_1k", 
     reached_log = first("log", linear_errors["log"])
     reached_relight = first("relight", linear_relight)
     speedup = best["time_s"] / linear_s if linear_relight <= best["relight"] and linear_s > 0 else None
-    linear_points = ladder + [{"n_normals": config.n_normals, "n_dirs": config.n_dirs, "time_s": linear_s,
-                               "relight": linear_relight}]
-    fastest = time_to_error(linear_points, best["relight"])
+    linear = {**linear, "relight": linear_relight}
+    fastest, ladder_speedup = linear_reaches(ladder + [linear], best["relight"], best["time_s"])
+    relight_noise["abs_best_table"] = noise(best_table["table"])
     last = trace[-1]
     return {"material": spec.label, "input_probe": probe_label(input_probe), "novel_probe": probe_label(novel_probe),
             "config_hash": config.hash(),
-            "linear": {"time_s": linear_s, "relight": linear_relight, "n_normals": config.n_normals,
-                       "n_dirs": config.n_dirs, **linear_errors},
+            "linear": {**linear, **linear_errors},
             "linear_ladder": ladder,
             "relight_floor": relight_floor,
             "relight_noise": relight_noise,
@@ -373,7 +411,7 @@ def analysis_by_synthesis(material: Any, input_probe: str = "grace_latlong_1k", 
                     "loss_last": float(np.mean(run["losses"][-10:])) if run["losses"] else None,
                     "final": {k: last.get(k) for k in ("eq1", "eq1_min", "log", "cosine", "relight")}},
             "speedup": speedup,
-            "ladder_speedup": (best["time_s"] / fastest["time_s"] if fastest and fastest["time_s"] > 0 else None),
+            "ladder_speedup": ladder_speedup,
             "linear_to_abs_best": fastest,
             "trace": trace}
 

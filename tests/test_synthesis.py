@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from mi_bivariate import render, synthesis
 from mi_bivariate.bivariate import BivariateBRDF
@@ -58,6 +59,7 @@ def test_ladder_sizes_are_cheaper_than_the_configuration_and_fixed_fractions_of_
     assert synthesis.ladder_sizes(1000, 3000) == [(250, 375), (250, 750), (500, 1500)]
     assert synthesis.ladder_sizes(250, 250) == []
     assert synthesis.ladder_sizes(8000, 8000, ()) == []
+    assert synthesis.ladder_sizes(100, 8000) == []        # LADDER_MIN normals would be more than the config's
     for m, k in synthesis.ladder_sizes(300, 20000):
         assert m <= 300 and k <= 20000
 
@@ -87,3 +89,38 @@ def test_relight_error_scores_with_the_evaluations_renderer_against_closed_forms
     assert noise < 2e-3
     path = Renderer(EvalConfig.quick(shared_data=False, renderer="path"), MaterialSpec("f", "analytic", "l"), None)
     assert synthesis.render_noise(table, path, probe, "constant", truth, (5, 6)) > 5 * noise
+
+
+def test_linear_reaches_takes_the_fastest_point_that_is_as_good_as_abs_best():
+    ladder = [{"time_s": 0.3, "relight": 0.09}, {"time_s": 0.4, "relight": 0.05}]
+    default = {"time_s": 1.0, "relight": 0.04}
+    assert synthesis.linear_reaches(ladder + [default], 0.1, 30.0) == (ladder[0], pytest.approx(100.0))
+    assert synthesis.linear_reaches(ladder + [default], 0.06, 30.0) == (ladder[1], pytest.approx(75.0))
+    # Only the default run is good enough: it is the one timed against AbS.
+    assert synthesis.linear_reaches(ladder + [default], 0.045, 30.0) == (default, pytest.approx(30.0))
+    assert synthesis.linear_reaches(ladder + [default], 0.01, 30.0) == (None, None)
+
+
+def test_scoring_ignores_pixels_outside_the_mask_and_its_noise_is_the_reference_renderers():
+    """Outside the mask (pixels the sphere only partly covers, the background) nothing is scored; the
+    noise is :func:`mi_bivariate.reference.quadrature_noise`'s, an independent implementation."""
+    from mi_bivariate import reference
+    from mi_bivariate.evaluate.config import EvalConfig
+    from mi_bivariate.evaluate.renders import Renderer, Shot
+    from mi_bivariate.sources import MaterialSpec
+    from mi_bivariate.variants import ensure_variant
+
+    ensure_variant()
+    config = EvalConfig.quick(shared_data=False)
+    renderer = Renderer(config, MaterialSpec("glossy", "analytic", "ggx"), cache_dir=None)
+    probe = Probe.constant([1.0, 0.8, 0.6], 16)
+    t, s = np.meshgrid(np.linspace(0, 1, 8), np.linspace(0, 1, 8), indexing="ij")
+    table = (np.exp(-8.0 * t)[..., None] * [2.0, 1.5, 1.0] + 0.1 * (1 + s[..., None])).astype(np.float32)
+    truth = renderer.render(BivariateBRDF(table), probe, "constant", 24, 1, config.novel_spp)
+    polluted = Shot(np.where(truth.mask[..., None], truth.image, 1e3).astype(np.float32), truth.mask, truth.geometry)
+    assert (~truth.mask).any()
+    assert synthesis.relight_error(table, renderer, probe, "constant", polluted, 1) < 1e-6
+    noise = synthesis.render_noise(table, renderer, probe, "constant", truth, (5, 6))
+    want = reference.quadrature_noise(BivariateBRDF(table), probe, resolution=24,
+                                      directions=config.reference_directions, seeds=(5, 6))["seed_rms"]
+    assert noise > 0 and noise == pytest.approx(want, rel=1e-6)
