@@ -265,4 +265,8 @@ def test_evaluate_abs_records_both_routes_scored_by_the_converged_renderer(tmp_p
         assert len(p["times_s"]) == 3 and p["time_s"] == sorted(p["times_s"])[1] and np.isfinite(p["relight"])
         assert p["time_s"] == pytest.approx(sum(p["stages"].values()), rel=0.5)
     fastest, speedup = synthesis.linear_reaches(points, r["abs"]["best_relight"], r["abs"]["best_relight_time_s"])
-    assert r["linear_to_abs_best"] == fastest and r["ladder_speedup"] == speedup
+    key = ("n_normals", "n_dirs", "time_s", "relight")    # the default point's record also has its BRDF errors
+    got = r["linear_to_abs_best"]
+    assert (got is None) == (fastest is None) and r["ladder_speedup"] == speedup
+    if fastest is not None:
+        assert {k: got[k] for k in key} == {k: fastest[k] for k in key}
