@@ -95,7 +95,7 @@ def plot(records: Sequence[dict], path: Path) -> None:
             top = max(p["n_normals"] for p in ladder)
             for i, p in enumerate(sorted(ladder, key=lambda p: p["n_normals"])):
                 ax.plot([p["time_s"]], [p["relight"]], "rs", mfc="none", ms=4 + 3 * math.log2(top / p["n_normals"]),
-                        label="linear solve, 1/2, 1/4, 1/8 of M and K (larger: fewer)" if i == 0 else None)
+                        label="linear solve, fewer normals M and directions K (larger: fewer)" if i == 0 else None)
         ax.plot([lin["time_s"]], [lin["relight"]], "r*", ms=12, label=f"linear solve, M {lin.get('n_normals', 8000)}")
         ax.axhline(lin["relight"], color="r", lw=0.8, ls="--")
         if "relight_floor" in r:

@@ -225,7 +225,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--abs", type=int, default=0, metavar="N",
                    help="also run analysis by synthesis (Adam + prb) on the first N materials")
     p.add_argument("--abs-time-factor", type=float, default=10.0,
-                   help="analysis by synthesis runs up to this many times the linear solve's time")
+                   help="analysis by synthesis runs up to this many times the linear solve's time (its kernel "
+                        "compilation included: with --quick's sizes the default gives it only a few iterations)")
     _add_variant(p)
     _add_data(p)
     

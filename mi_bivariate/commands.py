@@ -416,10 +416,17 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
                                                      data_dir=data, time_factor=args.abs_time_factor)
             ev.append_record(out, result)
             a, lin = result["abs"], result["linear"]
+            fastest, speedup = result["linear_to_abs_best"], result["ladder_speedup"]
+            reaches = ("; AbS never reached the linear relight error" if not a["reached_linear_relight"] else
+                       f"; AbS reached the linear relight error at {a['time_to_linear_relight_s']:.3g} s")
+            faster = (f"; the fastest linear run as good as AbS's best took {fastest['time_s']:.3g} s "
+                      f"(M {fastest['n_normals']}, K {fastest['n_dirs']}: {speedup:.0f}x faster)"
+                      if fastest is not None and speedup is not None else "")
             print(f"analysis by synthesis, {record['material']}: linear solve Eq. 1 {lin['eq1']:.4g}, relight "
-                  f"{lin['relight']:.4g} (floor {result['relight_floor']:.4g}) in {lin['time_s']:.1f} s; Adam+prb "
-                  f"Eq. 1 {a['final']['eq1']:.4g}, best relight {a['best_relight']:.4g} after {a['time_s']:.1f} s "
-                  f"({a['iterations']} iterations){' (reached)' if a['reached_linear_eq1'] else ''}")
+                  f"{lin['relight']:.4g} (floor {result['relight_floor']:.4g}) in {lin['time_s']:.3g} s; Adam+prb "
+                  f"Eq. 1 {a['final']['eq1']:.4g}, best relight {a['best_relight']:.4g} at "
+                  f"{a['best_relight_time_s']:.3g} s of {a['time_s']:.3g} s ({a['iterations']} iterations)"
+                  f"{reaches}{faster}")
     print(f"results: {Path(args.out) / ev.RESULTS_FILE}, {Path(args.out) / ev.SUMMARY_FILE}"
           + ("" if args.no_figures else f", figures in {Path(args.out) / 'figures'}"))
     return 0

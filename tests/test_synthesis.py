@@ -124,3 +124,52 @@ def test_scoring_ignores_pixels_outside_the_mask_and_its_noise_is_the_reference_
     want = reference.quadrature_noise(BivariateBRDF(table), probe, resolution=24,
                                       directions=config.reference_directions, seeds=(5, 6))["seed_rms"]
     assert noise > 0 and noise == pytest.approx(want, rel=1e-6)
+
+
+def test_analysis_by_synthesis_times_every_linear_point_alike_and_scores_at_the_evaluations_seed(monkeypatch):
+    """One warm-up run at the config's sizes, then 3 timed runs of it and of each ladder rung, the
+    medians of known stage times; the novel probe rendered at the seed the evaluation gives it
+    (the config's second novel probe: seed + 2), checked against an independent render."""
+    from mi_bivariate import metrics
+    from mi_bivariate.bivariate import BivariateBRDF
+    from mi_bivariate.evaluate.config import EvalConfig
+    from mi_bivariate.evaluate.renders import Renderer
+    from mi_bivariate.sources import load_probe, load_truth, resolve_materials
+
+    real, calls = synthesis.recover, []
+
+    def recover(*args, **kwargs):
+        rec = real(*args, **kwargs)
+        i = len(calls)
+        calls.append((kwargs["n_normals"], kwargs["n_dirs"]))
+        rec.timings = {stage: (i + 1) * (j + 1) * 1e-3 for j, stage in enumerate(synthesis.LINEAR_STAGES)}
+        return rec
+
+    monkeypatch.setattr(synthesis, "recover", recover)
+    config = EvalConfig(input_probes=("synthetic:1",), novel_probes=("synthetic:7", "synthetic:3"), resolution=32,
+                        spp=8, novel_spp=4, novel_resolution=16, n_normals=300, n_dirs=1000, grid=(8, 8),
+                        baselines=(), reference_directions=(256, 512, 256))
+    material = "ggx:diffuse=0.2,specular=0.5,alpha=0.2"
+    r = synthesis.analysis_by_synthesis(material, "synthetic:1", config=config, novel_probe="synthetic:3",
+                                        budget_s=0.3, eval_every=5, spp=4)
+    rungs = synthesis.ladder_sizes(300, 1000)
+    assert calls == [(300, 1000)] * 4 + [rung for rung in rungs for _ in range(3)]
+    # The config's sizes: calls 1-3 (call 0 is the warm-up); the median of (2, 3, 4) x each stage's unit.
+    want = {stage: 3 * (j + 1) * 1e-3 for j, stage in enumerate(synthesis.LINEAR_STAGES)}
+    assert r["linear"]["stages"] == pytest.approx(want) and r["linear"]["time_s"] == pytest.approx(sum(want.values()))
+    for k, point in enumerate(r["linear_ladder"]):
+        first = 4 + 3 * k                                  # the rung's calls: first, first + 1, first + 2
+        assert point["time_s"] == pytest.approx((first + 2) * sum(j + 1 for j in range(len(want))) * 1e-3)
+
+    spec = resolve_materials([material])[0]
+    truth = load_truth(spec)
+    renderer, novel = Renderer(config, spec, cache_dir=None), load_probe("synthetic:3")
+    floors = []
+    for seed in (config.seed + 2, config.seed + 1):
+        shot = renderer.render(truth, novel, "synthetic:3", 16, seed, config.novel_spp)
+        floor = renderer.render(BivariateBRDF.reduce(truth, n_t=8, n_s=8), novel, "synthetic:3", 16, seed,
+                                config.novel_spp).image
+        floors.append(metrics.image_relative_rmse(floor, shot.image, shot.mask))
+    assert abs(floors[0] - floors[1]) > 1e-6 * floors[0]   # the seed shows in the floor ...
+    assert r["relight_floor"] == pytest.approx(floors[0], rel=1e-7)   # ... and it is the evaluation's
+    assert r["abs"]["best_relight"] == min(t["relight"] for t in r["trace"])
