@@ -139,7 +139,13 @@ def main(argv: Sequence[str] = None) -> None:
     path = out / "abs_vs_solve.jsonl"
     records: List[dict] = []
     if args.replot:
-        records = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+        # A rerun into the same --out appends: the last record of each material is the one shown.
+        latest = {}
+        for line in path.read_text().splitlines():
+            if line.strip():
+                r = json.loads(line)
+                latest[r["material"]] = r
+        records = list(latest.values())
     else:
         print(f"Machine: {machine()}")
         config = ev.EvalConfig.quick(shared_data=True) if args.quick else ev.EvalConfig()
