@@ -96,7 +96,8 @@ def plot(records: Sequence[dict], path: Path) -> None:
             for i, p in enumerate(sorted(ladder, key=lambda p: p["n_normals"])):
                 ax.plot([p["time_s"]], [p["relight"]], "rs", mfc="none", ms=4 + 3 * math.log2(top / p["n_normals"]),
                         label="linear solve, fewer normals M and directions K (larger: fewer)" if i == 0 else None)
-        ax.plot([lin["time_s"]], [lin["relight"]], "r*", ms=12, label=f"linear solve, M {lin.get('n_normals', 8000)}")
+        star = f"linear solve, M {lin['n_normals']}" if "n_normals" in lin else "linear solve (defaults)"
+        ax.plot([lin["time_s"]], [lin["relight"]], "r*", ms=12, label=star)
         ax.axhline(lin["relight"], color="r", lw=0.8, ls="--")
         if "relight_floor" in r:
             ax.axhline(r["relight_floor"], color="0.4", lw=0.8, ls=":", label="exact reduction (relight floor)")
@@ -159,6 +160,7 @@ def main(argv: Sequence[str] = None) -> None:
             print(f"{material}: linear {r['linear']['time_s']:.2f} s relight {r['linear']['relight']:.4f}; "
                   f"AbS best {r['abs']['best_relight']:.4f} at {r['abs']['best_relight_time_s']:.1f} s "
                   f"of {r['abs']['time_s']:.1f} s", flush=True)
+            print(f"  priors of the linear route: {r['linear']['prior']}", flush=True)
             noise = r["relight_noise"]
             print(f"  relight floor (exact reduction) {r['relight_floor']:.4f}; one render's own noise (rel. RMS): "
                   + ", ".join(f"{k.replace('_', ' ')} {v:.5f}" for k, v in noise.items()), flush=True)

@@ -56,6 +56,7 @@ from mi_bivariate.bivariate import BivariateBRDF
 from mi_bivariate.common import PathLike
 from mi_bivariate.errors import InputWarning
 from mi_bivariate.evaluate.config import EvalConfig
+from mi_bivariate.evaluate.protocol import MaterialTask, choose_priors
 from mi_bivariate.evaluate.renders import Renderer, Shot
 from mi_bivariate.geometry import SphereCamera
 from mi_bivariate.recover import Recovery, recover
@@ -217,10 +218,12 @@ def ladder_sizes(n_normals: int, n_dirs: int, fractions: Sequence[float] = LINEA
 
 
 def linear_run(shot: Any, probe: Any, config: EvalConfig, n_normals: int, n_dirs: int,
-               repeats: int, quiet: bool = False) -> Tuple[Recovery, dict]:
+               repeats: int, quiet: bool = False, priors: Tuple[Any, Any] = (None, "default")
+               ) -> Tuple[Recovery, dict]:
     """The linear route (:func:`~mi_bivariate.recover.recover`) at ``n_normals`` x ``n_dirs``, timed
     ``repeats`` times in this process (``quiet``: without its input warnings, e.g. a ladder rung's
-    "few usable observations", which is the benchmark's choice, not the user's input).
+    "few usable observations", which is the benchmark's choice, not the user's input), with
+    ``priors`` = ``(prior, basis_prior)`` as :func:`~mi_bivariate.recover.recover` takes them.
 
     Returns:
         The last :class:`~mi_bivariate.recover.Recovery` and a point: ``n_normals``, ``n_dirs``,
@@ -233,7 +236,8 @@ def linear_run(shot: Any, probe: Any, config: EvalConfig, n_normals: int, n_dirs
             if quiet:
                 warnings.simplefilter("ignore", InputWarning)
             rec = recover(shot.image, probe, shot.geometry, n_normals=n_normals, n_dirs=n_dirs, grid=config.grid,
-                          alpha=config.alpha, seed=config.seed, keep_inputs=False)
+                          alpha=config.alpha, prior=priors[0], basis_prior=priors[1], seed=config.seed,
+                          keep_inputs=False)
         runs.append({stage: float(rec.timings.get(stage, 0.0)) for stage in LINEAR_STAGES})
     times = [sum(r.values()) for r in runs]
     return rec, {"n_normals": int(n_normals), "n_dirs": int(n_dirs), "time_s": float(np.median(times)),
@@ -282,15 +286,16 @@ def analysis_by_synthesis(material: Any, input_probe: str = "grace_latlong_1k", 
     """The linear solve and analysis by synthesis on the same image, errors against wall time.
 
     The input image is path traced (config resolution, spp and seed) and the
-    table recovered with the config's normals, directions, grid and alpha. Then :func:`optimise_table` starts from
+    table recovered with the config's normals, directions, grid and alpha, and
+    the priors the evaluation would use (:func:`~mi_bivariate.evaluate.protocol.choose_priors`:
+    for a shared material with ``config.leave_one_out``, learnt without it). Then :func:`optimise_table` starts from
     the Lambertian fit and runs for ``budget_s`` (default ``time_factor`` x
     the linear route's time: observations + lighting matrix + adequacy +
     solve). Every ``eval_every`` iterations the table's relight error under
     ``novel_probe`` and its BRDF errors are measured (clock paused).
 
     ``novel_probe`` (default: the config's first novel probe) is rendered at
-    the seed the evaluation gives it (``config.seed + 1 + its index`` in
-    ``config.novel_probes``; ``config.seed + 1`` for a probe not in that list).
+    the seed the evaluation gives it (:meth:`EvalConfig.novel_seed`).
 
     The linear route is timed after one warm-up run, ``ladder_repeats`` times
     (median) at the config's sizes and at each of the cheaper sizes of
@@ -329,8 +334,7 @@ def analysis_by_synthesis(material: Any, input_probe: str = "grace_latlong_1k", 
     # Scored as the evaluation scores (its renderer: by default the converged quadrature of
     # mi_bivariate.reference), at its novel resolution and the seed it gives this probe.
     renderer = Renderer(config, spec, cache_dir=None)
-    novels = list(config.novel_probes)
-    relight_seed = config.seed + 1 + (novels.index(novel_probe) if novel_probe in novels else 0)
+    relight_seed = config.novel_seed(novel_probe)
     truth_novel = renderer.render(truth, novel, novel_probe, config.novel_resolution, relight_seed, config.novel_spp)
 
     def relight(table_or_brdf: Any) -> float:
@@ -343,10 +347,14 @@ def analysis_by_synthesis(material: Any, input_probe: str = "grace_latlong_1k", 
     n_t, n_s = config.grid
     relight_floor = relight(BivariateBRDF.reduce(truth, n_t=n_t, n_s=n_s))
 
+    # The evaluation's priors (leave-one-out for a shared material): no score from a prior that saw it.
+    prior, basis_prior, prior_source = choose_priors(MaterialTask(spec, config, None if data_dir is None
+                                                                  else str(data_dir)))
+    priors = (prior, basis_prior)
     # Every linear point is timed alike: after one warm-up run in this process, the median of
     # ladder_repeats runs.
-    linear_run(shot, probe, config, config.n_normals, config.n_dirs, 1)
-    rec, linear = linear_run(shot, probe, config, config.n_normals, config.n_dirs, ladder_repeats)
+    linear_run(shot, probe, config, config.n_normals, config.n_dirs, 1, priors=priors)
+    rec, linear = linear_run(shot, probe, config, config.n_normals, config.n_dirs, ladder_repeats, priors=priors)
     linear_s = linear["time_s"]
     brdf_errors = metrics.BRDFErrors(truth)
     linear_errors = {k: v for k, v in brdf_errors(rec.brdf).items() if k != "eq1_rgb"}
@@ -359,7 +367,7 @@ def analysis_by_synthesis(material: Any, input_probe: str = "grace_latlong_1k", 
 
     ladder: List[dict] = []
     for m, k in ladder_sizes(config.n_normals, config.n_dirs, linear_ladder):
-        rung, point = linear_run(shot, probe, config, m, k, ladder_repeats, quiet=True)
+        rung, point = linear_run(shot, probe, config, m, k, ladder_repeats, quiet=True, priors=priors)
         ladder.append({**point, "relight": relight(rung.brdf)})
         del rung
 
@@ -399,7 +407,7 @@ def analysis_by_synthesis(material: Any, input_probe: str = "grace_latlong_1k", 
     last = trace[-1]
     return {"material": spec.label, "input_probe": probe_label(input_probe), "novel_probe": probe_label(novel_probe),
             "config_hash": config.hash(),
-            "linear": {**linear, **linear_errors},
+            "linear": {**linear, **linear_errors, "prior": prior_source},
             "linear_ladder": ladder,
             "relight_floor": relight_floor,
             "relight_noise": relight_noise,

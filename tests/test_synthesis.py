@@ -136,16 +136,23 @@ def test_analysis_by_synthesis_times_every_linear_point_alike_and_scores_at_the_
     from mi_bivariate.evaluate.renders import Renderer
     from mi_bivariate.sources import load_probe, load_truth, resolve_materials
 
-    real, calls = synthesis.recover, []
+    real, calls, chosen, used = synthesis.recover, [], [], []
 
     def recover(*args, **kwargs):
         rec = real(*args, **kwargs)
         i = len(calls)
         calls.append((kwargs["n_normals"], kwargs["n_dirs"]))
+        used.append((kwargs["prior"], kwargs["basis_prior"]))
         rec.timings = {stage: (i + 1) * (j + 1) * 1e-3 for j, stage in enumerate(synthesis.LINEAR_STAGES)}
         return rec
 
+    def choose_priors(task):                              # where the evaluation's choice comes from
+        assert task.material.label.startswith("ggx:") and task.config is config
+        chosen.append((None, None, "test: no basis prior"))   # unlike recover's default ("default")
+        return chosen[-1]
+
     monkeypatch.setattr(synthesis, "recover", recover)
+    monkeypatch.setattr(synthesis, "choose_priors", choose_priors)
     config = EvalConfig(input_probes=("synthetic:1",), novel_probes=("synthetic:7", "synthetic:3"), resolution=32,
                         spp=8, novel_spp=4, novel_resolution=16, n_normals=300, n_dirs=1000, grid=(8, 8),
                         baselines=(), reference_directions=(256, 512, 256))
@@ -154,6 +161,9 @@ def test_analysis_by_synthesis_times_every_linear_point_alike_and_scores_at_the_
                                         budget_s=0.3, eval_every=5, spp=4)
     rungs = synthesis.ladder_sizes(300, 1000)
     assert calls == [(300, 1000)] * 4 + [rung for rung in rungs for _ in range(3)]
+    # Every linear run used the priors chosen for this material as the evaluation chooses them.
+    (prior, basis_prior, source), = chosen
+    assert all(u[0] is prior and u[1] is basis_prior for u in used) and r["linear"]["prior"] == source
     # The config's sizes: calls 1-3 (call 0 is the warm-up); the median of (2, 3, 4) x each stage's unit.
     want = {stage: 3 * (j + 1) * 1e-3 for j, stage in enumerate(synthesis.LINEAR_STAGES)}
     assert r["linear"]["stages"] == pytest.approx(want) and r["linear"]["time_s"] == pytest.approx(sum(want.values()))

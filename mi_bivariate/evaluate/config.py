@@ -125,6 +125,12 @@ class EvalConfig:
         if self.alpha is not None:
             solve.check_alpha(self.alpha)
 
+    def novel_seed(self, probe: str) -> int:
+        """The render seed of novel probe ``probe``: ``seed + 1 + k`` for the ``k``-th of
+        :attr:`novel_probes` (``seed + 1`` for a probe not in the list)."""
+        probes = list(self.novel_probes)
+        return int(self.seed) + 1 + (probes.index(probe) if probe in probes else 0)
+
     def hash(self) -> str:
         """16 hex digits of SHA-256 over the canonical JSON of the config and protocol version."""
         extra = {} if self.prior is None else {"prior_sha256": _file_digest(self.prior)}   # bytes, not name

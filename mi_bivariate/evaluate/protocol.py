@@ -150,13 +150,13 @@ def load_truth_and_floor(task: MaterialTask, timings: Dict[str, float]) -> _Trut
 
 def render_novel_truths(renderer: Renderer, cfg: EvalConfig, novels: List[Probe], truth_bsdf: Any,
                         floor_bsdf: Any, arrays: Arrays) -> _Novel:
-    """The truth and the exact reduction rendered under every novel probe (seed + 1 + k), and the
+    """The truth and the exact reduction rendered under every novel probe (:meth:`EvalConfig.novel_seed`), and the
     reduction's image errors (the relight floor)."""
     grid_key = f"grid_table_{cfg.grid[0]}x{cfg.grid[1]}"
     novel = _Novel({}, {}, {})
-    for k, (name, probe) in enumerate(zip(cfg.novel_probes, novels)):
+    for name, probe in zip(cfg.novel_probes, novels):
         label = probe_label(name)
-        seed = cfg.seed + 1 + k
+        seed = cfg.novel_seed(name)
         shot = renderer.render(truth_bsdf, probe, name, cfg.novel_resolution, seed, cfg.novel_spp, cache_key="truth")
         floor_shot = renderer.render(floor_bsdf, probe, name, cfg.novel_resolution, seed, cfg.novel_spp,
                                      cache_key=grid_key)
@@ -225,7 +225,7 @@ def relight(renderer: Renderer, cfg: EvalConfig, rec: Recovery, novels: List[Pro
     rec_bsdf = plugin(rec.brdf, cfg.renderer)
     for k, novel_name in enumerate(cfg.novel_probes):
         nl = probe_label(novel_name)
-        img = renderer.render(rec_bsdf, novels[k], novel_name, cfg.novel_resolution, cfg.seed + 1 + k,
+        img = renderer.render(rec_bsdf, novels[k], novel_name, cfg.novel_resolution, cfg.novel_seed(novel_name),
                               cfg.novel_spp).image
         images[nl] = metrics.relight_errors(img, novel.floor[nl], novel.truth[nl].image, novel.truth[nl].mask)
         arrays[f"recovered_render__{label}__{nl}"] = _f16(img)
