@@ -29,10 +29,14 @@ from mi_bivariate import merl as merl_mod
 from mi_bivariate import nbrdf, probes, solve, training_set
 from mi_bivariate.geometry import SphereGeometry
 from mi_bivariate.lighting import _row_packets, hemisphere_offsets
+from mi_bivariate.lighting.mis import _mis_lanes
 from mi_bivariate.recover import solve_stages
 from mi_bivariate.variants import ensure_variant
 
 NOVEL = ("grace_256", "pisa_256", "pedestrian_overpass_1k")
+#: The 8 training materials of docs/recovery.md section 2 (and of its ablation table, section 7).
+SECTION2_MATERIALS = ("gold-metallic-paint2", "red-specular-plastic", "pink-fabric2", "nickel", "violet-acrylic",
+                      "special-walnut-224", "pvc", "blue-metallic-paint2")
 #: (label, lighting sampling, model-error form, alpha, basis prior, how the prior variant is kept)
 CONFIGS = (
     ("paper: uniform directions, unweighted, alpha 1e-2", "uniform", "constant", 1e-2, False, "residual"),
@@ -101,7 +105,7 @@ def render_rows(obs, probe, table: np.ndarray, n_dirs: int = 65536, seed: int = 
         data = mi.Float(pk.reshape(-1))
         target = dr.zeros(mi.Float, m * 4)
         for strategy in counts:
-            lanes = lighting._mis_lanes(data, m, probe, strategy, counts)
+            lanes = _mis_lanes(data, m, probe, strategy, counts)
             row, lx, ly, lz, d, weight, sin_v, cos_v, above, radiance = lanes
             rad = radiance * weight
             pos = merl_position(lx, ly, lz, sin_v, cos_v)
@@ -131,7 +135,9 @@ def material_rows(name: str, obs, grace, novel: dict, L_novel: dict, tables: dic
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--materials", default=",".join(nbrdf.NBRDF_TRAIN_MATERIALS[:8]))
+    parser.add_argument("--materials", default=",".join(SECTION2_MATERIALS),
+                        help="comma-separated MERL-NBRDF names (default: the 8 training materials of "
+                             "docs/recovery.md section 2, named in this docstring)")
     parser.add_argument("--normals", type=int, default=1000)
     args = parser.parse_args()
     ensure_variant()

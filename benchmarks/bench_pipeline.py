@@ -4,8 +4,8 @@ Stages: render the input (``merl`` plugin), observations, assemble the
 lighting matrix L, adequacy analysis, the constrained solve, and the re-render
 of the recovery (``bivariate`` plugin). One factor grows at a time from the
 base point (M normals, K light directions per normal, n_t x n_s grid nodes)
-by 1x, 2x and 4x; the 4x point of each factor is the default configuration
-(M = 8000, K = 32000, 32 x 32). Prints a Markdown table with the machine.
+by 1x, 2x and 4x; the 4x point of each factor is M = 8000, K = 32000, 32 x 32
+(the defaults when it was written; ``recover``'s K is now 8000). Prints a Markdown table with the machine.
 
     MI_BIVARIATE_DATA=../shared/data python benchmarks/bench_pipeline.py [--repeat 3] [--out table.md]
 """

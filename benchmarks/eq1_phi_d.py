@@ -50,6 +50,7 @@ from mi_bivariate import lighting, nbrdf, probes, solve, training_set
 from mi_bivariate.bivariate import BivariateBRDF, phi_d_average
 from mi_bivariate.lighting import _row_packets, hemisphere_offsets
 from mi_bivariate.lighting.kernels import _splat
+from mi_bivariate.lighting.mis import _mis_lanes
 from mi_bivariate.metrics import BRDFErrors
 from mi_bivariate.recover import solve_stages
 from mi_bivariate.variants import ensure_variant
@@ -83,7 +84,7 @@ def shaped_lighting_matrix(obs, probe, shape: np.ndarray, n_dirs: int = 8000, se
         data = mi.Float(packets[c0:c0 + chunk].reshape(-1))
         target = dr.zeros(mi.Float, m * n_nodes * 4)
         for strategy in counts:
-            lanes = lighting._mis_lanes(data, m, probe, strategy, counts)
+            lanes = _mis_lanes(data, m, probe, strategy, counts)
             row, lx, ly, lz, d, weight, sin_v, cos_v, above, radiance = lanes
             radiance = radiance * weight
             pos = merl_position(lx, ly, lz, sin_v, cos_v)

@@ -188,7 +188,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("evaluate", help="batch evaluation: recover many materials, re-render under novel probes, "
                                         "compare with the truth and parametric baselines")
     p.add_argument("materials", nargs="*",
-                   help="folders of MERL .binary files, .binary files, MERL-NBRDF names, 'nbrdf' (all 23) or "
+                   help="folders of MERL .binary files, .binary files, MERL-NBRDF names, 'nbrdf' (the 23 "
+                        "development materials), 'nbrdf-train' (the 50 training ones), 'nbrdf-all' (all 73) or "
                         "analytic specs (default: nbrdf; with --quick: two materials)")
     p.add_argument("--out", default="out/evaluate", help="output folder (results.jsonl, summary.csv, figures/)")
     p.add_argument("--input-probes", nargs="+", default=None, metavar="PROBE",

@@ -102,6 +102,14 @@ def merl_files(sources: Union[PathLike, Iterable[PathLike]]) -> List[PathLike]:
     return expanded
 
 
+#: Keywords naming sets of shared MERL-NBRDF materials (:mod:`mi_bivariate.nbrdf`).
+NBRDF_SETS: Dict[str, Tuple[str, ...]] = {
+    "nbrdf": nbrdf.NBRDF_MATERIALS,             # the 23 development materials
+    "nbrdf-train": nbrdf.NBRDF_TRAIN_MATERIALS,  # the 50 the priors and settings were learnt on
+    "nbrdf-all": nbrdf.ALL_NBRDF_MATERIALS,      # all 73
+}
+
+
 @dataclass(frozen=True)
 class MaterialSpec:
     """One material: ``kind`` is ``"merl"`` (a .binary path), ``"nbrdf"`` or ``"analytic"``."""
@@ -123,8 +131,9 @@ def resolve_materials(items: Sequence[str], data_dir: Optional[PathLike] = None)
     """Expand material arguments into :class:`MaterialSpec` s (duplicates dropped, order kept).
 
     Each item is a folder (its ``*.binary`` files, sorted), a MERL ``.binary``
-    file, ``nbrdf`` (all 23 MERL-NBRDF development materials), a MERL-NBRDF
-    development name, or an analytic spec such as ``ggx:alpha=0.1``.
+    file, a keyword of :data:`NBRDF_SETS` (``nbrdf``: the 23 MERL-NBRDF development
+    materials; ``nbrdf-train``: the 50 training ones; ``nbrdf-all``: all 73), a
+    shared MERL-NBRDF name, or an analytic spec such as ``ggx:alpha=0.1``.
 
     Raises:
         InputError: an item that is none of these, or an empty folder.
@@ -138,15 +147,16 @@ def resolve_materials(items: Sequence[str], data_dir: Optional[PathLike] = None)
             if not path.is_file():
                 raise InputError(path, "MERL file not found")
             out.append(MaterialSpec(path.stem, "merl", str(path)))
-        elif item == "nbrdf":
-            out += [MaterialSpec(n, "nbrdf", n) for n in nbrdf.NBRDF_MATERIALS]
-        elif item in nbrdf.NBRDF_MATERIALS:
+        elif item in NBRDF_SETS:
+            out += [MaterialSpec(n, "nbrdf", n) for n in NBRDF_SETS[item]]
+        elif item in nbrdf.ALL_NBRDF_MATERIALS:
             out.append(MaterialSpec(item, "nbrdf", item))
         elif is_analytic_spec(item):
             out.append(MaterialSpec(analytic.analytic_from_spec(item).name, "analytic", item))
         else:
             raise InputError(item, "not a folder, .binary file, MERL-NBRDF name or analytic spec",
-                             f"MERL-NBRDF names: {', '.join(nbrdf.NBRDF_MATERIALS)}; or 'nbrdf' for all")
+                             f"MERL-NBRDF names: {', '.join(nbrdf.ALL_NBRDF_MATERIALS)}; or one of "
+                             f"{', '.join(NBRDF_SETS)}")
     seen, unique = set(), []
     for m in out:
         if m.label not in seen:

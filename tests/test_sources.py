@@ -57,6 +57,10 @@ def test_resolve_materials_kinds_order_and_duplicates(tmp_path):
     assert [(s.kind, s.label) for s in specs] == [("merl", "m"), ("nbrdf", "blue-acrylic"),
                                                   ("analytic", analytic.analytic_from_spec(GGX).name)]
     assert [s.spec for s in sources.resolve_materials(["nbrdf"])] == list(nbrdf.NBRDF_MATERIALS)
+    assert [s.spec for s in sources.resolve_materials(["nbrdf-train"])] == list(nbrdf.NBRDF_TRAIN_MATERIALS)
+    everything = sources.resolve_materials(["aventurnine", "nbrdf-all", "nbrdf"])   # duplicates dropped
+    assert [s.spec for s in everything] == ["aventurnine"] + [n for n in nbrdf.ALL_NBRDF_MATERIALS if n != "aventurnine"]
+    assert len(everything) == 73 and all(s.kind == "nbrdf" for s in everything)
     with pytest.raises(InputError, match="not a folder, .binary file, MERL-NBRDF name or analytic spec"):
         sources.resolve_materials(["no-such-material"])
     with pytest.raises(InputError, match="MERL file not found"):

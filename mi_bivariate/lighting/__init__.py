@@ -4,23 +4,32 @@ A pixel that sees normal ``n`` from view ``v`` integrates the environment
 over the normal's upper hemisphere (Eq. 3)::
 
     I(v, n) = int_Omega E(u) f(s(u, v), t(u, v)) cos(theta_u) du
-            ~ 2 pi / K  sum_k E(u_k) cos(theta_k) sum_{(i,j) in N_k} alpha^k_ij f_ij   (Eq. 4)
+            ~ sum_k w_k E(u_k) cos(theta_k) sum_{(i,j) in N_k} alpha^k_ij f_ij   (Eq. 4)
 
-with ``K`` light directions ``u_k`` uniformly distributed (in solid angle) on
-the hemisphere, ``E`` the environment radiance looked up exactly as Mitsuba's
-``envmap`` emitter does (:meth:`Probe.eval_dr`), and ``alpha^k_ij`` the
-bilinear weights of the four st nodes around ``(s, t)(u_k, v)``. Directions
-mirrored about the view/normal plane land on the same ``(s, t)``: the
-hemisphere folds by itself. Row ``m`` of ``L`` holds these weights for normal
-``m``; column ``it * n_s + is`` is st node ``(t_it, s_is)`` (the C order of a
-``(n_t, n_s, 3)`` table); the last axis is the colour channel.
+with ``K`` light directions ``u_k`` and their quadrature weights ``w_k``, ``E`` the
+environment radiance looked up exactly as Mitsuba's ``envmap`` emitter does
+(:meth:`Probe.eval_dr`), and ``alpha^k_ij`` the bilinear weights of the four st nodes
+around ``(s, t)(u_k, v)``. Row ``m`` of ``L`` holds these weights for normal ``m``;
+column ``it * n_s + is`` is st node ``(t_it, s_is)`` (the C order of a ``(n_t, n_s, 3)``
+table); the last axis is the colour channel.
 
-Light directions (:func:`light_directions`): a spherical Fibonacci lattice,
-uniform in solid angle, on the half of the normal's hemisphere on one side of
-the view/normal plane, shifted per row by a seeded random offset (a
-Cranley-Patterson rotation, which decorrelates the quadrature error between
-rows), plus the mirror image of every direction across that plane. A
-direction and its mirror image have the same (s, t): the fold of Fig. 4.
+Light directions (``sampling``):
+
+- ``"mis"`` (default, :mod:`.mis`): multiple importance sampling. The K directions of a
+  row are split between three stratified strategies (uniform over the hemisphere, the
+  environment's own importance sampling, half vectors around the specular peak) and
+  weighted by the balance heuristic over all three densities. The environment's
+  directions are sampled once per lighting matrix and shared by the rows
+  (:func:`environment_pool`). At K = 8000 it predicts pixels more accurately than the
+  paper's uniform lattice at K = 32000 (0.13-0.29% against 0.32-22.7% RMS, six
+  materials under grace_latlong_1k; ``docs/recovery.md``, Round 9).
+- ``"uniform"`` (the paper's, :func:`light_directions`): a spherical Fibonacci lattice,
+  uniform in solid angle (``w_k = 2 pi / K``), on the half of the normal's hemisphere on
+  one side of the view/normal plane, shifted per row by a seeded random offset (a
+  Cranley-Patterson rotation, which decorrelates the quadrature error between rows),
+  plus the mirror image of every direction across that plane. A direction and its
+  mirror image have the same (s, t), the fold of Fig. 4: one lane computes their angles
+  once and looks up the environment twice.
 
 Layout: :mod:`.directions` (the lattice, numpy), :mod:`.kernels` (the Dr.Jit
 kernels and the splat), :mod:`.mis` (the default sampling), :mod:`.gram` (Gram
@@ -29,10 +38,10 @@ matrices of L by row blocks that touch few nodes), this front door
 visibility).
 
 Implementation: one fused Dr.Jit kernel per chunk of normals (directions,
-two envmap lookups per mirrored pair, Rusinkiewicz angles, bilinear weights)
-scatters RGB padded to a 4-wide packet into ``[rows, n_t * n_s, 4]`` with
-``ReduceMode.Expand`` (per-thread copies of the target, no atomics; see the
-field notes: ``Auto`` silently picks ``Local`` on big targets, 7x slower).
+envmap lookups, Rusinkiewicz angles, bilinear weights) scatters RGB padded
+to a 4-wide packet into ``[rows, n_t * n_s, 4]`` with ``ReduceMode.Expand``
+(per-thread copies of the target, no atomics; see the field notes: ``Auto``
+silently picks ``Local`` on big targets, 7x slower).
 Visibility (``occluder``): the paper assumes every light direction of the
 normal's hemisphere reaches the surface, which holds for a convex object
 only. Given the object as a Mitsuba scene, rows that know their surface
@@ -65,7 +74,6 @@ from mi_bivariate.capture import Observations
 from mi_bivariate.errors import InputError
 from mi_bivariate.lighting.directions import direction_pairs, hemisphere_offsets, light_directions, row_frames
 from mi_bivariate.lighting.kernels import _lighting_chunk, _row_packets, _spatial_order, _texel_chunk
-from mi_bivariate.lighting.mis import _mis_lanes  # noqa: F401  (benchmarks/ablation.py)
 from mi_bivariate.lighting.mis import (
     ENV_SHIFTS,
     MIS_FRACTIONS,

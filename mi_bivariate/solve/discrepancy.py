@@ -24,7 +24,8 @@ never on a scored one; ``docs/recovery.md``, "Choosing alpha"):
   error instead of 2.1x.
 - The data term cannot see the nodes the image does not constrain, which are what novel
   light exposes: where ``rho`` is already small at the default, *raising* alpha to meet the
-  target smoothed those nodes and relit 5 of 8 training materials worse (up to 1.9x). The
+  target smoothed those nodes and relit 3 of the 6 training materials whose alpha it raised worse
+  (up to 1.9x; docs/recovery.md section 4). The
   learnt alpha is therefore an upper bound, the prior's strength for what the image does not
   say; the image may only lower it.
 
