@@ -49,7 +49,7 @@ if stage == "solve":
     from mi_bivariate import solve
     from mi_bivariate.basis_prior import default_basis_prior
     from mi_bivariate.prior import default_prior
-    from mi_bivariate.recover import solve_stages
+    from mi_bivariate.solve import solve_stages
     from mi_bivariate.threads import blas_threads
     z = np.load(inputs + ".npz")
     with blas_threads():

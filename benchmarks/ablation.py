@@ -30,7 +30,7 @@ from mi_bivariate import nbrdf, probes, solve, training_set
 from mi_bivariate.geometry import SphereGeometry
 from mi_bivariate.lighting import _row_packets, hemisphere_offsets
 from mi_bivariate.lighting.mis import _mis_lanes
-from mi_bivariate.recover import solve_stages
+from mi_bivariate.solve import solve_stages
 from mi_bivariate.variants import ensure_variant
 
 NOVEL = ("grace_256", "pisa_256", "pedestrian_overpass_1k")

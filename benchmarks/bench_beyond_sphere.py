@@ -66,11 +66,11 @@ def bench_visibility(quick: bool) -> List[str]:
     from mi_bivariate import capture, lighting, solve
     from mi_bivariate.bivariate import BivariateBRDF
     from mi_bivariate.geometry import Camera
-    from mi_bivariate.mesh import MeshShape, MeshView, render_mesh
+    from mi_bivariate.mesh import MeshShape, MeshView
     from mi_bivariate.metrics import brdf_errors, image_relative_rmse
     from mi_bivariate.nbrdf import nbrdf_merl
     from mi_bivariate.probes import shared_probe
-    from mi_bivariate.render import bsdf_dict
+    from mi_bivariate.render import bsdf_dict, render_mesh
 
     res, spp = (128, 256) if quick else (256, 512)
     m, k = (2000, 32000) if quick else (8000, 32000)

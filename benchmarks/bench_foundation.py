@@ -42,8 +42,8 @@ def timed(fn: Callable[[], object], repeats: int) -> float:
 
 
 def load_probe():
-    from mi_bivariate.demo import synthetic_environment
     from mi_bivariate.probes import Probe, shared_probe
+    from mi_bivariate.sources import synthetic_environment
 
     try:
         return shared_probe("grace_256"), "grace_256 (shared data)"

@@ -38,8 +38,8 @@ def peak_rss_mb() -> float:
 
 
 def load_probe():
-    from mi_bivariate.demo import synthetic_environment
     from mi_bivariate.probes import Probe, shared_probe
+    from mi_bivariate.sources import synthetic_environment
 
     try:
         return shared_probe("grace_latlong_1k"), "grace_latlong_1k (1024 x 512)"
@@ -152,7 +152,7 @@ def solve_and_end_to_end(L: np.ndarray, obs, probe, probe_name: str) -> None:
     import sys
     import tempfile
 
-    from mi_bivariate import render
+    from mi_bivariate import images, render
     from mi_bivariate.nbrdf import nbrdf_merl
     from mi_bivariate.solve import solve
 
@@ -171,7 +171,7 @@ def solve_and_end_to_end(L: np.ndarray, obs, probe, probe_name: str) -> None:
             truth = analytic.to_merl(analytic.analytic_from_spec("ggx:alpha=0.1"))
         shot = render.render_sphere(render.bsdf_dict(truth), probe, resolution=256, spp=256, seed=0)
         image, probe_file = f"{tmp}/sphere.exr", f"{tmp}/probe.exr"
-        render.write_exr(image, shot.image)
+        images.write_exr(image, shot.image)
         probe.save_exr(probe_file)
         g = shot.geometry
         cases = [("explicit --sphere", ["--sphere", f"{g.cx},{g.cy},{g.radius}"]), ("automatic sphere fit", [])]

@@ -115,7 +115,7 @@ def load_inputs(probe_name: str = PROBE, resolution: int = 256, spp: int = 256):
         truth = nbrdf_merl(MATERIAL)
     except Exception:  # no shared data
         from mi_bivariate import analytic
-        from mi_bivariate.demo import synthetic_environment
+        from mi_bivariate.sources import synthetic_environment
 
         probe = Probe(synthetic_environment(seed=1), source="synthetic")
         truth = analytic.to_merl(analytic.analytic_from_spec("ggx:alpha=0.1"))
@@ -214,7 +214,7 @@ def solve_peer(L: np.ndarray, values: np.ndarray) -> Dict[str, float]:
     from mi_bivariate import solve as solve_mod
     from mi_bivariate.basis_prior import default_basis_prior
     from mi_bivariate.prior import default_prior
-    from mi_bivariate.recover import solve_stages
+    from mi_bivariate.solve import solve_stages
     from mi_bivariate.threads import blas_threads
 
     prior, basis = default_prior(), default_basis_prior()

@@ -45,7 +45,7 @@ from mi_bivariate import lighting, probes, solve, training_set
 from mi_bivariate.common import luminance
 from mi_bivariate.lighting import _row_packets, hemisphere_offsets
 from mi_bivariate.lighting.mis import _mis_chunk, environment_pool, strategy_counts
-from mi_bivariate.recover import solve_stages
+from mi_bivariate.solve import solve_stages
 from mi_bivariate.variants import ensure_variant
 
 K = 8000

@@ -5,7 +5,7 @@
 
 Row level (3000 normals of a 128 px sphere, clean input under grace_latlong_1k, K = 8000, the
 32 x 32 grid, leave-one-out priors). For each alpha, the smoothness prior alone (stage 1, pair
-kept by the evidence); then the default solve (``recover.solve_stages``: discrepancy alpha and
+kept by the evidence); then the default solve (``solve.solve_stages``: discrepancy alpha and
 basis prior). Eq. 1 over the cells of the observed nodes (``adequacy.observed_nodes``) against
 the 3D truth, and its ratio to the exact reduction's Eq. 1 over all cells (the ratio issue 9
 scores). A diagnostic for development materials: it chooses nothing.
@@ -20,7 +20,7 @@ from ablation import full_table, render_rows, sphere_rows
 from mi_bivariate import adequacy, lighting, nbrdf, solve, training_set
 from mi_bivariate.bivariate import BivariateBRDF
 from mi_bivariate.metrics import BRDFErrors
-from mi_bivariate.recover import solve_stages
+from mi_bivariate.solve import solve_stages
 from mi_bivariate.variants import ensure_variant
 
 

@@ -52,7 +52,7 @@ from mi_bivariate.lighting import _row_packets, hemisphere_offsets
 from mi_bivariate.lighting.kernels import _splat
 from mi_bivariate.lighting.mis import _mis_lanes
 from mi_bivariate.metrics import BRDFErrors
-from mi_bivariate.recover import solve_stages
+from mi_bivariate.solve import solve_stages
 from mi_bivariate.variants import ensure_variant
 
 #: MERL-grid subsampling of the shapes for the principal components (theta_h, theta_d, phi_d).

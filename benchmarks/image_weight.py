@@ -5,9 +5,9 @@
 
 Row level, as benchmarks/pair_rule.py (2000 normals of a 128 px sphere, K = 8000, relit under
 grace_256 / pisa_256 / pedestrian_overpass_1k, leave-one-out priors, the default solve
-``recover.solve_stages``). Uffizi's rows get their sigma multiplied by each factor (weight
+``solve.solve_stages``). Uffizi's rows get their sigma multiplied by each factor (weight
 1 / factor^2); grace alone is the reference; the last column is ``recover``'s default,
-:func:`mi_bivariate.recover.cross_image_factors` (leave-one-image-out prediction).
+:func:`mi_bivariate.solve.cross_image_factors` (leave-one-image-out prediction).
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from ablation import NOVEL, full_table, rel, render_rows
 
 from mi_bivariate import capture, lighting, probes, solve, training_set
 from mi_bivariate.geometry import SphereGeometry
-from mi_bivariate.recover import cross_image_factors, solve_stages
+from mi_bivariate.solve import cross_image_factors, solve_stages
 from mi_bivariate.variants import ensure_variant
 
 FACTORS = (1.0, 2.0, 4.0)

@@ -122,12 +122,6 @@ class Observations:
     def __len__(self) -> int:
         return len(self.normals)
 
-    @property
-    def view_angles(self) -> np.ndarray:
-        """Angle between normal and view per row, ``(M,) float64`` radians."""
-        cos = np.clip(np.sum(self.normals * self.views, axis=1), -1.0, 1.0)
-        return np.arccos(cos)
-
     def subset(self, rows: np.ndarray) -> "Observations":
         """The observations at ``rows`` (distinct indices or a boolean mask); ``dropped`` is kept."""
         def pick(a: Optional[np.ndarray]) -> Optional[np.ndarray]:

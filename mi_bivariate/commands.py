@@ -28,15 +28,16 @@ import scipy
 
 from mi_bivariate import __version__, bivariate, demo
 from mi_bivariate import evaluate as ev
-from mi_bivariate import lighting, merl
+from mi_bivariate import export, lighting, merl
 from mi_bivariate import recover as rec
 from mi_bivariate import render, spherefit, synthesis, training_set
 from mi_bivariate.atomic import atomic_paths, check_outputs
 from mi_bivariate.basis_prior import BasisPrior
 from mi_bivariate.errors import InputError
-from mi_bivariate.images import load_image, load_mask
+from mi_bivariate.images import load_image, load_mask, write_exr, write_png
+from mi_bivariate.nbrdf import ALL_NBRDF_MATERIALS
 from mi_bivariate.prior import Prior
-from mi_bivariate.sources import have_shared_data, load_brdf, load_probe
+from mi_bivariate.sources import have_shared_data, input_files, load_brdf, load_probe
 from mi_bivariate.threads import blas_threads, jit_threads, solve_thread_limit
 from mi_bivariate.training_set import basis_path_for
 from mi_bivariate.variants import ensure_variant
@@ -123,9 +124,14 @@ def _check_float(flag: str, value: Optional[float], lo: float, hi: float, lo_ope
         raise InputError(flag, f"must be a finite number in {interval}, got {value}")
 
 
-def _existing_files(*specs: Optional[str]) -> List[Path]:
-    """The arguments that name existing files (inputs an output must not overwrite)."""
-    return [Path(s) for s in specs if s and Path(s).is_file()]
+def _input_files(args: argparse.Namespace, *specs: Optional[str]) -> List[Path]:
+    """The files the arguments read (inputs an output must not overwrite): files as given, a folder's
+    MERL files, the shared files behind shared names, and a ``--prior`` file's basis prior beside it."""
+    files = input_files(*specs, data_dir=getattr(args, "data", None))
+    prior = getattr(args, "prior", None)
+    if prior:
+        files += input_files(prior, training_set.basis_path_for(prior))
+    return files
 
 
 def _check_out_file(out: Optional[str]) -> None:
@@ -179,15 +185,17 @@ def cmd_render(args: argparse.Namespace) -> int:
     _check_seed(args.seed)
     _check_out_file(args.out)
     out = Path(args.out)
-    check_outputs([out, out.with_suffix(".png")], _existing_files(args.brdf, args.probe))
+    check_outputs([out, out.with_suffix(".png")], _input_files(args, args.brdf, args.probe))
+    if out.suffix.lower() != ".exr":
+        raise InputError(out, "render writes OpenEXR (and a PNG preview beside it)", "give --out a name ending in .exr")
     ensure_variant(args.variant)
     brdf = load_brdf(args.brdf, args.data)
     probe = load_probe(args.probe, args.data)
     result = render.render_sphere(render.bsdf_dict(brdf), probe, resolution=args.resolution, spp=args.spp,
                                   camera=args.camera, seed=args.seed)
     with atomic_paths([out, out.with_suffix(".png")]) as (exr, png):
-        render.write_exr(exr, result.image)
-        render.write_png_preview(png, result.image)
+        write_exr(exr, result.image)
+        write_png(png, result.image)
     print(f"wrote {out} and {out.with_suffix('.png')}")
     return 0
 
@@ -197,8 +205,10 @@ def cmd_render(args: argparse.Namespace) -> int:
 def cmd_reduce(args: argparse.Namespace) -> int:
     _check_grid(args.grid)
     _check_out_file(args.out)
+    if Path(args.merl).suffix.lower() != ".binary":
+        raise InputError(args.merl, "is not a MERL .binary file", "give the 3D table to reduce as a .binary file")
     out = Path(args.out) if args.out else Path(args.merl).with_suffix(".npz")
-    check_outputs([out, out.with_suffix(".exr")], _existing_files(args.merl))
+    check_outputs([out, out.with_suffix(".exr")], _input_files(args, args.merl))
     source = merl.MERLBRDF.read(args.merl)
     valid = source.table[np.isfinite(source.table)]
     if not np.any(valid > 0.0):
@@ -221,8 +231,12 @@ def cmd_reduce(args: argparse.Namespace) -> int:
 def cmd_learn_prior(args: argparse.Namespace) -> int:
     _check_grid(args.grid)
     _check_out_file(args.out)
+    for source in args.sources:
+        if not Path(source).exists() and source not in ALL_NBRDF_MATERIALS:
+            raise InputError(source, "no such file or folder, and not a MERL-NBRDF name",
+                             "give MERL .binary files, folders of them, or shared MERL-NBRDF names")
     basis_out = training_set.basis_path_for(args.out)
-    check_outputs([args.out, basis_out], _existing_files(*args.sources))
+    check_outputs([args.out, basis_out], _input_files(args, *args.sources))
     smooth, basis = training_set.learn_priors_from_merl(args.sources, n_t=args.grid[0], n_s=args.grid[1],
                                                         data_dir=args.data)
     with atomic_paths([args.out, basis_out], suffixes=[".npz", ".npz"]) as (tmp_smooth, tmp_basis):
@@ -285,7 +299,7 @@ def _recover_image(args: argparse.Namespace, image_path: str, probe, priors: tup
         if exc.source in names:
             raise InputError(names[exc.source], exc.problem, exc.hint) from None
         raise
-    paths = rec.write_outputs(result, out, merl=args.merl, report=not args.no_report,
+    paths = export.write_outputs(result, out, merl=args.merl, report=not args.no_report,
                               report_render=args.report_render)
     return result, paths
 
@@ -293,8 +307,8 @@ def _recover_image(args: argparse.Namespace, image_path: str, probe, priors: tup
 def cmd_recover(args: argparse.Namespace) -> int:
     _check_recover_args(args)
     _check_out_file(args.out)
-    outputs = rec.output_paths(args.out, merl=args.merl, report=not args.no_report)
-    check_outputs(outputs, _existing_files(args.image, args.probe, args.mask, args.prior))
+    outputs = export.output_paths(args.out, merl=args.merl, report=not args.no_report)
+    check_outputs(outputs, _input_files(args, args.image, args.probe, args.mask))
     args.source_names["lighting matrix L"] = str(args.probe)
     ensure_variant(args.variant)
     with jit_threads(args.threads):
@@ -325,8 +339,8 @@ def cmd_recover_batch(args: argparse.Namespace) -> int:
             raise InputError(image, f"writes {out}, as {first_of[out]} does",
                              "rename one of them, or recover them in separate batches")
         first_of[out] = image
-    outputs = [p for out in outs for p in rec.output_paths(out, merl=args.merl, report=not args.no_report)]
-    check_outputs(outputs, _existing_files(*args.images, args.probe, args.mask, args.prior), flag="--out-dir")
+    outputs = [p for out in outs for p in export.output_paths(out, merl=args.merl, report=not args.no_report)]
+    check_outputs(outputs, _input_files(args, *args.images, args.probe, args.mask), flag="--out-dir")
     args.source_names["lighting matrix L"] = str(args.probe)
     ensure_variant(args.variant)
     failed: List[str] = []
@@ -365,6 +379,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
     _check_render_sizes(args.resolution, args.spp)
     _check_seed(args.seed)
     _check_out_folder(Path(args.out))
+    check_outputs([Path(args.out) / name for name in demo.OUTPUTS],
+                  _input_files(args, args.material, args.input_probe, args.novel_probe))
     ensure_variant(args.variant)
     return demo.run_demo(out_dir=Path(args.out), material=args.material, input_probe=args.input_probe,
                          novel_probe=args.novel_probe, data_dir=args.data, spp=args.spp, seed=args.seed,

@@ -26,10 +26,11 @@ from typing import Optional, Tuple
 from mi_bivariate import adequacy, metrics, nbrdf, reference, render, report
 from mi_bivariate.atomic import atomic_paths
 from mi_bivariate.bivariate import BivariateBRDF, floors
+from mi_bivariate.errors import InputError
+from mi_bivariate.images import write_exr
 from mi_bivariate.merl import MERLBRDF
 from mi_bivariate.probes import Probe
 from mi_bivariate.recover import recover
-from mi_bivariate.sources import synthetic_environment  # noqa: F401  (its old home; tests import it here)
 from mi_bivariate.sources import DEFAULT_ANALYTIC, have_shared_data, load_brdf, load_probe
 
 DEFAULT_MATERIAL = "gold-metallic-paint3"
@@ -38,6 +39,9 @@ DEFAULT_MATERIAL = "gold-metallic-paint3"
 def _materials_and_probes(material: Optional[str], input_probe: str, novel_probe: str,
                           data_dir: Optional[str]) -> Tuple[str, MERLBRDF, Probe, Probe]:
     """``(label, 3D truth, input probe, novel probe)``: shared data if present, else analytic + synthetic."""
+    if material is not None and Path(material).suffix.lower() == ".npz":
+        raise InputError(material, "is a bivariate table: the demo measures a 3D BRDF and scores against it",
+                         "give a MERL .binary file, a MERL-NBRDF name or an analytic spec")
     if have_shared_data(data_dir):
         spec = material or DEFAULT_MATERIAL
         label = f"MERL-NBRDF {spec}" if spec in nbrdf.ALL_NBRDF_MATERIALS else spec
@@ -48,6 +52,11 @@ def _materials_and_probes(material: Optional[str], input_probe: str, novel_probe
     spec = material or DEFAULT_ANALYTIC
     print("shared data not found (set MI_BIVARIATE_DATA): using an analytic material and synthetic probes")
     return spec, load_brdf(spec, data_dir), load_probe("synthetic:1"), load_probe("synthetic:7")
+
+
+#: The files :func:`run_demo` writes into its folder (all or none).
+OUTPUTS = ("recovered.npz", "recovered_table.exr", "input.exr", "novel_recovered.exr", "novel_truth.exr",
+           "demo.png", "metrics.json")
 
 
 def run_demo(out_dir: Path = Path("out/demo"), material: Optional[str] = None,
@@ -103,14 +112,12 @@ def run_demo(out_dir: Path = Path("out/demo"), material: Optional[str] = None,
     }
 
     # All outputs together (all or none): a failure leaves an earlier demo's files as they were.
-    names = ("recovered.npz", "recovered_table.exr", "input.exr", "novel_recovered.exr", "novel_truth.exr",
-             "demo.png", "metrics.json")
-    with atomic_paths([out_dir / n for n in names]) as tmp:
+    with atomic_paths([out_dir / n for n in OUTPUTS]) as tmp:
         rec.brdf.save(tmp[0])
         rec.brdf.save_exr(tmp[1])
-        render.write_exr(tmp[2], shot.image)
-        render.write_exr(tmp[3], novel_rec.image)
-        render.write_exr(tmp[4], novel_truth.image)
+        write_exr(tmp[2], shot.image)
+        write_exr(tmp[3], novel_rec.image)
+        write_exr(tmp[4], novel_truth.image)
         report.write_demo_figure(tmp[5], shot, novel_rec, novel_truth, rec, truth, floor, numbers)
         tmp[6].write_text(json.dumps(numbers, indent=2))
     figure = out_dir / "demo.png"

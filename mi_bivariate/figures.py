@@ -17,10 +17,17 @@ from typing import Any, Dict, List, Sequence
 
 import numpy as np
 
-from mi_bivariate.atomic import atomic_path
 from mi_bivariate.bivariate import BivariateBRDF
 from mi_bivariate.common import PathLike
-from mi_bivariate.report import exposure_of, incident_plane, plot_table, pyplot, show_difference, show_image
+from mi_bivariate.report import (
+    exposure_of,
+    incident_plane,
+    plot_table,
+    pyplot,
+    save_figure,
+    show_difference,
+    show_image,
+)
 
 Artifacts = Dict[str, np.ndarray]
 
@@ -61,21 +68,11 @@ def evaluation_figures(records: Sequence[dict], artifacts: Dict[str, Artifacts],
     return written
 
 
-def close_figure(fig: Any) -> None:
-    """Close a figure made by the functions below (after saving it in every format)."""
-    pyplot().close(fig)
-
-
-def save_figure_formats(fig: Any, stem: PathLike, formats: Sequence[str] = ("png",), dpi: int = 100) -> list:
-    """Save one figure as ``stem.<fmt>`` for every format (atomic), then close it."""
+def save_figure_formats(fig: Any, stem: PathLike, formats: Sequence[str] = ("png",), dpi: int = 100) -> List[Path]:
+    """Save one figure as ``stem.<fmt>`` for every format (atomic, :func:`report.save_figure`), then close it."""
     stem = Path(stem)
-    paths = []
-    for fmt in formats:
-        path = stem.with_name(f"{stem.name}.{fmt}")
-        with atomic_path(path) as tmp:
-            fig.savefig(tmp, dpi=dpi, bbox_inches="tight", format=fmt)
-        paths.append(path)
-    close_figure(fig)
+    paths = [save_figure(fig, stem.with_name(f"{stem.name}.{fmt}"), dpi=dpi, close=False) for fmt in formats]
+    pyplot().close(fig)
     return paths
 
 

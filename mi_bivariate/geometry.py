@@ -351,11 +351,6 @@ class Camera:
             raise InputError("camera", f"fov must be in (0, 180) degrees, got {fov_deg}")
         return cls(width, height, Intrinsics.from_fov(width, height, fov_deg), rot, origin)
 
-    @property
-    def view_axis(self) -> np.ndarray:
-        """World direction from the scene towards the camera (the camera's +z), ``(3,)``."""
-        return self.camera_to_world[:, 2].copy()
-
     def rays(self, x: np.ndarray, y: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
         """World ray origins and unit directions through pixel positions (x right, y down), ``(..., 3)``."""
         k, rot = self.intrinsics, self.camera_to_world

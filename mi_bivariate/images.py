@@ -31,7 +31,7 @@ import numpy as np
 
 from mi_bivariate import __version__
 from mi_bivariate.atomic import atomic_path
-from mi_bivariate.common import PathLike
+from mi_bivariate.common import PathLike, luminance
 from mi_bivariate.errors import InputError, InputWarning
 
 HDR_SUFFIXES = (".exr", ".hdr", ".rgbe", ".pic", ".pfm")
@@ -351,6 +351,17 @@ def write_exr(path: PathLike, image: np.ndarray, units: str = RADIANCE_UNITS,
     return path
 
 
+def auto_exposure(image: np.ndarray, mask: Optional[np.ndarray] = None, percentile: float = 99.0) -> float:
+    """The exposure (a factor on radiance) that maps the ``percentile`` of the positive, finite
+    luminance of ``image`` ``(H, W, 3)`` (over ``mask`` ``(H, W) bool`` when given) to display white; 1
+    for an image with no such pixel."""
+    values = np.asarray(image)[mask] if mask is not None else np.asarray(image).reshape(-1, 3)
+    lum = luminance(values)
+    lum = lum[np.isfinite(lum) & (lum > 0.0)]
+    level = float(np.percentile(lum, percentile)) if lum.size else 1.0
+    return 1.0 / level if level > 0.0 else 1.0
+
+
 def tonemap(image: np.ndarray, exposure: Optional[float] = None, percentile: float = 99.0) -> np.ndarray:
     """Linear ``(H, W, 3)`` -> sRGB ``(H, W, 3) uint8``.
 
@@ -360,10 +371,7 @@ def tonemap(image: np.ndarray, exposure: Optional[float] = None, percentile: flo
     image = np.nan_to_num(np.asarray(image, np.float64), nan=0.0, posinf=0.0, neginf=0.0)
     image = np.clip(image, 0.0, None)
     if exposure is None:
-        lum = image @ np.array([0.2126, 0.7152, 0.0722])
-        lum = lum[lum > 0.0]
-        level = np.percentile(lum, percentile) if lum.size else 1.0
-        exposure = 1.0 / level if level > 0.0 else 1.0
+        exposure = auto_exposure(image, percentile=percentile)
     x = np.clip(image * exposure, 0.0, 1.0)
     srgb = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1.0 / 2.4) - 0.055)
     return np.round(srgb * 255.0).astype(np.uint8)

@@ -42,8 +42,6 @@ import numpy as np
 from mi_bivariate.common import PathLike
 from mi_bivariate.errors import InputError, InputWarning
 from mi_bivariate.geometry import Camera, Geometry, SurfaceMaps
-from mi_bivariate.render import bsdf_dict, load_scene
-from mi_bivariate.variants import ensure_variant
 
 #: Mesh file types read through trimesh.
 MESH_SUFFIXES = (".obj", ".ply", ".stl", ".glb", ".gltf", ".off")
@@ -328,32 +326,3 @@ class MeshView(Geometry):
     def occluder(self) -> MeshShape:
         """The object that casts shadows on itself (for ``lighting_matrix(occluder=...)``)."""
         return self.shape
-
-
-# --------------------------------------------------------------- renders
-
-def mesh_scene_dict(shape: MeshShape, bsdf: dict, probe: Any, camera: Camera, max_depth: int = 2) -> dict:
-    """Scene dictionary: the mesh with ``bsdf``, the probe's envmap and the camera (``path`` integrator).
-
-    ``max_depth=2`` is direct lighting with self-shadowing but no
-    interreflection: the forward model of the lighting matrix with visibility.
-    """
-    return {
-        "type": "scene",
-        "integrator": {"type": "path", "max_depth": int(max_depth), "hide_emitters": True},
-        "sensor": camera.sensor_dict(),
-        "shape": shape.mitsuba_mesh(bsdf),
-        "probe": probe.emitter_dict(),
-    }
-
-
-def render_mesh(bsdf: Any, probe: Any, view: MeshView, spp: int = 64, seed: int = 0,
-                max_depth: int = 2) -> np.ndarray:
-    """Render ``view.shape`` with ``bsdf`` (anything :func:`mi_bivariate.render.bsdf_dict` takes)
-    under ``probe`` from ``view.camera``: ``(H, W, 3) float32`` linear RGB (background 0)."""
-    ensure_variant()
-    if int(spp) < 1:
-        raise InputError("spp", f"must be >= 1, got {spp}")
-    scene = load_scene(mesh_scene_dict(view.shape, bsdf_dict(bsdf), probe, view.camera, max_depth))
-    out = np.array(mi.render(scene, spp=int(spp), seed=int(seed)), dtype=np.float32)
-    return np.ascontiguousarray(out[..., :3])

@@ -87,6 +87,16 @@ def _weights_file(name: str) -> Path:
     return NBRDF_FILE if name in NBRDF_MATERIALS else NBRDF_TRAIN_FILE
 
 
+def weights_path(name: str, data_dir: Optional[PathLike] = None) -> Path:
+    """The file that :func:`load_nbrdf` reads for material ``name``.
+
+    Raises:
+        InputError: unknown material, or no shared data folder.
+    """
+    _check_name(name)
+    return _resolve_data_dir(data_dir) / _weights_file(name)
+
+
 class NBRDF:
     """One MERL-NBRDF material: the MLP weights (float32) and their evaluation."""
 
@@ -149,8 +159,7 @@ def load_nbrdf(name: str, data_dir: Optional[PathLike] = None) -> NBRDF:
     Raises:
         InputError: unknown material (lists the valid ones), missing data, malformed file.
     """
-    _check_name(name)
-    path = _resolve_data_dir(data_dir) / _weights_file(name)
+    path = weights_path(name, data_dir)
     arrays = _load_npz(path)
     weights = {}
     for layer in _LAYERS:

@@ -170,21 +170,6 @@ def _image_argument(image: Union[np.ndarray, PathLike], source: Optional[str]) -
 # ------------------------------------------------------------ lat-long frame
 
 
-def latlong_uv(directions: np.ndarray) -> np.ndarray:
-    """Mitsuba's lat-long coordinates of local-frame unit directions.
-
-    Args:
-        directions: ``(..., 3)`` unit vectors in the emitter's local frame.
-
-    Returns:
-        ``(..., 2)`` (u, v), u in [0, 1) (wrapped), v in [0, 1].
-    """
-    d = np.asarray(directions, dtype=np.float64)
-    u = np.arctan2(d[..., 0], -d[..., 2]) / (2 * math.pi)
-    v = np.arccos(np.clip(d[..., 1], -1.0, 1.0)) / math.pi
-    return np.stack([u - np.floor(u), v], axis=-1)
-
-
 def latlong_directions(height: int, width: int) -> np.ndarray:
     """Local-frame directions of the texel positions, ``(H, W, 3) float64``.
 
@@ -567,6 +552,16 @@ def shared_probe(name: str, data_dir: Optional[PathLike] = None) -> Probe:
         data_dir: the shared data folder (or its ``probes`` subfolder);
             defaults to ``$MI_BIVARIATE_DATA``.
     """
+    rotation = GRACE_LATLONG_ROTATION if name == "grace_latlong_1k" else None
+    return Probe.load(shared_probe_path(name, data_dir), rotation=rotation)
+
+
+def shared_probe_path(name: str, data_dir: Optional[PathLike] = None) -> Path:
+    """The file :func:`shared_probe` reads for ``name``.
+
+    Raises:
+        InputError: an unknown name, no data folder, or no such file in it.
+    """
     if name not in SHARED_PROBES:
         raise InputError(name, "unknown shared probe", "one of " + ", ".join(SHARED_PROBES))
     if data_dir is None:
@@ -579,5 +574,4 @@ def shared_probe(name: str, data_dir: Optional[PathLike] = None) -> Probe:
     matches = sorted(p for p in folder.glob(f"{name}.*") if p.suffix.lower() in PROBE_FORMATS)
     if not matches:
         raise InputError(folder, f"shared probe {name!r} not found")
-    rotation = GRACE_LATLONG_ROTATION if name == "grace_latlong_1k" else None
-    return Probe.load(matches[0], rotation=rotation)
+    return matches[0]

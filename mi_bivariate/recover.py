@@ -14,7 +14,6 @@ from __future__ import annotations
 import time
 import warnings
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
@@ -23,18 +22,15 @@ from mi_bivariate import adequacy
 from mi_bivariate import alignment as alignment_mod
 from mi_bivariate import capture, lighting
 from mi_bivariate import prior as prior_mod
-from mi_bivariate import report as report_mod
 from mi_bivariate import solve as solve_mod
 from mi_bivariate import spherefit
-from mi_bivariate.atomic import atomic_paths
 from mi_bivariate.basis_prior import BasisPrior, default_basis_prior
 from mi_bivariate.bivariate import BivariateBRDF
-from mi_bivariate.common import PathLike
 from mi_bivariate.errors import InputError, InputWarning
 from mi_bivariate.geometry import Geometry
-from mi_bivariate.images import load_image, load_mask
 from mi_bivariate.noise import estimate_camera_noise
 from mi_bivariate.probes import Probe
+from mi_bivariate.solve import IMAGE_WEIGHTS, cross_image_factors, solve_stages
 from mi_bivariate.threads import blas_threads
 from mi_bivariate.variants import ensure_variant
 
@@ -227,6 +223,7 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
     noise_models = _noise_list(noise, images)
     with blas_threads():  # no BLAS oversubscription on a shared machine (mi_bivariate.threads)
         sigma = solve_mod.row_sigma(observations.values, observations.image_index, noise=noise_models)
+        _check_noise_against_signal(sigma, observations.values)
         factors = np.ones(n)
         if image_weights == "cross" and n > 1:
             t1 = time.perf_counter()
@@ -271,97 +268,6 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
                     probes=probe_list, timings=timings)
 
 
-def solve_stages(data: solve_mod.DataTerm, prior: prior_mod.Prior, alpha: Any = None,
-                 basis: Optional[BasisPrior] = None,
-                 pair_rule: str = solve_mod.DEFAULT_PAIR_RULE) -> solve_mod.SolveResult:
-    """The solve as :func:`recover` runs it: the smoothness prior, then the basis prior.
-
-    Stage 1 chooses alpha (``alpha``) and, per channel, the weight pair (``pair_rule``; both
-    as :func:`mi_bivariate.solve.solve`). Stage 2, with a basis prior, adds its per-node
-    Gaussian, predicted from the first table and its confidence, and solves again with the
-    first stage's alphas and pairs (the result keeps the first stage's rule names).
-    """
-    first = solve_mod.solve_prepared(data, prior, alpha, pair_rule=pair_rule)
-    if basis is None:
-        return first
-    mean, std = basis.predict(first.table, first.resolution, first.posterior_std)
-    pairs = tuple(p for p in first.pairs if p in first.winner)
-    # recover() saves every confidence map of the second stage: computed on the channels' threads.
-    second = solve_mod.solve_prepared(data, prior, first.alphas, mean=mean, mean_std=std, pairs=pairs,
-                                      winner=first.winner, maps=("resolution", "posterior_std", "measured"))
-    second.alpha_rule, second.pair_rule, second.alpha_choice = first.alpha_rule, first.pair_rule, first.alpha_choice
-    return second
-
-
-#: How several images' rows are weighted beyond their own scale and noise (:func:`recover`).
-IMAGE_WEIGHTS = ("cross", "equal")
-#: The smallest cross-prediction excess :func:`cross_image_factors` divides by (relative: 0.1%,
-#: below the lighting matrix's own quadrature error, so nothing real is finer).
-CROSS_FLOOR = 1e-3
-
-
-def cross_image_factors(L: np.ndarray, values: np.ndarray, image_index: np.ndarray, sigma: np.ndarray,
-                        prior: prior_mod.Prior, alpha: Any = None, basis: Optional[BasisPrior] = None,
-                        pair_rule: str = solve_mod.DEFAULT_PAIR_RULE) -> np.ndarray:
-    """``(max(image_index) + 1,) >= 1``: each image's sigma factor, by leave-one-image-out prediction
-    (1 for an image without rows).
-
-    Each image is solved alone (:func:`solve_stages`), and its table predicts the rows of
-    every other image. What counts is how much worse image ``i``'s table predicts image ``j``
-    than ``j``'s own noise allows: ``d_ij^2 = (||L_j f_i - I_j||^2 - s_j^2) / ||I_j||^2`` (0 if
-    negative), with ``s_j^2 = RSS_j M_j / (M_j - dof_j)`` per channel, ``j``'s own residual with
-    the degrees of freedom its fit used given back (the trace of its model resolution matrix), and
-    ``d_i`` is the RMS over ``j`` of ``d_ij``. Image ``i``'s rows get their sigma multiplied by
-    ``d_i / min d`` (``min d`` at least :data:`CROSS_FLOOR`): the image whose table carries
-    over best to other light keeps its weight; one whose table does not (the bivariate model
-    fitted to its lighting in ways no other image confirms) counts less. Relative errors: an
-    image's brightness changes nothing. Costs one extra solve per image.
-
-    Measured on training materials (``benchmarks/image_weight.py``, ``docs/recovery.md``
-    section 4c): with grace_latlong_1k + uffizi_256, uffizi's rows weighed too much; these
-    weights (uffizi's factor 1.5-10) relit 14 of 15 better than equal ones.
-
-    Args:
-        L: ``(M, N, 3)``; values: ``(M, 3)``; image_index: ``(M,)`` int; sigma: ``(M, 3)`` the rows'
-            noise. prior, alpha, basis, pair_rule: as :func:`solve_stages`.
-    """
-    index = np.asarray(image_index, np.int64)
-    images = np.unique(index)
-    factors = np.ones(int(index.max()) + 1 if index.size else 0)
-    if len(images) < 2:
-        return factors
-    rows_of = [index == i for i in images]
-    L_of = [L[rows] for rows in rows_of]  # one copy of each image's rows, used by both loops
-    observed_of = [values[rows].astype(np.float64) for rows in rows_of]
-    tables, dof = [], []
-    for rows, L_i, observed in zip(rows_of, L_of, observed_of):
-        data = solve_mod.prepare_data_term(L_i, observed, sigma[rows])
-        result = solve_stages(data, prior, alpha, basis, pair_rule)
-        tables.append(result.table.reshape(-1, 3).astype(np.float32))
-        dof.append(np.sum(result.resolution.reshape(-1, 3), axis=0))  # trace of the hat matrix per channel
-    # misfit[a, b]: ||L_b f_a - I_b||^2 / ||I_b||^2, table of image a on the rows of image b;
-    # floor[b]: image b's own misfit with its degrees of freedom given back, RSS M / (M - dof)
-    # per channel (an image whose rows pin few nodes fits its own noise: its RSS under-states it).
-    misfit = np.empty((len(images), len(images)))
-    floor = np.empty(len(images))
-    for b, (L_b, observed) in enumerate(zip(L_of, observed_of)):
-        norm2 = max(float(np.sum(observed**2)), 1e-300)
-        for a, table in enumerate(tables):
-            predicted = np.einsum("mnc,nc->mc", L_b, table, optimize=True).astype(np.float64)
-            rss = np.sum((predicted - observed) ** 2, axis=0)
-            misfit[a, b] = float(rss.sum()) / norm2
-            if a == b:
-                m = float(len(observed))
-                floor[b] = float(np.sum(rss * m / np.maximum(m - dof[b], 1.0))) / norm2
-    excess = np.maximum(misfit - floor[None, :], 0.0)
-    off = ~np.eye(len(images), dtype=bool)
-    d = np.sqrt(np.array([excess[a][off[a]].mean() for a in range(len(images))]))
-    if np.all(np.isfinite(d)):
-        factors[images] = d / max(float(d.min()), CROSS_FLOOR)
-        factors[images] = np.maximum(factors[images], 1.0)
-    return factors
-
-
 def _basis_prior(value: Union[BasisPrior, None, str], n_t: int, n_s: int) -> Optional[BasisPrior]:
     if value is None or isinstance(value, BasisPrior):
         if value is not None and (value.n_t, value.n_s) != (n_t, n_s):
@@ -374,6 +280,20 @@ def _basis_prior(value: Union[BasisPrior, None, str], n_t: int, n_s: int) -> Opt
     if packaged is None or (packaged.n_t, packaged.n_s) != (n_t, n_s):
         return None
     return packaged
+
+
+#: The largest median ratio of a row's noise to its value that a recovery accepts: beyond it the
+#: image says nothing the priors do not (and the normal equations lose the data term).
+MAX_NOISE_TO_SIGNAL = 10.0
+
+
+def _check_noise_against_signal(sigma: np.ndarray, values: np.ndarray) -> None:
+    """Refuse a noise model that swamps the image (``sigma``, ``values``: ``(M, 3)``)."""
+    ratio = float(np.median(sigma / np.maximum(np.abs(values), 1e-30)))
+    if not ratio <= MAX_NOISE_TO_SIGNAL:
+        raise InputError("noise", f"the noise model's standard deviation is {ratio:.3g} times the median pixel: "
+                                  "the image would carry no information",
+                         "check the noise model: variance a I + b, with I a pixel value in the image's units")
 
 
 def _noise_list(noise: Any, images: Sequence[np.ndarray]) -> Optional[list]:
@@ -468,49 +388,3 @@ def recover_from_photo(image: np.ndarray, probe: Probe, *, intrinsics: Any = Non
     result.sphere_fit = fit
     result.alignment = alignment
     return result
-
-
-def recover_from_files(image_paths: Sequence[PathLike], probe: Union[Probe, Sequence[Probe]],
-                       geometry: Union[Geometry, Sequence[Geometry]],
-                       mask: Optional[PathLike] = None, **kwargs) -> Recovery:
-    """:func:`recover` on image files (EXR/HDR/PFM); ``mask`` applies to every image."""
-    images = [load_image(p) for p in image_paths]
-    masks = None
-    if mask is not None:
-        masks = [load_mask(mask, img.shape) for img in images]
-    return recover(images, probe, geometry, masks=masks, **kwargs)
-
-
-def output_paths(out: PathLike, merl: bool = False, report: bool = True) -> List[Path]:
-    """The files :func:`write_outputs` writes for ``out``: ``.npz``, ``.exr``, [``.binary``], [``_report.png``]."""
-    out = Path(out)
-    if out.suffix != ".npz":
-        out = out.with_suffix(".npz")
-    paths = [out, out.with_suffix(".exr")]
-    if merl:
-        paths.append(out.with_suffix(".binary"))
-    if report:
-        paths.append(out.with_name(out.stem + "_report.png"))
-    return paths
-
-
-def write_outputs(result: Recovery, out: PathLike, merl: bool = False, report: bool = True,
-                  report_render: bool = False) -> List[Path]:
-    """Write the table (``.npz``), its EXR view, optionally a MERL ``.binary`` and a PNG report.
-
-    The report's re-render is the model's prediction ``L f`` unless ``report_render``
-    asks for a path-traced one (:func:`mi_bivariate.report.write_recovery_report`).
-
-    All or none: every file is written to a temporary first and they are
-    renamed into place together (:func:`mi_bivariate.atomic.atomic_paths`).
-    Returns the paths written.
-    """
-    paths = output_paths(out, merl=merl, report=report)
-    with atomic_paths(paths) as temps:
-        result.brdf.save(temps[0])
-        result.brdf.save_exr(temps[1])
-        if merl:
-            result.brdf.to_merl().write(temps[2])
-        if report:
-            report_mod.write_recovery_report(result, temps[-1], path_trace=report_render)
-    return paths

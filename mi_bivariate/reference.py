@@ -59,6 +59,7 @@ import numpy as np
 from mi_bivariate import metrics
 from mi_bivariate.errors import InputError
 from mi_bivariate.geometry import SphereCamera
+from mi_bivariate.lighting.kernels import fibonacci_point
 from mi_bivariate.render import SphereRender, bsdf_dict
 from mi_bivariate.variants import ensure_variant
 
@@ -71,9 +72,6 @@ CHUNK_LANES = 1 << 22
 STRATEGIES = ("cosine", "lobe", "environment")
 #: Bumped when the renderer's numbers change (part of the evaluation's cache keys).
 REFERENCE_VERSION = 1
-
-# floor(2^32 / golden ratio): frac(i / golden) = (i G mod 2^32) / 2^32 in exact uint32.
-_GOLDEN_U32 = 2654435769
 
 
 @dataclass
@@ -124,10 +122,8 @@ def pixel_rays(resolution: int, subpixels: int = 1, radius_fraction: float = RAD
 
 
 def _lattice(i: Any, n: int, shift_u: Any, shift_v: Any) -> Tuple[Any, Any]:
-    """Point ``i`` of the ``n``-point Fibonacci lattice, Cranley-Patterson shifted (Dr.Jit)."""
-    u = mi.Float(i) * (1.0 / n) + (0.5 / n) + shift_u
-    v = mi.Float(i * _GOLDEN_U32) * 2.0**-32 + shift_v
-    u, v = u - dr.floor(u), v - dr.floor(v)
+    """Point ``i`` of the ``n``-point Fibonacci lattice, Cranley-Patterson shifted (Dr.Jit), in [0, 1)."""
+    u, v = fibonacci_point(i, n, shift_u, shift_v)
     # Keep both strictly inside [0, 1): warps divide by (1 - u) near 1.
     return dr.minimum(u, 0.99999994), dr.minimum(v, 0.99999994)
 

@@ -38,12 +38,9 @@ import numpy as np
 
 from mi_bivariate.bivariate import BivariateBRDF
 from mi_bivariate.errors import InputError
-from mi_bivariate.geometry import SphereCamera, SphereGeometry
-
-# Previews and EXRs are written by mi_bivariate.images; re-exported here for the render command.
-from mi_bivariate.images import tonemap, write_exr  # noqa: F401
-from mi_bivariate.images import write_png as write_png_preview  # noqa: F401
+from mi_bivariate.geometry import Camera, SphereCamera, SphereGeometry
 from mi_bivariate.merl import MERLBRDF
+from mi_bivariate.mesh import MeshShape, MeshView
 from mi_bivariate.variants import ensure_variant
 
 
@@ -212,3 +209,32 @@ def render_like(bsdf: Any, probe: Any, geometry: SphereGeometry, width: int, hei
     normals, mask = geometry.normals(width, height)
     return SphereRender(image=np.ascontiguousarray(out[..., :3]), normals=normals.astype(np.float32), mask=mask,
                         geometry=geometry, camera=cam, spp=int(spp), seed=int(seed))
+
+
+# --------------------------------------------------------------- meshes
+
+def mesh_scene_dict(shape: MeshShape, bsdf: dict, probe: Any, camera: Camera, max_depth: int = 2) -> dict:
+    """Scene dictionary: the mesh with ``bsdf``, the probe's envmap and the camera (``path`` integrator).
+
+    ``max_depth=2`` is direct lighting with self-shadowing but no
+    interreflection: the forward model of the lighting matrix with visibility.
+    """
+    return {
+        "type": "scene",
+        "integrator": {"type": "path", "max_depth": int(max_depth), "hide_emitters": True},
+        "sensor": camera.sensor_dict(),
+        "shape": shape.mitsuba_mesh(bsdf),
+        "probe": probe.emitter_dict(),
+    }
+
+
+def render_mesh(bsdf: Any, probe: Any, view: MeshView, spp: int = 64, seed: int = 0,
+                max_depth: int = 2) -> np.ndarray:
+    """Render ``view.shape`` with ``bsdf`` (anything :func:`mi_bivariate.render.bsdf_dict` takes)
+    under ``probe`` from ``view.camera``: ``(H, W, 3) float32`` linear RGB (background 0)."""
+    ensure_variant()
+    if int(spp) < 1:
+        raise InputError("spp", f"must be >= 1, got {spp}")
+    scene = load_scene(mesh_scene_dict(view.shape, bsdf_dict(bsdf), probe, view.camera, max_depth))
+    out = np.array(mi.render(scene, spp=int(spp), seed=int(seed)), dtype=np.float32)
+    return np.ascontiguousarray(out[..., :3])

@@ -15,9 +15,9 @@ import numpy as np
 from mi_bivariate import render
 from mi_bivariate.atomic import atomic_path
 from mi_bivariate.bivariate import BivariateBRDF
-from mi_bivariate.common import PathLike
+from mi_bivariate.common import PathLike, luminance
 from mi_bivariate.coordinates import half_diff_from_dirs
-from mi_bivariate.images import tonemap
+from mi_bivariate.images import auto_exposure, tonemap
 
 
 def pyplot():
@@ -30,8 +30,8 @@ def pyplot():
     return plt
 
 
-def save_figure(fig: Any, path: PathLike, dpi: int = 110, tight: bool = True) -> Path:
-    """Save a matplotlib figure atomically (format from the suffix) and close it.
+def save_figure(fig: Any, path: PathLike, dpi: int = 110, tight: bool = True, close: bool = True) -> Path:
+    """Save a matplotlib figure atomically (format from the suffix) and close it (unless ``close=False``).
 
     ``tight=False`` skips ``bbox_inches="tight"`` (an extra draw of the whole
     figure) for figures already laid out by ``tight_layout``.
@@ -41,7 +41,8 @@ def save_figure(fig: Any, path: PathLike, dpi: int = 110, tight: bool = True) ->
     extra = {"pil_kwargs": {"compress_level": 1}} if fmt == "png" else {}  # fast zlib: 3x faster, ~1.3x bigger
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=dpi, bbox_inches="tight" if tight else None, format=fmt, **extra)
-    pyplot().close(fig)
+    if close:
+        pyplot().close(fig)
     return path
 
 
@@ -49,11 +50,7 @@ def exposure_of(image: np.ndarray, mask: Optional[np.ndarray] = None) -> float:
     """The exposure that maps the image's bright (masked) pixels to display white (shared by panels)."""
     if mask is not None and mask.shape != image.shape[:2]:     # e.g. input and novel renders differ in size
         mask = np.any(image > 0, axis=-1)
-    values = image[mask] if mask is not None else image.reshape(-1, 3)
-    lum = values @ np.array([0.2126, 0.7152, 0.0722])
-    lum = lum[np.isfinite(lum) & (lum > 0)]
-    level = np.percentile(lum, 99.0) if lum.size else 1.0
-    return 1.0 / level if level > 0 else 1.0
+    return auto_exposure(image, mask)
 
 
 def show_image(ax: Any, image: np.ndarray, title: str, exposure: float) -> None:
@@ -218,11 +215,10 @@ def write_recovery_report(result: Any, path: PathLike, rerender: Optional[np.nda
     axes[1, 1].set_xlabel("s = 2 theta_d / pi", fontsize=8)
     axes[1, 1].set_ylabel("t = sqrt(2 theta_h / pi)", fontsize=8)
     fig.colorbar(im, ax=axes[1, 1], fraction=0.046, pad=0.02)
-    lum = np.array([0.2126, 0.7152, 0.0722])
     # log10 values on linear axes: the same picture as log axes without their
     # mathtext tick labels (the slowest part of drawing this figure).
-    seen = np.log10(np.maximum(obs.values @ lum, 1e-6))
-    fit = np.log10(np.maximum(result.predicted @ lum, 1e-6))
+    seen = np.log10(np.maximum(luminance(obs.values), 1e-6))
+    fit = np.log10(np.maximum(luminance(result.predicted), 1e-6))
     axes[1, 2].plot(seen, fit, ".", ms=1.5, alpha=0.5)
     lo, hi = float(np.min(seen)), float(np.max(seen))
     axes[1, 2].plot([lo, hi], [lo, hi], "k-", lw=0.8)

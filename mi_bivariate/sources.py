@@ -224,6 +224,31 @@ def _io_threads() -> Iterator[None]:
 _PROBE_CACHE: Dict[Tuple[str, str], "probes.Probe"] = {}
 
 
+def input_files(*specs: Optional[PathLike], data_dir: Optional[PathLike] = None) -> List[Path]:
+    """The files that specs of probes, materials or MERL folders read (for the check that no output
+    overwrites an input): a file as given, a folder's MERL ``.binary`` files, and the shared file
+    behind a shared probe name or a MERL-NBRDF name. Specs that name nothing on disk (analytic,
+    ``synthetic:SEED``, a shared name without the data folder) contribute nothing.
+    """
+    files: List[Path] = []
+    for spec in specs:
+        if spec is None or not str(spec):
+            continue
+        path, name = Path(spec), str(spec)
+        try:
+            if path.is_dir():
+                files += [Path(f) for f in merl.merl_files_in(path)]
+            elif path.is_file():
+                files.append(path)
+            elif name in nbrdf.ALL_NBRDF_MATERIALS:
+                files.append(nbrdf.weights_path(name, data_dir))
+            elif name in probes.SHARED_PROBES:
+                files.append(probes.shared_probe_path(name, data_dir))
+        except InputError:  # not resolvable: the command's own loading reports it
+            continue
+    return files
+
+
 def load_probe(spec: str, data_dir: Optional[PathLike] = None, cache: bool = False) -> "probes.Probe":
     """A probe by file path, shared name or ``synthetic:SEED``.
 

@@ -122,6 +122,15 @@ def jit_threads(n: Optional[int]) -> Iterator[None]:
         dr.set_thread_count(before)
 
 
+def pin_process_threads(n: int) -> None:
+    """For a process that exists for one job (an evaluation worker): ``n`` BLAS/OpenMP threads
+    (numpy's and scipy's pools, through :mod:`threadpoolctl`) and ``n`` solve workers
+    (:data:`SOLVE_ENV_VAR`) for the rest of the process. Not restored: use :func:`blas_threads`
+    and :func:`solve_thread_limit` in a process that goes on."""
+    os.environ[SOLVE_ENV_VAR] = str(int(n))
+    _controller().limit(limits=int(n))   # applied at construction; kept, never restored
+
+
 _solve_limit: Optional[int] = None
 
 

@@ -7,7 +7,7 @@ BSDF plugins are registered per variant, so every switch goes through
 
 Only the front doors select the variant: the CLI's commands,
 :func:`mi_bivariate.recover.recover`, the rendering entry points
-(``render``, ``reference``, ``mesh.render_mesh``), the demo and the
+(``render``, including ``render.render_mesh``, and ``reference``), the demo and the
 evaluation's workers. Code below them (data-model methods such as
 ``BivariateBRDF.to_bitmap`` or ``Probe.emitter``) uses whatever variant is
 selected and never changes it; without one, Mitsuba itself raises
@@ -60,7 +60,13 @@ def ensure_variant(variant: Optional[str] = None, vectorised: bool = False) -> s
         raise InputError(source, f"Mitsuba variant {variant!r} is not available in this build",
                          f"available: {', '.join(v for v in mi.variants() if v in choices)}")
     if current != variant:
-        mi.set_variant(variant)
+        try:
+            mi.set_variant(variant)
+        except (ImportError, RuntimeError) as exc:  # e.g. cuda_ad_rgb without a usable GPU or driver
+            reason = " ".join(str(exc).split())[:200] or type(exc).__name__
+            fallback = [v for v in ("llvm_ad_rgb", "scalar_rgb") if v in choices and v != variant][:1]
+            raise InputError(source, f"Mitsuba variant {variant!r} cannot start on this machine ({reason})",
+                             f"use {fallback[0]}" if fallback else "use another variant") from None
     register()
     return variant
 

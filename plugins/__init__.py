@@ -9,14 +9,12 @@ for the current variant and registers them once per variant. Call it (or
 
 from __future__ import annotations
 
-from typing import Dict, Tuple
+from typing import Dict
 
 import mitsuba as mi
 
 from mi_bivariate.plugins.bivariate import make_bivariate_bsdf
 from mi_bivariate.plugins.merl import make_merl_bsdf
-
-PLUGIN_NAMES: Tuple[str, ...] = ("bivariate", "merl")
 
 # variant -> {plugin name: class}
 _CLASSES: Dict[str, Dict[str, type]] = {}

@@ -22,6 +22,7 @@ import numpy as np
 from mi_bivariate import evaluate as ev
 from mi_bivariate.adequacy import OBSERVED_MIN_EFFECTIVE, OBSERVED_MIN_SIGNAL
 from mi_bivariate.atomic import atomic_path
+from mi_bivariate.evaluate.results import _fmt
 
 BEGIN, END = "<!-- results:begin -->", "<!-- results:end -->"
 METRICS = (("eq1", "Eq. 1, all cells"), ("eq1_observed", "Eq. 1, observed cells"),
@@ -34,7 +35,7 @@ def _median(values) -> float:
 
 
 def _f(v: float) -> str:
-    return ev._fmt(v)
+    return _fmt(v)
 
 
 def generate(out: Path) -> str:

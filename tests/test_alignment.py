@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_mesh import sky_probe
+from helpers import sky_probe
 
 from mi_bivariate import alignment
 from mi_bivariate.analytic import BivariateLobe

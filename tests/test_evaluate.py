@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import independent_relight_floor
 
 from mi_bivariate import analytic, baselines
 from mi_bivariate import evaluate as ev
@@ -234,8 +235,6 @@ def test_evaluate_abs_records_both_routes_scored_by_the_converged_renderer(tmp_p
     import dataclasses
 
     from mi_bivariate import synthesis
-    from mi_bivariate.evaluate.renders import Renderer
-    from mi_bivariate.sources import load_probe, load_truth, resolve_materials
 
     material = MATERIALS[1]                              # GGX: not exactly bivariate, the floor is > 0
     out = tmp_path / "abs"
@@ -246,15 +245,8 @@ def test_evaluate_abs_records_both_routes_scored_by_the_converged_renderer(tmp_p
     assert r["scoring"]["renderer"] == "reference" and r["scoring"]["resolution"] == 16
     assert r["novel_probe"] == ev.probe_label(config.novel_probes[0])
 
-    spec = resolve_materials([material])[0]
-    truth = load_truth(spec)
-    renderer = Renderer(config, spec, cache_dir=None)
-    novel = load_probe(config.novel_probes[0])
     seed = config.seed + 1                               # the evaluation's seed for its first novel probe
-    truth_shot = renderer.render(truth, novel, config.novel_probes[0], 16, seed, config.novel_spp)
-    floor = renderer.render(BivariateBRDF.reduce(truth, n_t=8, n_s=8), novel, config.novel_probes[0], 16, seed,
-                            config.novel_spp).image
-    want = metrics.image_relative_rmse(floor, truth_shot.image, truth_shot.mask)
+    want = independent_relight_floor(config, material, config.novel_probes[0], seed, 16)
     assert want > 1e-3 and r["relight_floor"] == pytest.approx(want, rel=1e-6)
 
     assert set(r["relight_noise"]) == {"truth", "linear_table", "abs_best_table"}

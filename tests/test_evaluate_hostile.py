@@ -16,6 +16,7 @@ import pytest
 from mi_bivariate import evaluate as ev
 from mi_bivariate.cli import main
 from mi_bivariate.errors import InputError, InputWarning
+from mi_bivariate.evaluate import runner
 
 # One material at the test suite's tiny protocol (seconds).
 MATERIAL = "lambertian:albedo=0.5,0.3,0.2"
@@ -65,7 +66,7 @@ def test_damaged_lines_are_set_aside_and_recomputed(tmp_path):
 def test_second_run_on_a_folder_refuses(tmp_path, capsys):
     out = tmp_path / "eval"
     out.mkdir()
-    with ev._folder_lock(out):                       # another run holds the folder
+    with runner._folder_lock(out):                       # another run holds the folder
         status = main(["evaluate", MATERIAL, "--out", str(out), *TINY_ARGS])
         line = _one_line_error(capsys, status)
     assert str(out) in line and "another evaluate run" in line
@@ -111,11 +112,11 @@ def test_workers_die_with_their_parent(tmp_path):
     script.write_text(textwrap.dedent("""
         import multiprocessing, os, time
         from concurrent.futures import ProcessPoolExecutor
-        from mi_bivariate import evaluate as ev
+        from mi_bivariate.evaluate import runner
 
         if __name__ == "__main__":
             pool = ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("spawn"),
-                                       initializer=ev._init_worker, initargs=("scalar_rgb", os.getpid()))
+                                       initializer=runner._init_worker, initargs=("scalar_rgb", os.getpid()))
             pids = {pool.submit(time.sleep, 0.5) and f.result() for f in [pool.submit(os.getpid) for _ in range(4)]}
             print(" ".join(map(str, sorted(pids))), flush=True)
             time.sleep(120)
@@ -150,4 +151,4 @@ def test_read_records_never_raises_on_garbage(tmp_path):
         assert ev.repair_results(path) == 2
     assert path.read_bytes() == b"{\"material\": \"ok\", \"config_hash\": \"h\"}\n"
     with pytest.raises(InputError):
-        ev._connect_dask("not a scheduler address")
+        runner._connect_dask("not a scheduler address")

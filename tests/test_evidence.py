@@ -15,8 +15,7 @@ from mi_bivariate import solve
 from mi_bivariate.basis_prior import BasisPrior
 from mi_bivariate.errors import InputError
 from mi_bivariate.prior import default_prior
-from mi_bivariate.recover import solve_stages
-from mi_bivariate.solve import nnls_gram
+from mi_bivariate.solve import nnls_gram, solve_stages
 from mi_bivariate.solve.evidence import channel_log_evidence, log_det_banded, log_evidence, penalty_log_pdet
 
 N_T = N_S = 6

@@ -25,11 +25,11 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
+from helpers import sun_sky_probe
 
 from mi_bivariate.analytic import BivariateLobe
 from mi_bivariate.bivariate import BivariateBRDF
 from mi_bivariate.geometry import SphereCamera
-from mi_bivariate.probes import Probe
 from mi_bivariate.render import bsdf_dict, sphere_scene_dict
 from mi_bivariate.variants import ensure_variant
 
@@ -54,17 +54,8 @@ def lobe_table(n: int = 8) -> BivariateBRDF:
     return BivariateBRDF(table * np.array([1.0, 0.7, 0.4]))
 
 
-def envmap() -> Probe:
-    """Smooth sky gradient plus a small bright sun (32 x 64): sharp and smooth lighting at once."""
-    h, w = 32, 64
-    y, x = np.mgrid[0:h, 0:w]
-    data = np.stack([0.3 + 0.7 * (1 - y / h), 0.4 + 0.3 * x / w, 0.5 + 0.0 * x], -1)
-    data[6:9, 20:23] = 40.0
-    return Probe(data.astype(np.float32), source="synthetic")
-
-
 def make_scene(bsdf: dict, integrator: str = "prb") -> mi.Scene:
-    scene = sphere_scene_dict(bsdf, envmap(), SphereCamera.create("orthographic", RES), normals=False)
+    scene = sphere_scene_dict(bsdf, sun_sky_probe(), SphereCamera.create("orthographic", RES), normals=False)
     scene["integrator"] = {"type": integrator, "max_depth": 2, "hide_emitters": True}
     if integrator == "direct":
         scene["integrator"] = {"type": "direct", "hide_emitters": True}

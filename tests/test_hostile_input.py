@@ -244,6 +244,17 @@ CLI_CASES = [
     _needs_recover(("recover: K = 0", lambda f: _recover_args(f, dirs="0"), None, "n_dirs")),
     _needs_recover(("recover: grid 1", lambda f: _recover_args(f, grid="1"), None, "too small")),
     _needs_recover(("recover: negative alpha", lambda f: _recover_args(f, alpha="-1"), None, "alpha")),
+    _needs_recover(("recover: alpha 1e300", lambda f: _recover_args(f, alpha="1e300"), None, "between")),
+    _needs_recover(("recover: alpha 1e-20", lambda f: _recover_args(f, alpha="1e-20"), None, "between")),
+    _needs_recover(("recover: noise swamps the image", lambda f: _recover_args(f, noise="1e10,1e10"), None,
+                    "carry no information")),
+    ("render: --out not EXR", lambda f: ["render", str(f["npz"]), "--probe", str(f["probe"]), "--out", "x.hdr"],
+     None, "OpenEXR"),
+    ("reduce: an image", lambda f: ["reduce", str(f["image"])], "image", "not a MERL .binary"),
+    ("learn-prior: missing source", lambda f: ["learn-prior", str(f["npz"].with_name("nowhere")), "--out", "p.npz"],
+     None, "no such file or folder"),
+    ("demo: bivariate material", lambda f: ["demo", "--material", str(f["npz"]), "--out", "d"], "npz",
+     "bivariate table"),
 ]
 
 
@@ -325,10 +336,9 @@ def _fail_savez(monkeypatch):
 
 @pytest.mark.parametrize("name, write, sabotage", [
     ("out.exr", lambda p: images.write_exr(p, np.ones((4, 4, 3), np.float32)), _fake_openexr),
-    ("out.exr", lambda p: render.write_exr(p, np.ones((4, 4, 3), np.float32)), _fake_openexr),
     ("out.npz", _write_npz, _fail_savez),
     ("out.png", lambda p: images.write_png(p, np.ones((4, 4, 3), np.float32)), _fake_bitmap_module),
-], ids=["images.write_exr", "render.write_exr", "BivariateBRDF.save", "images.write_png"])
+], ids=["images.write_exr", "BivariateBRDF.save", "images.write_png"])
 def test_failed_write_leaves_previous_output(tmp_path, monkeypatch, name, write, sabotage):
     target = tmp_path / name
     target.write_bytes(b"previous result")
@@ -495,7 +505,9 @@ def _snapshot(folder: Path) -> dict:
 
 @pytest.mark.parametrize("case", ["recover npz beside photo", "recover onto probe", "reduce onto input",
                                   "render onto probe", "render onto brdf", "render png onto probe",
-                                  "learn-prior onto source"])
+                                  "learn-prior onto source", "recover onto a shared probe by name",
+                                  "learn-prior onto the weights behind a name", "recover onto the prior's basis",
+                                  "learn-prior onto a file of a source folder", "demo onto its input probe"])
 def test_no_output_overwrites_an_input(files, tmp_path, capsys, case):
     d = tmp_path
     photo = d / "photo.exr"
@@ -517,9 +529,30 @@ def test_no_output_overwrites_an_input(files, tmp_path, capsys, case):
         "render png onto probe": (["render", "lambertian", "--probe", str(d / "p.png"), "--out",
                                    str(d / "p.exr")], d / "p.png"),
         "learn-prior onto source": (["learn-prior", str(merl), "--out", str(merl)], merl),
+        # Inputs named, not given as paths: the files behind the names are inputs too.
+        "recover onto a shared probe by name": (rec[:3] + ["grace_256"] + rec[4:] + [
+            "--data", str(d / "data"), "--out", str(d / "data" / "probes" / "grace_256.npz")],
+            d / "data" / "probes" / "grace_256.exr"),
+        "learn-prior onto the weights behind a name": (["learn-prior", "white-paint", "--data", str(d / "data"),
+                                                        "--out", str(d / "data" / "merl_nbrdf" / "merl_nbrdf_dev.npz")],
+                                                       d / "data" / "merl_nbrdf" / "merl_nbrdf_dev.npz"),
+        "recover onto the prior's basis": (rec + ["--prior", str(d / "pr.npz"), "--out", str(d / "pr_basis.npz")],
+                                           d / "pr_basis.npz"),
+        "learn-prior onto a file of a source folder": (["learn-prior", str(d / "m"), "--out", str(d / "m" / "x.binary")],
+                                                       d / "m" / "x.binary"),
+        "demo onto its input probe": (["demo", "--out", str(d), "--input-probe", str(d / "input.exr")], d / "input.exr"),
     }[case]
     if case == "render png onto probe":
         (d / "p.png").write_bytes(files["png"].read_bytes())
+    (d / "data" / "probes").mkdir(parents=True)
+    (d / "data" / "merl_nbrdf").mkdir()
+    (d / "data" / "probes" / "grace_256.exr").write_bytes(files["probe"].read_bytes())
+    (d / "data" / "merl_nbrdf" / "merl_nbrdf_dev.npz").write_bytes(files["npz"].read_bytes())
+    (d / "pr.npz").write_bytes(b"a prior")          # never read: the outputs are refused first
+    (d / "pr_basis.npz").write_bytes(b"its basis prior")
+    (d / "m").mkdir()
+    (d / "m" / "x.binary").write_bytes(files["merl"].read_bytes())
+    (d / "input.exr").write_bytes(files["probe"].read_bytes())
     before = _snapshot(d)
     line = _cli(argv, capsys)
     assert "overwrite the input" in line and str(victim) in line, line
@@ -659,3 +692,15 @@ def test_recover_threads_1_is_bit_identical(files, tmp_path):
         with np.load(out) as z:
             tables.append({k: z[k].tobytes() for k in z.files if k != "meta"})
     assert tables[0] == tables[1]
+
+
+def test_unavailable_variant_is_one_line(tmp_path):
+    """``--variant cuda_ad_rgb`` where CUDA cannot start (no GPU or driver) is bad input, not a
+    traceback; where it can, ``info`` runs. In a child process: a failed variant switch is not undone."""
+    proc = subprocess.run([sys.executable, "-m", "mi_bivariate", "info", "--variant", "cuda_ad_rgb"],
+                          capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    if proc.returncode == 0:
+        pytest.skip("CUDA works on this machine")
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1, proc.stderr
+    assert lines[0].startswith("mi-bivariate: error: --variant: ") and "(use llvm_ad_rgb)" in lines[0], lines[0]

@@ -1,4 +1,4 @@
-"""Several images weighted by how well each one's table predicts the others (recover.cross_image_factors)."""
+"""Several images weighted by how well each one's table predicts the others (solve.cross_image_factors)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import pytest
 
 from mi_bivariate import solve
 from mi_bivariate.prior import default_prior
-from mi_bivariate.recover import IMAGE_WEIGHTS, cross_image_factors, solve_stages
+from mi_bivariate.solve import IMAGE_WEIGHTS, cross_image_factors, solve_stages
 
 N_T = N_S = 8
 N = N_T * N_S

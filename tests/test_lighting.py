@@ -23,6 +23,7 @@ from mi_bivariate.coordinates import grid_nodes, half_diff_from_dirs, half_diff_
 from mi_bivariate.errors import InputError
 from mi_bivariate.geometry import SphereGeometry
 from mi_bivariate.probes import Probe
+from mi_bivariate.threads import jit_threads
 
 
 def synthetic_probe(height: int = 64, width: int = 128) -> Probe:
@@ -510,9 +511,7 @@ def test_mis_masked_lookups_change_no_bit():
     probe = synthetic_probe()
     packets = kernels._row_packets(obs.normals, obs.views, lighting.hemisphere_offsets(len(obs), 3))
     m, counts = len(packets), mis.strategy_counts(600)
-    threads = dr.thread_count()
-    dr.set_thread_count(1)  # one accumulation order
-    try:
+    with jit_threads(1):  # one accumulation order
         got = np.array(mis._mis_chunk(packets, probe, 8, 8, 600))
         data = mi.Float(packets.reshape(-1))
         target = dr.zeros(mi.Float, m * 64 * 4)
@@ -522,8 +521,6 @@ def test_mis_masked_lookups_change_no_bit():
             kernels._splat(m, row, lx, ly, lz, sin_v, cos_v, probe.eval_dr(d) * weight, 8, 8, active=above,
                            target=target)
         expected = target.numpy().reshape(m, 64, 4)[:, :, :3]
-    finally:
-        dr.set_thread_count(threads)
     assert np.any(got > 0)
     np.testing.assert_array_equal(got, expected)
 

@@ -7,6 +7,7 @@ import warnings
 import numpy as np
 import pytest
 import trimesh
+from helpers import sky_probe
 
 from mi_bivariate import capture, lighting, mesh, metrics, solve
 from mi_bivariate.analytic import BivariateLobe, CookTorranceGGX
@@ -14,31 +15,7 @@ from mi_bivariate.bivariate import BivariateBRDF
 from mi_bivariate.errors import InputError, InputWarning
 from mi_bivariate.geometry import Camera, PerspectiveSphereGeometry, SphereGeometry
 from mi_bivariate.merl import MERLBRDF
-from mi_bivariate.probes import Probe
-from mi_bivariate.render import bsdf_dict
-
-
-def sky_probe(yaw_deg: float = 0.0, n_lights: int = 2) -> Probe:
-    """A smooth sky with soft suns (64 x 128): strong directional light, cheap to integrate.
-
-    ``n_lights`` > 2 adds smaller lamps spread over the sphere (seeded), so
-    that the specular peak is observed from many normals.
-    """
-    h, w = 64, 128
-    theta = (np.arange(h) + 0.5)[:, None] / h * np.pi
-    phi = (np.arange(w) + 0.5)[None, :] / w * 2 * np.pi
-    d = np.stack(np.broadcast_arrays(np.sin(theta) * np.cos(phi), np.cos(theta) + 0 * phi,
-                                     np.sin(theta) * np.sin(phi)), axis=-1)
-    sky = np.clip(0.25 + 0.25 * d[..., 1:2], 0.05, None) * np.array([0.8, 0.9, 1.0])
-    lights = [((0.5, 0.7, 0.5), 60.0, (1.0, 0.9, 0.7)), ((-0.8, 0.2, -0.3), 20.0, (0.6, 0.7, 1.0))]
-    rng = np.random.default_rng(7)
-    for _ in range(max(0, n_lights - 2)):
-        lights.append((rng.normal(size=3), rng.uniform(5.0, 20.0), rng.uniform(0.5, 1.0, 3)))
-    for direction, power, colour in lights:
-        u = np.asarray(direction, float) / np.linalg.norm(direction)
-        sky = sky + power * np.exp(-(1.0 - d @ u) / 0.01)[..., None] * np.asarray(colour)
-    probe = Probe(sky.astype(np.float32), source="sky")
-    return probe.rotated(euler_deg=(0, yaw_deg, 0)) if yaw_deg else probe
+from mi_bivariate.render import bsdf_dict, render_mesh
 
 
 @pytest.fixture(scope="module")
@@ -155,7 +132,7 @@ def test_model_agreement_with_self_shadowing(torus_view):
     with visibility; without it the model is clearly off (and too bright)."""
     probe = sky_probe()
     table = BivariateBRDF.reduce(BivariateLobe(diffuse=0.3, specular=1.5, width=0.3))
-    image = mesh.render_mesh(bsdf_dict(table), probe, torus_view, spp=256, seed=1)
+    image = render_mesh(bsdf_dict(table), probe, torus_view, spp=256, seed=1)
     obs = capture.image_observations(image, torus_view, n_normals=1500)
     predicted = {}
     for vis in (True, False):
@@ -188,16 +165,16 @@ def test_recovery_with_visibility_beats_without(torus_view):
     brdf = CookTorranceGGX(albedo_diffuse=(0.35, 0.25, 0.15), specular=0.6, alpha=0.2)
     truth = MERLBRDF.from_function(brdf.eval, name="ggx", dtype=np.float32)
     truth_bsdf = bsdf_dict(truth)
-    image = mesh.render_mesh(truth_bsdf, probe, torus_view, spp=256, seed=1)
-    reference = mesh.render_mesh(truth_bsdf, novel, torus_view, spp=128, seed=7)
+    image = render_mesh(truth_bsdf, probe, torus_view, spp=256, seed=1)
+    reference = render_mesh(truth_bsdf, novel, torus_view, spp=128, seed=7)
     obs = capture.image_observations(image, torus_view, n_normals=1500)
     result = {}
     for vis in (True, False):
         L = lighting.lighting_matrix(obs, probe, n_dirs=8000, occluder=torus_view.shape if vis else None)
         estimate = BivariateBRDF(solve.solve(L, obs.values).table)
         e = metrics.brdf_errors(truth, estimate)
-        render = mesh.render_mesh(bsdf_dict(estimate), novel, torus_view, spp=128, seed=7)
-        result[vis] = (e["eq1"], e["cosine"], metrics.image_relative_rmse(render, reference, torus_view.surface().mask))
+        relit = render_mesh(bsdf_dict(estimate), novel, torus_view, spp=128, seed=7)
+        result[vis] = (e["eq1"], e["cosine"], metrics.image_relative_rmse(relit, reference, torus_view.surface().mask))
     with_vis, without = result[True], result[False]
     print(f"(Eq. 1, cosine-weighted, novel image) with visibility {with_vis}, without {without}")
     # Eq. 1 is not asserted: it is dominated by weakly observed cells (the theta_h ~ 0 rows)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
-from test_mesh import sky_probe
+from helpers import sky_probe
 
 from mi_bivariate import mesh
 from mi_bivariate.analytic import BivariateLobe
@@ -14,7 +14,7 @@ from mi_bivariate.errors import InputError
 from mi_bivariate.geometry import Camera, PerspectiveSphereGeometry
 from mi_bivariate.probes import rotation_matrix
 from mi_bivariate.recover import recover
-from mi_bivariate.render import bsdf_dict, render_sphere
+from mi_bivariate.render import bsdf_dict, render_mesh, render_sphere
 
 TRUTH = BivariateBRDF.reduce(BivariateLobe(diffuse=(0.3, 0.2, 0.1), specular=2.0, width=0.25))
 # noise=None: these tests judge poses, probes and visibility by how well one table fits every
@@ -94,7 +94,7 @@ def test_mesh_views_from_two_poses():
             Camera.look_at((3.5, -1.0, 2.0), (0, 0, 0), width=64, scale=18.0)]
     probes = [sky_probe(n_lights=12), sky_probe(yaw_deg=120.0, n_lights=12)]
     viewsets = [mesh.MeshView(shape, c) for c in cams]
-    images = [mesh.render_mesh(bsdf_dict(TRUTH), p, v, spp=128, seed=3 + i)
+    images = [render_mesh(bsdf_dict(TRUTH), p, v, spp=128, seed=3 + i)
               for i, (p, v) in enumerate(zip(probes, viewsets))]
     rec = recover(images, probes, viewsets, **FAST)
     assert rec.brdf.provenance["visibility"] is True

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import ast
 import importlib
 import os
 import pkgutil
@@ -34,9 +35,9 @@ def test_readme_names_resolve():
 def test_readme_python_example_runs(tmp_path, monkeypatch):
     """The README's Python blocks, on a small rendered sphere (file names swapped for real ones)."""
     from mi_bivariate import analytic, render
-    from mi_bivariate.demo import synthetic_environment
     from mi_bivariate.images import write_exr
     from mi_bivariate.probes import Probe
+    from mi_bivariate.sources import synthetic_environment
     from mi_bivariate.variants import ensure_variant
 
     ensure_variant()
@@ -131,3 +132,45 @@ def test_python_dash_m_package_runs_the_command():
     out = subprocess.run([sys.executable, "-m", "mi_bivariate", "--help"], capture_output=True, text=True,
                          cwd=ROOT, env=dict(os.environ, PYTHONPATH=str(ROOT)), timeout=120)
     assert out.returncode == 0 and "recover" in out.stdout, out.stdout[-2000:] + out.stderr[-2000:]
+
+
+#: The README's "Layout" groups, in the order of the data flow (``plugins`` is the package's
+#: ``mi_bivariate.plugins``, at the bottom: the BSDFs know nothing of the pipeline).
+LAYERS = (
+    "__init__ common errors atomic npzio images coordinates merl analytic nbrdf bivariate probes sources plugins "
+    "variants threads",
+    "geometry silhouette spherefit mesh capture noise",
+    "lighting adequacy",
+    "prior basis_prior training_set solve alignment",
+    "recover",
+    "render reference metrics baselines report export figures evaluate synthesis demo cli commands __main__",
+)
+
+
+def test_modules_import_only_their_own_or_earlier_layers():
+    """Data flows one way: no module imports one of a later group of the README's layout, and every
+    module is named in that layout."""
+    package = ROOT / "mi_bivariate"
+    level = {name: i for i, names in enumerate(LAYERS) for name in names.split()}
+    layout = (ROOT / "README.md").read_text().split("## Layout", 1)[1].split("```", 2)[1]
+    upward, unlisted = [], []
+    for path in sorted(package.rglob("*.py")):
+        top = path.relative_to(package).with_suffix("").parts[0]
+        if top not in level:
+            unlisted.append(top)
+            continue
+        if top not in ("__init__", "__main__", "plugins") and top not in layout:
+            unlisted.append(f"{top} (not in the README's layout)")
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.level == 0 and (node.module or "").startswith("mi_bivariate"):
+                parts = node.module.split(".")
+                names = parts[1:2] or [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.level == 1 and path.parent == package:
+                names = [node.module.split(".")[0]] if node.module else [a.name for a in node.names]
+            elif isinstance(node, ast.Import):
+                names = [a.name.split(".")[1] for a in node.names if a.name.startswith("mi_bivariate.")]
+            else:
+                continue
+            upward += [f"{top} -> {n}" for n in names if level.get(n, -1) > level[top]]
+    assert not unlisted, sorted(set(unlisted))
+    assert not upward, sorted(set(upward))

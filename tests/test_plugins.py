@@ -8,6 +8,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
+from helpers import sun_sky_probe
 from mitsuba.chi2 import BSDFAdapter, ChiSquareTest, SphericalDomain
 
 from mi_bivariate.analytic import BivariateLobe, CookTorranceGGX, Lambertian, to_merl
@@ -205,15 +206,6 @@ def test_pdf_integrates_to_reflected_mass():
 
 # ---------------------------------------------------------------- renders
 
-def synthetic_probe() -> Probe:
-    """Smooth sky-like gradient plus a small bright patch (a sun), 32 x 64."""
-    h, w = 32, 64
-    y, x = np.mgrid[0:h, 0:w]
-    data = np.stack([0.3 + 0.7 * (1 - y / h), 0.4 + 0.3 * x / w, 0.5 + 0.0 * x], -1)
-    data[6:9, 20:23] = 40.0
-    return Probe(data.astype(np.float32), source="synthetic")
-
-
 def render(bsdf: dict, probe: Probe, seed: int = 0, spp: int = 64, res: int = 32) -> np.ndarray:
     cam = SphereCamera.create("orthographic", res)
     scene = mi.load_dict(sphere_scene_dict(bsdf, probe, cam, normals=False))
@@ -251,7 +243,7 @@ def test_furnace(plugin):
 
 
 def test_bivariate_matches_builtin_diffuse():
-    probe = synthetic_probe()
+    probe = sun_sky_probe()
     ours = bsdf_dict(lambertian_table())
     builtin = {"type": "diffuse", "reflectance": {"type": "rgb", "value": RHO.tolist()}}
     assert_same_to_noise(lambda s: render(ours, probe, s), lambda s: render(builtin, probe, s), disc(),
@@ -260,7 +252,7 @@ def test_bivariate_matches_builtin_diffuse():
 
 def test_merl_plugin_agrees_with_bivariate_plugin():
     biv = lobe_table(width=0.2, diffuse=0.3, specular=2.0)
-    probe = synthetic_probe()
+    probe = sun_sky_probe()
     a = bsdf_dict(biv)
     b = merl_dict(biv.to_merl(), "linear")
     assert_same_to_noise(lambda s: render(a, probe, s), lambda s: render(b, probe, s), disc(), (0, 1), (2, 3))
@@ -281,7 +273,7 @@ def test_filename_properties(tmp_path):
 # ------------------------------------------------------ parameters and AD
 
 def sphere_scene(bsdf: dict, res: int = 16) -> mi.Scene:
-    return mi.load_dict(sphere_scene_dict(bsdf, synthetic_probe(), SphereCamera.create("orthographic", res), normals=False))
+    return mi.load_dict(sphere_scene_dict(bsdf, sun_sky_probe(), SphereCamera.create("orthographic", res), normals=False))
 
 
 @pytest.mark.parametrize("plugin", ["bivariate", "merl"])

@@ -18,10 +18,12 @@ import pytest
 from mi_bivariate import analytic, nbrdf, probes, render
 from mi_bivariate.bivariate import BivariateBRDF, reduction_error
 from mi_bivariate.cli import main as cli_main
-from mi_bivariate.demo import synthetic_environment
 from mi_bivariate.errors import InputError
+from mi_bivariate.export import write_outputs
+from mi_bivariate.images import write_exr
 from mi_bivariate.metrics import image_relative_rmse
-from mi_bivariate.recover import recover, write_outputs
+from mi_bivariate.recover import recover
+from mi_bivariate.sources import synthetic_environment
 
 
 def _probe(data_dir_or_none, name="grace_latlong_1k"):
@@ -161,7 +163,7 @@ def test_write_outputs_and_cli_recover(tmp_path, any_probe):
     np.testing.assert_array_equal(back.table, result.brdf.table)
 
     image = tmp_path / "sphere.exr"
-    render.write_exr(image, shot.image)
+    write_exr(image, shot.image)
     probe_file = tmp_path / "probe.exr"
     any_probe.save_exr(probe_file)
     out = tmp_path / "cli" / "brdf.npz"
@@ -190,8 +192,8 @@ def test_cli_recover_batch_matches_recover_and_goes_on_past_a_bad_photo(tmp_path
     truth = analytic.to_merl(analytic.Lambertian(0.5))
     shot = render.render_sphere(render.bsdf_dict(truth), any_probe, resolution=48, spp=16, seed=0)
     photos = tmp_path / "photos"
-    render.write_exr(photos / "a.exr", shot.image)
-    render.write_exr(photos / "b.exr", 0.5 * shot.image)
+    write_exr(photos / "a.exr", shot.image)
+    write_exr(photos / "b.exr", 0.5 * shot.image)
     probe_file = tmp_path / "probe.exr"
     any_probe.save_exr(probe_file)
     small = ["--normals", "400", "--dirs", "2000", "--grid", "8", "8", "--no-report", "--threads", "1"]
@@ -210,7 +212,7 @@ def test_cli_recover_batch_matches_recover_and_goes_on_past_a_bad_photo(tmp_path
             if key != "meta":
                 np.testing.assert_array_equal(batch[key], single[key], err_msg=key)
     # Two photos with the same name would write the same outputs: refused before any work.
-    render.write_exr(tmp_path / "a.exr", shot.image)
+    write_exr(tmp_path / "a.exr", shot.image)
     capsys.readouterr()
     assert cli_main(["recover-batch", str(photos / "a.exr"), str(tmp_path / "a.exr"), "--probe", str(probe_file),
                      "--out-dir", str(tmp_path / "twice"), *small]) == 2
@@ -233,7 +235,7 @@ def test_cli_recover_batch_stops_on_a_shared_problem_and_warns_for_every_photo(t
     clipped = np.minimum(shot.image, 0.8 * float(shot.image.max()))  # a clipped photo: the capture warns
     photos = [tmp_path / "a.exr", tmp_path / "b.exr"]
     for photo in photos:
-        render.write_exr(photo, clipped)
+        write_exr(photo, clipped)
     probe.save_exr(tmp_path / "probe.exr")
     run = [sys.executable, "-m", "mi_bivariate", "recover-batch", *map(str, photos), "--probe",
            str(tmp_path / "probe.exr"), "--normals", "400", "--dirs", "2000", "--no-report"]

@@ -11,8 +11,8 @@ import pytest
 from mi_bivariate import analytic, metrics, noise, probes, reference, render
 from mi_bivariate.bivariate import BivariateBRDF, exact_floor, grid_floor
 from mi_bivariate.cli import main as cli_main
-from mi_bivariate.demo import synthetic_environment
 from mi_bivariate.merl import MERLBRDF
+from mi_bivariate.sources import synthetic_environment
 
 GLOSSY = analytic.CookTorranceGGX([0.25, 0.12, 0.05], 0.6, alpha=0.12, ior=1.5)
 SMALL = (512, 1024, 512)

@@ -13,8 +13,9 @@ from mi_bivariate.analytic import Lambertian
 from mi_bivariate.bivariate import BivariateBRDF
 from mi_bivariate.errors import InputError
 from mi_bivariate.geometry import SphereCamera
+from mi_bivariate.images import write_exr, write_png
 from mi_bivariate.probes import Probe
-from mi_bivariate.render import bsdf_dict, render_sphere, write_exr, write_png_preview
+from mi_bivariate.render import bsdf_dict, render_sphere
 
 SCENES = Path(__file__).resolve().parents[1] / "scenes"
 DIFFUSE = {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.5}}
@@ -165,7 +166,7 @@ def test_write_exr_and_png(tmp_path):
     write_exr(tmp_path / "out.exr", image)
     back = np.array(mi.Bitmap(str(tmp_path / "out.exr")), np.float32)
     np.testing.assert_array_equal(back[..., :3], image)
-    write_png_preview(tmp_path / "out.png", image)
+    write_png(tmp_path / "out.png", image)
     import matplotlib.image
 
     png = matplotlib.image.imread(str(tmp_path / "out.png"))

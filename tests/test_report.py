@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from mi_bivariate import analytic, probes, render, report
-from mi_bivariate.demo import synthetic_environment
 from mi_bivariate.metrics import image_relative_rmse
 from mi_bivariate.recover import recover
+from mi_bivariate.sources import synthetic_environment
 
 
 @pytest.fixture(scope="module")

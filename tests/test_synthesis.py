@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from helpers import independent_relight_floor
 
 from mi_bivariate import render, synthesis
 from mi_bivariate.bivariate import BivariateBRDF
@@ -130,11 +131,7 @@ def test_analysis_by_synthesis_times_every_linear_point_alike_and_scores_at_the_
     """One warm-up run at the config's sizes, then 3 timed runs of it and of each ladder rung, the
     medians of known stage times; the novel probe rendered at the seed the evaluation gives it
     (the config's second novel probe: seed + 2), checked against an independent render."""
-    from mi_bivariate import metrics
-    from mi_bivariate.bivariate import BivariateBRDF
     from mi_bivariate.evaluate.config import EvalConfig
-    from mi_bivariate.evaluate.renders import Renderer
-    from mi_bivariate.sources import load_probe, load_truth, resolve_materials
 
     real, calls, chosen, used = synthesis.recover, [], [], []
 
@@ -171,15 +168,8 @@ def test_analysis_by_synthesis_times_every_linear_point_alike_and_scores_at_the_
         first = 4 + 3 * k                                  # the rung's calls: first, first + 1, first + 2
         assert point["time_s"] == pytest.approx((first + 2) * sum(j + 1 for j in range(len(want))) * 1e-3)
 
-    spec = resolve_materials([material])[0]
-    truth = load_truth(spec)
-    renderer, novel = Renderer(config, spec, cache_dir=None), load_probe("synthetic:3")
-    floors = []
-    for seed in (config.seed + 2, config.seed + 1):
-        shot = renderer.render(truth, novel, "synthetic:3", 16, seed, config.novel_spp)
-        floor = renderer.render(BivariateBRDF.reduce(truth, n_t=8, n_s=8), novel, "synthetic:3", 16, seed,
-                                config.novel_spp).image
-        floors.append(metrics.image_relative_rmse(floor, shot.image, shot.mask))
+    floors = [independent_relight_floor(config, material, "synthetic:3", seed, 16)
+              for seed in (config.seed + 2, config.seed + 1)]
     assert abs(floors[0] - floors[1]) > 1e-6 * floors[0]   # the seed shows in the floor ...
     assert r["relight_floor"] == pytest.approx(floors[0], rel=1e-7)   # ... and it is the evaluation's
     assert r["abs"]["best_relight"] == min(t["relight"] for t in r["trace"])

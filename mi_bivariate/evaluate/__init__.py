@@ -50,9 +50,6 @@ synthesis is :mod:`mi_bivariate.synthesis`.
 
 from __future__ import annotations
 
-from typing import Any, Optional, Union
-
-from mi_bivariate.common import PathLike
 from mi_bivariate.errors import InputError, InputWarning
 from mi_bivariate.evaluate.config import (
     DEFAULT_INPUT_PROBES,
@@ -64,16 +61,12 @@ from mi_bivariate.evaluate.config import (
     quick_materials,
 )
 from mi_bivariate.evaluate.protocol import INCIDENT_VIEWS, NOISE_SEED_OFFSET, MaterialTask, evaluate_material
-
-# The old module's names, private ones included (tests and scripts reach _fmt, _folder_lock, _init_worker,
-# _connect_dask), so that ``mi_bivariate.evaluate.<name>`` keeps resolving.
 from mi_bivariate.evaluate.results import (
     HEADLINE_COLUMNS,
     REJECTED_FILE,
     RESULTS_FILE,
     SUMMARY_COLUMNS,
     SUMMARY_FILE,
-    _fmt,
     append_record,
     artifact_path,
     format_summary,
@@ -89,32 +82,16 @@ from mi_bivariate.evaluate.results import (
 from mi_bivariate.evaluate.runner import (
     LOCK_FILE,
     REFERENCE_DIR,
-    _connect_dask,
-    _folder_lock,
-    _init_worker,
     run_evaluation,
     threads_per_job,
 )
 from mi_bivariate.sources import MaterialSpec, have_shared_data, load_probe, load_truth, probe_label, resolve_materials
 
-
-def analysis_by_synthesis(material: Union[str, MaterialSpec], input_probe: str = DEFAULT_INPUT_PROBES[0],
-                          config: Optional[EvalConfig] = None, data_dir: Optional[PathLike] = None,
-                          time_factor: float = 10.0, **kwargs: Any) -> dict:
-    """The linear solve against differentiable rendering on one material: see
-    :func:`mi_bivariate.synthesis.analysis_by_synthesis` (this is a thin wrapper)."""
-    # Imported here: synthesis builds on this package (EvalConfig, the sources), not the other way round.
-    from mi_bivariate import synthesis
-
-    return synthesis.analysis_by_synthesis(material, input_probe, config=config, data_dir=data_dir,
-                                           time_factor=time_factor, **kwargs)
-
-
 __all__ = [
     "DEFAULT_INPUT_PROBES", "DEFAULT_NOVEL_PROBES", "HEADLINE_COLUMNS", "INCIDENT_VIEWS", "InputError",
     "InputWarning", "LOCK_FILE", "MaterialSpec", "MaterialTask", "NOISE_SEED_OFFSET", "PROTOCOL_VERSION",
     "QUICK_ANALYTIC", "QUICK_NBRDF", "REFERENCE_DIR", "REJECTED_FILE", "RESULTS_FILE", "SUMMARY_COLUMNS",
-    "SUMMARY_FILE", "EvalConfig", "analysis_by_synthesis", "append_record", "artifact_path", "evaluate_material",
+    "SUMMARY_FILE", "EvalConfig", "append_record", "artifact_path", "evaluate_material",
     "format_summary", "have_shared_data", "load_artifacts", "load_probe", "load_truth", "make_figures",
     "markdown_table", "probe_label", "quick_materials", "read_records", "repair_results", "resolve_materials",
     "run_evaluation", "save_artifacts", "summary_rows", "threads_per_job", "write_summary_csv",

@@ -17,7 +17,6 @@ import time
 from dataclasses import dataclass
 from typing import Any, Dict, List, Optional, Tuple
 
-import drjit as dr
 import numpy as np
 
 from mi_bivariate import adequacy, baselines, bivariate, metrics, training_set
@@ -30,6 +29,7 @@ from mi_bivariate.probes import Probe
 from mi_bivariate.recover import Recovery, recover
 from mi_bivariate.report import incident_plane
 from mi_bivariate.sources import MaterialSpec, load_probe, load_truth, probe_label
+from mi_bivariate.threads import jit_threads
 
 #: View angles (degrees) of the stored incident-plane curves (Fig. 6).
 INCIDENT_VIEWS = (30.0, 60.0)
@@ -297,9 +297,13 @@ def evaluate_material(task: MaterialTask) -> Tuple[dict, Arrays]:
     timings: Dict[str, float] = {}
     inputs, novels = load_probes(cfg, task.data_dir)
     priors = choose_priors(task)
-    if task.threads is not None:
-        dr.set_thread_count(int(task.threads))
+    with jit_threads(task.threads):
+        return _evaluate_material(task, inputs, novels, priors, timings, t_start, cpu_start)
 
+
+def _evaluate_material(task: MaterialTask, inputs: List[List[Probe]], novels: List[Probe], priors: Any,
+                       timings: Dict[str, float], t_start: float, cpu_start: float) -> Tuple[dict, Arrays]:
+    cfg = task.config
     truth = load_truth_and_floor(task, timings)
     arrays: Arrays = {"floor": truth.floor.table}
     arrays.update(_incident_curves(truth.brdf))

@@ -29,7 +29,6 @@ from concurrent.futures import as_completed as cf_completed
 from pathlib import Path
 from typing import Any, Callable, Dict, Iterator, List, Optional, Sequence, Tuple, Union
 
-import drjit as dr
 import mitsuba as mi
 import numpy as np
 
@@ -51,7 +50,7 @@ from mi_bivariate.evaluate.results import (
 )
 from mi_bivariate.merl import MERLBRDF
 from mi_bivariate.sources import MaterialSpec, load_probe, resolve_materials
-from mi_bivariate.threads import SOLVE_ENV_VAR
+from mi_bivariate.threads import pin_process_threads
 from mi_bivariate.variants import ensure_variant
 
 #: Folder (under the output folder) of cached reference renders of truths and exact reductions.
@@ -75,9 +74,11 @@ def _watch_parent(parent: int, interval: float = 0.5) -> None:
     threading.Thread(target=watch, name="mi-bivariate-parent-watch", daemon=True).start()
 
 
-def _init_worker(variant: Optional[str], parent: Optional[int] = None) -> None:
+def _init_worker(variant: Optional[str], parent: Optional[int] = None, threads: Optional[int] = None) -> None:
     """Worker set-up: die with the parent (``PR_SET_PDEATHSIG`` on Linux and a
-    watchdog thread polling ``os.getppid``), then select the variant."""
+    watchdog thread polling ``os.getppid``), select the variant, and give this
+    process ``threads`` BLAS/OpenMP threads and solve workers (its own setting:
+    nothing to restore, the parent's environment is untouched)."""
     if parent is not None:
         if sys.platform.startswith("linux"):
             with contextlib.suppress(OSError, AttributeError):
@@ -86,6 +87,8 @@ def _init_worker(variant: Optional[str], parent: Optional[int] = None) -> None:
         if os.getppid() != parent:      # the parent died before the signal was armed
             os._exit(1)
         _watch_parent(parent)
+    if threads is not None:
+        pin_process_threads(threads)
     ensure_variant(variant)
 
 
@@ -135,23 +138,6 @@ def _folder_lock(out: Path) -> Iterator[None]:
         os.close(fd)
 
 
-@contextlib.contextmanager
-def _blas_threads(n: int) -> Iterator[None]:
-    """Environment for spawned workers: BLAS/OpenMP pools and the solve's worker threads
-    (:func:`mi_bivariate.threads.solve_threads`) of ``n`` threads (restored afterwards)."""
-    keys = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", SOLVE_ENV_VAR)
-    old = {k: os.environ.get(k) for k in keys}
-    os.environ.update({k: str(n) for k in keys})
-    try:
-        yield
-    finally:
-        for k, v in old.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
-
-
 def _run_tasks(tasks: List[MaterialTask], jobs: int, dask: Any) -> Iterator[Tuple[MaterialTask, Any]]:
     """Yield ``(task, (record, arrays))`` or ``(task, exception)`` as tasks finish.
 
@@ -184,10 +170,9 @@ def _run_tasks(tasks: List[MaterialTask], jobs: int, dask: Any) -> Iterator[Tupl
                 result = exc
             yield t, result
         return
-    # The environment stays set while the pool lives: spawned workers start at the first submit.
-    with _blas_threads(tasks[0].threads or threads_per_job(jobs)), ProcessPoolExecutor(
-            max_workers=jobs, mp_context=multiprocessing.get_context("spawn"),
-            initializer=_init_worker, initargs=(mi.variant(), os.getpid())) as pool:
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("spawn"),
+                             initializer=_init_worker,
+                             initargs=(mi.variant(), os.getpid(), tasks[0].threads or threads_per_job(jobs))) as pool:
         futures = {pool.submit(evaluate_material, t): t for t in tasks}
         try:
             for fut in cf_completed(futures):
@@ -282,7 +267,6 @@ def _run_locked(specs: List[MaterialSpec], out: Path, config: EvalConfig, jobs: 
     with atomic_path(out / "config.json") as tmp:
         tmp.write_text(json.dumps({"config_hash": h, **config.to_dict()}, indent=2))
 
-    parent_threads = dr.thread_count()
     failures: List[Tuple[str, BaseException]] = []
     if tasks:
         from tqdm.auto import tqdm
@@ -307,7 +291,6 @@ def _run_locked(specs: List[MaterialSpec], out: Path, config: EvalConfig, jobs: 
                 bar.set_postfix_str(record["material"][:24])
         finally:
             bar.close()
-            dr.set_thread_count(parent_threads)      # in-process tasks may have changed it
 
     by_label = {r["material"]: r for r in read_records(results, h)}
     records = [by_label[m.label] for m in specs if m.label in by_label]

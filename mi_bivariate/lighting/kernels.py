@@ -59,9 +59,10 @@ def _spatial_order(normals: np.ndarray, bits: int = 10) -> np.ndarray:
     return np.argsort(key, kind="stable")
 
 
-def _fibonacci_point(k: Any, n_points: int, shift_u: Any, shift_v: Any) -> Tuple[Any, Any]:
+def fibonacci_point(k: Any, n_points: int, shift_u: Any, shift_v: Any) -> Tuple[Any, Any]:
     """Point ``k`` (``mi.UInt32``) of the ``n_points`` Fibonacci lattice in [0, 1)^2, Cranley-Patterson
-    shifted by ``(shift_u, shift_v)``: ``(u1, u2)``."""
+    shifted by ``(shift_u, shift_v)``: ``(u1, u2)`` (``mi.Float``; the numpy reference is
+    :func:`mi_bivariate.lighting.directions.light_directions`)."""
     u1 = mi.Float(k) * (1.0 / n_points) + (0.5 / n_points) + shift_u
     u2 = mi.Float(k * _GOLDEN_U32) * 2.0**-32 + shift_v
     return u1 - dr.floor(u1), u2 - dr.floor(u2)
@@ -85,7 +86,7 @@ def _lattice_lanes(data: Any, m: int, n_points: int):
     p0, p1, p2, p3 = (dr.gather(mi.Vector4f, data, row * _PACKETS + q) for q in range(4))
     x_axis, y_axis = mi.Vector3f(p0.x, p0.y, p0.z), mi.Vector3f(p1.x, p1.y, p1.z)
     normal = mi.Vector3f(p2.x, p2.y, p2.z)
-    u1, u2 = _fibonacci_point(k, n_points, p2.w, p3.x)
+    u1, u2 = fibonacci_point(k, n_points, p2.w, p3.x)
     return row, x_axis, y_axis, normal, p0.w, p1.w, u1, u2, p3
 
 

@@ -35,7 +35,7 @@ import numpy as np
 
 from mi_bivariate.common import LUMINANCE_WEIGHTS, luminance
 from mi_bivariate.lighting.directions import _TWO_PI
-from mi_bivariate.lighting.kernels import _PACKETS, _fibonacci_point, _lattice_lanes, _splat
+from mi_bivariate.lighting.kernels import _PACKETS, _lattice_lanes, _splat, fibonacci_point
 
 #: Light-direction sampling of :func:`lighting_matrix`: the fraction of the K
 #: directions drawn by each strategy of the ``"mis"`` mixture (see :func:`_mis_chunk`).
@@ -90,7 +90,7 @@ def environment_pool(probe: Any, n_points: int, seed: int = 0, stream: int = 0) 
     idx = dr.arange(mi.UInt32, int(n_points) * ENV_SHIFTS)
     k = idx // ENV_SHIFTS
     q = idx - k * ENV_SHIFTS
-    u1, u2 = _fibonacci_point(k, n_points, dr.gather(mi.Float, shifts, 2 * q),
+    u1, u2 = fibonacci_point(k, n_points, dr.gather(mi.Float, shifts, 2 * q),
                               dr.gather(mi.Float, shifts, 2 * q + 1))
     ds, weight = probe.emitter().sample_direction(dr.zeros(mi.Interaction3f), mi.Point2f(u1, u2))
     radiance = weight * ds.pdf

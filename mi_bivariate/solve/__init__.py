@@ -58,6 +58,10 @@ front door re-exports their public names:
                             factorisation, computed on first use
 :mod:`.regularised`         the front door: :func:`solve`, :func:`solve_prepared`,
                             :func:`alpha_sweep`; validates once, dispatches
+:mod:`.stages`              the solve as ``recover`` runs it (:func:`solve_stages`: the
+                            smoothness prior, then the basis prior)
+:mod:`.image_weights`       several images weighted by leave-one-image-out prediction
+                            (:func:`cross_image_factors`)
 :mod:`.common`              constants, input checks, SPD linear algebra
 ==========================  ===========================================================
 """
@@ -74,16 +78,13 @@ from mi_bivariate.solve.data_term import (
     prepare_data_term,
     row_sigma,
 )
-from mi_bivariate.solve.discrepancy import (
-    DISCREPANCY_ALPHAS,
-    DISCREPANCY_TARGET,
-    DiscrepancyChoice,
-    discrepancy_alpha,
-)
+from mi_bivariate.solve.discrepancy import DISCREPANCY_ALPHAS, DISCREPANCY_TARGET, DiscrepancyChoice, discrepancy_alpha
 from mi_bivariate.solve.evidence import DEFAULT_PAIR_RULE, PAIR_RULES, log_evidence, penalty_log_pdet
 from mi_bivariate.solve.gcv import GCV_ALPHAS, GCV_PROBES, GCVCurve, gcv_curve
+from mi_bivariate.solve.image_weights import CROSS_FLOOR, IMAGE_WEIGHTS, cross_image_factors
 from mi_bivariate.solve.nnls import NNLSResult, kkt_violation, nnls_gram
 from mi_bivariate.solve.regularised import PairSolution, SolveResult, SweepPoint, alpha_sweep, solve, solve_prepared
+from mi_bivariate.solve.stages import solve_stages
 
 __all__ = [
     "ALPHA_RULES", "DEFAULT_ALPHA", "DEFAULT_ALPHA_RULE", "DEFAULT_PAIR_RULE", "PAIR_RULES", "log_evidence",
@@ -92,5 +93,5 @@ __all__ = [
     "MODEL_ERROR_FORMS", "GCV_ALPHAS",
     "GCV_PROBES", "Confidence", "DataTerm", "GCVCurve", "NNLSResult", "PairSolution", "SolveResult",
     "SweepPoint", "alpha_sweep", "gcv_curve", "kkt_violation", "nnls_gram", "prepare_data_term", "row_sigma",
-    "solve", "solve_prepared",
+    "solve", "solve_prepared", "solve_stages", "CROSS_FLOOR", "IMAGE_WEIGHTS", "cross_image_factors",
 ]

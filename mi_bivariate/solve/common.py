@@ -76,10 +76,15 @@ def grid_shape(n_nodes: int, prior: Prior, n_t: Optional[int], n_s: Optional[int
     return int(n_t), int(n_s)
 
 
+#: Given alphas other than 0 (no smoothness term) must lie in this range: beyond it the normal
+#: equations lose every digit of the data term (above) or of the prior (below) in float64.
+ALPHA_RANGE = (1e-12, 1e6)
+
+
 def check_alpha(alpha) -> Union[str, np.ndarray]:
     """A rule of :data:`ALPHA_RULES` (``None``: :data:`DEFAULT_ALPHA_RULE`), or given alphas as ``(3,) float64``.
 
-    A given alpha is one number (every channel) or three (per channel), finite and >= 0.
+    A given alpha is one number (every channel) or three (per channel): 0 or within :data:`ALPHA_RANGE`.
     """
     if alpha is None:
         alpha = DEFAULT_ALPHA_RULE
@@ -97,6 +102,10 @@ def check_alpha(alpha) -> Union[str, np.ndarray]:
                          f"got {alpha!r}") from None
     if not np.all(np.isfinite(values)) or np.any(values < 0):
         raise InputError("alpha", f"must be finite and >= 0, got {alpha}")
+    lo, hi = ALPHA_RANGE
+    if np.any((values != 0) & ((values < lo) | (values > hi))):
+        raise InputError("alpha", f"must be 0 or between {lo:g} and {hi:g} (alpha is dimensionless: 1e-2 is the "
+                                  f"learnt default), got {alpha}")
     return values
 
 

@@ -1,0 +1,61 @@
+"""Helpers shared by several test files (imported as ``from helpers import ...``; pytest puts
+``tests/`` on the path, as for ``reference_solve`` and ``reference_lighting``)."""
+
+from __future__ import annotations
+
+from typing import Tuple
+
+import numpy as np
+
+from mi_bivariate import metrics
+from mi_bivariate.bivariate import BivariateBRDF
+from mi_bivariate.evaluate.config import EvalConfig
+from mi_bivariate.evaluate.renders import Renderer
+from mi_bivariate.probes import Probe
+from mi_bivariate.sources import load_probe, load_truth, resolve_materials
+
+
+def sun_sky_probe() -> Probe:
+    """Smooth sky gradient plus a small bright patch (a sun), 32 x 64: sharp and smooth lighting at once."""
+    h, w = 32, 64
+    y, x = np.mgrid[0:h, 0:w]
+    data = np.stack([0.3 + 0.7 * (1 - y / h), 0.4 + 0.3 * x / w, 0.5 + 0.0 * x], -1)
+    data[6:9, 20:23] = 40.0
+    return Probe(data.astype(np.float32), source="synthetic")
+
+
+def sky_probe(yaw_deg: float = 0.0, n_lights: int = 2) -> Probe:
+    """A smooth sky with soft suns (64 x 128): strong directional light, cheap to integrate.
+
+    ``n_lights`` > 2 adds smaller lamps spread over the sphere (seeded), so
+    that the specular peak is observed from many normals.
+    """
+    h, w = 64, 128
+    theta = (np.arange(h) + 0.5)[:, None] / h * np.pi
+    phi = (np.arange(w) + 0.5)[None, :] / w * 2 * np.pi
+    d = np.stack(np.broadcast_arrays(np.sin(theta) * np.cos(phi), np.cos(theta) + 0 * phi,
+                                     np.sin(theta) * np.sin(phi)), axis=-1)
+    sky = np.clip(0.25 + 0.25 * d[..., 1:2], 0.05, None) * np.array([0.8, 0.9, 1.0])
+    lights = [((0.5, 0.7, 0.5), 60.0, (1.0, 0.9, 0.7)), ((-0.8, 0.2, -0.3), 20.0, (0.6, 0.7, 1.0))]
+    rng = np.random.default_rng(7)
+    for _ in range(max(0, n_lights - 2)):
+        lights.append((rng.normal(size=3), rng.uniform(5.0, 20.0), rng.uniform(0.5, 1.0, 3)))
+    for direction, power, colour in lights:
+        u = np.asarray(direction, float) / np.linalg.norm(direction)
+        sky = sky + power * np.exp(-(1.0 - d @ u) / 0.01)[..., None] * np.asarray(colour)
+    probe = Probe(sky.astype(np.float32), source="sky")
+    return probe.rotated(euler_deg=(0, yaw_deg, 0)) if yaw_deg else probe
+
+
+def independent_relight_floor(config: EvalConfig, material: str, probe_spec: str, seed: int,
+                              resolution: int, grid: Tuple[int, int] = (8, 8)) -> float:
+    """The relight floor recomputed outside the code under test: the truth and its exact reduction on
+    ``grid`` rendered by the evaluation's renderer under ``probe_spec`` at ``seed``, and the
+    reduction's relative RMS error (:func:`mi_bivariate.metrics.image_relative_rmse`)."""
+    spec = resolve_materials([material])[0]
+    truth = load_truth(spec)
+    renderer, probe = Renderer(config, spec, cache_dir=None), load_probe(probe_spec)
+    shot = renderer.render(truth, probe, probe_spec, resolution, seed, config.novel_spp)
+    floor = renderer.render(BivariateBRDF.reduce(truth, n_t=grid[0], n_s=grid[1]), probe, probe_spec, resolution,
+                            seed, config.novel_spp).image
+    return metrics.image_relative_rmse(floor, shot.image, shot.mask)
