@@ -85,11 +85,15 @@ def _check_grid(grid: Optional[Sequence[int]]) -> None:
 
 
 def _check_recovery_sizes(normals: Optional[int], dirs: Optional[int], grid: Optional[Sequence[int]]) -> None:
-    """Upper limits on M, K and the grid, and on the lighting matrix and kernel they imply.
+    """Limits on M, K and the grid, and on the lighting matrix and kernel they imply.
 
-    Lower limits (M = 0, a one-node axis) are the library's checks, reported with its words.
+    A one-node grid axis is the library's check, reported with its words.
     """
     _check_grid(grid)
+    if normals is not None and normals < 1:
+        raise InputError("--normals", f"must be at least 1, got {normals}")
+    if dirs is not None and dirs < 2:
+        raise InputError("--dirs", f"must be at least 2 (light directions per normal), got {dirs}")
     _check_max("--normals", normals, MAX_NORMALS)
     _check_max("--dirs", dirs, MAX_DIRS)
     if normals is None or dirs is None or grid is None or min(normals, dirs, *grid) < 1:
@@ -191,6 +195,8 @@ def cmd_render(args: argparse.Namespace) -> int:
     ensure_variant(args.variant)
     brdf = load_brdf(args.brdf, args.data)
     probe = load_probe(args.probe, args.data)
+    if not np.any(probe.data > 0.0):
+        raise InputError(args.probe, "probe is black: the render would be zero", "give a probe that emits light")
     result = render.render_sphere(render.bsdf_dict(brdf), probe, resolution=args.resolution, spp=args.spp,
                                   camera=args.camera, seed=args.seed)
     with atomic_paths([out, out.with_suffix(".png")]) as (exr, png):

@@ -19,12 +19,14 @@ carry provenance (tool version, command line, units) in their header.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shlex
 import sys
+import tempfile
 import warnings
 from pathlib import Path
-from typing import Dict, Optional, Tuple
+from typing import Dict, Iterator, List, Optional, Tuple
 
 import mitsuba as mi
 import numpy as np
@@ -124,6 +126,8 @@ def read_image(path: PathLike, allow_ldr: bool = True) -> Tuple[np.ndarray, Dict
         data, metadata = _read_exr(path)
     else:
         data, metadata = _read_with_mitsuba(path, fmt), {}
+    if fmt == "pfm":
+        _check_pfm_values(path, data)
     if data.ndim == 2:
         data = data[..., None]
     channels = data.shape[2]
@@ -148,12 +152,50 @@ def _read_exr(path: Path) -> Tuple[np.ndarray, Dict[str, str]]:
     """An EXR's first part through the ``OpenEXR`` package: ``(H, W, C) float32`` and string metadata."""
     import OpenEXR
 
+    with _library_output() as failed:
+        try:
+            return _read_exr_unchecked(path, OpenEXR)
+        except InputError:
+            raise
+        except Exception as exc:  # noqa: BLE001 -- the library raises RuntimeError, UnicodeDecodeError, ... on corrupt files
+            failed.append(True)
+            raise _exr_error(path, exc) from None
+
+
+@contextlib.contextmanager
+def _library_output() -> Iterator[List[bool]]:
+    """Hold what C libraries write to file descriptors 1 and 2 inside the block (libOpenEXR prints its
+    own lines about a corrupt file before raising): replayed if the block succeeds, dropped if the
+    caller appends to the yielded list (it reports the problem in its one line instead)."""
+    failed: List[bool] = []
+    with contextlib.ExitStack() as stack:
+        for fd, stream in ((1, sys.stdout), (2, sys.stderr)):
+            stack.enter_context(_held_fd(fd, stream, failed))
+        yield failed
+
+
+@contextlib.contextmanager
+def _held_fd(fd: int, stream, failed: List[bool]) -> Iterator[None]:
+    """File descriptor ``fd`` into a temporary file inside the block; its content replayed unless ``failed``."""
+    if stream is not None:
+        stream.flush()
     try:
-        return _read_exr_unchecked(path, OpenEXR)
-    except InputError:
-        raise
-    except Exception as exc:  # noqa: BLE001 -- the library raises RuntimeError, UnicodeDecodeError, ... on corrupt files
-        raise _exr_error(path, exc) from None
+        saved = os.dup(fd)
+    except OSError:  # no such descriptor: nothing to hold
+        yield
+        return
+    with tempfile.TemporaryFile() as held:
+        os.dup2(held.fileno(), fd)
+        try:
+            yield
+        finally:
+            os.dup2(saved, fd)
+            os.close(saved)
+            if not failed:
+                held.seek(0)
+                text = held.read()
+                if text:
+                    os.write(fd, text)
 
 
 def _read_exr_unchecked(path: Path, OpenEXR) -> Tuple[np.ndarray, Dict[str, str]]:  # noqa: N803
@@ -209,6 +251,21 @@ def _check_pfm(path: Path) -> None:
     if size != expected:
         raise InputError(path, f"cannot be read as an image: corrupt PFM file, {size} bytes where its header "
                                f"implies {expected}", "the file is truncated or corrupt")
+
+
+#: Radiance no capture holds (float16's largest value is 6.5e4): a PFM decoded with the wrong
+#: byte order has values up to 3.4e38 and NaNs where the swapped bytes make them.
+PLAUSIBLE_RADIANCE = 1e30
+
+
+def _check_pfm_values(path: Path, data: np.ndarray) -> None:
+    """A PFM's decoded floats must look like radiance: no NaN and nothing beyond :data:`PLAUSIBLE_RADIANCE`."""
+    n_nan = int(np.count_nonzero(np.isnan(data)))
+    finite = data[np.isfinite(data)]
+    top = float(np.abs(finite).max()) if finite.size else 0.0
+    if n_nan or top > PLAUSIBLE_RADIANCE:
+        raise InputError(path, f"PFM values are not radiance ({n_nan} NaN, largest magnitude {top:.3g})",
+                         "its byte order may be wrong: a negative scale in the header means little-endian")
 
 
 def _png_size(path: Path) -> None:

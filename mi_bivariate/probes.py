@@ -289,7 +289,7 @@ class Probe:
 
     @classmethod
     def load(cls, path: PathLike, rotation: Any = None) -> "Probe":
-        """Read a lat-long probe (.exr, .hdr/.rgbe, .pfm).
+        """Read a lat-long probe (.exr, .hdr/.rgbe, .pfm), ``2H x H`` pixels.
 
         Args:
             path: the image; a ``to_world`` written by :meth:`save_exr` is restored.
@@ -298,6 +298,9 @@ class Probe:
                 :func:`rotation_matrix`).
         """
         data, to_world = read_hdr_image(path)
+        if data.ndim == 3 and data.shape[1] != 2 * data.shape[0]:
+            raise InputError(path, f"is {data.shape[1]} x {data.shape[0]} pixels, not a 2:1 lat-long (equirectangular) "
+                                   "map", "convert an angular, mirror-ball or cube-map probe to lat-long first")
         probe = cls(data, np.eye(4) if to_world is None else to_world, os.fspath(path))
         if rotation is None:
             return probe

@@ -47,6 +47,8 @@ def files(tmp_path_factory) -> dict:
     d = tmp_path_factory.mktemp("hostile")
     f = {}
     f["probe"] = _write_bitmap(d / "probe.exr", np.full((8, 16, 3), 1.0))
+    f["square_probe"] = _write_bitmap(d / "square.exr", np.full((16, 16, 3), 1.0))
+    f["black_probe"] = _write_bitmap(d / "black.exr", np.zeros((8, 16, 3)))
     f["image"] = _write_bitmap(d / "image.exr", _sphere_image())
     f["npz"] = d / "brdf.npz"
     BivariateBRDF(np.full((4, 4, 3), 0.1, np.float32)).save(f["npz"])
@@ -240,14 +242,18 @@ CLI_CASES = [
     _needs_recover(("recover: mask size", lambda f: _recover_args(f, mask=str(f["small_mask"])), "small_mask",
                     "mask is")),
     _needs_recover(("recover: sphere outside", lambda f: _recover_args(f, sphere="900,900,10"), None, "outside")),
-    _needs_recover(("recover: M = 0", lambda f: _recover_args(f, normals="0"), None, "n_normals")),
-    _needs_recover(("recover: K = 0", lambda f: _recover_args(f, dirs="0"), None, "n_dirs")),
+    _needs_recover(("recover: M = 0", lambda f: _recover_args(f, normals="0"), None, "--normals: must be at least 1")),
+    _needs_recover(("recover: K = 0", lambda f: _recover_args(f, dirs="0"), None, "--dirs: must be at least 2")),
     _needs_recover(("recover: grid 1", lambda f: _recover_args(f, grid="1"), None, "too small")),
     _needs_recover(("recover: negative alpha", lambda f: _recover_args(f, alpha="-1"), None, "alpha")),
     _needs_recover(("recover: alpha 1e300", lambda f: _recover_args(f, alpha="1e300"), None, "between")),
     _needs_recover(("recover: alpha 1e-20", lambda f: _recover_args(f, alpha="1e-20"), None, "between")),
     _needs_recover(("recover: noise swamps the image", lambda f: _recover_args(f, noise="1e10,1e10"), None,
                     "carry no information")),
+    ("render: square probe", lambda f: ["render", str(f["npz"]), "--probe", str(f["square_probe"])], "square_probe",
+     "not a 2:1 lat-long"),
+    ("render: black probe", lambda f: ["render", str(f["npz"]), "--probe", str(f["black_probe"])], "black_probe",
+     "black"),
     ("render: --out not EXR", lambda f: ["render", str(f["npz"]), "--probe", str(f["probe"]), "--out", "x.hdr"],
      None, "OpenEXR"),
     ("reduce: an image", lambda f: ["reduce", str(f["image"])], "image", "not a MERL .binary"),
@@ -704,3 +710,27 @@ def test_unavailable_variant_is_one_line(tmp_path):
     lines = proc.stderr.strip().splitlines()
     assert proc.returncode == 2 and len(lines) == 1, proc.stderr
     assert lines[0].startswith("mi-bivariate: error: --variant: ") and "(use llvm_ad_rgb)" in lines[0], lines[0]
+
+
+def test_byte_swapped_pfm_is_refused(tmp_path):
+    """A PFM whose scale says big-endian over little-endian floats decodes to NaNs and 1e38s: refused by
+    name; the same floats with the right sign of the scale read back exactly."""
+    data = np.random.default_rng(0).random((8, 16, 3)).astype("<f4")
+    for name, scale in (("right.pfm", b"-1.0"), ("swapped.pfm", b"1.0")):
+        (tmp_path / name).write_bytes(b"PF\n16 8\n" + scale + b"\n" + data.tobytes())
+    np.testing.assert_array_equal(images.load_image(tmp_path / "right.pfm"), data[::-1])   # PFM rows run bottom-up
+    with pytest.raises(InputError, match="swapped.pfm: PFM values are not radiance"):
+        images.load_image(tmp_path / "swapped.pfm")
+
+
+def test_corrupt_exr_is_exactly_one_line(files, tmp_path):
+    """libOpenEXR prints its own lines about a truncated file (on stdout or stderr, from C++) before it
+    raises: the command's output is still its one error line and nothing else."""
+    full = images.write_exr(tmp_path / "full.exr", np.random.default_rng(0).random((64, 64, 3)).astype(np.float32))
+    cut = tmp_path / "cut.exr"
+    cut.write_bytes(full.read_bytes()[:30000])                     # the header whole, the pixels cut short
+    proc = subprocess.run([sys.executable, "-m", "mi_bivariate", "recover", str(cut), "--probe", str(files["probe"]),
+                           "--out", str(tmp_path / "x.npz")], capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert proc.returncode == 2 and proc.stdout == "", (proc.stdout, proc.stderr)
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"mi-bivariate: error: {cut}: "), proc.stderr
