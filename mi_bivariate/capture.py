@@ -211,7 +211,8 @@ def _plateau_warning(values: np.ndarray, source: str) -> None:
     at_peak = int(np.count_nonzero(np.any(finite == peak, axis=1)))
     if at_peak >= max(16, int(0.002 * len(finite))):
         warnings.warn(f"{source}: {at_peak} sphere pixels sit exactly at the maximum value {peak:g}; "
-                      f"the image looks clipped (pass saturation={peak:g} to drop them)",
+                      f"the image looks clipped (drop them with --saturation {peak:g}, or saturation={peak:g} "
+                      "in Python)",
                       InputWarning, stacklevel=3)
 
 

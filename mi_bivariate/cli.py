@@ -18,8 +18,24 @@ from typing import Dict, Optional, Sequence
 from mi_bivariate.errors import InputError
 
 
+class _HelpFormatter(argparse.HelpFormatter):
+    """Help that states each option's default (unless its text already does, or there is none to state)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        if "default" in text or not action.option_strings or action.default in (None, False, argparse.SUPPRESS):
+            return text
+        default = " ".join(map(str, action.default)) if isinstance(action.default, (tuple, list)) else "%(default)s"
+        return f"{text} (default: {default})" if text else f"default: {default}"
+
+
 class _Parser(argparse.ArgumentParser):
-    """argparse with usage errors as one line ``mi-bivariate: error: ... (see ... --help)``, exit status 2."""
+    """argparse with usage errors as one line ``mi-bivariate: error: ... (see ... --help)``, exit status 2,
+    and every option's default in its help."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        kwargs.setdefault("formatter_class", _HelpFormatter)
+        super().__init__(*args, **kwargs)
 
     def error(self, message: str):  # type: ignore[override]
         self.exit(2, f"mi-bivariate: error: {message} (see '{self.prog} --help')\n")
@@ -77,12 +93,15 @@ def _add_recover_options(p: argparse.ArgumentParser) -> None:
                         "default 'auto': fitted to the image (or --mask), with the fit residual reported")
     p.add_argument("--mask", default=None, help="optional mask image (non-zero = usable)")
     p.add_argument("--merl", action="store_true", help="also write a MERL .binary")
-    p.add_argument("--no-report", action="store_true", help="skip the PNG report")
-    p.add_argument("--report-render", action="store_true",
-                   help="path-trace the report's re-render (seconds) instead of predicting it as L f")
+    report = p.add_mutually_exclusive_group()
+    report.add_argument("--no-report", action="store_true", help="skip the PNG report")
+    report.add_argument("--report-render", action="store_true",
+                        help="path-trace the report's re-render (seconds) instead of predicting it as L f")
     p.add_argument("--normals", type=int, default=8000, help="number of normals M")
     p.add_argument("--dirs", type=int, default=None, help="light directions per normal K (default 8000)")
-    p.add_argument("--grid", type=int, nargs=2, default=(32, 32), metavar=("N_T", "N_S"))
+    p.add_argument("--grid", type=int, nargs=2, default=(32, 32), metavar=("N_T", "N_S"),
+                   help="st grid (theta_h nodes, theta_d nodes); the packaged basis prior is learnt on 32 x 32, so "
+                        "another grid uses the smoothness prior alone unless --prior names priors learnt on it")
     p.add_argument("--alpha", type=_parse_alpha, default=None,
                    help="smoothness weight: a number, or how to choose it: 'discrepancy' (default: the largest "
                         "weight, at most 1e-2, whose fit explains the image to within its expected error) or 'gcv'")
@@ -103,12 +122,13 @@ def _add_recover_options(p: argparse.ArgumentParser) -> None:
                         "sub-pixel normals (default: centre normals, the paper's model)")
     p.add_argument("--saturation", type=float, default=None, help="drop pixels with any channel >= this value")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--threads", type=int, default=None,
-                   help="Dr.Jit threads, and at most as many solve workers (1: bit-identical outputs from run "
-                        "to run; default: all cores, where the lighting matrix's parallel sums vary at float32 "
-                        "rounding)")
-    p.add_argument("--deterministic", dest="threads", action="store_const", const=1,
-                   help="same as --threads 1")
+    threads = p.add_mutually_exclusive_group()
+    threads.add_argument("--threads", type=int, default=None,
+                         help="Dr.Jit threads, and at most as many solve workers (1: bit-identical outputs from run "
+                              "to run; default: all cores, where the lighting matrix's parallel sums vary at "
+                              "float32 rounding)")
+    threads.add_argument("--deterministic", dest="threads", action="store_const", const=1,
+                         help="same as --threads 1")
     _add_variant(p)
     _add_data(p)
 
@@ -200,7 +220,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--dask", default=None, metavar="ADDRESS", help="send the materials to this Dask scheduler")
     p.add_argument("--threads", type=int, default=None,
                    help="Dr.Jit threads per job (default: cores // jobs; 1 makes numbers bitwise reproducible)")
-    p.add_argument("--quick", action="store_true", help="a few materials at small sizes (seconds each)")
+    p.add_argument("--quick", action="store_true",
+                   help="a few materials at small sizes, seconds each: its sizes replace the defaults stated below "
+                        "(48 px, 16 spp, 1000 normals, 3000 directions, a 12 x 12 grid, pisa_256 only, the "
+                        "packaged priors; EvalConfig.quick); options given explicitly still apply")
     p.add_argument("--resolution", type=int, default=None, help="render width = height (default 128)")
     p.add_argument("--spp", type=int, default=None, help="samples per pixel of the input render (default 128)")
     p.add_argument("--novel-spp", type=int, default=None, help="samples per pixel of validation renders (default 64)")

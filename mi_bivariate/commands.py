@@ -313,6 +313,9 @@ def _recover_image(args: argparse.Namespace, image_path: str, probe, priors: tup
 def cmd_recover(args: argparse.Namespace) -> int:
     _check_recover_args(args)
     _check_out_file(args.out)
+    if Path(args.out).suffix.lower() not in ("", ".npz"):
+        raise InputError(args.out, "recover writes a .npz table (and its .exr view and report beside it)",
+                         "give --out a name ending in .npz")
     outputs = export.output_paths(args.out, merl=args.merl, report=not args.no_report)
     check_outputs(outputs, _input_files(args, args.image, args.probe, args.mask))
     args.source_names["lighting matrix L"] = str(args.probe)

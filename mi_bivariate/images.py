@@ -157,7 +157,7 @@ def _read_exr(path: Path) -> Tuple[np.ndarray, Dict[str, str]]:
             return _read_exr_unchecked(path, OpenEXR)
         except InputError:
             raise
-        except Exception as exc:  # noqa: BLE001 -- the library raises RuntimeError, UnicodeDecodeError, ... on corrupt files
+        except Exception as exc:  # noqa: BLE001 -- RuntimeError, UnicodeDecodeError, ... on corrupt files
             failed.append(True)
             raise _exr_error(path, exc) from None
 

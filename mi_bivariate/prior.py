@@ -323,7 +323,8 @@ class Prior:
             if len(samples) == 0:
                 raise InputError("prior training set", f"no {pair} materials (specular ratios "
                                  f"{ {n: round(r, 2) for n, r in ratios.items()} }, threshold {gloss_threshold})",
-                                 "add materials of both kinds or change gloss_threshold")
+                                 "add materials of both kinds (glossy and diffuse), or change gloss_threshold "
+                                 "in Python")
             pairs[pair], scales[pair] = _sigma_maps(samples, floor, centred, ceiling)
         n_t, n_s = next(iter(named.values())).shape[:2]
         provenance = {

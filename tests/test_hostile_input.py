@@ -254,6 +254,7 @@ CLI_CASES = [
      "not a 2:1 lat-long"),
     ("render: black probe", lambda f: ["render", str(f["npz"]), "--probe", str(f["black_probe"])], "black_probe",
      "black"),
+    _needs_recover(("recover: --out not npz", lambda f: _recover_args(f, out="x.exr"), None, "ending in .npz")),
     ("render: --out not EXR", lambda f: ["render", str(f["npz"]), "--probe", str(f["probe"]), "--out", "x.hdr"],
      None, "OpenEXR"),
     ("reduce: an image", lambda f: ["reduce", str(f["image"])], "image", "not a MERL .binary"),
@@ -279,12 +280,17 @@ def test_cli_one_line_error(files, tmp_path, monkeypatch, capsys, case, argv, na
         assert str(files[names]) in lines[0], err
 
 
-def test_cli_usage_errors_are_argparse_errors(capsys):
-    """Malformed arguments are usage errors (argparse: exit status 2, no traceback)."""
+@pytest.mark.parametrize("extra, match", [
+    (["--sphere", "1,2,-3"], "radius must be positive"),
+    (["--threads", "4", "--deterministic"], "--deterministic: not allowed with argument --threads"),
+    (["--no-report", "--report-render"], "--report-render: not allowed with argument --no-report"),
+], ids=["negative radius", "deterministic with threads", "report-render without a report"])
+def test_cli_usage_errors_are_argparse_errors(capsys, extra, match):
+    """Malformed or conflicting arguments are usage errors (argparse: exit status 2, one line, no traceback)."""
     with pytest.raises(SystemExit) as info:
-        cli.main(["recover", "x.exr", "--probe", "p.exr", "--sphere", "1,2,-3"])
+        cli.main(["recover", "x.exr", "--probe", "p.exr", *extra])
     err = capsys.readouterr().err
-    assert info.value.code == 2 and "Traceback" not in err and "radius must be positive" in err
+    assert info.value.code == 2 and "Traceback" not in err and match in err and len(err.strip().splitlines()) == 1
 
 
 # ---------------------------------------------------------- atomic output
@@ -544,9 +550,10 @@ def test_no_output_overwrites_an_input(files, tmp_path, capsys, case):
                                                        d / "data" / "merl_nbrdf" / "merl_nbrdf_dev.npz"),
         "recover onto the prior's basis": (rec + ["--prior", str(d / "pr.npz"), "--out", str(d / "pr_basis.npz")],
                                            d / "pr_basis.npz"),
-        "learn-prior onto a file of a source folder": (["learn-prior", str(d / "m"), "--out", str(d / "m" / "x.binary")],
-                                                       d / "m" / "x.binary"),
-        "demo onto its input probe": (["demo", "--out", str(d), "--input-probe", str(d / "input.exr")], d / "input.exr"),
+        "learn-prior onto a file of a source folder": (
+            ["learn-prior", str(d / "m"), "--out", str(d / "m" / "x.binary")], d / "m" / "x.binary"),
+        "demo onto its input probe": (
+            ["demo", "--out", str(d), "--input-probe", str(d / "input.exr")], d / "input.exr"),
     }[case]
     if case == "render png onto probe":
         (d / "p.png").write_bytes(files["png"].read_bytes())
