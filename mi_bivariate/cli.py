@@ -89,8 +89,9 @@ def _add_recover_options(p: argparse.ArgumentParser) -> None:
     """The options ``recover`` and ``recover-batch`` share."""
     p.add_argument("--probe", required=True, help="environment map file or shared probe name")
     p.add_argument("--sphere", default="auto", type=_parse_sphere, metavar="CX,CY,R",
-                   help="sphere centre and radius in pixels (pixel centres at i+0.5, y down); "
-                        "default 'auto': fitted to the image (or --mask), with the fit residual reported")
+                   help="sphere centre and radius in pixels (pixel centres at i+0.5, y down; write a negative "
+                        "centre as --sphere=-10,32,40); default 'auto': fitted to the image (or --mask), with the "
+                        "fit residual reported")
     p.add_argument("--mask", default=None, help="optional mask image (non-zero = usable)")
     p.add_argument("--merl", action="store_true", help="also write a MERL .binary")
     report = p.add_mutually_exclusive_group()

@@ -79,6 +79,8 @@ def _check_grid(grid: Optional[Sequence[int]]) -> None:
     n_t, n_s = grid
     for flag, n in (("--grid N_T", n_t), ("--grid N_S", n_s)):
         _check_max(flag, n, MAX_GRID_AXIS)
+        if n < 2:
+            raise InputError(flag, f"{n} nodes is too small", "each st axis needs at least 2 nodes")
     if n_t > 0 and n_s > 0 and n_t * n_s > MAX_GRID_NODES:
         raise InputError("--grid", f"{n_t} x {n_s} = {n_t * n_s} nodes is over the limit of {MAX_GRID_NODES}",
                          "the solve's normal equations grow as the square of the node count")
@@ -113,6 +115,10 @@ def _check_recovery_sizes(normals: Optional[int], dirs: Optional[int], grid: Opt
 def _check_render_sizes(resolution: Optional[int], spp: Optional[int], flag: str = "--spp") -> None:
     _check_max("--resolution", resolution, MAX_RESOLUTION)
     _check_max(flag, spp, MAX_SPP)
+    if resolution is not None and resolution < 2:
+        raise InputError("--resolution", f"must be at least 2 pixels, got {resolution}")
+    if spp is not None and spp < 1:
+        raise InputError(flag, f"must be at least 1, got {spp}")
     if resolution and spp and resolution > 0 and spp > 0 and resolution * resolution * spp > MAX_RENDER_SAMPLES:
         raise InputError(flag, f"{resolution} x {resolution} pixels x {spp} spp = {resolution * resolution * spp} "
                          f"samples, over the limit of {MAX_RENDER_SAMPLES} for one render",
