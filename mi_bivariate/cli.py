@@ -23,7 +23,8 @@ class _HelpFormatter(argparse.HelpFormatter):
 
     def _get_help_string(self, action: argparse.Action) -> str:
         text = action.help or ""
-        if "default" in text or not action.option_strings or action.default in (None, False, argparse.SUPPRESS):
+        if "default" in text or not action.option_strings or any(
+                action.default is v for v in (None, False, argparse.SUPPRESS)):
             return text
         default = " ".join(map(str, action.default)) if isinstance(action.default, (tuple, list)) else "%(default)s"
         return f"{text} (default: {default})" if text else f"default: {default}"
@@ -122,7 +123,8 @@ def _add_recover_options(p: argparse.ArgumentParser) -> None:
                    help="pixel-footprint model: rows whose pixel spans more than DEG degrees of normals average "
                         "sub-pixel normals (default: centre normals, the paper's model)")
     p.add_argument("--saturation", type=float, default=None, help="drop pixels with any channel >= this value")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0,
+                   help="seed of the light directions' random shifts (runs are deterministic for a seed)")
     threads = p.add_mutually_exclusive_group()
     threads.add_argument("--threads", type=int, default=None,
                          help="Dr.Jit threads, and at most as many solve workers (1: bit-identical outputs from run "
@@ -154,8 +156,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="render.exr", help="output EXR (a PNG preview is written beside it)")
     p.add_argument("--resolution", type=int, default=256, help="image width and height in pixels")
     p.add_argument("--spp", type=int, default=256, help="samples per pixel")
-    p.add_argument("--camera", choices=("orthographic", "perspective"), default="orthographic")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--camera", choices=("orthographic", "perspective"), default="orthographic",
+                   help="camera model of the render (recover models an orthographic view)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the render's samples")
     _add_variant(p)
     _add_data(p)
     
@@ -202,7 +205,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--novel-probe", default="pisa_256", help="probe for the validation render")
     p.add_argument("--spp", type=int, default=256, help="samples per pixel of every render")
     p.add_argument("--resolution", type=int, default=256, help="image width and height in pixels")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="seed of every render and of the recovery")
     _add_variant(p)
     _add_data(p)
     
@@ -235,7 +238,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="regularisation weight, or how to choose it: 'discrepancy' (default) or 'gcv'")
     p.add_argument("--baselines", nargs="*", default=None, metavar="MODEL",
                    help="parametric baselines to fit (default: ggx ward; none: skip)")
-    p.add_argument("--seed", type=int, default=None)
+    p.add_argument("--seed", type=int, default=None,
+                   help="seed of the renders, the camera noise and the recovery (default: the config's, 0)")
     p.add_argument("--noise", type=float, default=None, metavar="LEVEL",
                    help="camera noise of the input images: variance a I + b with a relative standard deviation "
                         "LEVEL at the mean signal (mi_bivariate.noise; default 0 = clean)")
@@ -245,7 +249,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="width = height of the renders under the novel probes (default 64)")
     p.add_argument("--prior", default=None, metavar="FILE", help="prior file for the recovery (default: packaged)")
     p.add_argument("--pdf", action="store_true", help="figures also as PDF")
-    p.add_argument("--no-figures", action="store_true")
+    p.add_argument("--no-figures", action="store_true", help="skip the figures (tables and results only)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--abs", type=int, default=0, metavar="N",
                    help="also run analysis by synthesis (Adam + prb) on the first N materials")

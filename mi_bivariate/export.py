@@ -14,7 +14,7 @@ from mi_bivariate.report import write_recovery_report
 def output_paths(out: PathLike, merl: bool = False, report: bool = True) -> List[Path]:
     """The files :func:`write_outputs` writes for ``out``: ``.npz``, ``.exr``, [``.binary``], [``_report.png``]."""
     out = Path(out)
-    if out.suffix != ".npz":
+    if out.suffix.lower() != ".npz":
         out = out.with_suffix(".npz")
     paths = [out, out.with_suffix(".exr")]
     if merl:

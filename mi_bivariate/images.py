@@ -24,6 +24,7 @@ import os
 import shlex
 import sys
 import tempfile
+import threading
 import warnings
 from pathlib import Path
 from typing import Dict, Iterator, List, Optional, Tuple
@@ -162,16 +163,30 @@ def _read_exr(path: Path) -> Tuple[np.ndarray, Dict[str, str]]:
             raise _exr_error(path, exc) from None
 
 
+#: One holder of file descriptors 1 and 2 at a time (:func:`_library_output`).
+_HOLD_LOCK = threading.Lock()
+
+
 @contextlib.contextmanager
 def _library_output() -> Iterator[List[bool]]:
     """Hold what C libraries write to file descriptors 1 and 2 inside the block (libOpenEXR prints its
     own lines about a corrupt file before raising): replayed if the block succeeds, dropped if the
-    caller appends to the yielded list (it reports the problem in its one line instead)."""
+    caller appends to the yielded list (it reports the problem in its one line instead).
+
+    Only in the main thread, one block at a time: the descriptors belong to the whole process, so
+    a read in another thread (a Dask worker, a notebook's pool) leaves them alone, and output other
+    threads write during a held block is replayed or dropped with it."""
     failed: List[bool] = []
-    with contextlib.ExitStack() as stack:
-        for fd, stream in ((1, sys.stdout), (2, sys.stderr)):
-            stack.enter_context(_held_fd(fd, stream, failed))
-        yield failed
+    if threading.current_thread() is not threading.main_thread() or not _HOLD_LOCK.acquire(blocking=False):
+        yield failed  # another thread, or a block nested in a held one: nothing held
+        return
+    try:
+        with contextlib.ExitStack() as stack:
+            for fd, stream in ((1, sys.stdout), (2, sys.stderr)):
+                stack.enter_context(_held_fd(fd, stream, failed))
+            yield failed
+    finally:
+        _HOLD_LOCK.release()
 
 
 @contextlib.contextmanager

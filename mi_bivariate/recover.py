@@ -288,11 +288,14 @@ MAX_NOISE_TO_SIGNAL = 10.0
 
 
 def _check_noise_against_signal(sigma: np.ndarray, values: np.ndarray) -> None:
-    """Refuse a noise model that swamps the image (``sigma``, ``values``: ``(M, 3)``)."""
-    ratio = float(np.median(sigma / np.maximum(np.abs(values), 1e-30)))
-    if not ratio <= MAX_NOISE_TO_SIGNAL:
-        raise InputError("noise", f"the noise model's standard deviation is {ratio:.3g} times the median pixel: "
-                                  "the image would carry no information",
+    """Refuse a noise model that swamps the image (``sigma``, ``values``: ``(M, 3)``): in every channel
+    with signal, the median over its lit rows of noise / value is above :data:`MAX_NOISE_TO_SIGNAL`.
+    Dark rows and channels without signal (a red material's G and B) do not count."""
+    ratios = [float(np.median(sigma[lit, c] / values[lit, c]))
+              for c in range(values.shape[1]) for lit in [values[:, c] > 0.0] if np.any(lit)]
+    if ratios and min(ratios) > MAX_NOISE_TO_SIGNAL:
+        raise InputError("noise", f"the rows' noise is {min(ratios):.3g} times their value (median, in the channel "
+                                  "with the most signal): the image would carry no information",
                          "check the noise model: variance a I + b, with I a pixel value in the image's units")
 
 

@@ -152,3 +152,40 @@ def test_read_records_never_raises_on_garbage(tmp_path):
     assert path.read_bytes() == b"{\"material\": \"ok\", \"config_hash\": \"h\"}\n"
     with pytest.raises(InputError):
         runner._connect_dask("not a scheduler address")
+
+
+def _blas_threads_here() -> list:
+    """Threads of every BLAS pool loaded in this process (numpy's and scipy's), after loading scipy's."""
+    import importlib
+
+    import threadpoolctl
+
+    importlib.import_module("scipy.linalg")  # scipy's own OpenBLAS
+
+    return [d["num_threads"] for d in threadpoolctl.threadpool_info() if d["user_api"] == "blas"]
+
+
+def test_worker_processes_get_their_threads_and_the_parent_keeps_its_own(tmp_path, monkeypatch):
+    """A spawned evaluation worker runs its BLAS pools at the job's thread count (set in the worker, not
+    through the parent's environment); an in-process evaluation at 1 thread gives the caller back its
+    Dr.Jit thread count."""
+    import multiprocessing
+    import os
+    from concurrent.futures import ProcessPoolExecutor
+
+    import drjit as dr
+
+    monkeypatch.delenv("OPENBLAS_NUM_THREADS", raising=False)
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"), initializer=runner._init_worker,
+                             initargs=("scalar_rgb", os.getpid(), 1)) as pool:
+        counts = pool.submit(_blas_threads_here).result(timeout=300)
+    assert counts and all(n == 1 for n in counts), counts
+
+    before = dr.thread_count()
+    dr.set_thread_count(2)
+    try:
+        ev.run_evaluation([MATERIAL], tmp_path / "eval", config=TINY, progress=False, figures=False, threads=1)
+        assert dr.thread_count() == 2
+    finally:
+        dr.set_thread_count(before)

@@ -9,8 +9,10 @@ the check; remove the mark when it is added.
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
+import textwrap
 import warnings
 from pathlib import Path
 
@@ -244,6 +246,7 @@ CLI_CASES = [
     _needs_recover(("recover: sphere outside", lambda f: _recover_args(f, sphere="900,900,10"), None, "outside")),
     _needs_recover(("recover: M = 0", lambda f: _recover_args(f, normals="0"), None, "--normals: must be at least 1")),
     _needs_recover(("recover: K = 0", lambda f: _recover_args(f, dirs="0"), None, "--dirs: must be at least 2")),
+    _needs_recover(("recover: K = 1", lambda f: _recover_args(f, dirs="1"), None, "--dirs: must be at least 2")),
     _needs_recover(("recover: grid 1", lambda f: _recover_args(f, grid="1"), None, "too small")),
     _needs_recover(("recover: negative alpha", lambda f: _recover_args(f, alpha="-1"), None, "alpha")),
     _needs_recover(("recover: alpha 1e300", lambda f: _recover_args(f, alpha="1e300"), None, "between")),
@@ -741,3 +744,45 @@ def test_corrupt_exr_is_exactly_one_line(files, tmp_path):
     assert proc.returncode == 2 and proc.stdout == "", (proc.stdout, proc.stderr)
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith(f"mi-bivariate: error: {cut}: "), proc.stderr
+
+
+def test_exr_reads_in_threads_leave_stdout_and_stderr_working(tmp_path):
+    """The held library output (images._library_output) belongs to the process: reads in several threads
+    at once must not leave file descriptors 1 and 2 pointing anywhere else afterwards."""
+    path = images.write_exr(tmp_path / "a.exr", np.ones((8, 16, 3), np.float32))
+    script = tmp_path / "race.py"
+    script.write_text(textwrap.dedent(f"""
+        import sys, threading
+        from mi_bivariate import images
+        def work():
+            for _ in range(50):
+                images.read_image({str(path)!r})
+        threads = [threading.Thread(target=work) for _ in range(4)]
+        for t in threads: t.start()
+        work()
+        for t in threads: t.join()
+        print("stdout works", flush=True)
+        print("stderr works", file=sys.stderr, flush=True)
+    """))
+    proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0 and proc.stdout == "stdout works\n" and proc.stderr == "stderr works\n", proc
+
+
+@pytest.mark.parametrize("value, match", [(np.nan, "1 NaN"), (1e35, r"largest magnitude 1e\+35")], ids=["nan", "huge"])
+def test_pfm_with_one_implausible_value_is_refused(tmp_path, value, match):
+    data = np.full((8, 16, 3), 0.5, "<f4")
+    data[2, 3, 1] = value
+    (tmp_path / "p.pfm").write_bytes(b"PF\n16 8\n-1.0\n" + data.tobytes())
+    with pytest.raises(InputError, match=match):
+        images.load_image(tmp_path / "p.pfm")
+
+
+def test_help_states_defaults(capsys):
+    """Every option's default is in its help, 0 included (0 == False must not hide it)."""
+    with pytest.raises(SystemExit):
+        cli.main(["recover", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    for option in (r"--seed SEED [^-]*\(default: 0\)", r"--normals NORMALS number of normals M \(default: 8000\)",
+                   r"--out OUT [^-]*\(default: brdf\.npz\)", r"\(default: 32 32\)", r"\(default: 80\.0\)"):
+        assert re.search(option, text), option
+    assert "(default: None)" not in text and "(default: False)" not in text

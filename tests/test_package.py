@@ -148,29 +148,35 @@ LAYERS = (
 
 
 def test_modules_import_only_their_own_or_earlier_layers():
-    """Data flows one way: no module imports one of a later group of the README's layout, and every
-    module is named in that layout."""
+    """Data flows one way: no module (the plugins included) imports one of a later group of the
+    README's layout, lazily or at the top, absolutely or relatively; and every module is named in
+    that layout."""
     package = ROOT / "mi_bivariate"
     level = {name: i for i, names in enumerate(LAYERS) for name in names.split()}
     layout = (ROOT / "README.md").read_text().split("## Layout", 1)[1].split("```", 2)[1]
     upward, unlisted = [], []
-    for path in sorted(package.rglob("*.py")):
-        top = path.relative_to(package).with_suffix("").parts[0]
+    files = [(p, p.relative_to(package).with_suffix("").parts) for p in sorted(package.rglob("*.py"))]
+    files += [(p, ("plugins",) + p.relative_to(ROOT / "plugins").with_suffix("").parts)
+              for p in sorted((ROOT / "plugins").rglob("*.py"))]
+    for path, parts in files:
+        top = parts[0]
         if top not in level:
             unlisted.append(top)
             continue
-        if top not in ("__init__", "__main__", "plugins") and top not in layout:
+        if top not in ("__init__", "__main__", "plugins") and not re.search(rf"(?<![\w.]){top}\b(?!-)", layout):
             unlisted.append(f"{top} (not in the README's layout)")
+        here = ["mi_bivariate", *parts[:-1]]          # the package a relative import starts from
         for node in ast.walk(ast.parse(path.read_text())):
-            if isinstance(node, ast.ImportFrom) and node.level == 0 and (node.module or "").startswith("mi_bivariate"):
-                parts = node.module.split(".")
-                names = parts[1:2] or [a.name for a in node.names]
-            elif isinstance(node, ast.ImportFrom) and node.level == 1 and path.parent == package:
-                names = [node.module.split(".")[0]] if node.module else [a.name for a in node.names]
+            if isinstance(node, ast.ImportFrom):
+                base = here[:len(here) - node.level + 1] if node.level else []
+                module = ".".join(base + ([node.module] if node.module else [])).split(".")
+                names = module[1:2] if len(module) > 1 else [a.name for a in node.names]
+                if module[0] != "mi_bivariate":
+                    continue
             elif isinstance(node, ast.Import):
                 names = [a.name.split(".")[1] for a in node.names if a.name.startswith("mi_bivariate.")]
             else:
                 continue
-            upward += [f"{top} -> {n}" for n in names if level.get(n, -1) > level[top]]
+            upward += [f"{'/'.join(parts)} -> {n}" for n in names if level.get(n, -1) > level[top]]
     assert not unlisted, sorted(set(unlisted))
     assert not upward, sorted(set(upward))

@@ -249,3 +249,31 @@ def test_cli_recover_batch_stops_on_a_shared_problem_and_warns_for_every_photo(t
                           text=True, env=env, timeout=300)
     assert both.returncode == 0, both.stderr[-2000:]
     assert both.stderr.count("sit exactly at the maximum") == 2, both.stderr[-3000:]
+
+
+def test_noise_check_counts_channels_with_signal_only():
+    """A noise model that swamps every lit channel is refused; a red-only image (G and B exactly 0,
+    whose relative noise is unbounded) and dark rows are not."""
+    from mi_bivariate.recover import MAX_NOISE_TO_SIGNAL, _check_noise_against_signal
+
+    rng = np.random.default_rng(3)
+    red = np.zeros((500, 3))
+    red[:, 0] = rng.uniform(0.01, 1.0, 500)
+    red[:20, 0] = 0.0                                          # dark rows
+    fine = 0.02 * red + 1e-4
+    _check_noise_against_signal(fine, red)
+    _check_noise_against_signal(np.where(red > 0, 0.5 * MAX_NOISE_TO_SIGNAL * red, 1e-4), red)
+    with pytest.raises(InputError, match="carry no information"):
+        _check_noise_against_signal(2.0 * MAX_NOISE_TO_SIGNAL * red + 1e-4, red)
+    grey = np.repeat(red[:, :1], 3, axis=1)
+    swamped = 2.0 * MAX_NOISE_TO_SIGNAL * grey + 1e-4
+    swamped[:, 1] = 0.02 * grey[:, 1] + 1e-4                   # one channel with information is enough
+    _check_noise_against_signal(swamped, grey)
+
+
+def test_recover_out_keeps_an_upper_case_npz_suffix(tmp_path):
+    from mi_bivariate.export import output_paths
+
+    assert output_paths(tmp_path / "x.NPZ", merl=True)[:3] == [tmp_path / "x.NPZ", tmp_path / "x.exr",
+                                                               tmp_path / "x.binary"]
+    assert output_paths(tmp_path / "x")[0] == tmp_path / "x.npz"

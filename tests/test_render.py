@@ -202,3 +202,18 @@ def test_scene_xml_matches_render_sphere(tmp_path, name, camera, brdf_type):
     assert np.all(xml_image[m].sum(-1) > 0.0)
     np.testing.assert_allclose(xml_image.sum((0, 1)), ref.image.sum((0, 1)), rtol=0.03)
     np.testing.assert_allclose(xml_image[m].mean(0), ref.image[m].mean(0), rtol=0.03)
+
+
+def test_auto_exposure_maps_the_percentile_of_the_masked_luminance_to_white():
+    """Grey pixels (luminance = value): the exposure is 1 / the percentile of the positive, finite
+    values under the mask; an image without such a pixel gets 1."""
+    from mi_bivariate.images import auto_exposure
+
+    values = np.arange(1.0, 101.0).reshape(10, 10)
+    image = np.repeat(values[..., None], 3, axis=2)
+    image[0, 0] = np.nan
+    mask = values <= 50.0
+    assert auto_exposure(image) == pytest.approx(1.0 / np.percentile(values.ravel()[1:], 99.0))  # NaN left out
+    assert auto_exposure(image, mask) == pytest.approx(1.0 / np.percentile(np.arange(2.0, 51.0), 99.0))
+    assert auto_exposure(image, mask, percentile=50.0) == pytest.approx(1.0 / 26.0)
+    assert auto_exposure(np.zeros((4, 4, 3))) == 1.0
