@@ -262,15 +262,19 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _user_names(text: str, source_names: Dict[str, str]) -> str:
+    """One line, its leading internal source name (``alpha``, ``image``) replaced by the user's file or option."""
+    text = " ".join(text.split())
+    for name, path in source_names.items():
+        if text.startswith(name + ":"):
+            return path + text[len(name):]
+    return text
+
+
 def _warning_formatter(source_names: Dict[str, str]):
     """``warnings.formatwarning`` printing one line, with internal source names replaced by the user's files."""
     def format_warning(message, category, filename, lineno, line=None) -> str:
-        text = " ".join(str(message).split())
-        for name, path in source_names.items():
-            if text.startswith(name + ":"):
-                text = path + text[len(name):]
-                break
-        return f"mi-bivariate: warning: {text}\n"
+        return f"mi-bivariate: warning: {_user_names(str(message), source_names)}\n"
 
     return format_warning
 
@@ -297,7 +301,7 @@ def main(argv: Optional[Sequence[str]] = None, *, own_process: bool = False) -> 
             gc.freeze()
         return int(commands.COMMANDS[args.command](args) or 0)
     except InputError as exc:
-        print(f"mi-bivariate: error: {exc}", file=sys.stderr)
+        print(f"mi-bivariate: error: {_user_names(str(exc), args.source_names)}", file=sys.stderr)
         return 2
     except OSError as exc:
         # A file the checks could not foresee (vanished, unreadable, a full disk).

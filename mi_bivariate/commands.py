@@ -279,9 +279,11 @@ def _check_recover_args(args: argparse.Namespace) -> None:
 def _recover_priors(args: argparse.Namespace) -> tuple:
     """``(smoothness prior or None, basis prior or "default" or None)`` as ``--prior`` and ``--no-basis-prior`` say."""
     smooth_prior, basis_prior = None, "default"
+    args.source_names.update({"alpha": "--alpha", "noise": "--noise", "saturation": "--saturation"})
     if args.prior is not None:
         smooth_prior = Prior.load(args.prior)
         basis_file = basis_path_for(args.prior)
+        args.source_names["basis_prior"] = str(basis_file)
         basis_prior = BasisPrior.load(basis_file) if basis_file.is_file() else None
     return smooth_prior, None if args.no_basis_prior else basis_prior
 

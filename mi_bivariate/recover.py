@@ -294,8 +294,8 @@ def _check_noise_against_signal(sigma: np.ndarray, values: np.ndarray) -> None:
     ratios = [float(np.median(sigma[lit, c] / values[lit, c]))
               for c in range(values.shape[1]) for lit in [values[:, c] > 0.0] if np.any(lit)]
     if ratios and min(ratios) > MAX_NOISE_TO_SIGNAL:
-        raise InputError("noise", f"the rows' noise is {min(ratios):.3g} times their value (median, in the channel "
-                                  "with the most signal): the image would carry no information",
+        raise InputError("noise", f"the rows' noise is {min(ratios):.3g} times their value (the median over lit "
+                                  "rows, in the channel where it is smallest): the image would carry no information",
                          "check the noise model: variance a I + b, with I a pixel value in the image's units")
 
 

@@ -249,10 +249,12 @@ CLI_CASES = [
     _needs_recover(("recover: K = 1", lambda f: _recover_args(f, dirs="1"), None, "--dirs: must be at least 2")),
     _needs_recover(("recover: grid 1", lambda f: _recover_args(f, grid="1"), None, "too small")),
     _needs_recover(("recover: negative alpha", lambda f: _recover_args(f, alpha="-1"), None, "alpha")),
-    _needs_recover(("recover: alpha 1e300", lambda f: _recover_args(f, alpha="1e300"), None, "between")),
-    _needs_recover(("recover: alpha 1e-20", lambda f: _recover_args(f, alpha="1e-20"), None, "between")),
+    _needs_recover(("recover: alpha 1e300", lambda f: _recover_args(f, alpha="1e300"), None,
+                    "error: --alpha: must be 0 or between")),
+    _needs_recover(("recover: alpha 1e-20", lambda f: _recover_args(f, alpha="1e-20"), None,
+                    "error: --alpha: must be 0 or between")),
     _needs_recover(("recover: noise swamps the image", lambda f: _recover_args(f, noise="1e10,1e10"), None,
-                    "carry no information")),
+                    "error: --noise: the rows' noise is")),
     ("render: square probe", lambda f: ["render", str(f["npz"]), "--probe", str(f["square_probe"])], "square_probe",
      "not a 2:1 lat-long"),
     ("render: black probe", lambda f: ["render", str(f["npz"]), "--probe", str(f["black_probe"])], "black_probe",
@@ -786,3 +788,14 @@ def test_help_states_defaults(capsys):
                    r"--out OUT [^-]*\(default: brdf\.npz\)", r"\(default: 32 32\)", r"\(default: 80\.0\)"):
         assert re.search(option, text), option
     assert "(default: None)" not in text and "(default: False)" not in text
+
+
+def test_errors_name_the_users_file_or_option(files, tmp_path, capsys):
+    """A library error about its internal ``basis_prior`` names the basis file beside ``--prior``."""
+    from mi_bivariate.basis_prior import default_basis_prior
+    from mi_bivariate.prior import default_prior
+
+    default_prior().save(tmp_path / "pp.npz")
+    default_basis_prior().save(tmp_path / "pp_basis.npz")                 # learnt on 32 x 32
+    line = _cli(_recover_args(files, prior=str(tmp_path / "pp.npz"), out=str(tmp_path / "x.npz")), capsys)
+    assert line.startswith(f"mi-bivariate: error: {tmp_path / 'pp_basis.npz'}: is learnt on a 32 x 32 grid"), line
