@@ -274,11 +274,12 @@ PLAUSIBLE_RADIANCE = 1e30
 
 
 def _check_pfm_values(path: Path, data: np.ndarray) -> None:
-    """A PFM's decoded floats must look like radiance: no NaN and nothing beyond :data:`PLAUSIBLE_RADIANCE`."""
+    """A PFM's decoded floats must look like radiance: nothing beyond :data:`PLAUSIBLE_RADIANCE`. (NaN,
+    infinite or negative pixels alone are left to the callers' checks, which count and name them.)"""
     n_nan = int(np.count_nonzero(np.isnan(data)))
     finite = data[np.isfinite(data)]
     top = float(np.abs(finite).max()) if finite.size else 0.0
-    if n_nan or top > PLAUSIBLE_RADIANCE:
+    if top > PLAUSIBLE_RADIANCE:
         raise InputError(path, f"PFM values are not radiance ({n_nan} NaN, largest magnitude {top:.3g})",
                          "its byte order may be wrong: a negative scale in the header means little-endian")
 
