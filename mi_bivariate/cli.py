@@ -94,6 +94,9 @@ def _add_recover_options(p: argparse.ArgumentParser) -> None:
                         "centre as --sphere=-10,32,40); default 'auto': fitted to the image (or --mask), with the "
                         "fit residual reported")
     p.add_argument("--mask", default=None, help="optional mask image (non-zero = usable)")
+    p.add_argument("--fov", type=float, default=None, metavar="DEG",
+                   help="the photo's horizontal field of view for a pinhole camera with its principal point at "
+                        "the image centre (default: an orthographic view, the paper's model)")
     p.add_argument("--merl", action="store_true", help="also write a MERL .binary")
     report = p.add_mutually_exclusive_group()
     report.add_argument("--no-report", action="store_true", help="skip the PNG report")
@@ -157,7 +160,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--resolution", type=int, default=256, help="image width and height in pixels")
     p.add_argument("--spp", type=int, default=256, help="samples per pixel")
     p.add_argument("--camera", choices=("orthographic", "perspective"), default="orthographic",
-                   help="camera model of the render (recover models an orthographic view)")
+                   help="camera model of the render (perspective: a 30 degree horizontal field of view; "
+                        "recover such an image with --fov 30)")
     p.add_argument("--seed", type=int, default=0, help="seed of the render's samples")
     _add_variant(p)
     _add_data(p)

@@ -34,6 +34,7 @@ from mi_bivariate import render, spherefit, synthesis, training_set
 from mi_bivariate.atomic import atomic_paths, check_outputs
 from mi_bivariate.basis_prior import BasisPrior
 from mi_bivariate.errors import InputError
+from mi_bivariate.geometry import Intrinsics
 from mi_bivariate.images import load_image, load_mask, write_exr, write_png
 from mi_bivariate.nbrdf import ALL_NBRDF_MATERIALS
 from mi_bivariate.prior import Prior
@@ -270,6 +271,8 @@ def _check_recover_args(args: argparse.Namespace) -> None:
     _check_float("--max-view-angle", args.max_view_angle, 0.0, 90.0, lo_open=True)
     _check_float("--footprint", args.footprint, 0.0, 90.0, lo_open=True)
     _check_float("--saturation", args.saturation, 0.0, float("inf"), lo_open=True)
+    if args.fov is not None and not (math.isfinite(args.fov) and 0.0 < args.fov < 180.0):
+        raise InputError("--fov", f"must be a field of view in (0, 180) degrees, got {args.fov}")
     if not isinstance(args.alpha, str):
         _check_float("--alpha", args.alpha, float("-inf"), float("inf"))  # the sign is the library's check
     if args.threads is not None and not 1 <= args.threads <= 1024:
@@ -297,7 +300,8 @@ def _recover_image(args: argparse.Namespace, image_path: str, probe, priors: tup
     image = load_image(image_path)
     mask = load_mask(args.mask, image.shape) if args.mask else None
     sphere = None if args.sphere in (None, "auto") else args.sphere
-    fit = spherefit.fit_sphere(image, mask, sphere=sphere, source=str(image_path))
+    intrinsics = None if args.fov is None else Intrinsics.from_fov(image.shape[1], image.shape[0], args.fov)
+    fit = spherefit.fit_sphere(image, mask, sphere=sphere, intrinsics=intrinsics, source=str(image_path))
     print(fit.summary())
     try:
         # No BLAS oversubscription on a shared machine; --threads also caps the solve's workers.
