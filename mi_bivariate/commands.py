@@ -196,6 +196,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     _check_seed(args.seed)
     _check_out_file(args.out)
     out = Path(args.out)
+    args.source_names["merl table"] = str(args.brdf)  # an analytic spec's tabulated values
     check_outputs([out, out.with_suffix(".png")], _input_files(args, args.brdf, args.probe))
     if out.suffix.lower() != ".exr":
         raise InputError(out, "render writes OpenEXR (and a PNG preview beside it)", "give --out a name ending in .exr")

@@ -23,6 +23,8 @@ import time
 from pathlib import Path
 from typing import Optional, Tuple
 
+import numpy as np
+
 from mi_bivariate import adequacy, metrics, nbrdf, reference, render, report
 from mi_bivariate.atomic import atomic_paths
 from mi_bivariate.bivariate import BivariateBRDF, floors
@@ -45,8 +47,11 @@ def _materials_and_probes(material: Optional[str], input_probe: str, novel_probe
     if have_shared_data(data_dir):
         spec = material or DEFAULT_MATERIAL
         label = f"MERL-NBRDF {spec}" if spec in nbrdf.ALL_NBRDF_MATERIALS else spec
-        return (label, load_brdf(spec, data_dir), load_probe(input_probe, data_dir),
-                load_probe(novel_probe, data_dir))
+        probes = [load_probe(input_probe, data_dir), load_probe(novel_probe, data_dir)]
+        for name, probe in zip((input_probe, novel_probe), probes):
+            if not np.any(probe.data > 0.0):
+                raise InputError(name, "probe is black: nothing would be lit", "give a probe that emits light")
+        return (label, load_brdf(spec, data_dir), *probes)
     if material is not None and material in nbrdf.ALL_NBRDF_MATERIALS:
         nbrdf.data_dir(data_dir)  # raises the helpful "set MI_BIVARIATE_DATA" error
     spec = material or DEFAULT_ANALYTIC

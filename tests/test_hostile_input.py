@@ -260,6 +260,8 @@ CLI_CASES = [
     ("render: black probe", lambda f: ["render", str(f["npz"]), "--probe", str(f["black_probe"])], "black_probe",
      "black"),
     _needs_recover(("recover: --out not npz", lambda f: _recover_args(f, out="x.exr"), None, "ending in .npz")),
+    ("render: analytic spec out of range", lambda f: ["render", "ggx:specular=1e39", "--probe", str(f["probe"])], None,
+     "error: ggx:specular=1e39: MERL table holds infinite values"),
     ("render: --out not EXR", lambda f: ["render", str(f["npz"]), "--probe", str(f["probe"]), "--out", "x.hdr"],
      None, "OpenEXR"),
     ("reduce: an image", lambda f: ["reduce", str(f["image"])], "image", "not a MERL .binary"),
@@ -802,3 +804,9 @@ def test_errors_name_the_users_file_or_option(files, tmp_path, capsys):
     default_basis_prior().save(tmp_path / "pp_basis.npz")                 # learnt on 32 x 32
     line = _cli(_recover_args(files, prior=str(tmp_path / "pp.npz"), out=str(tmp_path / "x.npz")), capsys)
     assert line.startswith(f"mi-bivariate: error: {tmp_path / 'pp_basis.npz'}: is learnt on a 32 x 32 grid"), line
+
+
+def test_demo_names_a_black_probe(files, tmp_path, capsys, data_dir):
+    line = _cli(["demo", "--out", str(tmp_path / "d"), "--input-probe", str(files["black_probe"]), "--resolution",
+                 "16", "--spp", "1"], capsys)
+    assert line.startswith(f"mi-bivariate: error: {files['black_probe']}: probe is black"), line
