@@ -11,6 +11,7 @@ import argparse
 import gc
 import importlib
 import math
+import os
 import sys
 import warnings
 from typing import Dict, Optional, Sequence
@@ -305,7 +306,15 @@ def main(argv: Optional[Sequence[str]] = None, *, own_process: bool = False) -> 
             gc.freeze()
         return int(commands.COMMANDS[args.command](args) or 0)
     except InputError as exc:
-        print(f"mi-bivariate: error: {_user_names(str(exc), args.source_names)}", file=sys.stderr)
+        # The library's own parameter ("noise", "basis_prior") named as the user gave it; a file the
+        # user named so (a photo called "noise") is left alone. Messages without a source may begin
+        # with the internal name ("merl table: ...").
+        if exc.source is None:
+            text = _user_names(str(exc), args.source_names)
+        else:
+            source = None if os.path.exists(exc.source) else args.source_names.get(exc.source)
+            text = str(InputError(source, exc.problem, exc.hint)) if source else str(exc)
+        print(f"mi-bivariate: error: {' '.join(text.split())}", file=sys.stderr)
         return 2
     except OSError as exc:
         # A file the checks could not foresee (vanished, unreadable, a full disk).

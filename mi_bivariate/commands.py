@@ -126,6 +126,10 @@ def _check_render_sizes(resolution: Optional[int], spp: Optional[int], flag: str
                          "lower --spp or --resolution")
 
 
+#: ``recover --fov`` bounds (degrees): a photo's lens, from a long telephoto to a wide angle.
+MIN_FOV, MAX_FOV = 1.0, 150.0
+
+
 def _check_float(flag: str, value: Optional[float], lo: float, hi: float, lo_open: bool = False) -> None:
     if value is None:
         return
@@ -272,8 +276,13 @@ def _check_recover_args(args: argparse.Namespace) -> None:
     _check_float("--max-view-angle", args.max_view_angle, 0.0, 90.0, lo_open=True)
     _check_float("--footprint", args.footprint, 0.0, 90.0, lo_open=True)
     _check_float("--saturation", args.saturation, 0.0, float("inf"), lo_open=True)
-    if args.fov is not None and not (math.isfinite(args.fov) and 0.0 < args.fov < 180.0):
-        raise InputError("--fov", f"must be a field of view in (0, 180) degrees, got {args.fov}")
+    if args.fov is not None:
+        if not (math.isfinite(args.fov) and MIN_FOV <= args.fov <= MAX_FOV):
+            raise InputError("--fov", f"must be a horizontal field of view from {MIN_FOV:g} to {MAX_FOV:g} degrees, "
+                                      f"got {args.fov}")
+        for flag, given in (("--footprint", args.footprint is not None), ("--report-render", args.report_render)):
+            if given:
+                raise InputError(flag, "models an orthographic view only", "leave it out with --fov")
     if not isinstance(args.alpha, str):
         _check_float("--alpha", args.alpha, float("-inf"), float("inf"))  # the sign is the library's check
     if args.threads is not None and not 1 <= args.threads <= 1024:
@@ -283,7 +292,7 @@ def _check_recover_args(args: argparse.Namespace) -> None:
 def _recover_priors(args: argparse.Namespace) -> tuple:
     """``(smoothness prior or None, basis prior or "default" or None)`` as ``--prior`` and ``--no-basis-prior`` say."""
     smooth_prior, basis_prior = None, "default"
-    args.source_names.update({"alpha": "--alpha", "noise": "--noise", "saturation": "--saturation"})
+    args.source_names.update({"alpha": "--alpha", "noise": "--noise"})
     if args.prior is not None:
         smooth_prior = Prior.load(args.prior)
         basis_file = basis_path_for(args.prior)
@@ -313,8 +322,9 @@ def _recover_image(args: argparse.Namespace, image_path: str, probe, priors: tup
                 max_view_angle_deg=args.max_view_angle, footprint=args.footprint, saturation=args.saturation,
                 noise=args.noise, sampling=args.sampling, prior=priors[0], basis_prior=priors[1])
     except InputError as exc:
-        # The library names its arguments ("image", "lighting matrix L"); name the user's files.
-        names = {"image": image_path, "lighting matrix L": args.probe}
+        # The library names its arguments ("image", "lighting matrix L"); name the user's files. The noise
+        # check measures this photo's own rows (its own estimate with --noise auto): a problem of the photo.
+        names = {"image": image_path, "lighting matrix L": args.probe, "noise": image_path}
         if exc.source in names:
             raise InputError(names[exc.source], exc.problem, exc.hint) from None
         raise

@@ -296,7 +296,8 @@ def _check_noise_against_signal(sigma: np.ndarray, values: np.ndarray) -> None:
     if ratios and min(ratios) > MAX_NOISE_TO_SIGNAL:
         raise InputError("noise", f"the rows' noise is {min(ratios):.3g} times their value (the median over lit "
                                   "rows, in the channel where it is smallest): the image would carry no information",
-                         "check the noise model: variance a I + b, with I a pixel value in the image's units")
+                         "check the noise model (--noise A,B): variance a I + b, with I a pixel value in the "
+                         "image's units")
 
 
 def _noise_list(noise: Any, images: Sequence[np.ndarray]) -> Optional[list]:

@@ -149,7 +149,7 @@ def predicted_image(result: Any, index: int = 0) -> Tuple[Optional[np.ndarray], 
     rows = np.flatnonzero((np.asarray(obs.image_index) == index) & (np.asarray(obs.pixels)[:, 0] >= 0))
     if len(rows) == 0 or not result.geometries:
         return None, None
-    _, mask = result.geometries[index].normals(image.shape[1], image.shape[0])
+    mask = result.geometries[index].surface_maps(image.shape[1], image.shape[0]).mask
     target = np.argwhere(mask)
     _, nearest = cKDTree(np.asarray(obs.pixels)[rows]).query(target, k=1)
     predicted = np.zeros(image.shape[:2] + (3,), np.float32)
@@ -191,8 +191,7 @@ def write_recovery_report(result: Any, path: PathLike, rerender: Optional[np.nda
                 label = "prediction L f at the observed normals (nearest fill)"
     fig, axes = plt.subplots(2, 3, figsize=(13, 8))
     if image is not None:
-        geo = result.geometries[0]
-        normals, mask = geo.normals(image.shape[1], image.shape[0])
+        mask = result.geometries[0].surface_maps(image.shape[1], image.shape[0]).mask
         exposure = exposure_of(image, mask)
         show_image(axes[0, 0], image, "input", exposure)
         if rerender is not None:

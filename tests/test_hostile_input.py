@@ -230,9 +230,10 @@ CLI_CASES = [
      "garbage_npz", "npz"),
     ("render: missing BRDF", lambda f: ["render", str(f["npz"].with_name("missing.npz")), "--probe", str(f["probe"])],
      None, "not found"),
-    ("render: zero spp", lambda f: ["render", str(f["npz"]), "--probe", str(f["probe"]), "--spp", "0"], None, "spp"),
+    ("render: zero spp", lambda f: ["render", str(f["npz"]), "--probe", str(f["probe"]), "--spp", "0"], None,
+     "error: --spp: must be at least 1"),
     ("render: zero resolution", lambda f: ["render", str(f["npz"]), "--probe", str(f["probe"]),
-                                           "--resolution", "0"], None, "resolution"),
+                                           "--resolution", "0"], None, "error: --resolution: must be at least 2"),
     ("reduce: truncated MERL", lambda f: ["reduce", str(f["truncated_merl"])], "truncated_merl", "truncated"),
     ("reduce: foreign MERL", lambda f: ["reduce", str(f["foreign_merl"])], "foreign_merl", "not a MERL"),
     ("reduce: grid 1", lambda f: ["reduce", str(f["merl"]), "--grid", "1", "1",
@@ -247,19 +248,27 @@ CLI_CASES = [
     _needs_recover(("recover: M = 0", lambda f: _recover_args(f, normals="0"), None, "--normals: must be at least 1")),
     _needs_recover(("recover: K = 0", lambda f: _recover_args(f, dirs="0"), None, "--dirs: must be at least 2")),
     _needs_recover(("recover: K = 1", lambda f: _recover_args(f, dirs="1"), None, "--dirs: must be at least 2")),
-    _needs_recover(("recover: grid 1", lambda f: _recover_args(f, grid="1"), None, "too small")),
+    _needs_recover(("recover: grid 1", lambda f: _recover_args(f, grid="1"), None, "error: --grid N_T: 1 nodes")),
     _needs_recover(("recover: negative alpha", lambda f: _recover_args(f, alpha="-1"), None, "alpha")),
     _needs_recover(("recover: alpha 1e300", lambda f: _recover_args(f, alpha="1e300"), None,
                     "error: --alpha: must be 0 or between")),
     _needs_recover(("recover: alpha 1e-20", lambda f: _recover_args(f, alpha="1e-20"), None,
                     "error: --alpha: must be 0 or between")),
-    _needs_recover(("recover: noise swamps the image", lambda f: _recover_args(f, noise="1e10,1e10"), None,
-                    "error: --noise: the rows' noise is")),
+    _needs_recover(("recover: noise swamps the image", lambda f: _recover_args(f, noise="1e10,1e10"), "image",
+                    "the rows' noise is")),                     # this photo's rows: in a batch, this photo fails
     ("render: square probe", lambda f: ["render", str(f["npz"]), "--probe", str(f["square_probe"])], "square_probe",
      "not a 2:1 lat-long"),
     ("render: black probe", lambda f: ["render", str(f["npz"]), "--probe", str(f["black_probe"])], "black_probe",
      "black"),
     _needs_recover(("recover: --out not npz", lambda f: _recover_args(f, out="x.exr"), None, "ending in .npz")),
+    _needs_recover(("recover: --fov 0", lambda f: _recover_args(f, fov="0"), None, "error: --fov: must be")),
+    _needs_recover(("recover: --fov 170", lambda f: _recover_args(f, fov="170"), None, "error: --fov: must be")),
+    _needs_recover(("recover: --fov nan", lambda f: _recover_args(f, fov="nan"), None, "error: --fov: must be")),
+    _needs_recover(("recover: --fov with --footprint", lambda f: _recover_args(f, fov="30", footprint="2"), None,
+                    "error: --footprint: models an orthographic view only")),
+    _needs_recover(("recover: --fov with --report-render", lambda f: [a for a in _recover_args(f, fov="30")
+                                                                      if a != "--no-report"] + ["--report-render"],
+                    None, "error: --report-render: models an orthographic view only")),
     ("render: analytic spec out of range", lambda f: ["render", "ggx:specular=1e39", "--probe", str(f["probe"])], None,
      "error: ggx:specular=1e39: MERL table holds infinite values"),
     ("render: --out not EXR", lambda f: ["render", str(f["npz"]), "--probe", str(f["probe"]), "--out", "x.hdr"],
@@ -806,7 +815,16 @@ def test_errors_name_the_users_file_or_option(files, tmp_path, capsys):
     assert line.startswith(f"mi-bivariate: error: {tmp_path / 'pp_basis.npz'}: is learnt on a 32 x 32 grid"), line
 
 
-def test_demo_names_a_black_probe(files, tmp_path, capsys, data_dir):
-    line = _cli(["demo", "--out", str(tmp_path / "d"), "--input-probe", str(files["black_probe"]), "--resolution",
-                 "16", "--spp", "1"], capsys)
+@pytest.mark.parametrize("which", ["--input-probe", "--novel-probe"])
+def test_demo_names_a_black_probe(files, tmp_path, capsys, data_dir, which):
+    line = _cli(["demo", "--out", str(tmp_path / "d"), which, str(files["black_probe"]), "--resolution", "16",
+                 "--spp", "1"], capsys)
     assert line.startswith(f"mi-bivariate: error: {files['black_probe']}: probe is black"), line
+
+
+def test_a_file_named_like_a_parameter_keeps_its_name(files, tmp_path, capsys, monkeypatch):
+    """Errors map the library's parameter names ("noise") to the options, not a user's file so named."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "noise").write_bytes(b"not an image")
+    line = _cli(_recover_args(files, image="noise"), capsys)
+    assert line.startswith("mi-bivariate: error: noise: "), line

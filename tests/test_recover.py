@@ -259,8 +259,10 @@ def test_noise_check_counts_channels_with_signal_only():
     rng = np.random.default_rng(3)
     red = np.zeros((500, 3))
     red[:, 0] = rng.uniform(0.01, 1.0, 500)
-    red[:20, 0] = 0.0                                          # dark rows
+    red[:300, 0] = 0.0                                         # dark rows, most of them
     fine = 0.02 * red + 1e-4
+    _check_noise_against_signal(fine, red)
+    fine[300, 0] = 1e9                                         # one wild row moves a mean, not the median
     _check_noise_against_signal(fine, red)
     _check_noise_against_signal(np.where(red > 0, 0.5 * MAX_NOISE_TO_SIGNAL * red, 1e-4), red)
     with pytest.raises(InputError, match="carry no information"):
@@ -291,10 +293,28 @@ def test_cli_recover_models_a_perspective_photo_with_fov(tmp_path, any_probe, ca
     residual = {}
     for fov in (None, "30"):
         argv = ["recover", str(tmp_path / "photo.exr"), "--probe", str(tmp_path / "probe.exr"), "--out",
-                str(tmp_path / "x.npz"), "--normals", "800", "--dirs", "2000", "--grid", "12", "12", "--no-report",
-                "--noise", "none"] + (["--fov", fov] if fov else [])
+                str(tmp_path / "x.npz"), "--normals", "800", "--dirs", "2000", "--grid", "12", "12",
+                "--noise", "none"] + (["--fov", fov] if fov else ["--no-report"])     # the report under --fov too
         assert cli_main(argv) == 0
         out = capsys.readouterr().out
         residual[fov] = float(out.split("relative residual ")[1].split()[0])
         assert ("distance" in out.split("sphere")[1].splitlines()[0]) == (fov is not None)
     assert residual["30"] < 0.75 * residual[None], residual     # measured 0.51-0.60 (with or without the data)
+    assert (tmp_path / "x_report.png").stat().st_size > 0
+
+
+def test_cli_recover_batch_goes_on_past_a_photo_the_noise_swamps(tmp_path, any_probe, capsys):
+    """The noise check measures each photo's own rows: a photo 1e6 times dimmer than the given noise
+    allows fails by its name, and the batch recovers the others (it used to stop at it)."""
+    truth = analytic.to_merl(analytic.Lambertian(0.5))
+    shot = render.render_sphere(render.bsdf_dict(truth), any_probe, resolution=48, spp=16, seed=0)
+    write_exr(tmp_path / "a.exr", shot.image)
+    write_exr(tmp_path / "dim.exr", 1e-6 * shot.image)
+    write_exr(tmp_path / "b.exr", 0.5 * shot.image)
+    any_probe.save_exr(tmp_path / "probe.exr")
+    code = cli_main(["recover-batch", *(str(tmp_path / n) for n in ("a.exr", "dim.exr", "b.exr")), "--probe",
+                     str(tmp_path / "probe.exr"), "--out-dir", str(tmp_path / "out"), "--noise", "0,1e-12",
+                     "--normals", "400", "--dirs", "1000", "--grid", "8", "8", "--no-report"])
+    err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("mi-bivariate: error:")]
+    assert code == 2 and len(err) == 1 and err[0].startswith(f"mi-bivariate: error: {tmp_path / 'dim.exr'}: "), err
+    assert sorted(p.name for p in (tmp_path / "out").glob("*.npz")) == ["a.npz", "b.npz"]
