@@ -38,6 +38,7 @@ from mi_bivariate.geometry import Intrinsics
 from mi_bivariate.images import load_image, load_mask, write_exr, write_png
 from mi_bivariate.nbrdf import ALL_NBRDF_MATERIALS
 from mi_bivariate.prior import Prior
+from mi_bivariate.probes import check_lit
 from mi_bivariate.sources import have_shared_data, input_files, load_brdf, load_probe
 from mi_bivariate.threads import blas_threads, jit_threads, solve_thread_limit
 from mi_bivariate.training_set import basis_path_for
@@ -130,13 +131,14 @@ def _check_render_sizes(resolution: Optional[int], spp: Optional[int], flag: str
 MIN_FOV, MAX_FOV = 1.0, 150.0
 
 
-def _check_float(flag: str, value: Optional[float], lo: float, hi: float, lo_open: bool = False) -> None:
+def _check_float(flag: str, value: Optional[float], lo: float, hi: float, lo_open: bool = False,
+                 what: str = "a finite number") -> None:
     if value is None:
         return
     ok = math.isfinite(value) and (value > lo if lo_open else value >= lo) and value <= hi
     if not ok:
         interval = f"{'(' if lo_open else '['}{lo:g}, {hi:g}]"
-        raise InputError(flag, f"must be a finite number in {interval}, got {value}")
+        raise InputError(flag, f"must be {what} in {interval}, got {value}")
 
 
 def _input_files(args: argparse.Namespace, *specs: Optional[str]) -> List[Path]:
@@ -207,8 +209,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     ensure_variant(args.variant)
     brdf = load_brdf(args.brdf, args.data)
     probe = load_probe(args.probe, args.data)
-    if not np.any(probe.data > 0.0):
-        raise InputError(args.probe, "probe is black: the render would be zero", "give a probe that emits light")
+    check_lit(probe, args.probe)
     result = render.render_sphere(render.bsdf_dict(brdf), probe, resolution=args.resolution, spp=args.spp,
                                   camera=args.camera, seed=args.seed)
     with atomic_paths([out, out.with_suffix(".png")]) as (exr, png):
@@ -276,10 +277,8 @@ def _check_recover_args(args: argparse.Namespace) -> None:
     _check_float("--max-view-angle", args.max_view_angle, 0.0, 90.0, lo_open=True)
     _check_float("--footprint", args.footprint, 0.0, 90.0, lo_open=True)
     _check_float("--saturation", args.saturation, 0.0, float("inf"), lo_open=True)
+    _check_float("--fov", args.fov, MIN_FOV, MAX_FOV, what="a horizontal field of view (degrees)")
     if args.fov is not None:
-        if not (math.isfinite(args.fov) and MIN_FOV <= args.fov <= MAX_FOV):
-            raise InputError("--fov", f"must be a horizontal field of view from {MIN_FOV:g} to {MAX_FOV:g} degrees, "
-                                      f"got {args.fov}")
         for flag, given in (("--footprint", args.footprint is not None), ("--report-render", args.report_render)):
             if given:
                 raise InputError(flag, "models an orthographic view only", "leave it out with --fov")

@@ -23,15 +23,13 @@ import time
 from pathlib import Path
 from typing import Optional, Tuple
 
-import numpy as np
-
 from mi_bivariate import adequacy, metrics, nbrdf, reference, render, report
 from mi_bivariate.atomic import atomic_paths
 from mi_bivariate.bivariate import BivariateBRDF, floors
 from mi_bivariate.errors import InputError
 from mi_bivariate.images import write_exr
 from mi_bivariate.merl import MERLBRDF
-from mi_bivariate.probes import Probe
+from mi_bivariate.probes import Probe, check_lit
 from mi_bivariate.recover import recover
 from mi_bivariate.sources import DEFAULT_ANALYTIC, have_shared_data, load_brdf, load_probe
 
@@ -49,8 +47,7 @@ def _materials_and_probes(material: Optional[str], input_probe: str, novel_probe
         label = f"MERL-NBRDF {spec}" if spec in nbrdf.ALL_NBRDF_MATERIALS else spec
         probes = [load_probe(input_probe, data_dir), load_probe(novel_probe, data_dir)]
         for name, probe in zip((input_probe, novel_probe), probes):
-            if not np.any(probe.data > 0.0):
-                raise InputError(name, "probe is black: nothing would be lit", "give a probe that emits light")
+            check_lit(probe, name)
         return (label, load_brdf(spec, data_dir), *probes)
     if material is not None and material in nbrdf.ALL_NBRDF_MATERIALS:
         nbrdf.data_dir(data_dir)  # raises the helpful "set MI_BIVARIATE_DATA" error

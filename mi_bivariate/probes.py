@@ -153,6 +153,12 @@ def check_radiance(data: np.ndarray, source: Any) -> None:
                          + ", ".join(parts) + ")", "repair the image; values are never clamped")
 
 
+def check_lit(probe: "Probe", source: Any) -> None:
+    """Raise :class:`InputError` naming ``source`` if ``probe`` emits no light at all (every texel 0)."""
+    if not np.any(probe.data > 0.0):
+        raise InputError(source, "probe is black: nothing would be lit", "give a probe that emits light")
+
+
 def _image_argument(image: Union[np.ndarray, PathLike], source: Optional[str]) -> Tuple[np.ndarray, str]:
     if isinstance(image, (str, os.PathLike)):
         return read_hdr_image(image)[0], source or os.fspath(image)
