@@ -27,7 +27,7 @@ import tempfile
 import threading
 import warnings
 from pathlib import Path
-from typing import Dict, Iterator, List, Optional, Tuple
+from typing import Any, Dict, Iterator, Optional, Tuple
 
 import mitsuba as mi
 import numpy as np
@@ -153,14 +153,13 @@ def _read_exr(path: Path) -> Tuple[np.ndarray, Dict[str, str]]:
     """An EXR's first part through the ``OpenEXR`` package: ``(H, W, C) float32`` and string metadata."""
     import OpenEXR
 
-    with _library_output() as failed:
-        try:
+    try:
+        with _library_output():
             return _read_exr_unchecked(path, OpenEXR)
-        except InputError:
-            raise
-        except Exception as exc:  # noqa: BLE001 -- RuntimeError, UnicodeDecodeError, ... on corrupt files
-            failed.append(True)
-            raise _exr_error(path, exc) from None
+    except InputError:
+        raise
+    except Exception as exc:  # noqa: BLE001 -- RuntimeError, UnicodeDecodeError, ... on corrupt files
+        raise _exr_error(path, exc) from None
 
 
 #: One holder of file descriptors 1 and 2 at a time (:func:`_library_output`).
@@ -168,30 +167,30 @@ _HOLD_LOCK = threading.Lock()
 
 
 @contextlib.contextmanager
-def _library_output() -> Iterator[List[bool]]:
+def _library_output() -> Iterator[None]:
     """Hold what C libraries write to file descriptors 1 and 2 inside the block (libOpenEXR prints its
-    own lines about a corrupt file before raising): replayed if the block succeeds, dropped if the
-    caller appends to the yielded list (it reports the problem in its one line instead).
+    own lines about a corrupt file before raising): replayed if the block succeeds, dropped if it
+    raises (the caller reports the problem in its one line instead).
 
     Only in the main thread, one block at a time: the descriptors belong to the whole process, so
     a read in another thread (a Dask worker, a notebook's pool) leaves them alone, and output other
     threads write during a held block is replayed or dropped with it."""
-    failed: List[bool] = []
     if threading.current_thread() is not threading.main_thread() or not _HOLD_LOCK.acquire(blocking=False):
-        yield failed  # another thread, or a block nested in a held one: nothing held
+        yield  # another thread, or a block nested in a held one: nothing held
         return
     try:
         with contextlib.ExitStack() as stack:
             for fd, stream in ((1, sys.stdout), (2, sys.stderr)):
-                stack.enter_context(_held_fd(fd, stream, failed))
-            yield failed
+                stack.enter_context(_held_fd(fd, stream))
+            yield
     finally:
         _HOLD_LOCK.release()
 
 
 @contextlib.contextmanager
-def _held_fd(fd: int, stream, failed: List[bool]) -> Iterator[None]:
-    """File descriptor ``fd`` into a temporary file inside the block; its content replayed unless ``failed``."""
+def _held_fd(fd: int, stream: Any) -> Iterator[None]:
+    """File descriptor ``fd`` into a temporary file inside the block; its content replayed unless the
+    block raises."""
     if stream is not None:
         stream.flush()
     try:
@@ -201,12 +200,14 @@ def _held_fd(fd: int, stream, failed: List[bool]) -> Iterator[None]:
         return
     with tempfile.TemporaryFile() as held:
         os.dup2(held.fileno(), fd)
+        raised = True
         try:
             yield
+            raised = False
         finally:
             os.dup2(saved, fd)
             os.close(saved)
-            if not failed:
+            if not raised:
                 held.seek(0)
                 text = held.read()
                 if text:

@@ -1,6 +1,8 @@
 """Measure the quadrature error of the reference renderer (mi_bivariate.reference).
 
-Usage: python scripts/reference_noise.py [RESOLUTION] [FACTOR]   (defaults 64, 1)
+Usage: python scripts/reference_noise.py [RESOLUTION] [FACTOR] [MATERIALS]   (defaults 64, 1, the six below)
+
+MATERIALS: comma-separated MERL-NBRDF names.
 
 For each material x probe: relative RMS difference of two seeds / sqrt 2 over the sphere
 (``seed``), the difference against a render with 4x the directions (``vs 4x``), and the
@@ -22,11 +24,12 @@ ensure_variant()
 dr.set_thread_count(1)
 res = int(sys.argv[1]) if len(sys.argv) > 1 else 64
 factor = float(sys.argv[2]) if len(sys.argv) > 2 else 1.0
+materials = sys.argv[3].split(",") if len(sys.argv) > 3 else MATERIALS
 dirs = reference.scaled_directions(factor)
 print(f"resolution {res}, directions {dirs} per pixel (cosine, lobe, environment)")
 print("| material | probe | seed noise | vs 4x | CPU s / render | wall s / render |")
 print("|---|---|---:|---:|---:|---:|")
-for name in MATERIALS:
+for name in materials:
     truth = nbrdf.nbrdf_merl(name)
     for probe in PROBES:
         q = reference.quadrature_noise(truth, ev.load_probe(probe), res, dirs, reference_factor=4.0)
