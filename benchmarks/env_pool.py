@@ -10,10 +10,6 @@ and what ``tests/reference_lighting.py``, the numpy reference of ``bench_speed.p
 against the default, MIS at K = 8000; the same protocol, columns "uniform 32000" and "MIS 8000".
 It says whether the numpy reference at K = 32000 is a peer of at most the default's accuracy.
 
-``--compare fold``: the uniform and peak strategies drawn in mirrored pairs, one lane per pair
-(``lighting.mis._folded_lanes``, the default since stop 24) against one direction per lane (the
-estimator before), both pooled with the proxy density; columns "unfolded" and "folded".
-
 ``--compare density`` (the second shortcut): the balance heuristic reads the environment's density
 as ``luminance(E) / Z`` from the radiance each lane looks up (``lighting.mis._mis_lanes``) instead
 of Mitsuba's ``pdf_direction``; both pooled, the same protocol, columns "exact" and "proxy".
@@ -62,15 +58,13 @@ def per_row_matrix(obs, probe, n_dirs: int, seed: int, chunk: int = 128) -> np.n
                            for i in range(0, len(obs), chunk)])
 
 
-def pooled_matrix(obs, probe, n_dirs: int, seed: int, env_density: str, chunk: int = 128,
-                  fold: bool = True) -> np.ndarray:
+def pooled_matrix(obs, probe, n_dirs: int, seed: int, env_density: str, chunk: int = 128) -> np.ndarray:
     """The MIS lighting matrix as ``lighting_matrix`` builds it (pooled environment directions),
-    with the balance heuristic's environment density ``env_density`` (``"exact"`` or ``"proxy"``);
-    ``fold=False``: the uniform and peak strategies one direction per lane."""
+    with the balance heuristic's environment density ``env_density`` (``"exact"`` or ``"proxy"``)."""
     packets = _row_packets(obs.normals, obs.views, hemisphere_offsets(len(obs), seed))
     pool = environment_pool(probe, strategy_counts(n_dirs)["environment"], seed)
     return np.concatenate([np.array(_mis_chunk(packets[i:i + chunk], probe, 32, 32, n_dirs, pool=pool,
-                                               env_density=env_density, fold=fold))
+                                               env_density=env_density))
                            for i in range(0, len(obs), chunk)])
 
 
@@ -84,7 +78,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--materials", default="gold-metallic-paint3,tungsten-carbide,red-phenolic,white-paint")
     parser.add_argument("--normals", type=int, default=1000)
-    parser.add_argument("--compare", choices=("pool", "density", "sampling", "fold"), default="pool")
+    parser.add_argument("--compare", choices=("pool", "density", "sampling"), default="pool")
     args = parser.parse_args()
     ensure_variant()
     obs, grace = sphere_rows(args.normals)
@@ -97,9 +91,6 @@ def main() -> None:
         by_seed = {"uniform 32000": [lighting.lighting_matrix(obs, grace, n_dirs=32000, seed=s, sampling="uniform")
                                      for s in seeds],
                    "MIS 8000": [lighting.lighting_matrix(obs, grace, n_dirs=K, seed=s) for s in seeds]}
-    elif args.compare == "fold":
-        by_seed = {"unfolded": [pooled_matrix(obs, grace, K, s, "proxy", fold=False) for s in seeds],
-                   "folded": [pooled_matrix(obs, grace, K, s, "proxy") for s in seeds]}
     else:
         by_seed = {"exact": [pooled_matrix(obs, grace, K, s, "exact") for s in seeds],
                    "proxy": [pooled_matrix(obs, grace, K, s, "proxy") for s in seeds]}

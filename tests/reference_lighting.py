@@ -125,8 +125,7 @@ def mis_lighting_matrix_reference(obs: Observations, probe: Any, n_t: int = 32, 
     """Eq. 4 row by row with the default ``"mis"`` sampling: ``(len(rows), n_t * n_s, 3) float64``.
 
     One probe for every row (as one ``lighting_matrix`` job: its pool is stream 0). Per row: the
-    three strategies' directions (the uniform and peak ones on half the azimuths plus their
-    mirror images, the environment's from the pool entry of the row's slot), every direction
+    three strategies' directions (the environment's from the pool entry of the row's slot), every direction
     weighted by ``cos theta / sum_j K_j q_j(d)`` with ``q_j`` the uniform density
     ``1 / (2 pi)``, the peak density (:func:`_peak_density`) and the environment proxy
     ``luminance(E(d)) / Z`` (0 in a pole band), the environment's directions times their
@@ -146,18 +145,17 @@ def mis_lighting_matrix_reference(obs: Observations, probe: Any, n_t: int = 32, 
         n, v = _unit(obs.normals[sel]), _unit(obs.views[sel])
         x, y, wo = row_frames(n, v)
         shift_u, shift_v = offsets[sel, 0].astype(np.float64), offsets[sel, 1].astype(np.float64)
-        # uniform: cos theta = u1, phi = pi u2, and the mirror images (phi -> -phi)
-        u1, u2 = _lattice(counts["uniform"] // 2, shift_u, shift_v)
+        # uniform: cos theta = u1, phi = 2 pi u2
+        u1, u2 = _lattice(counts["uniform"], shift_u, shift_v)
         r = np.sqrt(np.clip(1.0 - u1 * u1, 0.0, None))
-        uniform = np.stack([r * np.cos(np.pi * u2), r * np.sin(np.pi * u2), u1], axis=-1)
-        # peak: theta_h = (pi / 2) (T u1)^2, phi_h = pi u2, the view mirrored about h; and the mirror images
-        u1, u2 = _lattice(counts["peak"] // 2, shift_u, shift_v)
+        uniform = np.stack([r * np.cos(2.0 * np.pi * u2), r * np.sin(2.0 * np.pi * u2), u1], axis=-1)
+        # peak: theta_h = (pi / 2) (T u1)^2, phi_h = 2 pi u2, the view mirrored about h
+        u1, u2 = _lattice(counts["peak"], shift_u, shift_v)
         theta_h = 0.5 * np.pi * (PEAK_T_MAX * u1) ** 2
-        h = np.stack([np.sin(theta_h) * np.cos(np.pi * u2), np.sin(theta_h) * np.sin(np.pi * u2),
+        h = np.stack([np.sin(theta_h) * np.cos(2.0 * np.pi * u2), np.sin(theta_h) * np.sin(2.0 * np.pi * u2),
                       np.cos(theta_h)], axis=-1)
         peak = 2.0 * np.sum(h * wo[:, None, :], axis=-1, keepdims=True) * h - wo[:, None, :]
         local = np.concatenate([uniform, peak], axis=1)
-        local = np.concatenate([local, local * [1.0, -1.0, 1.0]], axis=1)
         world = x[:, None, :] * local[..., :1] + y[:, None, :] * local[..., 1:2] + n[:, None, :] * local[..., 2:]
         # environment: the pool entry of the row's slot, frac(4096 shift_1) in 64 slots
         fine = offsets[sel, 0].astype(np.float64) * 4096.0

@@ -44,9 +44,6 @@ MIS_FRACTIONS = {"uniform": 0.25, "environment": 0.5, "peak": 0.25}
 #: ``[0, PEAK_T_MAX]`` (theta_h up to 22.5 degrees): as dense as the st grid's t nodes.
 PEAK_T_MAX = 0.5
 SAMPLINGS = ("mis", "uniform")
-#: The strategies whose densities are even in the row frame's ``ly`` (across the view/normal plane):
-#: drawn in mirrored pairs, one lane per pair (:func:`_folded_lanes`).
-FOLDED = ("uniform", "peak")
 #: Lattice shifts of the environment strategy's pooled directions (:func:`environment_pool`).
 #: Rows pick one at random (:func:`_pool_slot`), so a given shift serves about 1/64 of the
 #: rows, spread over the sphere (the pick is independent of the normal).
@@ -105,23 +102,12 @@ def environment_pool(probe: Any, n_points: int, seed: int = 0, stream: int = 0) 
 
 
 def strategy_counts(n_dirs: int, fractions: Optional[dict] = None) -> dict:
-    """Directions per strategy of the ``"mis"`` sampling, in proportion to ``fractions``
-    (default :data:`MIS_FRACTIONS`). The uniform and peak counts are even (at least 2: they are
-    drawn in mirrored pairs, :func:`_folded_lanes`); the counts add up to ``n_dirs``, except for a
-    mixture without the environment strategy (``n_dirs`` rounded down to even) and for
-    ``n_dirs`` below the strategies' minimum."""
+    """Directions per strategy of the ``"mis"`` sampling (they add up to ``n_dirs``)."""
     fractions = MIS_FRACTIONS if fractions is None else fractions
     names = [k for k in ("uniform", "environment", "peak") if fractions.get(k, 0.0) > 0.0]
     total = sum(fractions[k] for k in names)
-    counts = {}
-    for k in names:
-        share = int(n_dirs) * fractions[k] / total
-        counts[k] = 2 * max(1, int(round(share / 2))) if k in FOLDED else max(1, int(round(share)))
-    rest = int(n_dirs) - sum(counts.values())
-    if "environment" in counts:
-        counts["environment"] = max(1, counts["environment"] + rest)
-    else:
-        counts[names[0]] = max(2, counts[names[0]] + 2 * (rest // 2))
+    counts = {k: max(1, int(round(n_dirs * fractions[k] / total))) for k in names}
+    counts[names[0]] += max(0, int(n_dirs) - sum(counts.values()))
     return counts
 
 
@@ -133,7 +119,7 @@ def _peak_pdf(lx: Any, ly: Any, lz: Any, sin_v: Any, cos_v: Any) -> Any:
     mirror of the view, ``p(l) = p(h) / (4 (v . h))``. Written with the unnormalised half
     vector ``l + v`` and theta_h exactly as :func:`~mi_bivariate.lighting.kernels._splat`
     computes them, so that Dr.Jit traces those operations once per lane (its common
-    subexpressions are merged). Even in ``ly``: a direction and its mirror image share it.
+    subexpressions are merged: 300 -> 275 operations per environment lane).
     """
     hx, hz = lx + sin_v, lz + cos_v
     sin_h = dr.sqrt(hx * hx + ly * ly)           # |h| sin theta_h
@@ -201,11 +187,10 @@ def environment_proxy(probe: Any) -> EnvironmentProxy:
     return cached
 
 
-def _local_direction(strategy: str, u1: Any, u2: Any, sin_v: Any, cos_v: Any, half: bool) -> Tuple[Any, Any, Any]:
+def _local_direction(strategy: str, u1: Any, u2: Any, sin_v: Any, cos_v: Any) -> Tuple[Any, Any, Any]:
     """The row-frame light direction ``(lx, ly, lz)`` of the uniform or peak strategy at lattice point
-    ``(u1, u2)``; ``half``: azimuths on ``[0, pi)`` only (``ly >= 0``), the mirror images left to the
-    caller (:func:`_folded_lanes`)."""
-    azimuth = (math.pi if half else _TWO_PI) * u2
+    ``(u1, u2)``."""
+    azimuth = _TWO_PI * u2
     if strategy == "uniform":
         r = dr.safe_sqrt(1.0 - u1 * u1)
         sin_phi, cos_phi = dr.sincos(azimuth)
@@ -220,9 +205,9 @@ def _local_direction(strategy: str, u1: Any, u2: Any, sin_v: Any, cos_v: Any, ha
     raise ValueError(strategy)
 
 
-def _symmetric_density(counts: dict, lx: Any, ly: Any, lz: Any, sin_v: Any, cos_v: Any) -> Any:
+def _row_frame_density(counts: dict, lx: Any, ly: Any, lz: Any, sin_v: Any, cos_v: Any) -> Any:
     """``K_u p_u + K_p p_peak`` at a row-frame direction: the part of the balance heuristic's
-    denominator that a direction and its mirror image across the view/normal plane share."""
+    denominator that does not depend on the environment."""
     density = mi.Float(0.0)
     if counts.get("uniform"):
         density += counts["uniform"] * (1.0 / _TWO_PI)
@@ -265,9 +250,6 @@ def _mis_lanes(data: Any, m: int, probe: Any, strategy: str, counts: dict,
     ``weight`` the multi-sample balance-heuristic weight of the lane (Veach's estimator),
     0 below the horizon: a lane adds ``weight * radiance * f``. Each strategy draws a shifted
     Fibonacci lattice (per-row Cranley-Patterson shift), so every strategy is stratified.
-    :func:`_mis_chunk` runs the uniform and peak strategies folded instead (:func:`_folded_lanes`,
-    the same densities); one direction per lane is what a table that is not even in ``phi_d``
-    needs (the 3D MERL tables of ``benchmarks/ablation.py``).
 
     The heuristic's environment density is the proxy ``q(d) = luminance(E(d)) / Z``
     (:class:`EnvironmentProxy`), read from the radiance each lane looks up anyway, instead of
@@ -305,14 +287,14 @@ def _mis_lanes(data: Any, m: int, probe: Any, strategy: str, counts: dict,
         d, own = ds.d, ds.pdf
         lx, ly, lz = dr.dot(d, x_axis), dr.dot(d, y_axis), dr.dot(d, normal)
     else:
-        lx, ly, lz = _local_direction(strategy, u1, u2, sin_v, cos_v, half=False)
+        lx, ly, lz = _local_direction(strategy, u1, u2, sin_v, cos_v)
         d = x_axis * lx + y_axis * ly + normal * lz
     horizon = lz > 0.0
     if strategy != "environment" or pool is None:
         radiance = probe.eval_dr(d, horizon)  # below the horizon: 0, no texels read
     else:
         radiance = dr.select(horizon, radiance, 0.0)
-    density = _symmetric_density(counts, lx, ly, lz, sin_v, cos_v)
+    density = _row_frame_density(counts, lx, ly, lz, sin_v, cos_v)
     proxy = _environment_density(counts, probe, d, radiance, horizon, own, env_density)
     if proxy is not None:
         density += counts["environment"] * proxy
@@ -338,48 +320,9 @@ def _occluded(data: Any, row: Any, d: Any, active: Any, occluder: Any) -> Any:
     return shadow & occluder.ray_test(si.spawn_ray(d), active=shadow & active)
 
 
-def _folded_lanes(data: Any, m: int, probe: Any, strategy: str, counts: dict, env_density: str = "proxy",
-                  occluder: Any = None):
-    """The uniform or peak strategy's lanes for ``m`` rows, folded over the view/normal plane:
-    ``(row, lx, ly, lz, sin_v, cos_v, value, horizon)``.
-
-    Both strategies' densities are even in the row-frame ``ly`` (the uniform one is constant, the
-    peak one draws ``phi_h`` uniformly), so their ``K_j`` directions are drawn as ``K_j / 2``
-    lattice points with azimuths on ``[0, pi)`` and their mirror images (``ly -> -ly``), the
-    uniform sampling's fold (Fig. 4). A direction and its mirror image have the same (s, t) and
-    the same uniform and peak densities: a lane computes the Rusinkiewicz angles, the peak density
-    and the bilinear splat once for both, and looks the environment up twice. Each direction keeps
-    its own balance-heuristic weight ``cos theta / (K_u p_u + K_e q(d) + K_p p_peak)``, ``q(d)``
-    read from its own radiance (:func:`_environment_density`): the estimator is
-    :func:`_mis_lanes`' with another stratification (each sample still has the strategy's
-    density), unbiased for any table that is even in ``phi_d``, as every bivariate table is.
-
-    ``value`` is both directions' ``weight * radiance`` (``mi.Color3f``), 0 where blocked by the
-    ``occluder``; ``horizon``: the lanes above the horizon (a direction and its mirror image share
-    ``lz``).
-    """
-    row, x_axis, y_axis, normal, sin_v, cos_v, u1, u2, _ = _lattice_lanes(data, m, counts[strategy] // 2)
-    lx, ly, lz = _local_direction(strategy, u1, u2, sin_v, cos_v, half=True)
-    horizon = lz > 0.0
-    shared = _symmetric_density(counts, lx, ly, lz, sin_v, cos_v)
-    base = x_axis * lx + normal * lz
-    value = mi.Color3f(0.0)
-    for d in (base + y_axis * ly, base - y_axis * ly):
-        radiance = probe.eval_dr(d, horizon)  # below the horizon: 0, no texels read
-        density = shared
-        proxy = _environment_density(counts, probe, d, radiance, horizon, None, env_density)
-        if proxy is not None:
-            density = shared + counts["environment"] * proxy
-        lit = horizon & (density > 0.0)
-        if occluder is not None:  # blocked directions contribute nothing (their weight needs the radiance)
-            lit &= ~_occluded(data, row, d, lit, occluder)
-        value += dr.select(lit, radiance * (lz / density), 0.0)
-    return row, lx, ly, lz, sin_v, cos_v, value, horizon
-
-
 def _mis_chunk(packets: np.ndarray, probe: Any, n_t: int, n_s: int, n_dirs: int,
                occluder: Any = None, fractions: Optional[dict] = None, pool: Any = None,
-               env_density: str = "proxy", fold: bool = True) -> np.ndarray:
+               env_density: str = "proxy") -> np.ndarray:
     """Rows of L for one chunk by multiple importance sampling, ``(m, n_t * n_s, 3) float32``.
 
     Three stratified strategies share the K directions (:data:`MIS_FRACTIONS`):
@@ -392,24 +335,17 @@ def _mis_chunk(packets: np.ndarray, probe: Any, n_t: int, n_s: int, n_dirs: int,
     unbiased for any table and its variance is that of the best strategy for
     each part of the integrand. ``pool``: the environment's pooled directions
     (:func:`environment_pool`, as :func:`~mi_bivariate.lighting.lighting_matrix` passes them);
-    ``None``: sampled per row. ``fold``: the uniform and peak strategies in mirrored pairs
-    (:func:`_folded_lanes`, the default); ``False``: one direction per lane (:func:`_mis_lanes`,
-    the estimator before the fold, kept to compare against).
+    ``None``: sampled per row.
     """
     m = len(packets)
     counts = strategy_counts(n_dirs, fractions)
     data = mi.Float(packets.reshape(-1))
     target = dr.zeros(mi.Float, m * n_t * n_s * 4)
     for strategy in counts:
-        if fold and strategy in FOLDED:
-            row, lx, ly, lz, sin_v, cos_v, value, active = _folded_lanes(data, m, probe, strategy, counts,
-                                                                         env_density, occluder)
-        else:
-            row, lx, ly, lz, d, weight, sin_v, cos_v, active, radiance = _mis_lanes(
-                data, m, probe, strategy, counts, pool=pool, env_density=env_density)
-            if occluder is not None:  # blocked directions contribute nothing (their weight needs the radiance)
-                radiance = dr.select(_occluded(data, row, d, active, occluder), 0.0, radiance)
-            value = radiance * weight
-        _splat(m, row, lx, ly, lz, sin_v, cos_v, value, n_t, n_s, active=active, target=target)
+        row, lx, ly, lz, d, weight, sin_v, cos_v, active, radiance = _mis_lanes(
+            data, m, probe, strategy, counts, pool=pool, env_density=env_density)
+        if occluder is not None:  # blocked directions contribute nothing (their weight needs the radiance)
+            radiance = dr.select(_occluded(data, row, d, active, occluder), 0.0, radiance)
+        _splat(m, row, lx, ly, lz, sin_v, cos_v, radiance * weight, n_t, n_s, active=active, target=target)
     out = target.numpy().reshape(m, n_t * n_s, 4)
     return out[:, :, :3]  # a view: the caller copies it into L once
