@@ -55,7 +55,7 @@ def main() -> None:
     obs = recover(shot.image, probe, shot.geometry).observations
     packets = kernels._row_packets(obs.normals, obs.views, hemisphere_offsets(len(obs), 0))[: args.rows]
     m, counts = len(packets), mis.strategy_counts(8000)
-    data = mi.Float(packets.reshape(-1))
+    data = kernels._row_data(packets)
     pool = mis.environment_pool(probe, counts["environment"], 0)
 
     def stage(strategy: str, part: str, use_pool: bool):

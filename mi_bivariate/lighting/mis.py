@@ -35,7 +35,7 @@ import numpy as np
 
 from mi_bivariate.common import LUMINANCE_WEIGHTS, luminance
 from mi_bivariate.lighting.directions import _TWO_PI
-from mi_bivariate.lighting.kernels import _PACKETS, _lattice_lanes, _splat, fibonacci_point
+from mi_bivariate.lighting.kernels import _PACKETS, _lattice_lanes, _row_data, _splat, fibonacci_point
 
 #: Light-direction sampling of :func:`lighting_matrix`: the fraction of the K
 #: directions drawn by each strategy of the ``"mis"`` mixture (see :func:`_mis_chunk`).
@@ -339,7 +339,7 @@ def _mis_chunk(packets: np.ndarray, probe: Any, n_t: int, n_s: int, n_dirs: int,
     """
     m = len(packets)
     counts = strategy_counts(n_dirs, fractions)
-    data = mi.Float(packets.reshape(-1))
+    data = _row_data(packets)
     target = dr.zeros(mi.Float, m * n_t * n_s * 4)
     for strategy in counts:
         row, lx, ly, lz, d, weight, sin_v, cos_v, active, radiance = _mis_lanes(
