@@ -52,8 +52,8 @@ def _row_data(packets: np.ndarray) -> Any:
 
     Dr.Jit reads a 4-wide packet (``dr.gather(mi.Vector4f, ...)``) with one vector load per lane
     only from aligned memory; from a numpy buffer that is not (numpy aligns to 16 bytes) it falls
-    back to one gather per component, 4x the gathers: measured, the MIS kernels' time
-    ``benchmarks/mis_kernels.py``.
+    back to one gather per component, 4x the gathers (``docs/recovery.md``, Speed, Round 11: ~7% of
+    the MIS matrix's time).
     """
     flat = np.ravel(packets).astype(np.float32, copy=False)
     buffer = np.empty(flat.size + 16, dtype=np.float32)
@@ -106,6 +106,19 @@ def _lattice_lanes(data: Any, m: int, n_points: int):
     return row, x_axis, y_axis, normal, p0.w, p1.w, u1, u2, p3
 
 
+def _occluded(data: Any, row: Any, d: Any, active: Any, occluder: Any) -> Any:
+    """Whether the shadow ray of each lane's direction ``d`` hits the ``occluder`` scene (``mi.Bool``;
+    rows without a surface position trace none): from the row's surface position, offset along its
+    geometric normal as Mitsuba's ``spawn_ray`` does for a render's shadow rays."""
+    p3 = dr.gather(mi.Vector4f, data, row * _PACKETS + 3)
+    p4 = dr.gather(mi.Vector4f, data, row * _PACKETS + 4)
+    shadow = p4.w > 0.5
+    si = dr.zeros(mi.SurfaceInteraction3f)
+    si.p = mi.Point3f(p3.y, p3.z, p3.w)
+    si.n = mi.Normal3f(p4.x, p4.y, p4.z)
+    return shadow & occluder.ray_test(si.spawn_ray(d), active=shadow & active)
+
+
 def _lighting_chunk(packets: np.ndarray, probe: Any, n_t: int, n_s: int, n_dirs: int,
                     occluder: Any = None) -> np.ndarray:
     """Rows of L for one chunk: one fused kernel, ``(m, n_t * n_s, 3) float32``.
@@ -118,7 +131,7 @@ def _lighting_chunk(packets: np.ndarray, probe: Any, n_t: int, n_s: int, n_dirs:
     n_pairs = direction_pairs(n_dirs)
     data = _row_data(packets)
     # Shifted Fibonacci lattice (see light_directions()).
-    row, x_axis, y_axis, normal, sin_v, cos_v, u1, u2, p3 = _lattice_lanes(data, m, n_pairs)
+    row, x_axis, y_axis, normal, sin_v, cos_v, u1, u2, _ = _lattice_lanes(data, m, n_pairs)
     r = dr.safe_sqrt(1.0 - u1 * u1)
     sin_phi, cos_phi = dr.sincos(math.pi * u2)
     lx, ly, lz = r * cos_phi, r * sin_phi, u1
@@ -128,16 +141,11 @@ def _lighting_chunk(packets: np.ndarray, probe: Any, n_t: int, n_s: int, n_dirs:
     if occluder is None:
         radiance = probe.eval_dr(d_plus) + probe.eval_dr(d_minus)
     else:
-        p4 = dr.gather(mi.Vector4f, data, row * _PACKETS + 4)
-        shadow = p4.w > 0.5
-        si = dr.zeros(mi.SurfaceInteraction3f)
-        si.p = mi.Point3f(p3.y, p3.z, p3.w)
-        si.n = mi.Normal3f(p4.x, p4.y, p4.z)
         # spawn_ray offsets along the geometric normal on the side of the
         # direction, as a render's shadow rays do: a direction above the
         # shading horizon but below the face goes into the object.
-        lit_plus = ~(shadow & occluder.ray_test(si.spawn_ray(d_plus), active=shadow))
-        lit_minus = ~(shadow & occluder.ray_test(si.spawn_ray(d_minus), active=shadow))
+        lit_plus = ~_occluded(data, row, d_plus, True, occluder)
+        lit_minus = ~_occluded(data, row, d_minus, True, occluder)
         radiance = probe.eval_dr(d_plus, lit_plus) + probe.eval_dr(d_minus, lit_minus)  # 0 where blocked
     weight = lz * (_TWO_PI / (2 * n_pairs))
     return _splat(m, row, lx, ly, lz, sin_v, cos_v, radiance * weight, n_t, n_s)

@@ -35,7 +35,7 @@ import numpy as np
 
 from mi_bivariate.common import LUMINANCE_WEIGHTS, luminance
 from mi_bivariate.lighting.directions import _TWO_PI
-from mi_bivariate.lighting.kernels import _PACKETS, _lattice_lanes, _row_data, _splat, fibonacci_point
+from mi_bivariate.lighting.kernels import _PACKETS, _lattice_lanes, _occluded, _row_data, _splat, fibonacci_point
 
 #: Light-direction sampling of :func:`lighting_matrix`: the fraction of the K
 #: directions drawn by each strategy of the ``"mis"`` mixture (see :func:`_mis_chunk`).
@@ -306,18 +306,6 @@ def _mis_lanes(data: Any, m: int, probe: Any, strategy: str, counts: dict,
         cosine = lz
     weight = dr.select(above, cosine / density, 0.0)
     return row, lx, ly, lz, d, weight, sin_v, cos_v, above, radiance
-
-
-def _occluded(data: Any, row: Any, d: Any, active: Any, occluder: Any) -> Any:
-    """Whether the shadow ray of each lane's direction ``d`` hits the ``occluder`` scene (``mi.Bool``;
-    rows without a surface position trace none), offset as Mitsuba's ``spawn_ray`` does."""
-    p3 = dr.gather(mi.Vector4f, data, row * _PACKETS + 3)
-    p4 = dr.gather(mi.Vector4f, data, row * _PACKETS + 4)
-    shadow = p4.w > 0.5
-    si = dr.zeros(mi.SurfaceInteraction3f)
-    si.p = mi.Point3f(p3.y, p3.z, p3.w)
-    si.n = mi.Normal3f(p4.x, p4.y, p4.z)
-    return shadow & occluder.ray_test(si.spawn_ray(d), active=shadow & active)
 
 
 def _mis_chunk(packets: np.ndarray, probe: Any, n_t: int, n_s: int, n_dirs: int,
