@@ -227,8 +227,9 @@ def linear_run(shot: Any, probe: Any, config: EvalConfig, n_normals: int, n_dirs
 
     Returns:
         The last :class:`~mi_bivariate.recover.Recovery` and a point: ``n_normals``, ``n_dirs``,
-        ``time_s`` (median over the runs of the :data:`LINEAR_STAGES` summed, s), ``times_s``,
-        ``stages`` (median of each stage, s).
+        ``time_s`` (median over the runs of the :data:`LINEAR_STAGES` summed, s), ``times_s``
+        (those sums, one per run), ``stage_runs`` (each run's stages, s) and ``stages`` (median of
+        each stage over the runs, s; their sum need not be ``time_s`` on a loaded machine).
     """
     runs: List[Dict[str, float]] = []
     for _ in range(max(1, int(repeats))):
@@ -241,7 +242,8 @@ def linear_run(shot: Any, probe: Any, config: EvalConfig, n_normals: int, n_dirs
         runs.append({stage: float(rec.timings.get(stage, 0.0)) for stage in LINEAR_STAGES})
     times = [sum(r.values()) for r in runs]
     return rec, {"n_normals": int(n_normals), "n_dirs": int(n_dirs), "time_s": float(np.median(times)),
-                 "times_s": times, "stages": {k: float(np.median([r[k] for r in runs])) for k in LINEAR_STAGES}}
+                 "times_s": times, "stage_runs": runs,
+                 "stages": {k: float(np.median([r[k] for r in runs])) for k in LINEAR_STAGES}}
 
 
 def linear_reaches(points: Sequence[dict], best_relight: float,
