@@ -5,7 +5,8 @@ the recovery's grid): what the grid alone costs before any solve. "Observed" cel
 the lighting matrix's definition (every bilinear stencil node observed, ``adequacy.observed_nodes``);
 "confident" cells those whose saved per-node confidence (``measured``, every channel) exceeds 0.5,
 the definition issue 9's item 5 asks the scoring to use. Both are divided by the exact floor over
-all cells (the paper's Fig. 3 figure); the confident cells also by the exact floor over the same cells.
+all cells (the paper's Fig. 3 figure); the confident cells also by the grid floor (the exact
+reduction on the recovery's grid) over the same cells.
 
     python scripts/issue9_targets.py out/evaluate [--noisy out/evaluate_noise]
 """
@@ -54,7 +55,7 @@ def main() -> None:
                "grid floor observed / exact floor": e[args.single]["grid_floor_observed"] / exact,
                "confident cells (share)": e[args.single]["confident"]["node_fraction"],
                "eq1 confident / exact floor": e[args.single]["confident"]["eq1"] / exact,
-               "eq1 confident / exact floor there": (e[args.single]["confident"]["eq1"]
+               "eq1 confident / grid floor there": (e[args.single]["confident"]["eq1"]
                                                      / e[args.single]["confident"]["floor_eq1"]),
                "eq1 f>1e-3 / exact floor (f>1e-3)": e[args.single]["recovered"]["eq1_min"] / r["floors"]["exact_floor_min"],
                "grid floor f>1e-3 / exact floor (f>1e-3)": r["floors"]["grid_floor_min"] / r["floors"]["exact_floor_min"]}

@@ -151,7 +151,7 @@ def summary_rows(records: Sequence[dict]) -> List[dict]:
                 row["observed_fraction"] = e["recovered"]["observed_fraction"]
             if "confident" in e:  # the cells the recovery's own per-node confidence (> 0.5) calls measured
                 row["recovered_eq1_confident"] = e["confident"]["eq1"]
-                row["exact_floor_confident"] = e["confident"]["floor_eq1"]
+                row["grid_floor_confident"] = e["confident"]["floor_eq1"]
                 row["confident_fraction"] = e["confident"]["node_fraction"]
             for region, v in e["recovered"].get("regions", {}).items():
                 row[f"recovered_eq1_{region}"] = v["eq1"]
