@@ -50,13 +50,14 @@ def main() -> None:
     for name, r in sorted(records.items()):
         e = r["inputs"]
         exact = r["floors"]["exact_floor"]
+        confident, nan = e[args.single].get("confident", {}), float("nan")
         row = {"material": name, "ratio 1 image": ratio(e[args.single]),
                "eq1 observed / exact floor": e[args.single]["recovered"]["eq1_observed"] / exact,
                "grid floor observed / exact floor": e[args.single]["grid_floor_observed"] / exact,
-               "confident cells (share)": e[args.single]["confident"]["node_fraction"],
-               "eq1 confident / exact floor": e[args.single]["confident"]["eq1"] / exact,
-               "eq1 confident / grid floor there": (e[args.single]["confident"]["eq1"]
-                                                     / e[args.single]["confident"]["floor_eq1"]),
+               # older records (before the confidence was scored) have no "confident" entry: NaN
+               "confident cells (share)": confident.get("node_fraction", nan),
+               "eq1 confident / exact floor": confident.get("eq1", nan) / exact,
+               "eq1 confident / grid floor there": confident.get("eq1", nan) / confident.get("floor_eq1", nan),
                "eq1 f>1e-3 / exact floor (f>1e-3)": e[args.single]["recovered"]["eq1_min"] / r["floors"]["exact_floor_min"],
                "grid floor f>1e-3 / exact floor (f>1e-3)": r["floors"]["grid_floor_min"] / r["floors"]["exact_floor_min"]}
         if both in e:
@@ -73,7 +74,7 @@ def main() -> None:
         if values and isinstance(values[0], bool):
             print(f"- {k}: {sum(values)}/{len(values)} ({100 * np.mean(values):.0f}%)")
         elif values:
-            print(f"- {k}: {np.median(values):.2f}")
+            print(f"- {k}: {np.nanmedian(values):.2f}" if not np.all(np.isnan(values)) else f"- {k}: n/a")
     if args.noisy:
         noisy = load(args.noisy)
         names = [m for m in sorted(noisy) if m in records]
