@@ -53,8 +53,8 @@ def _row_data(packets: np.ndarray) -> Any:
     Dr.Jit reads a 4-wide packet (``dr.gather(mi.Vector4f, ...)``) with one vector load per lane
     only from aligned memory; from a numpy buffer that is not (numpy aligns to 16 bytes) it falls
     back to one gather per component, 4x the gathers (``docs/recovery.md``, Speed, Round 11: ~7% of
-    the MIS matrix's time). ``mi.Float`` maps the numpy memory without a copy and holds a reference
-    to the array (and so to its buffer) while it lives.
+    the MIS matrix's time). On the LLVM backend ``mi.Float`` maps the numpy memory without a copy
+    and holds a reference to the array (and so to its buffer) while it lives; CUDA copies it.
     """
     flat = np.ravel(packets).astype(np.float32, copy=False)
     buffer = np.empty(flat.size + 16, dtype=np.float32)
