@@ -14,7 +14,6 @@ bilinear splat with ``np.add.at``.
 
 from __future__ import annotations
 
-import math
 from typing import Any, Sequence, Union
 
 import numpy as np
@@ -32,7 +31,7 @@ from mi_bivariate.lighting import (
     row_frames,
     strategy_counts,
 )
-from mi_bivariate.lighting.directions import _GOLDEN_U32
+from mi_bivariate.lighting.directions import _half_lattice
 from mi_bivariate.lighting.mis import environment_proxy
 
 
@@ -99,11 +98,10 @@ def lighting_matrix_reference(obs: Observations, probes: Union[Any, Sequence[Any
 
 
 def _lattice(n_points: int, shift_u: np.ndarray, shift_v: np.ndarray):
-    """The shifted Fibonacci lattice of each row, ``(b, n_points)`` twice, in [0, 1)."""
-    k = np.arange(n_points, dtype=np.uint64)
-    u1 = (k + 0.5) / n_points + shift_u[:, None]
-    u2 = ((k * _GOLDEN_U32) % 2**32).astype(np.float32).astype(np.float64) * 2.0**-32 + shift_v[:, None]
-    return np.mod(u1, 1.0), np.mod(u2, 1.0)
+    """The Fibonacci lattice of ``n_points`` (:func:`~mi_bivariate.lighting.directions._half_lattice`)
+    shifted by each row's ``(shift_u, shift_v)``: ``(b, n_points)`` twice, in [0, 1)."""
+    u1, u2 = _half_lattice(n_points)
+    return np.mod(u1 + shift_u[:, None], 1.0), np.mod(u2 + shift_v[:, None], 1.0)
 
 
 def _peak_density(wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
