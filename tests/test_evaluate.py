@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from helpers import independent_relight_floor
 
-from mi_bivariate import analytic, baselines
+from mi_bivariate import analytic, baselines, bivariate
 from mi_bivariate import evaluate as ev
 from mi_bivariate import metrics
 from mi_bivariate.bivariate import BivariateBRDF
@@ -70,8 +70,17 @@ def test_quick_end_to_end(tmp_path, capsys):
         art = ev.load_artifacts(ev.artifact_path(out, r))
         assert art["floor"].shape == (12, 12, 3) and art["mask"].dtype == bool
         # The saved tables reproduce the recorded errors (figures are drawn from them).
-        errors = metrics.BRDFErrors(ev.load_truth(ev.MaterialSpec(r["material"], r["kind"], r["spec"])))
+        truth = ev.load_truth(ev.MaterialSpec(r["material"], r["kind"], r["spec"]))
+        errors = metrics.BRDFErrors(truth)
         assert errors(BivariateBRDF(art["floor"]))["log"] == pytest.approx(floor["log"], rel=1e-6)
+        # The exact phi_d average scored by the metrics is bivariate.reduction_error's exact floor, and
+        # the recorded exact floor over the observed cells is it over the saved observed nodes.
+        exact = bivariate.phi_d_average(truth)
+        assert errors(exact)["eq1"] == pytest.approx(r["floors"]["exact_floor"], rel=1e-6)
+        for label, e in r["inputs"].items():
+            there = errors(exact, observed_nodes=art[f"observed_nodes__{label}"])["eq1_observed"]
+            assert e["exact_floor_observed"] == pytest.approx(there, rel=1e-9)
+            assert there > 0
         probe = next(iter(r["inputs"]))
         assert errors(BivariateBRDF(art[f"recovered__{probe}"]))["eq1"] == pytest.approx(
             r["inputs"][probe]["recovered"]["eq1"], rel=1e-6)

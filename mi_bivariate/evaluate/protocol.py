@@ -60,6 +60,7 @@ class _Truth:
 
     brdf: Any
     floor: BivariateBRDF
+    exact: np.ndarray  #: (90, 90, 3) float64, 1/sr: the exact phi_d average at the MERL nodes (Eq. 1's f_bar)
     errors: metrics.BRDFErrors
     floor_errors: dict
     floor_values: dict
@@ -145,7 +146,7 @@ def load_truth_and_floor(task: MaterialTask, timings: Dict[str, float]) -> _Trut
     errors = metrics.BRDFErrors(truth)
     floor_errors = errors(floor)
     timings["brdf_errors"] = time.perf_counter() - t0
-    return _Truth(truth, floor, errors, floor_errors, floor_values)
+    return _Truth(truth, floor, bivariate.phi_d_average(truth), errors, floor_errors, floor_values)
 
 
 def render_novel_truths(renderer: Renderer, cfg: EvalConfig, novels: List[Probe], truth_bsdf: Any,
@@ -201,8 +202,11 @@ def score_recovery(rec: Recovery, truth: _Truth, grid: Tuple[int, int]) -> Tuple
     confident = np.min(rec.solution.measured, axis=-1) > 0.5
     entry["confident"] = {"nodes": int(confident.sum()), "node_fraction": float(confident.mean()),
                           "eq1": truth.errors(rec.brdf, observed_nodes=confident)["eq1_observed"],
-                          "floor_eq1": truth.errors(truth.floor, observed_nodes=confident)["eq1_observed"]}
+                          "floor_eq1": truth.errors(truth.floor, observed_nodes=confident)["eq1_observed"],
+                          "exact_floor_eq1": truth.errors(truth.exact, observed_nodes=confident)["eq1_observed"]}
+    # Both floors over the same observed cells (the like-for-like denominators of Eq. 1 there).
     entry["grid_floor_observed"] = truth.errors(truth.floor, observed_nodes=observed)["eq1_observed"]
+    entry["exact_floor_observed"] = truth.errors(truth.exact, observed_nodes=observed)["eq1_observed"]
     return entry, observed
 
 

@@ -148,10 +148,12 @@ def summary_rows(records: Sequence[dict]) -> List[dict]:
             if "eq1_observed" in e["recovered"]:
                 row["recovered_eq1_observed"] = e["recovered"]["eq1_observed"]
                 row["grid_floor_observed"] = e.get("grid_floor_observed", float("nan"))
+                row["exact_floor_observed"] = e.get("exact_floor_observed", float("nan"))
                 row["observed_fraction"] = e["recovered"]["observed_fraction"]
             if "confident" in e:  # the cells the recovery's own per-node confidence (> 0.5) calls measured
                 row["recovered_eq1_confident"] = e["confident"]["eq1"]
                 row["grid_floor_confident"] = e["confident"]["floor_eq1"]
+                row["exact_floor_confident"] = e["confident"].get("exact_floor_eq1", float("nan"))
                 row["confident_fraction"] = e["confident"]["node_fraction"]
             for region, v in e["recovered"].get("regions", {}).items():
                 row[f"recovered_eq1_{region}"] = v["eq1"]
