@@ -55,6 +55,13 @@ def _parse_sphere(text: str):
     return cx, cy, r
 
 
+def _parse_path(text: str) -> str:
+    """An output path: any non-empty name (an empty ``--out`` has no file name to write)."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("expected a file or folder name, got an empty one")
+    return text
+
+
 def _parse_alpha(text: str):
     if text.strip().lower() in ("gcv", "discrepancy"):
         return text.strip().lower()
@@ -157,7 +164,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("brdf", help="MERL .binary, bivariate .npz, MERL-NBRDF name, or analytic spec "
                                 "(e.g. 'ggx:alpha=0.1')")
     p.add_argument("--probe", required=True, help="environment map file (.exr/.hdr/.pfm) or shared probe name")
-    p.add_argument("--out", default="render.exr", help="output EXR (a PNG preview is written beside it)")
+    p.add_argument("--out", type=_parse_path, default="render.exr",
+                   help="output EXR (a PNG preview is written beside it)")
     p.add_argument("--resolution", type=int, default=256, help="image width and height in pixels")
     p.add_argument("--spp", type=int, default=256, help="samples per pixel")
     p.add_argument("--camera", choices=("orthographic", "perspective"), default="orthographic",
@@ -170,21 +178,22 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("reduce", help="reduce a MERL .binary to a bivariate table (prints the exact and grid floors)")
     p.add_argument("merl", help="MERL .binary file")
-    p.add_argument("--out", default=None, help="output .npz (default: beside the input)")
+    p.add_argument("--out", type=_parse_path, default=None, help="output .npz (default: beside the input)")
     p.add_argument("--grid", type=int, nargs=2, default=(32, 32), metavar=("N_T", "N_S"),
                    help="st grid size (theta_h nodes, theta_d nodes)")
     
 
     p = sub.add_parser("learn-prior", help="learn the smoothness prior from a set of MERL materials")
     p.add_argument("sources", nargs="+", help="folders of MERL .binary files, .binary files, or MERL-NBRDF names")
-    p.add_argument("--out", default="prior.npz", help="output .npz")
+    p.add_argument("--out", type=_parse_path, default="prior.npz", help="output .npz")
     p.add_argument("--grid", type=int, nargs=2, default=(32, 32), metavar=("N_T", "N_S"))
     _add_data(p)
     
 
     p = sub.add_parser("recover", help="recover a bivariate BRDF from an HDR image of a sphere under a known probe")
     p.add_argument("image", help="linear HDR image (.exr/.hdr/.pfm)")
-    p.add_argument("--out", default="brdf.npz", help="output .npz (EXR view and PNG report beside it)")
+    p.add_argument("--out", type=_parse_path, default="brdf.npz",
+                   help="output .npz (EXR view and PNG report beside it)")
     _add_recover_options(p)
 
     p = sub.add_parser("recover-batch",
@@ -196,13 +205,13 @@ def build_parser() -> argparse.ArgumentParser:
                                    "error and the others go on (exit status 2); a problem shared by every photo "
                                    "(an option, the probe, the priors) stops the batch.")
     p.add_argument("images", nargs="+", help="linear HDR images (.exr/.hdr/.pfm), each of a sphere under --probe")
-    p.add_argument("--out-dir", required=True,
+    p.add_argument("--out-dir", type=_parse_path, required=True,
                    help="output folder: STEM.npz per photo (its EXR view and PNG report beside it, and with "
                         "--merl its .binary)")
     _add_recover_options(p)
 
     p = sub.add_parser("demo", help="render a measured material, recover it, re-render it under a novel probe")
-    p.add_argument("--out", default="out/demo", help="output folder")
+    p.add_argument("--out", type=_parse_path, default="out/demo", help="output folder")
     p.add_argument("--material", default=None,
                    help="MERL-NBRDF name, MERL .binary or analytic spec (default: gold-metallic-paint3; "
                         "an analytic material without shared data)")
@@ -220,7 +229,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="folders of MERL .binary files, .binary files, MERL-NBRDF names, 'nbrdf' (the 23 "
                         "development materials), 'nbrdf-train' (the 50 training ones), 'nbrdf-all' (all 73) or "
                         "analytic specs (default: nbrdf; with --quick: two materials)")
-    p.add_argument("--out", default="out/evaluate", help="output folder (results.jsonl, summary.csv, figures/)")
+    p.add_argument("--out", type=_parse_path, default="out/evaluate",
+                   help="output folder (results.jsonl, summary.csv, figures/)")
     p.add_argument("--input-probes", nargs="+", default=None, metavar="PROBE",
                    help="probes lighting the input image (default: grace_latlong_1k uffizi_256)")
     p.add_argument("--novel-probes", nargs="+", default=None, metavar="PROBE",

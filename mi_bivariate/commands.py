@@ -212,6 +212,10 @@ def cmd_render(args: argparse.Namespace) -> int:
     check_lit(probe, args.probe)
     result = render.render_sphere(render.bsdf_dict(brdf), probe, resolution=args.resolution, spp=args.spp,
                                   camera=args.camera, seed=args.seed)
+    bad = int(np.count_nonzero(~np.isfinite(result.image)))
+    if bad:  # float32 radiance overflowed: a table or probe far beyond any physical scale
+        raise InputError(args.brdf, f"the render overflowed float32 in {bad} pixel values (NaN or infinite)",
+                         "scale the BRDF or the probe down; nothing was written")
     with atomic_paths([out, out.with_suffix(".png")]) as (exr, png):
         write_exr(exr, result.image)
         write_png(png, result.image)

@@ -421,7 +421,13 @@ def write_exr(path: PathLike, image: np.ndarray, units: str = RADIANCE_UNITS,
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
               **provenance_header(units, metadata)}
     with atomic_path(path, suffix=".exr") as tmp:
-        OpenEXR.File(header, {"RGB": image}).write(str(tmp))
+        try:
+            OpenEXR.File(header, {"RGB": image}).write(str(tmp))
+        except RuntimeError as exc:  # OpenEXR reports I/O failures (a full disk) as RuntimeError
+            # its message names the temporary file; keep the operating system's reason only
+            reason = str(exc).rstrip(". ").rsplit(". ", 1)[-1] or "write failed"
+            raise InputError(path, f"cannot be written ({reason})",
+                             "check the folder exists and is writable, and that the disk has space") from None
     return path
 
 

@@ -65,7 +65,7 @@ class Recovery:
 
     def relative_residual(self) -> float:
         """``||I - L f|| / ||I||`` over all rows and channels."""
-        values = self.observations.values
+        values = np.asarray(self.observations.values, np.float64)  # float32 squares overflow beyond ~1e19
         return float(np.linalg.norm(values - self.predicted) / max(np.linalg.norm(values), 1e-30))
 
     def summary(self) -> str:

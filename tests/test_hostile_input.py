@@ -362,19 +362,44 @@ def _fail_savez(monkeypatch):
     monkeypatch.setattr(bivariate.np, "savez_compressed", failing)
 
 
-@pytest.mark.parametrize("name, write, sabotage", [
-    ("out.exr", lambda p: images.write_exr(p, np.ones((4, 4, 3), np.float32)), _fake_openexr),
-    ("out.npz", _write_npz, _fail_savez),
-    ("out.png", lambda p: images.write_png(p, np.ones((4, 4, 3), np.float32)), _fake_bitmap_module),
+@pytest.mark.parametrize("name, write, sabotage, raised", [
+    # OpenEXR reports I/O failures as RuntimeError: write_exr names the destination in one line
+    ("out.exr", lambda p: images.write_exr(p, np.ones((4, 4, 3), np.float32)), _fake_openexr, InputError),
+    ("out.npz", _write_npz, _fail_savez, _Boom),
+    ("out.png", lambda p: images.write_png(p, np.ones((4, 4, 3), np.float32)), _fake_bitmap_module, _Boom),
 ], ids=["images.write_exr", "BivariateBRDF.save", "images.write_png"])
-def test_failed_write_leaves_previous_output(tmp_path, monkeypatch, name, write, sabotage):
+def test_failed_write_leaves_previous_output(tmp_path, monkeypatch, name, write, sabotage, raised):
     target = tmp_path / name
     target.write_bytes(b"previous result")
     sabotage(monkeypatch)
-    with pytest.raises(_Boom):
+    with pytest.raises(raised) as info:
         write(target)
+    if raised is InputError:
+        assert info.value.source == str(target) and info.value.problem == "cannot be written (disk full)"
     assert target.read_bytes() == b"previous result"
     assert sorted(p.name for p in tmp_path.iterdir()) == [name]
+
+
+def test_full_disk_while_writing_an_exr_is_one_line(tmp_path, monkeypatch, capsys):
+    """OpenEXR's own message for ENOSPC names the temporary file; the error names the output."""
+    import OpenEXR
+
+    class FullDisk:
+        def __init__(self, *args, **kwargs):
+            pass
+
+        def write(self, path):
+            Path(path).write_bytes(b"half")
+            raise RuntimeError(f'Failed to write pixel data to image file "{path}". No space left on device.')
+
+    monkeypatch.setattr(OpenEXR, "File", FullDisk)
+    out = tmp_path / "r.exr"
+    code = cli.main(["render", "ggx:alpha=0.2", "--probe", "synthetic:1", "--out", str(out),
+                     "--resolution", "8", "--spp", "1"])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and err == (f"mi-bivariate: error: {out}: cannot be written (No space left on device) "
+                                 "(check the folder exists and is writable, and that the disk has space)")
+    assert list(tmp_path.iterdir()) == []
 
 
 # ------------------------------------------------- content decides the format

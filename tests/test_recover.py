@@ -320,3 +320,16 @@ def test_cli_recover_batch_goes_on_past_a_photo_the_noise_swamps(tmp_path, any_p
     err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("mi-bivariate: error:")]
     assert code == 2 and len(err) == 1 and err[0].startswith(f"mi-bivariate: error: {tmp_path / 'dim.exr'}: "), err
     assert sorted(p.name for p in (tmp_path / "out").glob("*.npz")) == ["a.npz", "b.npz"]
+
+
+def test_a_very_bright_image_recovers_like_a_dim_one(any_probe):
+    """Radiance near 1e19 (finite in float32, its square is not): the same relative residual and the
+    same table up to the scale, not a NaN from a float32 norm."""
+    merl = analytic.to_merl(analytic.Lambertian(np.array([0.6, 0.4, 0.3])))
+    shot = render.render_sphere(render.bsdf_dict(merl), any_probe, resolution=48, spp=16, seed=1)
+    base = recover(shot.image, any_probe, shot.geometry, n_normals=800, n_dirs=2000)
+    bright = recover(shot.image * np.float32(1e20), any_probe, shot.geometry, n_normals=800, n_dirs=2000)
+    assert np.isfinite(bright.relative_residual())
+    assert bright.relative_residual() == pytest.approx(base.relative_residual(), rel=1e-4)
+    np.testing.assert_allclose(bright.brdf.table, base.brdf.table * 1e20, rtol=1e-3,
+                               atol=1e-6 * 1e20 * base.brdf.table.max())
