@@ -34,6 +34,8 @@ from mi_bivariate.recover import recover
 from mi_bivariate.sources import DEFAULT_ANALYTIC, have_shared_data, load_brdf, load_probe
 
 DEFAULT_MATERIAL = "gold-metallic-paint3"
+#: The demo's probes (shared ones: without the shared data they get synthetic stand-ins).
+DEFAULT_INPUT_PROBE, DEFAULT_NOVEL_PROBE = "grace_latlong_1k", "pisa_256"
 
 
 def _materials_and_probes(material: Optional[str], input_probe: str, novel_probe: str,
@@ -49,11 +51,24 @@ def _materials_and_probes(material: Optional[str], input_probe: str, novel_probe
         for name, probe in zip((input_probe, novel_probe), probes):
             check_lit(probe, name)
         return (label, load_brdf(spec, data_dir), *probes)
-    if material is not None and material in nbrdf.ALL_NBRDF_MATERIALS:
+    if data_dir is not None or (material is not None and material in nbrdf.ALL_NBRDF_MATERIALS):
         nbrdf.data_dir(data_dir)  # raises the helpful "set MI_BIVARIATE_DATA" error
     spec = material or DEFAULT_ANALYTIC
-    print("shared data not found (set MI_BIVARIATE_DATA): using an analytic material and synthetic probes")
-    return spec, load_brdf(spec, data_dir), load_probe("synthetic:1"), load_probe("synthetic:7")
+    # Without the shared data only the default (shared) probes get synthetic stand-ins; probes the
+    # user named (files, synthetic:N, or another shared name, which then fails with its own error) are used.
+    probes = []
+    for name, default, stand_in in ((input_probe, DEFAULT_INPUT_PROBE, "synthetic:1"),
+                                    (novel_probe, DEFAULT_NOVEL_PROBE, "synthetic:7")):
+        probes.append(load_probe(stand_in if name == default else name, data_dir))
+        if name != default:
+            check_lit(probes[-1], name)
+    replaced = [f"{name} -> {stand_in}" for name, default, stand_in in
+                ((input_probe, DEFAULT_INPUT_PROBE, "synthetic:1"), (novel_probe, DEFAULT_NOVEL_PROBE, "synthetic:7"))
+                if name == default]
+    print("shared data not found (set MI_BIVARIATE_DATA): "
+          + ("using an analytic material" if material is None else f"material {spec}")
+          + (f"; synthetic probes for the shared defaults ({', '.join(replaced)})" if replaced else ""))
+    return spec, load_brdf(spec, data_dir), probes[0], probes[1]
 
 
 #: The files :func:`run_demo` writes into its folder (all or none).
@@ -62,7 +77,7 @@ OUTPUTS = ("recovered.npz", "recovered_table.exr", "input.exr", "novel_recovered
 
 
 def run_demo(out_dir: Path = Path("out/demo"), material: Optional[str] = None,
-             input_probe: str = "grace_latlong_1k", novel_probe: str = "pisa_256",
+             input_probe: str = DEFAULT_INPUT_PROBE, novel_probe: str = DEFAULT_NOVEL_PROBE,
              data_dir: Optional[str] = None, spp: int = 256, seed: int = 0, resolution: int = 256) -> int:
     """Run the demo and write its outputs to ``out_dir``; returns a process exit code."""
     out_dir = Path(out_dir)

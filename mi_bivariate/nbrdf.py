@@ -65,7 +65,7 @@ def data_dir(explicit: Optional[PathLike] = None) -> Path:
     if not value:
         raise InputError("MI_BIVARIATE_DATA", "the shared data folder is not set",
                          "set MI_BIVARIATE_DATA to the folder holding merl_nbrdf/ and probes/, "
-                         "or pass --data-dir")
+                         "or pass --data")
     path = Path(value)
     if not path.is_dir():
         raise InputError(path, "shared data folder does not exist",

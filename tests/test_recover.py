@@ -186,6 +186,23 @@ def test_demo_runs_small(tmp_path, capsys):
     assert "BRDF error" in capsys.readouterr().out
 
 
+def test_demo_without_shared_data_uses_the_probes_it_is_given(tmp_path, monkeypatch, capsys):
+    """Without the shared data only the default (shared) probes get synthetic stand-ins: a probe file the
+    user names is used, a black one is refused, and a data folder given explicitly must exist."""
+    monkeypatch.delenv("MI_BIVARIATE_DATA", raising=False)
+    write_exr(tmp_path / "black.exr", np.zeros((8, 16, 3), np.float32))
+    write_exr(tmp_path / "grey.exr", np.full((8, 16, 3), 0.5, np.float32))
+    small = ["--resolution", "24", "--spp", "4", "--material", "ggx:alpha=0.3"]
+    assert cli_main(["demo", "--out", str(tmp_path / "a"), *small, "--input-probe", str(tmp_path / "grey.exr")]) == 0
+    out = capsys.readouterr().out
+    assert f"under {tmp_path / 'grey.exr'}" in out and "pisa_256 -> synthetic:7" in out
+    assert cli_main(["demo", "--out", str(tmp_path / "b"), *small, "--input-probe", str(tmp_path / "black.exr")]) == 2
+    assert cli_main(["demo", "--out", str(tmp_path / "c"), *small, "--data", str(tmp_path / "none")]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 2 and "probe is black" in err[0] and "shared data folder does not exist" in err[1]
+    assert not (tmp_path / "b").exists() and not (tmp_path / "c").exists()
+
+
 def test_cli_recover_batch_matches_recover_and_goes_on_past_a_bad_photo(tmp_path, any_probe, capsys):
     """``recover-batch``: each photo's table is bit-identical to ``recover``'s on it (``--threads 1``), a
     missing photo gets one error line while the others are written, and the exit status is then 2."""
