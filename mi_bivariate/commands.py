@@ -114,11 +114,12 @@ def _check_recovery_sizes(normals: Optional[int], dirs: Optional[int], grid: Opt
                          f"{lanes} lanes, over the limit of {MAX_KERNEL_LANES}", "use fewer directions")
 
 
-def _check_render_sizes(resolution: Optional[int], spp: Optional[int], flag: str = "--spp") -> None:
-    _check_max("--resolution", resolution, MAX_RESOLUTION)
+def _check_render_sizes(resolution: Optional[int], spp: Optional[int], flag: str = "--spp",
+                        resolution_flag: str = "--resolution") -> None:
+    _check_max(resolution_flag, resolution, MAX_RESOLUTION)
     _check_max(flag, spp, MAX_SPP)
     if resolution is not None and resolution < 2:
-        raise InputError("--resolution", f"must be at least 2 pixels, got {resolution}")
+        raise InputError(resolution_flag, f"must be at least 2 pixels, got {resolution}")
     if spp is not None and spp < 1:
         raise InputError(flag, f"must be at least 1, got {spp}")
     if resolution and spp and resolution > 0 and spp > 0 and resolution * resolution * spp > MAX_RENDER_SAMPLES:
@@ -430,11 +431,14 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
     _check_recovery_sizes(given(args.normals, 8000), given(args.dirs, lighting.DEFAULT_DIRS), given(args.grid, (32, 32)))
     _check_render_sizes(args.resolution or 128, args.spp)
-    _check_render_sizes(args.resolution or 128, args.novel_spp, flag="--novel-spp")
+    _check_render_sizes(given(args.novel_resolution, 64), args.novel_spp, flag="--novel-spp",
+                        resolution_flag="--novel-resolution")
     _check_seed(args.seed)
     if not isinstance(args.alpha, str):
         _check_float("--alpha", args.alpha, float("-inf"), float("inf"))
     _check_float("--abs-time-factor", args.abs_time_factor, 0.0, 1e6, lo_open=True)
+    if args.abs < 0:
+        raise InputError("--abs", f"must be >= 0 (the number of materials), got {args.abs}")
     if not 1 <= args.jobs <= 256:
         raise InputError("--jobs", f"must be from 1 to 256, got {args.jobs}")
     if args.threads is not None and not 1 <= args.threads <= 1024:

@@ -74,7 +74,8 @@ def test_second_run_on_a_folder_refuses(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("case", ["unknown material", "truncated MERL", "unreachable dask", "out is a file",
-                                  "unknown baseline", "bad alpha"])
+                                  "unknown baseline", "bad alpha", "huge noise", "huge novel resolution",
+                                  "negative abs"])
 def test_bad_input_leaves_no_folder(tmp_path, capsys, case):
     out = tmp_path / "new" / "eval"
     material, extra = MATERIAL, []
@@ -89,6 +90,12 @@ def test_bad_input_leaves_no_folder(tmp_path, capsys, case):
         extra = ["--baselines", "ggx", "foo"]
     elif case == "bad alpha":
         extra = ["--alpha", "-1"]
+    elif case == "huge noise":  # overflowed in the noise model, after the folder was made
+        extra = ["--noise", "1e300"]
+    elif case == "huge novel resolution":  # a 74 GiB allocation in the renderer
+        extra = ["--novel-resolution", "100000"]
+    elif case == "negative abs":  # sliced "all but the last 3"
+        extra = ["--abs", "-3"]
     else:
         out = tmp_path / "file"
         out.write_text("not a folder")
@@ -104,6 +111,9 @@ def test_bad_input_leaves_no_folder(tmp_path, capsys, case):
         assert "--dask" in line and "scheduler" in line
     if case == "unknown baseline":
         assert "--baselines" in line and "'foo'" in line
+    flag = {"huge noise": "--noise", "huge novel resolution": "--novel-resolution", "negative abs": "--abs"}.get(case)
+    if flag:
+        assert line.startswith(f"mi-bivariate: error: {flag}:"), line
 
 
 def test_workers_die_with_their_parent(tmp_path):

@@ -31,6 +31,9 @@ DEFAULT_NOVEL_PROBES: Tuple[str, ...] = ("grace_256", "pisa_256", "venice_sunset
 #: Materials of ``--quick`` with the shared data (else analytic ones, see :func:`quick_materials`).
 QUICK_NBRDF = ("gold-metallic-paint3", "blue-acrylic")
 QUICK_ANALYTIC = (DEFAULT_ANALYTIC, "oren-nayar:albedo=0.6,0.4,0.3,sigma=0.4")
+#: The largest input noise level (a relative standard deviation of 100% at the mean signal: beyond it
+#: the image is noise; the accuracy curve runs 0-0.05).
+MAX_NOISE = 1.0
 
 
 @dataclass(frozen=True)
@@ -110,8 +113,9 @@ class EvalConfig:
         """Raise :class:`InputError` for settings no run can use (before any work starts)."""
         if self.renderer not in ("reference", "path"):
             raise InputError("renderer", f"unknown renderer {self.renderer!r}", "use 'reference' or 'path'")
-        if not (math.isfinite(self.noise) and self.noise >= 0.0):
-            raise InputError("--noise", f"noise level must be a finite number >= 0, got {self.noise}")
+        if not (math.isfinite(self.noise) and 0.0 <= self.noise <= MAX_NOISE):
+            raise InputError("--noise", f"noise level must be a number from 0 to {MAX_NOISE:g} (a relative standard "
+                                        f"deviation at the mean signal), got {self.noise}")
         if self.prior is not None and not Path(self.prior).is_file():
             raise InputError(self.prior, "prior file not found")
         if int(self.novel_resolution) < 4:
