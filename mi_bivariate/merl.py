@@ -154,7 +154,8 @@ class MERLBRDF:
         """Read a MERL ``.binary`` file (validates header and size).
 
         Raises:
-            InputError: the file is missing, truncated or not a MERL table.
+            InputError: the file is missing, truncated or not a MERL table, or holds no positive value
+            or values beyond float32.
         """
         path = Path(path)
         cls.check_file(path)
@@ -170,6 +171,14 @@ class MERLBRDF:
             table[..., c] = channel
         if np.isinf(table).any():
             raise InputError(path, "MERL file holds infinite values")
+        finite = table[np.isfinite(table)]
+        if not np.any(finite > 0.0):  # every value 0 or missing: nothing reflects light
+            raise InputError(path, "MERL table holds no positive value (every value is 0 or missing): it "
+                                   "reflects no light, and the relative error of a reduction is undefined",
+                             "check the file")
+        if finite.max() > np.finfo(np.float32).max:  # renders, reductions and the solve run in float32
+            raise InputError(path, f"MERL file holds values up to {finite.max():.3g} 1/sr, beyond float32",
+                             "check the file")
         return cls(table, name=name or path.stem)
 
     def write(self, path: PathLike) -> None:

@@ -674,11 +674,24 @@ def test_usage_errors_are_one_line(capsys):
     assert info.value.code == 2 and len(err.strip().splitlines()) == 1 and err.startswith("mi-bivariate: error:")
 
 
-def test_all_zero_merl_is_refused(tmp_path, capsys):
-    zero = tmp_path / "zero.binary"
-    MERLBRDF(np.zeros(MERL_SHAPE + (3,)), name="zero").write(zero)
-    line = _cli(["reduce", str(zero), "--out", str(tmp_path / "z.npz")], capsys)
-    assert str(zero) in line and "no positive value" in line and "nan" not in line
+@pytest.mark.parametrize("command", ["reduce", "demo", "learn-prior", "render"])
+@pytest.mark.parametrize("content", ["zero", "missing", "beyond float32"])
+def test_unusable_merl_is_refused_naming_the_file(tmp_path, capsys, command, content):
+    """A MERL file of zeros, of missing values only, or with values float32 cannot hold: one line naming the
+    file, whichever command reads it (demo and learn-prior blamed the rendered image or the file's stem)."""
+    bad = tmp_path / f"{content.replace(' ', '_')}.binary"
+    table = {"zero": np.zeros(MERL_SHAPE + (3,)), "missing": np.full(MERL_SHAPE + (3,), np.nan),
+             "beyond float32": np.full(MERL_SHAPE + (3,), 1e300)}[content]
+    MERLBRDF(table, name=content).write(bad)
+    args = {"reduce": [str(bad), "--out", str(tmp_path / "z.npz")],
+            "demo": ["--material", str(bad), "--out", str(tmp_path / "d"), "--resolution", "8", "--spp", "1"],
+            "learn-prior": [str(bad), "--out", str(tmp_path / "p.npz")],
+            "render": [str(bad), "--probe", "synthetic:1", "--out", str(tmp_path / "r.exr"), "--resolution", "8",
+                       "--spp", "1"]}[command]
+    line = _cli([command, *args], capsys)
+    expected = "beyond float32" if content == "beyond float32" else "no positive value"
+    assert line.startswith(f"mi-bivariate: error: {bad}: ") and expected in line, line
+    assert sorted(p.name for p in tmp_path.iterdir()) == [bad.name]
 
 
 def test_write_failures_are_one_line_and_all_or_none(files, tmp_path, monkeypatch, capsys):
