@@ -226,6 +226,11 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 # --------------------------------------------------------------------------- reduce
 
+def _check_npz_out(out: Path, what: str) -> None:
+    if out.suffix.lower() != ".npz":
+        raise InputError(out, what, "give --out a name ending in .npz")
+
+
 def cmd_reduce(args: argparse.Namespace) -> int:
     _check_grid(args.grid)
     _check_out_file(args.out)
@@ -233,6 +238,7 @@ def cmd_reduce(args: argparse.Namespace) -> int:
         raise InputError(args.merl, "is not a MERL .binary file", "give the 3D table to reduce as a .binary file")
     out = Path(args.out) if args.out else Path(args.merl).with_suffix(".npz")
     check_outputs([out, out.with_suffix(".exr")], _input_files(args, args.merl))
+    _check_npz_out(out, "reduce writes a .npz table (and its .exr view beside it)")
     source = merl.MERLBRDF.read(args.merl)  # refuses a table with no positive value
     biv = bivariate.BivariateBRDF.reduce(source, n_t=args.grid[0], n_s=args.grid[1])
     exact = bivariate.exact_floor(source)
@@ -257,6 +263,7 @@ def cmd_learn_prior(args: argparse.Namespace) -> int:
                              "give MERL .binary files, folders of them, or shared MERL-NBRDF names")
     basis_out = training_set.basis_path_for(args.out)
     check_outputs([args.out, basis_out], _input_files(args, *args.sources))
+    _check_npz_out(Path(args.out), "learn-prior writes a .npz prior (and its basis beside it)")
     smooth, basis = training_set.learn_priors_from_merl(args.sources, n_t=args.grid[0], n_s=args.grid[1],
                                                         data_dir=args.data)
     with atomic_paths([args.out, basis_out], suffixes=[".npz", ".npz"]) as (tmp_smooth, tmp_basis):

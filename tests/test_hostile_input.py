@@ -674,6 +674,15 @@ def test_usage_errors_are_one_line(capsys):
     assert info.value.code == 2 and len(err.strip().splitlines()) == 1 and err.startswith("mi-bivariate: error:")
 
 
+@pytest.mark.parametrize("command", ["reduce", "learn-prior"])
+def test_npz_writers_refuse_another_suffix(tmp_path, capsys, files, command):
+    """reduce and learn-prior write npz: a name ending otherwise is refused before any work (as recover does)."""
+    out = tmp_path / "table.txt"
+    line = _cli([command, str(files["merl"]), "--out", str(out)], capsys)
+    assert line.startswith(f"mi-bivariate: error: {out}: ") and "ending in .npz" in line
+    assert not out.exists()
+
+
 @pytest.mark.parametrize("command", ["reduce", "demo", "learn-prior", "render"])
 @pytest.mark.parametrize("content", ["zero", "missing", "beyond float32"])
 def test_unusable_merl_is_refused_naming_the_file(tmp_path, capsys, command, content):
