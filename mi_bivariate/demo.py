@@ -56,15 +56,15 @@ def _materials_and_probes(material: Optional[str], input_probe: str, novel_probe
     spec = material or DEFAULT_ANALYTIC
     # Without the shared data only the default (shared) probes get synthetic stand-ins; probes the
     # user named (files, synthetic:N, or another shared name, which then fails with its own error) are used.
-    probes = []
+    probes, replaced = [], []
     for name, default, stand_in in ((input_probe, DEFAULT_INPUT_PROBE, "synthetic:1"),
                                     (novel_probe, DEFAULT_NOVEL_PROBE, "synthetic:7")):
-        probes.append(load_probe(stand_in if name == default else name, data_dir))
-        if name != default:
+        if name == default:
+            probes.append(load_probe(stand_in, data_dir))
+            replaced.append(f"{name} -> {stand_in}")
+        else:
+            probes.append(load_probe(name, data_dir))
             check_lit(probes[-1], name)
-    replaced = [f"{name} -> {stand_in}" for name, default, stand_in in
-                ((input_probe, DEFAULT_INPUT_PROBE, "synthetic:1"), (novel_probe, DEFAULT_NOVEL_PROBE, "synthetic:7"))
-                if name == default]
     print("shared data not found (set MI_BIVARIATE_DATA): "
           + ("using an analytic material" if material is None else f"material {spec}")
           + (f"; synthetic probes for the shared defaults ({', '.join(replaced)})" if replaced else ""))
