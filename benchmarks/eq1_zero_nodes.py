@@ -6,9 +6,10 @@ The non-negative solve clamps some nodes of some channels to 0 (dark spots in th
 panel) where the truth is well above 0. Eq. 1 is a relative error, so a zero node counts 100%
 there. This rescores each saved recovered table (the evaluation's ``materials/<config>/<material>.npz``)
 with its zero entries (below 1e-7 of the table's largest) replaced by the grid floor's (the
-exact phi_d average at the nodes: an oracle, the most any repair could give) and by the geometric
-mean of their non-zero neighbours (a repair that needs no truth), and prints Eq. 1 over the
-observed cells and over f > 1e-3 for each, against the exact floor's.
+exact phi_d average at the nodes: a repair that knows the truth, though not an upper bound, since
+the neighbouring nodes were fitted around the zeros) and by the geometric mean of their non-zero
+neighbours (a repair that needs no truth), and prints Eq. 1 over the observed cells and over
+f > 1e-3 for each, against the exact floor's over the same cells.
 """
 
 from __future__ import annotations
@@ -50,7 +51,7 @@ def main() -> None:
     if not files:
         raise SystemExit(f"{args.evaluation}: no materials/*/*.npz (run `mi-bivariate evaluate` first)")
     print("| material | zero entries (nodes) | exact floor: observed / f > 1e-3 | recovered | zeros from the "
-          "floor (oracle) | zeros from their neighbours |")
+          "floor | zeros from their neighbours |")
     print("|---|---:|---|---|---|---|")
     ratios = []
     for path in files:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import json
 import os
 import subprocess
@@ -81,11 +82,22 @@ def test_quick_end_to_end(tmp_path, capsys):
             there = errors(exact, observed_nodes=art[f"observed_nodes__{label}"])["eq1_observed"]
             assert e["exact_floor_observed"] == pytest.approx(there, rel=1e-9)
             assert there > 0
+            confident = e["confident"]
+            assert confident["nodes"] == 0 or (np.isfinite(confident["exact_floor_eq1"])
+                                               and confident["exact_floor_eq1"] > 0)
         probe = next(iter(r["inputs"]))
         assert errors(BivariateBRDF(art[f"recovered__{probe}"]))["eq1"] == pytest.approx(
             r["inputs"][probe]["recovered"]["eq1"], rel=1e-6)
     csv_lines = (out / "summary.csv").read_text().splitlines()
     assert len(csv_lines) == 1 + 2 * len(records)
+    # The like-for-like floors reach the summary, one per input row, as recorded.
+    rows = list(csv.DictReader(csv_lines))
+    recorded = {(r["material"], label): e for r in records for label, e in r["inputs"].items()}
+    for row in rows:
+        e = recorded[(row["material"], row["input_probe"])]
+        assert float(row["exact_floor_observed"]) == pytest.approx(e["exact_floor_observed"], rel=1e-5)
+        if e["confident"]["nodes"]:
+            assert float(row["exact_floor_confident"]) == pytest.approx(e["confident"]["exact_floor_eq1"], rel=1e-5)
     figures = sorted(p.name for p in (out / "figures").glob("*.png"))
     assert {"fig3_reduction.png", "fig5_validation.png", "fig6_errors.png", "fig6_incident.png",
             "fig7_environment.png", "tables.png", "baselines.png"} <= set(figures)

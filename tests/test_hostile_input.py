@@ -674,6 +674,38 @@ def test_usage_errors_are_one_line(capsys):
     assert info.value.code == 2 and len(err.strip().splitlines()) == 1 and err.startswith("mi-bivariate: error:")
 
 
+@pytest.mark.parametrize("argv", [
+    ["recover", "x.exr", "--probe", "p", "--out", ""],
+    ["render", "lambertian", "--probe", "p", "--out", " "],
+    ["reduce", "x.binary", "--out", ""],
+    ["learn-prior", "x.binary", "--out", ""],
+    ["recover-batch", "x.exr", "--probe", "p", "--out-dir", ""],
+    ["demo", "--out", "", "--material", "no-such-material"],
+    ["evaluate", "no-such-material", "--out", ""],
+], ids=lambda argv: argv[0])
+def test_an_empty_output_name_is_a_usage_error(tmp_path, monkeypatch, capsys, argv):
+    """An empty --out (or --out-dir) has no file name to write: a usage error, not a traceback from
+    ``Path('').with_suffix`` (nor, for the folder outputs, the current folder). The inputs would fail
+    later, so that a regression fails fast, inside ``tmp_path``."""
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as info:
+        cli.main(argv)
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and len(err.strip().splitlines()) == 1 and "Traceback" not in err
+    assert "expected a file or folder name, got an empty one" in err
+
+
+def test_render_refuses_an_image_that_overflowed(tmp_path, capsys):
+    """A table far beyond any physical scale renders to inf in float32: refused, nothing written."""
+    table = tmp_path / "huge.npz"
+    BivariateBRDF(np.full((8, 8, 3), 1e38, np.float32)).save(table)
+    line = _cli(["render", str(table), "--probe", "synthetic:1", "--out", str(tmp_path / "r.exr"),
+                 "--resolution", "16", "--spp", "2"], capsys)
+    assert line.startswith(f"mi-bivariate: error: {table}: the render overflowed float32")
+    assert "nothing was written" in line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["huge.npz"]
+
+
 @pytest.mark.parametrize("command", ["reduce", "learn-prior"])
 def test_npz_writers_refuse_another_suffix(tmp_path, capsys, files, command):
     """reduce and learn-prior write npz: a name ending otherwise is refused before any work (as recover does)."""
