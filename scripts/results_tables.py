@@ -55,14 +55,16 @@ def generate(out: Path) -> str:
              "pixels' worth of signal.", ""]
 
     lines += ["### Medians over materials", "",
-              "| input probe | exact floor | grid floor | rec. Eq. 1 | rec. Eq. 1 observed | grid floor observed "
-              "| observed cells | rec. Eq. 1 confident | grid floor confident | confident cells "
+              "| input probe | exact floor | grid floor | rec. Eq. 1 | rec. Eq. 1 observed | exact floor observed "
+              "| grid floor observed | observed cells | rec. Eq. 1 confident | exact floor confident "
+              "| grid floor confident | confident cells "
               "| rec. Eq. 1 > 1e-3 | rec. cosine | rec. log | relight | relight floor | ratio |",
-              "|---|" + "---:|" * 15]
+              "|---|" + "---:|" * 17]
     for p in probes:
         sel = [r for r in rows if r["input_probe"] == p]
-        keys = ("exact_floor", "grid_floor", "recovered_eq1", "recovered_eq1_observed", "grid_floor_observed",
-                "observed_fraction", "recovered_eq1_confident", "grid_floor_confident", "confident_fraction",
+        keys = ("exact_floor", "grid_floor", "recovered_eq1", "recovered_eq1_observed", "exact_floor_observed",
+                "grid_floor_observed", "observed_fraction", "recovered_eq1_confident", "exact_floor_confident",
+                "grid_floor_confident", "confident_fraction",
                 "recovered_eq1_min", "recovered_cosine", "recovered_log",
                 "relight_rmse_median", "relight_floor_median", "relight_ratio_median")
         lines.append(f"| {p} | " + " | ".join(_f(_median(r.get(k) for r in sel)) for k in keys) + " |")
