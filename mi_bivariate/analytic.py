@@ -234,6 +234,9 @@ _MODELS: Dict[str, Tuple[type, Dict[str, Tuple[str, bool]]]] = {
     "bivariate-lobe": (BivariateLobe, {"diffuse": ("diffuse", True), "specular": ("specular", True),
                                        "width": ("width", False), "f0": ("f0", False)}),
 }
+#: The largest size of a spec's parameter: far beyond any physical albedo, roughness or index, and
+#: small enough that a table of it renders and solves in float32.
+MAX_PARAMETER = 1e6
 _ALIASES = {"diffuse": "lambertian", "cook-torrance": "ggx", "orennayar": "oren-nayar", "lobe": "bivariate-lobe"}
 
 
@@ -266,9 +269,12 @@ def analytic_from_spec(spec: str) -> AnalyticBRDF:
         elif current is None:
             raise InputError(spec, f"value {token!r} has no parameter name", "write key=value")
         try:
-            values[current].append(float(token))
+            value = float(token)
         except ValueError:
             raise InputError(spec, f"{current}: {token!r} is not a number") from None
+        if not (math.isfinite(value) and abs(value) <= MAX_PARAMETER):
+            raise InputError(spec, f"{current}: {token!r} is out of range (finite, at most {MAX_PARAMETER:g} in size)")
+        values[current].append(value)
     kwargs = {}
     for key, vals in values.items():
         arg, is_rgb = keys[key]

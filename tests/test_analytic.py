@@ -189,7 +189,9 @@ def test_spec_parser():
 
 
 @pytest.mark.parametrize("spec", ["phong:n=10", "ggx:beta=0.1", "ggx:alpha=fast", "lambertian:albedo=0.1,0.2",
-                                  "ggx:alpha=-1", "ggx:0.1", "ggx:alpha=0.1,alpha=0.2", "ggx:ior=0.5"])
+                                  "ggx:alpha=-1", "ggx:0.1", "ggx:alpha=0.1,alpha=0.2", "ggx:ior=0.5",
+                                  # absurd sizes overflowed float32 downstream and were blamed on "mean"
+                                  "ggx:diffuse=1e38", "lambertian:albedo=nan", "ggx:alpha=inf"])
 def test_spec_parser_errors(spec):
     with pytest.raises(InputError) as info:
         analytic_from_spec(spec)
