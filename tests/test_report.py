@@ -47,3 +47,27 @@ def test_prediction_agrees_with_a_path_traced_rerender(recovery):
 def test_report_writes_either_way(tmp_path, recovery, path_trace):
     path = report.write_recovery_report(recovery[0], tmp_path / "r.png", path_trace=path_trace)
     assert path.exists() and path.stat().st_size > 10000
+
+
+def test_report_is_drawn_once_at_its_own_resolution(tmp_path, recovery, monkeypatch):
+    """savefig draws the laid-out report once, at the figure's own dpi; savefig's own extra,
+    layout-only draw (what it does for a figure left with a layout engine) gives the same picture."""
+    import matplotlib.figure
+    from PIL import Image
+
+    draws = []
+    save = matplotlib.figure.Figure.savefig
+
+    def counting_save(fig, *args, **kwargs):
+        draws.append([])
+        fig.canvas.mpl_connect("draw_event", lambda event: draws[-1].append(event.renderer.dpi))
+        return save(fig, *args, **kwargs)
+
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", counting_save)
+    report.write_recovery_report(recovery[0], tmp_path / "once.png")
+    monkeypatch.setattr(report, "freeze_layout", lambda fig: None)
+    report.write_recovery_report(recovery[0], tmp_path / "twice.png")
+    assert draws == [[report.REPORT_DPI], [report.REPORT_DPI] * 2]
+    with Image.open(tmp_path / "once.png") as once, Image.open(tmp_path / "twice.png") as twice:
+        assert once.size == (13 * report.REPORT_DPI, 8 * report.REPORT_DPI)
+        np.testing.assert_array_equal(np.asarray(once), np.asarray(twice))
