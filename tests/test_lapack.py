@@ -41,6 +41,31 @@ def test_factor_solve_and_inverse_match_scipy(order):
         np.testing.assert_allclose(tri(lapack.potri(f)), tri(inverse), rtol=1e-9, atol=1e-12 * np.abs(inverse).max())
 
 
+@pytest.mark.parametrize("order", ["C", "F"])
+def test_trtri_inverts_the_factor_in_either_triangle(order):
+    """The inverse Cholesky factor, against numpy's inverse of the same triangle: lower and upper
+    factors, both memory orders, in place and not; X^-1 = W^T W (lower) or W W^T (upper)."""
+    g = np.asarray(_spd(50, 7), order=order)
+    inverse = np.linalg.inv(g)
+    for lower in (True, False):
+        c, low = sla.cho_factor(g, lower=lower)
+        c = np.asarray(c, order=order)
+        tri = np.tril if low else np.triu
+        w = tri(lapack.trtri((c, low)))
+        np.testing.assert_allclose(w, np.linalg.inv(tri(c)), rtol=1e-9, atol=1e-12 * np.abs(w).max())
+        np.testing.assert_allclose(w.T @ w if low else w @ w.T, inverse, rtol=1e-9, atol=1e-12 * np.abs(inverse).max())
+        kept = c.copy()
+        if c.flags.c_contiguous or c.flags.f_contiguous:
+            assert lapack.trtri((c, low), overwrite=True) is c  # the factor's memory took the inverse
+            np.testing.assert_allclose(tri(c), w, rtol=1e-12, atol=1e-15 * np.abs(w).max())  # copy: C order
+        assert lapack.trtri((kept, low)) is not kept
+    assert lapack.trtri((np.zeros((0, 0)), True)).shape == (0, 0)
+    with pytest.raises(np.linalg.LinAlgError):
+        lapack.trtri((np.zeros((3, 3)), True))
+    with pytest.raises(ValueError):
+        lapack.trtri((np.ones((4, 3)), True))
+
+
 def test_non_contiguous_empty_and_in_place():
     g = _spd(40, 5)
     b = np.random.default_rng(6).standard_normal(40)

@@ -331,8 +331,11 @@ def test_cli_recover_batch_goes_on_past_a_photo_the_noise_swamps(tmp_path, any_p
     write_exr(tmp_path / "dim.exr", 1e-6 * shot.image)
     write_exr(tmp_path / "b.exr", 0.5 * shot.image)
     any_probe.save_exr(tmp_path / "probe.exr")
+    # Read noise of 1e-3 of the photo's mean signal: nothing for a.exr and b.exr, a million times
+    # the signal of dim.exr, whatever the probe's brightness (shared or synthetic).
+    read_variance = (1e-3 * float(np.mean(shot.image[shot.mask]))) ** 2
     code = cli_main(["recover-batch", *(str(tmp_path / n) for n in ("a.exr", "dim.exr", "b.exr")), "--probe",
-                     str(tmp_path / "probe.exr"), "--out-dir", str(tmp_path / "out"), "--noise", "0,1e-12",
+                     str(tmp_path / "probe.exr"), "--out-dir", str(tmp_path / "out"), "--noise", f"0,{read_variance:.6g}",
                      "--normals", "400", "--dirs", "1000", "--grid", "8", "8", "--no-report"])
     err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("mi-bivariate: error:")]
     assert code == 2 and len(err) == 1 and err[0].startswith(f"mi-bivariate: error: {tmp_path / 'dim.exr'}: "), err

@@ -6,7 +6,7 @@ Cholesky factorisation ``X = U^T U`` of an ``N x N`` float64 system:
 :func:`inverse_from_cholesky` (LAPACK ``potri``: ``X^-1`` from ``U`` in 2/3 N^3
 flops, a third of solving against the identity) and :func:`banded_inverse_diagonal`
 (the diagonal of the inverse of a banded matrix in ``O(N b^2)``, Takahashi's
-recurrence, for the smoothness prior's sparse normal matrix).
+recurrence by blocks, for the smoothness prior's sparse normal matrix).
 """
 
 from __future__ import annotations
@@ -167,6 +167,18 @@ def quadratic_form(entries: Tuple[np.ndarray, np.ndarray, np.ndarray], f: np.nda
     return float(np.dot(values, f[rows] * f[cols]))
 
 
+def _inverse_at_offsets(inv_factor: np.ndarray, lower: bool, offsets: np.ndarray) -> dict:
+    """``{d: z_d}`` with ``z_d[i] = (X^-1)_{i, i + d}`` (``(N - d,)``) for each offset ``d >= 0``, from
+    ``W``, the inverse Cholesky factor in ``inv_factor``'s ``lower`` (or upper) triangle
+    (:func:`~mi_bivariate.solve.lapack.trtri`): ``X^-1 = W^T W`` (lower), so an entry is the dot
+    product of two columns of ``W``; ``W W^T`` (upper), of two rows. ``O(N^2)`` per offset."""
+    n = inv_factor.shape[0]
+    w = np.tril(inv_factor) if lower else np.triu(inv_factor)
+    pattern = "ki,ki->i" if lower else "ik,ik->i"
+    return {int(d): (np.einsum(pattern, w[:, : n - d], w[:, d:]) if lower else
+                     np.einsum(pattern, w[: n - d], w[d:])) for d in offsets}
+
+
 def inverse_diagonals(x: np.ndarray, gram: np.ndarray,
                       factor: Optional[Tuple[np.ndarray, bool]] = None,
                       prior: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None,
@@ -175,18 +187,21 @@ def inverse_diagonals(x: np.ndarray, gram: np.ndarray,
 
     ``prior``: the entries (:func:`sparse_entries`) of ``Q = X - gram`` (symmetric and
     sparse: the priors' part of the system). Then ``diag(X^-1 gram) = 1 - diag(X^-1 Q)``
-    reads ``X^-1`` only where ``Q`` is non-zero (``O(nnz)`` after ``potri``). Without it:
-    with ``T`` one triangle of ``X^-1`` and ``P = T * gram`` elementwise,
-    ``diag(X^-1 gram)_i = sum_j P_ij + sum_j P_ji - P_ii`` (``O(N^2)``). Falls back to the
-    pseudo-inverse when ``X`` is singular. ``overwrite_factor``: the inverse takes the given
-    factor's memory (one ``N x N`` array less alive; the factor is lost).
+    reads ``X^-1`` only where ``Q`` is non-zero: on the few diagonals ``|i - j| = d`` that
+    hold ``Q``'s entries (the smoothness prior's: ``d`` in 0, 1, ``n_s``), each from the
+    inverse factor ``W = L^-1`` (LAPACK ``trtri``, half of ``potri``'s flops) in ``O(N^2)``.
+    Without it: with ``T`` one triangle of ``X^-1`` (``potri``) and ``P = T * gram``
+    elementwise, ``diag(X^-1 gram)_i = sum_j P_ij + sum_j P_ji - P_ii`` (``O(N^2)``). Falls
+    back to the pseudo-inverse when ``X`` is singular. ``overwrite_factor``: the inverse takes
+    the given factor's memory (one ``N x N`` array less alive; the factor is lost).
     """
     own = factor is None
     factor = cholesky(x) if factor is None else factor
     inv = None
     if factor is not None:
         try:
-            inv = gil_free.potri(factor, overwrite=own or overwrite_factor)
+            routine = gil_free.trtri if prior is not None else gil_free.potri
+            inv = routine(factor, overwrite=own or overwrite_factor)
         except np.linalg.LinAlgError:
             inv = None
     if inv is None:
@@ -195,10 +210,15 @@ def inverse_diagonals(x: np.ndarray, gram: np.ndarray,
     lower = factor[1]
     if prior is not None:
         rows, cols, values = prior
-        lo, hi = np.minimum(rows, cols), np.maximum(rows, cols)
-        inside = inv[hi, lo] if lower else inv[lo, hi]  # (X^-1)_ij from the valid triangle
+        lo, offset = np.minimum(rows, cols), np.abs(rows - cols)
+        found = np.unique(offset)
+        z = _inverse_at_offsets(inv, lower, np.union1d(found, [0]))
+        inside = np.empty(len(values))
+        for d in found:  # (X^-1)_ij of every entry, from its diagonal
+            sel = offset == d
+            inside[sel] = z[int(d)][lo[sel]]
         x_inv_q = np.bincount(rows, weights=inside * values, minlength=x.shape[0])
-        return np.diag(inv).copy(), 1.0 - x_inv_q
+        return z[0], 1.0 - x_inv_q
     tri = np.tril(inv) if lower else np.triu(inv)
     prod = tri * gram
     return np.diag(tri).copy(), prod.sum(axis=1) + prod.sum(axis=0) - np.diag(prod)
@@ -246,33 +266,38 @@ def banded_cholesky(x: np.ndarray, band: int) -> Optional[np.ndarray]:
 def banded_inverse_diagonal(x: np.ndarray, band: int) -> Optional[np.ndarray]:
     """``diag(X^-1)`` of an SPD matrix with ``x[i, j] = 0`` for ``|i - j| > band``, or ``None``.
 
-    Banded Cholesky ``X = U^T U`` (LAPACK ``pbtrf``, ``O(N b^2)``), then Takahashi's
-    recurrence for the entries of ``Z = X^-1`` inside the band, from the last row up:
-    ``Z_ij = -(1/U_ii) sum_{k in (i, i+b]} U_ik Z_kj`` (``j > i``) and
-    ``Z_ii = 1/U_ii^2 - (1/U_ii) sum_k U_ik Z_ki``. Only in-band entries of ``Z`` are
-    ever needed, so the cost is ``O(N b^2)`` instead of the dense inverse's ``O(N^3)``.
-    ``None`` when ``X`` is not numerically positive definite (the caller falls back).
+    Cut into blocks of ``band`` rows, such a matrix is block tridiagonal (diagonal blocks
+    ``D_i``, off-diagonal ``B_i = X[block i, block i + 1]``). The diagonal blocks of its
+    inverse follow from the Schur complements of block elimination, forward
+    ``S_0 = D_0``, ``S_i = D_i - B_{i-1}^T S_{i-1}^-1 B_{i-1}``, then backward
+    ``G_last = S_last^-1``, ``G_i = S_i^-1 + S_i^-1 B_i G_{i+1} B_i^T S_i^-1`` (Takahashi's
+    recurrence by blocks). ``O(N b^2)`` like the scalar recurrence, in ``2 N / b``
+    small dense steps instead of ``N`` Python iterations. ``None`` when ``X`` is not
+    numerically positive definite (the caller falls back).
     """
     n = x.shape[0]
     b = max(int(band), 1)
-    u = banded_cholesky(x, b)
-    if u is None:
-        return None
-    # Dense U rows within the band: U[i, i + d] = u[b - d, i + d].
-    u_rows = np.zeros((n, b + 1))
-    for d in range(b + 1):
-        u_rows[: n - d, d] = u[b - d, d:]
-    # A sliding (b + 1) x (b + 1) window of Z: rows and columns i .. i + b.
-    window = np.zeros((b + 1, b + 1))
+    edges = list(range(0, n, b)) + [n]
+    blocks = list(zip(edges[:-1], edges[1:]))
+    s_inv = []
+    for i, (lo, hi) in enumerate(blocks):
+        schur = np.array(x[lo:hi, lo:hi], np.float64)
+        if i:
+            plo, phi = blocks[i - 1]
+            coupling = x[plo:phi, lo:hi]
+            schur -= coupling.T @ s_inv[-1] @ coupling
+        try:
+            chol = np.linalg.cholesky(schur)
+        except np.linalg.LinAlgError:
+            return None
+        chol_inv = lapack.dtrtri(chol, lower=1)[0]
+        s_inv.append(chol_inv.T @ chol_inv)  # S^-1 = L^-T L^-1
     diag = np.empty(n)
-    for i in range(n - 1, -1, -1):
-        window[1:, 1:] = window[:-1, :-1].copy()
-        uii = u_rows[i, 0]
-        width = min(n, i + b + 1) - i - 1
-        u_off = u_rows[i, 1:1 + width]
-        z_row = -(u_off @ window[1:1 + width, 1:1 + width]) / uii
-        window[0, 1:1 + width] = z_row
-        window[1:1 + width, 0] = z_row
-        window[0, 0] = 1.0 / (uii * uii) - (u_off @ z_row) / uii
-        diag[i] = window[0, 0]
+    g = s_inv[-1]
+    diag[blocks[-1][0]:] = np.diag(g)
+    for i in range(len(blocks) - 2, -1, -1):
+        (lo, hi), (nlo, nhi) = blocks[i], blocks[i + 1]
+        t = s_inv[i] @ x[lo:hi, nlo:nhi]
+        g = s_inv[i] + t @ g @ t.T
+        diag[lo:hi] = np.diag(g)
     return diag if np.all(np.isfinite(diag)) else None

@@ -34,6 +34,7 @@ _SIGNATURES = {
     "dpotrf": (ctypes.c_char_p, _P_INT, ctypes.c_void_p, _P_INT, _P_INT),
     "dpotrs": (ctypes.c_char_p, _P_INT, _P_INT, ctypes.c_void_p, _P_INT, ctypes.c_void_p, _P_INT, _P_INT),
     "dpotri": (ctypes.c_char_p, _P_INT, ctypes.c_void_p, _P_INT, _P_INT),
+    "dtrtri": (ctypes.c_char_p, ctypes.c_char_p, _P_INT, ctypes.c_void_p, _P_INT, _P_INT),
 }
 
 
@@ -172,3 +173,24 @@ def potri(factor: Tuple[np.ndarray, bool], overwrite: bool = False) -> np.ndarra
     return inv
 
 
+def trtri(factor: Tuple[np.ndarray, bool], overwrite: bool = False) -> np.ndarray:
+    """The factor's inverse ``L^-1`` (or ``U^-1``) from ``factor = cho_factor(a)`` (LAPACK ``dtrtri``,
+    N^3 / 3 flops, half of :func:`potri`), in the factor's triangle (numpy's indexing); the other
+    triangle holds leftovers. ``a^-1 = L^-T L^-1`` (lower) or ``U^-1 U^-T`` (upper).
+    ``overwrite``: in the factor's own array when it is a writeable contiguous float64 one.
+
+    Raises:
+        numpy.linalg.LinAlgError: the factor has a zero on its diagonal.
+    """
+    c, lower = factor
+    if not GIL_FREE:
+        inv, info = lapack.dtrtri(c, lower=lower, overwrite_c=overwrite)
+    else:
+        inv, uplo = _fortran_view(_square_float64(np.asarray(c), overwrite, what="factor"), lower)
+        n, status = ctypes.c_int(inv.shape[0]), ctypes.c_int(0)
+        if inv.shape[0]:
+            _LAPACK["dtrtri"](uplo, b"N", ctypes.byref(n), inv.ctypes.data, ctypes.byref(n), ctypes.byref(status))
+        info = status.value
+    if info != 0:
+        raise np.linalg.LinAlgError(f"trtri failed (info {info})")
+    return inv
