@@ -13,9 +13,11 @@ For one channel with system matrix ``X = gram + lambda P [+ diag(precision)]``
 
 All three come from one Cholesky factorisation of ``X`` (the NNLS solve's own,
 which factorises the whole ``X`` when it starts with every node passive, as the
-solve does) and one ``potri`` inverse; the
-prior's matrix is banded (bandwidth ``n_s``), so its inverse's diagonal costs
-``O(N n_s^2)`` (:func:`~mi_bivariate.solve.common.banded_inverse_diagonal`).
+solve does) and its inverse factor (LAPACK ``trtri``), read only on the few
+diagonals that hold the prior's entries
+(:func:`~mi_bivariate.solve.common.inverse_diagonals`); the prior's matrix is
+banded (bandwidth ``n_s``), so its inverse's diagonal costs ``O(N n_s^2)``
+(:func:`~mi_bivariate.solve.common.banded_inverse_diagonal`).
 Nothing is computed before it is asked for: a solve uses the kept variant's
 confidence only, and the first stage of a two-stage solve never uses ``measured``.
 """
