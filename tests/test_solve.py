@@ -451,6 +451,14 @@ def test_inverse_diagonals_from_the_priors_entries_match_dense(lower):
     inv = np.linalg.inv(x)
     np.testing.assert_allclose(var, np.diag(inv), rtol=1e-10)
     np.testing.assert_allclose(resolution, np.diag(inv @ gram), rtol=0, atol=1e-10)
+    # A prior spread over every diagonal (read from potri's whole inverse, not the inverse factor's).
+    c = rng.standard_normal((n, n))
+    dense_prior = 0.01 * c @ c.T
+    x = gram + dense_prior
+    var, resolution = inverse_diagonals(x, gram, sla.cho_factor(x, lower=lower), prior=sparse_entries(dense_prior))
+    inv = np.linalg.inv(x)
+    np.testing.assert_allclose(var, np.diag(inv), rtol=1e-9)
+    np.testing.assert_allclose(resolution, np.diag(inv @ gram), rtol=0, atol=1e-9)
 
 
 @pytest.mark.parametrize("alpha, pair_rule", [(None, "evidence"), ("gcv", "evidence"), (None, "residual")])

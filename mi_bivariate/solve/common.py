@@ -167,6 +167,11 @@ def quadratic_form(entries: Tuple[np.ndarray, np.ndarray, np.ndarray], f: np.nda
     return float(np.dot(values, f[rows] * f[cols]))
 
 
+#: Most diagonals of ``X^-1`` that :func:`inverse_diagonals` reads from the inverse factor
+#: (``O(N^2)`` each); a prior with entries on more is read from ``potri``'s whole inverse.
+MAX_INVERSE_DIAGONALS = 16
+
+
 def _inverse_at_offsets(inv_factor: np.ndarray, lower: bool, offsets: np.ndarray) -> dict:
     """``{d: z_d}`` with ``z_d[i] = (X^-1)_{i, i + d}`` (``(N - d,)``) for each offset ``d >= 0``, from
     ``W``, the inverse Cholesky factor in ``inv_factor``'s ``lower`` (or upper) triangle
@@ -197,10 +202,16 @@ def inverse_diagonals(x: np.ndarray, gram: np.ndarray,
     """
     own = factor is None
     factor = cholesky(x) if factor is None else factor
+    offsets = None
+    if prior is not None:
+        lo, hi = np.minimum(prior[0], prior[1]), np.maximum(prior[0], prior[1])
+        offsets = np.union1d(hi - lo, [0])
+    # A few diagonals from the inverse factor; a prior spread over many (not the smoothness prior's) reads potri's X^-1.
+    by_diagonals = offsets is not None and len(offsets) <= MAX_INVERSE_DIAGONALS
     inv = None
     if factor is not None:
         try:
-            routine = gil_free.trtri if prior is not None else gil_free.potri
+            routine = gil_free.trtri if by_diagonals else gil_free.potri
             inv = routine(factor, overwrite=own or overwrite_factor)
         except np.linalg.LinAlgError:
             inv = None
@@ -209,16 +220,20 @@ def inverse_diagonals(x: np.ndarray, gram: np.ndarray,
         return np.diag(pinv).copy(), np.einsum("ij,ij->i", pinv, gram)
     lower = factor[1]
     if prior is not None:
-        rows, cols, values = prior
-        lo, offset = np.minimum(rows, cols), np.abs(rows - cols)
-        found = np.unique(offset)
-        z = _inverse_at_offsets(inv, lower, np.union1d(found, [0]))
-        inside = np.empty(len(values))
-        for d in found:  # (X^-1)_ij of every entry, from its diagonal
-            sel = offset == d
-            inside[sel] = z[int(d)][lo[sel]]
+        rows, _, values = prior
+        if by_diagonals:
+            z = _inverse_at_offsets(inv, lower, offsets)
+            offset = hi - lo
+            inside = np.empty(len(values))
+            for d in offsets:  # (X^-1)_ij of every entry, from its diagonal
+                sel = offset == d
+                inside[sel] = z[int(d)][lo[sel]]
+            variance = z[0]
+        else:
+            inside = inv[hi, lo] if lower else inv[lo, hi]  # (X^-1)_ij from the valid triangle
+            variance = np.diag(inv).copy()
         x_inv_q = np.bincount(rows, weights=inside * values, minlength=x.shape[0])
-        return z[0], 1.0 - x_inv_q
+        return variance, 1.0 - x_inv_q
     tri = np.tril(inv) if lower else np.triu(inv)
     prod = tri * gram
     return np.diag(tri).copy(), prod.sum(axis=1) + prod.sum(axis=0) - np.diag(prod)
