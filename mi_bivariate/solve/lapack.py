@@ -151,6 +151,29 @@ def cho_solve(factor: Tuple[np.ndarray, bool], b: np.ndarray) -> np.ndarray:
     return x
 
 
+def _on_factor(name: str, factor: Tuple[np.ndarray, bool], overwrite: bool,
+               fallback: Callable[..., Tuple[np.ndarray, int]], *flags: bytes) -> np.ndarray:
+    """LAPACK ``name`` (``uplo, *flags, n, a, lda, info``) run on the factor's triangle, in a copy
+    unless ``overwrite`` allows the factor's own array; ``fallback(c, lower=, overwrite_c=)`` is
+    scipy's wrapper of the same routine.
+
+    Raises:
+        numpy.linalg.LinAlgError: the routine reports a zero on the factor's diagonal.
+    """
+    c, lower = factor
+    if not GIL_FREE:
+        out, info = fallback(c, lower=lower, overwrite_c=overwrite)
+    else:
+        out, uplo = _fortran_view(_square_float64(np.asarray(c), overwrite, what="factor"), lower)
+        n, status = ctypes.c_int(out.shape[0]), ctypes.c_int(0)
+        if out.shape[0]:
+            _LAPACK[name](uplo, *flags, ctypes.byref(n), out.ctypes.data, ctypes.byref(n), ctypes.byref(status))
+        info = status.value
+    if info != 0:
+        raise np.linalg.LinAlgError(f"{name[1:]} failed (info {info})")
+    return out
+
+
 def potri(factor: Tuple[np.ndarray, bool], overwrite: bool = False) -> np.ndarray:
     """``a^-1`` from ``factor = cho_factor(a)`` (LAPACK ``dpotri``), in the factor's triangle
     (numpy's indexing); the other triangle holds leftovers. ``overwrite``: in the factor's own
@@ -159,18 +182,7 @@ def potri(factor: Tuple[np.ndarray, bool], overwrite: bool = False) -> np.ndarra
     Raises:
         numpy.linalg.LinAlgError: the factor has a zero on its diagonal.
     """
-    c, lower = factor
-    if not GIL_FREE:
-        inv, info = lapack.dpotri(c, lower=lower, overwrite_c=overwrite)
-    else:
-        inv, uplo = _fortran_view(_square_float64(np.asarray(c), overwrite, what="factor"), lower)
-        n, status = ctypes.c_int(inv.shape[0]), ctypes.c_int(0)
-        if inv.shape[0]:
-            _LAPACK["dpotri"](uplo, ctypes.byref(n), inv.ctypes.data, ctypes.byref(n), ctypes.byref(status))
-        info = status.value
-    if info != 0:
-        raise np.linalg.LinAlgError(f"potri failed (info {info})")
-    return inv
+    return _on_factor("dpotri", factor, overwrite, lapack.dpotri)
 
 
 def trtri(factor: Tuple[np.ndarray, bool], overwrite: bool = False) -> np.ndarray:
@@ -182,15 +194,4 @@ def trtri(factor: Tuple[np.ndarray, bool], overwrite: bool = False) -> np.ndarra
     Raises:
         numpy.linalg.LinAlgError: the factor has a zero on its diagonal.
     """
-    c, lower = factor
-    if not GIL_FREE:
-        inv, info = lapack.dtrtri(c, lower=lower, overwrite_c=overwrite)
-    else:
-        inv, uplo = _fortran_view(_square_float64(np.asarray(c), overwrite, what="factor"), lower)
-        n, status = ctypes.c_int(inv.shape[0]), ctypes.c_int(0)
-        if inv.shape[0]:
-            _LAPACK["dtrtri"](uplo, b"N", ctypes.byref(n), inv.ctypes.data, ctypes.byref(n), ctypes.byref(status))
-        info = status.value
-    if info != 0:
-        raise np.linalg.LinAlgError(f"trtri failed (info {info})")
-    return inv
+    return _on_factor("dtrtri", factor, overwrite, lapack.dtrtri, b"N")
