@@ -42,10 +42,13 @@ def freeze_layout(fig: Any) -> None:
     again) before the real one, for a layout that no longer changes. Figures
     under a live engine (constrained layout) keep it.
     """
+    import matplotlib
     from matplotlib.layout_engine import PlaceHolderLayoutEngine
 
     if isinstance(fig.get_layout_engine(), PlaceHolderLayoutEngine):
-        fig.set_layout_engine(None)
+        # None means "the rcParams' default engine": with figure.autolayout set that is a live one again.
+        with matplotlib.rc_context({"figure.autolayout": False, "figure.constrained_layout.use": False}):
+            fig.set_layout_engine(None)
 
 
 def save_figure(fig: Any, path: PathLike, dpi: int = 110, tight: bool = True, close: bool = True) -> Path:

@@ -331,8 +331,8 @@ def test_cli_recover_batch_goes_on_past_a_photo_the_noise_swamps(tmp_path, any_p
     write_exr(tmp_path / "dim.exr", 1e-6 * shot.image)
     write_exr(tmp_path / "b.exr", 0.5 * shot.image)
     any_probe.save_exr(tmp_path / "probe.exr")
-    # Read noise of 1e-3 of the photo's mean signal: nothing for a.exr and b.exr, a million times
-    # the signal of dim.exr, whatever the probe's brightness (shared or synthetic).
+    # Read noise (std) of 1e-3 of the photo's mean signal: nothing for a.exr and b.exr, a thousand
+    # times the signal of dim.exr, whatever the probe's brightness (shared or synthetic).
     read_variance = (1e-3 * float(np.mean(shot.image[shot.mask]))) ** 2
     code = cli_main(["recover-batch", *(str(tmp_path / n) for n in ("a.exr", "dim.exr", "b.exr")), "--probe",
                      str(tmp_path / "probe.exr"), "--out-dir", str(tmp_path / "out"), "--noise", f"0,{read_variance:.6g}",

@@ -71,3 +71,20 @@ def test_report_is_drawn_once_at_its_own_resolution(tmp_path, recovery, monkeypa
     with Image.open(tmp_path / "once.png") as once, Image.open(tmp_path / "twice.png") as twice:
         assert once.size == (13 * report.REPORT_DPI, 8 * report.REPORT_DPI)
         np.testing.assert_array_equal(np.asarray(once), np.asarray(twice))
+
+
+def test_a_frozen_layout_stays_frozen_under_autolayout(tmp_path):
+    """With rcParams' figure.autolayout set, dropping tight_layout's placeholder must not bring a live
+    engine back (savefig would lay out and draw twice again)."""
+    import matplotlib
+
+    plt = report.pyplot()
+    fig, ax = plt.subplots(figsize=(3, 2), dpi=report.REPORT_DPI)
+    ax.plot([0, 1], [1, 0])
+    fig.tight_layout()
+    draws = []
+    fig.canvas.mpl_connect("draw_event", lambda event: draws.append(1))
+    with matplotlib.rc_context({"figure.autolayout": True}):
+        report.save_figure(fig, tmp_path / "f.png", dpi=report.REPORT_DPI, tight=False, close=False)
+    assert draws == [1]
+    plt.close(fig)

@@ -428,13 +428,13 @@ def test_nnls_one_factor_route_polishes_round_off_with_one_direct_solve(monkeypa
 
 
 @pytest.mark.parametrize("lower", [False, True])
-def test_inverse_diagonals_from_the_priors_entries_match_dense(lower):
+def test_inverse_diagonals_from_the_priors_entries_match_dense(lower, monkeypatch):
     """diag(X^-1) and diag(X^-1 gram) by 1 - diag(X^-1 Q) (Q = X - gram given by its entries,
     repeated diagonal entries included) equal the dense computation, for both triangles of the
     factor."""
     import scipy.linalg as sla
 
-    from mi_bivariate.solve.common import inverse_diagonals, sparse_entries
+    from mi_bivariate.solve.common import gil_free, inverse_diagonals, sparse_entries
 
     rng = np.random.default_rng(3)
     n = 50
@@ -447,18 +447,31 @@ def test_inverse_diagonals_from_the_priors_entries_match_dense(lower):
     rows, cols, values = sparse_entries(penalty)
     diag = np.arange(n)
     prior = (np.r_[rows, diag], np.r_[cols, diag], np.r_[values, precision])  # the diagonal twice
-    var, resolution = inverse_diagonals(x, gram, sla.cho_factor(x, lower=lower), prior=prior)
+    with monkeypatch.context() as patch:  # a few diagonals: from the inverse factor, never a whole inverse
+        patch.setattr(gil_free, "potri", _refuse)
+        var, resolution = inverse_diagonals(x, gram, sla.cho_factor(x, lower=lower), prior=prior)
     inv = np.linalg.inv(x)
     np.testing.assert_allclose(var, np.diag(inv), rtol=1e-10)
     np.testing.assert_allclose(resolution, np.diag(inv @ gram), rtol=0, atol=1e-10)
-    # A prior spread over every diagonal (read from potri's whole inverse, not the inverse factor's).
+    # The factor's memory given away, and no factor given: the same.
+    for factor, overwrite in ((sla.cho_factor(x, lower=lower), True), (None, False)):
+        again = inverse_diagonals(x, gram, factor, prior=prior, overwrite_factor=overwrite)
+        np.testing.assert_allclose(again[0], var, rtol=1e-12)
+        np.testing.assert_allclose(again[1], resolution, rtol=0, atol=1e-12)
+    # A prior spread over every diagonal: read from potri's whole inverse, not from the inverse factor.
     c = rng.standard_normal((n, n))
     dense_prior = 0.01 * c @ c.T
     x = gram + dense_prior
-    var, resolution = inverse_diagonals(x, gram, sla.cho_factor(x, lower=lower), prior=sparse_entries(dense_prior))
+    with monkeypatch.context() as patch:
+        patch.setattr(gil_free, "trtri", _refuse)
+        var, resolution = inverse_diagonals(x, gram, sla.cho_factor(x, lower=lower), prior=sparse_entries(dense_prior))
     inv = np.linalg.inv(x)
     np.testing.assert_allclose(var, np.diag(inv), rtol=1e-9)
     np.testing.assert_allclose(resolution, np.diag(inv @ gram), rtol=0, atol=1e-9)
+
+
+def _refuse(*args, **kwargs):
+    raise AssertionError("this route must not run here")
 
 
 @pytest.mark.parametrize("alpha, pair_rule", [(None, "evidence"), ("gcv", "evidence"), (None, "residual")])

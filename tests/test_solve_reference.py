@@ -94,12 +94,13 @@ def test_inverses_against_dense_lapack():
     assert banded_inverse_diagonal(-p, bandwidth(p)) is None  # not positive definite: the caller falls back
     # Blocks that do not divide N, a band of 1 and a band wider than needed; an ill-conditioned
     # prior (the confidence's ridge of 1e-6) no worse than the dense inverse's own rounding.
-    for n, band in ((50, 7), (37, 1), (40, 12)):
-        z = rng.standard_normal((n, n)) * (np.abs(np.subtract.outer(np.arange(n), np.arange(n))) <= min(band, 3))
-        q = z @ z.T + np.diag(rng.uniform(0.1, 1.0, n))
-        assert bandwidth(q) <= band + 3
-        np.testing.assert_allclose(banded_inverse_diagonal(q, max(band, bandwidth(q))), np.diag(np.linalg.inv(q)),
-                                   rtol=1e-10)
+    for n, band in ((50, 7), (37, 1), (40, 12), (9, 9), (6, 20), (1, 1)):
+        z = rng.standard_normal((n, n)) * (np.abs(np.subtract.outer(np.arange(n), np.arange(n))) <= band)
+        q = 0.5 * (z + z.T)
+        q += np.diag(np.abs(q).sum(axis=1) + rng.uniform(0.1, 1.0, n))  # SPD by diagonal dominance
+        assert bandwidth(q) == min(band, n - 1)
+        np.testing.assert_allclose(banded_inverse_diagonal(q, band), np.diag(np.linalg.inv(q)), rtol=1e-10)
+    assert banded_inverse_diagonal(np.zeros((0, 0)), 3).shape == (0,)
     tiny = (r.T @ r).toarray() + np.diag(np.full(N, 1e-6))  # condition number ~7e12
     inv = np.linalg.inv(tiny).astype(np.longdouble)
     for _ in range(3):  # Newton-Schulz steps with the residual in extended precision: the reference

@@ -176,9 +176,13 @@ def _inverse_at_offsets(inv_factor: np.ndarray, lower: bool, offsets: np.ndarray
     """``{d: z_d}`` with ``z_d[i] = (X^-1)_{i, i + d}`` (``(N - d,)``) for each offset ``d >= 0``, from
     ``W``, the inverse Cholesky factor in ``inv_factor``'s ``lower`` (or upper) triangle
     (:func:`~mi_bivariate.solve.lapack.trtri`): ``X^-1 = W^T W`` (lower), so an entry is the dot
-    product of two columns of ``W``; ``W W^T`` (upper), of two rows. ``O(N^2)`` per offset."""
+    product of two columns of ``W``; ``W W^T`` (upper), of two rows. ``O(N^2)`` per offset.
+    ``inv_factor``'s other triangle is set to zero (in place: no second ``N x N`` array)."""
     n = inv_factor.shape[0]
-    w = np.tril(inv_factor) if lower else np.triu(inv_factor)
+    w = inv_factor
+    keep = np.tril if lower else np.triu
+    for start in range(0, n, 64):  # the other triangle's leftovers zeroed in place, 64 rows at a time
+        w[start:start + 64] = keep(w[start:start + 64], start)
     pattern = "ki,ki->i" if lower else "ik,ik->i"
     return {int(d): (np.einsum(pattern, w[:, : n - d], w[:, d:]) if lower else
                      np.einsum(pattern, w[: n - d], w[d:])) for d in offsets}
@@ -291,6 +295,8 @@ def banded_inverse_diagonal(x: np.ndarray, band: int) -> Optional[np.ndarray]:
     numerically positive definite (the caller falls back).
     """
     n = x.shape[0]
+    if n == 0:
+        return np.empty(0)
     b = max(int(band), 1)
     edges = list(range(0, n, b)) + [n]
     blocks = list(zip(edges[:-1], edges[1:]))

@@ -159,8 +159,11 @@ def _on_factor(name: str, factor: Tuple[np.ndarray, bool], overwrite: bool,
 
     Raises:
         numpy.linalg.LinAlgError: the routine reports a zero on the factor's diagonal.
+        ValueError: the routine reports an illegal argument.
     """
     c, lower = factor
+    if np.shape(c) == (0, 0):  # nothing to invert (scipy's wrappers reject n = 0)
+        return np.zeros((0, 0))
     if not GIL_FREE:
         out, info = fallback(c, lower=lower, overwrite_c=overwrite)
     else:
@@ -169,7 +172,9 @@ def _on_factor(name: str, factor: Tuple[np.ndarray, bool], overwrite: bool,
         if out.shape[0]:
             _LAPACK[name](uplo, *flags, ctypes.byref(n), out.ctypes.data, ctypes.byref(n), ctypes.byref(status))
         info = status.value
-    if info != 0:
+    if info < 0:
+        raise ValueError(f"illegal value in argument {-info} of {name}")
+    if info > 0:
         raise np.linalg.LinAlgError(f"{name[1:]} failed (info {info})")
     return out
 
