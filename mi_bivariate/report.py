@@ -20,7 +20,7 @@ from mi_bivariate.coordinates import half_diff_from_dirs
 from mi_bivariate.images import auto_exposure, tonemap
 
 
-#: Resolution of the recovery report (dots per inch): its figure is made and saved at it.
+#: Resolution of the figures (dots per inch); the recovery report's figure is made and saved at it.
 REPORT_DPI = 110
 
 
@@ -51,7 +51,7 @@ def freeze_layout(fig: Any) -> None:
             fig.set_layout_engine(None)
 
 
-def save_figure(fig: Any, path: PathLike, dpi: int = 110, tight: bool = True, close: bool = True) -> Path:
+def save_figure(fig: Any, path: PathLike, dpi: int = REPORT_DPI, tight: bool = True, close: bool = True) -> Path:
     """Save a matplotlib figure atomically (format from the suffix) and close it (unless ``close=False``).
 
     ``tight=False`` skips ``bbox_inches="tight"`` (an extra draw of the whole
