@@ -22,6 +22,9 @@ from mi_bivariate.images import auto_exposure, tonemap
 
 #: Resolution of the figures (dots per inch); the recovery report's figure is made and saved at it.
 REPORT_DPI = 110
+#: The recovery report's subplot parameters (13 x 8 in, 2 x 3 panels): what ``tight_layout``
+#: chose for it (``tests/test_report.py`` checks that no text leaves the figure or overlaps).
+RECOVERY_REPORT_LAYOUT = dict(left=0.045, right=0.96, bottom=0.07, top=0.92, wspace=0.36, hspace=0.17)
 
 
 def pyplot():
@@ -55,8 +58,8 @@ def save_figure(fig: Any, path: PathLike, dpi: int = REPORT_DPI, tight: bool = T
     """Save a matplotlib figure atomically (format from the suffix) and close it (unless ``close=False``).
 
     ``tight=False`` skips ``bbox_inches="tight"`` (an extra draw of the whole
-    figure) for figures already laid out by ``tight_layout`` (:func:`freeze_layout`
-    then spares savefig's own extra draw). A figure made at ``dpi`` (e.g.
+    figure) for figures already laid out, by fixed subplot parameters or by
+    ``tight_layout`` (:func:`freeze_layout` then spares savefig's own extra draw). A figure made at ``dpi`` (e.g.
     ``plt.subplots(..., dpi=dpi)``) reuses the text layout of its ``tight_layout``.
     """
     path = Path(path)
@@ -250,7 +253,9 @@ def write_recovery_report(result: Any, path: PathLike, rerender: Optional[np.nda
     axes[1, 2].set_ylabel("log10 predicted L f", fontsize=8)
     axes[1, 2].set_title(f"fit: relative residual {result.relative_residual():.4f}", fontsize=9)
     fig.suptitle(result.adequacy.summary(), fontsize=9)
-    fig.tight_layout()
+    # A fixed layout: this figure's panels, titles and tick labels do not change size with the
+    # data, and tight_layout measures every text once more before the draw (~0.2 s of ~0.5 s).
+    fig.subplots_adjust(**RECOVERY_REPORT_LAYOUT)
     return save_figure(fig, path, dpi=REPORT_DPI, tight=False)
 
 

@@ -50,8 +50,8 @@ def test_report_writes_either_way(tmp_path, recovery, path_trace):
 
 
 def test_report_is_drawn_once_at_its_own_resolution(tmp_path, recovery, monkeypatch):
-    """savefig draws the laid-out report once, at the figure's own dpi; savefig's own extra,
-    layout-only draw (what it does for a figure left with a layout engine) gives the same picture."""
+    """savefig draws the report once, at the figure's own dpi: no layout engine is left on it to
+    ask for savefig's extra, layout-only draw, and no ``bbox_inches="tight"`` pass."""
     import matplotlib.figure
     from PIL import Image
 
@@ -65,12 +65,74 @@ def test_report_is_drawn_once_at_its_own_resolution(tmp_path, recovery, monkeypa
 
     monkeypatch.setattr(matplotlib.figure.Figure, "savefig", counting_save)
     report.write_recovery_report(recovery[0], tmp_path / "once.png")
-    monkeypatch.setattr(report, "freeze_layout", lambda fig: None)
-    report.write_recovery_report(recovery[0], tmp_path / "twice.png")
-    assert draws == [[report.REPORT_DPI], [report.REPORT_DPI] * 2]
-    with Image.open(tmp_path / "once.png") as once, Image.open(tmp_path / "twice.png") as twice:
+    assert draws == [[report.REPORT_DPI]]
+    with Image.open(tmp_path / "once.png") as once:
         assert once.size == (13 * report.REPORT_DPI, 8 * report.REPORT_DPI)
-        np.testing.assert_array_equal(np.asarray(once), np.asarray(twice))
+
+
+def _report_figure(recovery, tmp_path, monkeypatch, layout=None):
+    """The recovery report's figure as saved (drawn, not closed); ``layout`` replaces its subplot parameters."""
+    saved = []
+    save = report.save_figure
+
+    def keep(fig, *args, **kwargs):
+        saved.append(fig)
+        return save(fig, *args, **{**kwargs, "close": False})
+
+    monkeypatch.setattr(report, "save_figure", keep)
+    if layout is not None:
+        monkeypatch.setattr(report, "RECOVERY_REPORT_LAYOUT", layout)
+    report.write_recovery_report(recovery[0], tmp_path / "r.png")
+    return saved[0]
+
+
+def _layout_problems(fig):
+    """Texts (titles, axis labels, tick labels, the suptitle) outside the figure, overlapping
+    another panel's texts, or over another panel's plotting area (colorbars count as panels; what
+    the layout decides, not how a panel spaces its own ticks); empty when clean."""
+    renderer = fig.canvas.get_renderer()
+    texts, areas = [], []
+    for i, ax in enumerate(fig.axes):
+        if not ax.get_visible():
+            continue
+        if ax.axison:
+            areas.append((i, ax.get_window_extent(renderer)))
+        parts = [ax.title, ax._left_title, ax._right_title]
+        if ax.axison:
+            for axis in (ax.xaxis, ax.yaxis):
+                parts += [axis.label] + [t for t in axis.get_ticklabels() if t.get_visible()]
+        texts += [(f"axes {i}: {t.get_text()!r}", i, t.get_window_extent(renderer)) for t in parts
+                  if t.get_text() and t.get_visible()]
+    texts.append((f"suptitle", -1, fig._suptitle.get_window_extent(renderer)))
+
+    def overlap(a, b):
+        return min(a.x1, b.x1) - max(a.x0, b.x0) > 0.5 and min(a.y1, b.y1) - max(a.y0, b.y0) > 0.5
+
+    whole = fig.bbox
+    problems = [f"{name} leaves the figure" for name, _, box in texts
+                if box.x0 < whole.x0 - 0.5 or box.y0 < whole.y0 - 0.5 or box.x1 > whole.x1 + 0.5
+                or box.y1 > whole.y1 + 0.5]
+    problems += [f"{na} overlaps {nb}" for k, (na, ia, a) in enumerate(texts) for nb, ib, b in texts[k + 1:]
+                 if ia != ib and overlap(a, b)]
+    problems += [f"{name} lies over axes {j}" for name, i, box in texts for j, area in areas
+                 if j != i and overlap(box, area)]
+    return problems
+
+
+def test_report_layout_keeps_every_text_inside_and_apart(tmp_path, recovery, monkeypatch):
+    """The fixed subplot parameters leave every panel's texts inside the figure and clear of the
+    others; the same check finds the overlaps of a cramped layout (it can fail)."""
+    import matplotlib.pyplot as plt
+
+    fig = _report_figure(recovery, tmp_path, monkeypatch)
+    assert len(fig.axes) == 9                      # six panels, three colorbars
+    assert _layout_problems(fig) == []
+    plt.close(fig)
+    cramped = dict(report.RECOVERY_REPORT_LAYOUT, wspace=0.05, top=0.99)
+    fig = _report_figure(recovery, tmp_path, monkeypatch, layout=cramped)
+    problems = _layout_problems(fig)
+    plt.close(fig)
+    assert any("leaves the figure" in p for p in problems) and any("lies over axes" in p for p in problems)
 
 
 def test_a_frozen_layout_stays_frozen_under_autolayout(tmp_path):
