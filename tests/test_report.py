@@ -100,7 +100,8 @@ def _layout_problems(fig):
         parts = [ax.title, ax._left_title, ax._right_title]
         if ax.axison:
             for axis in (ax.xaxis, ax.yaxis):
-                parts += [axis.label] + [t for t in axis.get_ticklabels() if t.get_visible()]
+                # the ticks drawn (those inside the view limits, as Axis.draw takes them)
+                parts += [axis.label] + [tick.label1 for tick in axis._update_ticks()]
         texts += [(f"axes {i}: {t.get_text()!r}", i, t.get_window_extent(renderer)) for t in parts
                   if t.get_text() and t.get_visible()]
     texts.append((f"suptitle", -1, fig._suptitle.get_window_extent(renderer)))
