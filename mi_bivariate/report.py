@@ -59,8 +59,9 @@ def save_figure(fig: Any, path: PathLike, dpi: int = REPORT_DPI, tight: bool = T
 
     ``tight=False`` skips ``bbox_inches="tight"`` (an extra draw of the whole
     figure) for figures already laid out, by fixed subplot parameters or by
-    ``tight_layout`` (:func:`freeze_layout` then spares savefig's own extra draw). A figure made at ``dpi`` (e.g.
-    ``plt.subplots(..., dpi=dpi)``) reuses the text layout of its ``tight_layout``.
+    ``tight_layout`` (:func:`freeze_layout` then spares savefig's own extra draw).
+    A figure made at ``dpi`` (e.g. ``plt.subplots(..., dpi=dpi)``) reuses the text
+    layout of its ``tight_layout``.
     """
     path = Path(path)
     fmt = path.suffix.lstrip(".") or "png"
@@ -253,8 +254,9 @@ def write_recovery_report(result: Any, path: PathLike, rerender: Optional[np.nda
     axes[1, 2].set_ylabel("log10 predicted L f", fontsize=8)
     axes[1, 2].set_title(f"fit: relative residual {result.relative_residual():.4f}", fontsize=9)
     fig.suptitle(result.adequacy.summary(), fontsize=9)
-    # A fixed layout: this figure's panels, titles and tick labels do not change size with the
-    # data, and tight_layout measures every text once more before the draw (~0.2 s of ~0.5 s).
+    # A fixed layout: this figure's panels and titles are the same for every recovery and its
+    # tick labels change little, while tight_layout measures every text once more before the
+    # draw (~0.2 s of ~0.5 s).
     fig.subplots_adjust(**RECOVERY_REPORT_LAYOUT)
     return save_figure(fig, path, dpi=REPORT_DPI, tight=False)
 

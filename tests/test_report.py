@@ -104,7 +104,7 @@ def _layout_problems(fig):
                 parts += [axis.label] + [tick.label1 for tick in axis._update_ticks()]
         texts += [(f"axes {i}: {t.get_text()!r}", i, t.get_window_extent(renderer)) for t in parts
                   if t.get_text() and t.get_visible()]
-    texts.append((f"suptitle", -1, fig._suptitle.get_window_extent(renderer)))
+    texts.append(("suptitle", -1, fig._suptitle.get_window_extent(renderer)))
 
     def overlap(a, b):
         return min(a.x1, b.x1) - max(a.x0, b.x0) > 0.5 and min(a.y1, b.y1) - max(a.y0, b.y0) > 0.5
