@@ -133,7 +133,7 @@ def mis_lighting_matrix_reference(obs: Observations, probe: Any, n_t: int = 32, 
     offsets = hemisphere_offsets(len(obs), seed)
     counts = strategy_counts(n_dirs)
     n_env = counts["environment"]
-    pool = np.array(environment_pool(probe, n_env, seed, stream=0)).reshape(n_env, ENV_SHIFTS, 8)
+    pool = np.array(environment_pool(probe, n_env, seed, stream=0)).reshape(ENV_SHIFTS, n_env, 8)
     env = environment_proxy(probe)
     z = float(np.sum(luminance(probe.data) * probe.solid_angles()))
     axis = np.asarray(env.axis)
@@ -158,7 +158,7 @@ def mis_lighting_matrix_reference(obs: Observations, probe: Any, n_t: int = 32, 
         # environment: the pool entry of the row's slot, frac(4096 shift_1) in 64 slots
         fine = offsets[sel, 0].astype(np.float64) * 4096.0
         slot = np.minimum(((fine - np.floor(fine)) * ENV_SHIFTS).astype(int), ENV_SHIFTS - 1)
-        pooled = pool[:, slot, :].transpose(1, 0, 2)                          # (b, K_e, 8)
+        pooled = pool[slot]                                                   # (b, K_e, 8)
         env_world, env_pdf = _unit(pooled[..., :3].astype(np.float64)), pooled[..., 3].astype(np.float64)
         dirs = np.concatenate([world, env_world], axis=1)                     # (b, K, 3)
         is_env = np.arange(dirs.shape[1]) >= world.shape[1]

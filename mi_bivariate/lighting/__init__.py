@@ -52,12 +52,12 @@ from the point, offset along the geometric normal exactly as Mitsuba's
 contribute nothing. With ``max_depth=2`` renders (no interreflection) the
 model is then exact for any shape.
 
-Rows are ordered along a space-filling curve of their normals and lanes run
-over (direction, row), so consecutive lanes read nearby envmap texels and
-splat into a cache-resident target. Memory: the ``(M, n_t * n_s, 3)
-float32`` result (94 MB at M = 8000, 32 x 32) plus, per chunk, a
-:data:`CHUNK_BYTES` target per thread and its packed copy; the kernel itself
-stores no per-direction arrays. Measured at M = 8000, K = 32000: peak RSS
+Rows are ordered along a space-filling curve of their normals (a chunk's
+rows are neighbours) and lanes run over (row, direction): a row's lanes are
+contiguous, so each thread splats into the few rows its block of lanes covers.
+Memory: the ``(M, n_t * n_s, 3) float32`` result (94 MB at M = 8000,
+32 x 32) plus, per chunk, a :data:`CHUNK_BYTES` target, a copy of it per
+thread and its packed copy; the kernel itself stores no per-direction arrays. Measured at M = 8000, K = 32000: peak RSS
 grows by ~200 MB. Accumulation order across threads varies, so results agree
 between runs to float32 rounding (~1e-7 relative), not bit for bit.
 """
@@ -91,8 +91,11 @@ __all__ = ["CHUNK_BYTES", "ENV_SHIFTS", "MIS_FRACTIONS", "PEAK_T_MAX", "PROGRESS
            "direction_pairs", "environment_pool", "hemisphere_offsets", "light_directions", "lighting_matrix",
            "row_frames", "strategy_counts", "texel_lighting_matrix"]
 
-#: Size of one chunk's scatter target (one thread's copy).
-CHUNK_BYTES = 2 * 2**20
+#: Size of one chunk's scatter target (each thread's copy is as big). A thread's block of lanes
+#: splats into the few rows it covers, so the size sets how many kernels a matrix takes, not the
+#: cache's working set: at 32 x 32, 1024 rows per kernel (``docs/recovery.md``, Speed, Round 16:
+#: 128, 256, 512, 1024 and 2048 rows measured).
+CHUNK_BYTES = 16 * 2**20
 
 #: Show a progress bar when a job has more (normal, direction) pairs than this.
 PROGRESS_PAIRS = 5 * 10**8
@@ -130,8 +133,7 @@ def _check_inputs(obs: Observations, probes: List[Any], n_t: int, n_s: int, n_di
 def _chunk_rows(n_nodes: int, chunk: Optional[int]) -> int:
     if chunk is not None:
         return max(1, int(chunk))
-    # Each thread's copy of the scatter target (16 B per node and row) should
-    # stay in a 2 MB L2 cache.
+    # 16 B per node and row in each thread's copy of the scatter target.
     return max(16, CHUNK_BYTES // (n_nodes * 16))
 
 

@@ -82,14 +82,14 @@ def environment_pool(probe: Any, n_points: int, seed: int = 0, stream: int = 0) 
     Fibonacci point shifted by ``q`` (as :func:`~mi_bivariate.lighting.kernels._lattice_lanes`
     shifts a row's) through ``envmap.sample_direction``: the world direction, its solid-angle
     density and the radiance there (``weight * pdf``), :data:`_POOL_FLOATS` floats at entry
-    ``k * ENV_SHIFTS + q`` (the shifts of one point side by side: the rows of a chunk read
-    neighbouring entries).
+    ``q * n_points + k`` (a shift's points in lattice order: a row reads its shift's entries
+    one after the other, as its lanes run).
     """
     rng = np.random.default_rng([int(seed), int(stream), 0x5EED])
     shifts = mi.Float(rng.random((ENV_SHIFTS, 2), dtype=np.float32).reshape(-1))
     idx = dr.arange(mi.UInt32, int(n_points) * ENV_SHIFTS)
-    k = idx // ENV_SHIFTS
-    q = idx - k * ENV_SHIFTS
+    q = idx // int(n_points)
+    k = idx - q * int(n_points)
     u1, u2 = fibonacci_point(k, n_points, dr.gather(mi.Float, shifts, 2 * q),
                               dr.gather(mi.Float, shifts, 2 * q + 1))
     ds, weight = probe.emitter().sample_direction(dr.zeros(mi.Interaction3f), mi.Point2f(u1, u2))
@@ -275,9 +275,9 @@ def _mis_lanes(data: Any, m: int, probe: Any, strategy: str, counts: dict,
     row, x_axis, y_axis, normal, sin_v, cos_v, u1, u2, _ = _lattice_lanes(data, m, counts[strategy])
     own = None  # the environment lanes' true density p_env
     if strategy == "environment" and pool is not None:
-        k = dr.arange(mi.UInt32, m * counts[strategy]) // m
+        k = dr.arange(mi.UInt32, m * counts[strategy]) - row * counts[strategy]  # lanes: row, then point
         shift = dr.gather(mi.Float, data, row * (4 * _PACKETS) + 11)  # the row's own random shift_1
-        entry = k * ENV_SHIFTS + _pool_slot(shift)
+        entry = _pool_slot(shift) * counts[strategy] + k
         head = dr.gather(mi.Vector4f, pool, 2 * entry)
         tail = dr.gather(mi.Vector4f, pool, 2 * entry + 1)
         d, own, radiance = mi.Vector3f(head.x, head.y, head.z), head.w, mi.Color3f(tail.x, tail.y, tail.z)
