@@ -13,6 +13,7 @@ import dataclasses
 import math
 import os
 
+import drjit as dr
 import numpy as np
 import pytest
 from reference_lighting import lighting_matrix_reference, mis_lighting_matrix_reference
@@ -118,14 +119,37 @@ def test_light_directions_are_uniform_hemisphere_pairs():
     assert np.allclose(td[:, :2000], td[:, 2000:], atol=1e-9)
 
 
-def test_deterministic_and_chunking_invariant():
+@pytest.mark.parametrize("sampling", ["mis", "uniform"])
+def test_deterministic_and_chunking_invariant(sampling):
+    # chunk=7: eight chunks, each copied into L while the next one's kernel runs (lighting._fill)
     obs = random_observations(50, seed=5)
     probe = synthetic_probe()
-    a = lighting.lighting_matrix(obs, probe, n_t=8, n_s=8, n_dirs=2000, seed=1)
-    b = lighting.lighting_matrix(obs, probe, n_t=8, n_s=8, n_dirs=2000, seed=1, chunk=7)
-    c = lighting.lighting_matrix(obs, probe, n_t=8, n_s=8, n_dirs=2000, seed=2)
+    a = lighting.lighting_matrix(obs, probe, n_t=8, n_s=8, n_dirs=2000, seed=1, sampling=sampling)
+    b = lighting.lighting_matrix(obs, probe, n_t=8, n_s=8, n_dirs=2000, seed=1, chunk=7, sampling=sampling)
+    c = lighting.lighting_matrix(obs, probe, n_t=8, n_s=8, n_dirs=2000, seed=2, sampling=sampling)
     assert np.allclose(a, b, rtol=1e-5, atol=1e-6 * a.max())
     assert not np.allclose(a, c, rtol=1e-3, atol=0)
+
+
+def test_texel_matrix_chunking_invariant():
+    obs = random_observations(50, seed=6)
+    probe = synthetic_probe()
+    a = lighting.texel_lighting_matrix(obs, probe, n_t=8, n_s=8, downsample=2)
+    b = lighting.texel_lighting_matrix(obs, probe, n_t=8, n_s=8, downsample=2, chunk=7)
+    assert a.max() > 0.0 and np.allclose(a, b, rtol=1e-5, atol=1e-6 * a.max())
+
+
+def test_chunk_rows_keep_every_threads_target_copy_within_budget():
+    # ReduceMode.Expand gives each Dr.Jit thread a copy of the chunk's target (LLVM backend).
+    threads = dr.thread_count()
+    try:
+        for n in (1, 2, 8, 64):
+            dr.set_thread_count(n)
+            rows = lighting._chunk_rows(32 * 32, None)
+            assert rows * 32 * 32 * 16 * n <= max(lighting.CHUNK_BYTES, 16 * 32 * 32 * 16 * n)
+            assert rows * 32 * 32 * 16 * n > lighting.CHUNK_BYTES // 2 or rows == 16
+    finally:
+        dr.set_thread_count(threads)
 
 
 def test_stacked_probes_use_their_own_probe():

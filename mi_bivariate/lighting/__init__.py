@@ -55,32 +55,36 @@ model is then exact for any shape.
 Rows are ordered along a space-filling curve of their normals (a chunk's
 rows are neighbours) and lanes run over (row, direction): a row's lanes are
 contiguous, so each thread splats into the few rows its block of lanes covers.
+Each chunk's kernels are launched and the previous chunk is copied into L while
+they run (:func:`_fill`).
 Memory: the ``(M, n_t * n_s, 3) float32`` result (94 MB at M = 8000,
-32 x 32) plus, per chunk, a :data:`CHUNK_BYTES` target, a copy of it per
-thread and its packed copy; the kernel itself stores no per-direction arrays. Measured at M = 8000, K = 32000: peak RSS
-grows by ~200 MB. Accumulation order across threads varies, so results agree
+32 x 32) plus :data:`CHUNK_BYTES` for the running chunk's target and its
+per-thread copies (the rows per chunk shrink as Dr.Jit's threads grow), and the
+previous chunk's target while it is copied; the kernel itself stores no
+per-direction arrays. Accumulation order across threads varies, so results agree
 between runs to float32 rounding (~1e-7 relative), not bit for bit.
 """
 
 from __future__ import annotations
 
 import sys
-from typing import Any, Callable, List, Optional, Sequence, Tuple, Union
+from typing import Any, Callable, Iterable, List, Optional, Sequence, Tuple, Union
 
+import drjit as dr
 import mitsuba as mi
 import numpy as np
 
 from mi_bivariate.capture import Observations
 from mi_bivariate.errors import InputError
 from mi_bivariate.lighting.directions import direction_pairs, hemisphere_offsets, light_directions, row_frames
-from mi_bivariate.lighting.kernels import _lighting_chunk, _row_packets, _spatial_order, _texel_chunk
+from mi_bivariate.lighting.kernels import _lighting_target, _rgb_rows, _row_packets, _spatial_order, _texel_target
 from mi_bivariate.lighting.mis import (
     ENV_SHIFTS,
     MIS_FRACTIONS,
     PEAK_T_MAX,
     POOL_BYTES,
     SAMPLINGS,
-    _mis_chunk,
+    _mis_target,
     environment_pool,
     pool_bytes,
     strategy_counts,
@@ -91,11 +95,13 @@ __all__ = ["CHUNK_BYTES", "ENV_SHIFTS", "MIS_FRACTIONS", "PEAK_T_MAX", "PROGRESS
            "direction_pairs", "environment_pool", "hemisphere_offsets", "light_directions", "lighting_matrix",
            "row_frames", "strategy_counts", "texel_lighting_matrix"]
 
-#: Size of one chunk's scatter target (each thread's copy is as big). A thread's block of lanes
-#: splats into the few rows it covers, so the size sets how many kernels a matrix takes, not the
-#: cache's working set: at 32 x 32, 1024 rows per kernel (``docs/recovery.md``, Speed, Round 16:
-#: 128, 256, 512, 1024 and 2048 rows measured).
-CHUNK_BYTES = 16 * 2**20
+#: Memory for one chunk's scatter targets: on the LLVM backend ``ReduceMode.Expand`` gives each
+#: of Dr.Jit's threads its own ``(rows, n_t * n_s, 4) float32`` copy (measured: peak RSS grows
+#: ~14 MB per thread for a 16 MB target), so the rows per kernel shrink as threads grow. A
+#: thread's block of lanes splats into the few rows it covers, so the size sets how many kernels
+#: a matrix takes, not the cache's working set: at 32 x 32 and 2 threads, 1024 rows per kernel
+#: (``docs/recovery.md``, Speed, Round 16: 128, 256, 512, 1024 and 2048 rows measured).
+CHUNK_BYTES = 32 * 2**20
 
 #: Show a progress bar when a job has more (normal, direction) pairs than this.
 PROGRESS_PAIRS = 5 * 10**8
@@ -130,12 +136,32 @@ def _check_inputs(obs: Observations, probes: List[Any], n_t: int, n_s: int, n_di
         raise InputError(None, "some observed normals face away from their view (n . v <= 0)")
 
 
+def _target_copies() -> int:
+    """Copies of a chunk's scatter target a kernel holds: one per Dr.Jit thread on the LLVM
+    backend (``ReduceMode.Expand``), one on CUDA."""
+    if (mi.variant() or "").startswith("cuda"):
+        return 1
+    return max(1, dr.thread_count())
+
+
 def _chunk_rows(n_nodes: int, chunk: Optional[int]) -> int:
     if chunk is not None:
         return max(1, int(chunk))
-    # 16 B per node and row in each thread's copy of the scatter target.
-    return max(16, CHUNK_BYTES // (n_nodes * 16))
+    # 16 B per node and row in each copy of the scatter target.
+    return max(16, CHUNK_BYTES // (n_nodes * 16 * _target_copies()))
 
+
+def _fill(L: np.ndarray, chunks: Iterable[Tuple[np.ndarray, Any]]) -> None:
+    """Copy launched chunks ``(rows, target)`` into ``L[rows]`` (in place), each while the next
+    chunk's kernel runs: the copy (and the first touch of L's pages, 0.05-0.2 s of a
+    94 MB matrix on the benchmark machine) overlaps the kernels instead of following them."""
+    ready = None
+    for rows, target in chunks:
+        if ready is not None:
+            L[ready[0]] = ready[1]
+        ready = rows, _rgb_rows(target, len(rows), L.shape[1])
+    if ready is not None:
+        L[ready[0]] = ready[1]
 
 
 def _occluder_scene(occluder: Any) -> Any:
@@ -217,7 +243,7 @@ def lighting_matrix(obs: Observations, probes: Union[Any, Sequence[Any]], n_t: i
     _check_inputs(obs, probes, n_t, n_s, n_dirs)
     if sampling not in SAMPLINGS:
         raise InputError(None, f"unknown sampling {sampling!r}", f"use one of {', '.join(SAMPLINGS)}")
-    chunk_fn = _mis_chunk if sampling == "mis" else _lighting_chunk
+    target_fn = _mis_target if sampling == "mis" else _lighting_target
     m_total, n_nodes = len(obs), n_t * n_s
     scenes, scene_of_row = _occluder_per_row(obs, occluder)
     if scenes and not obs.has_positions:
@@ -244,16 +270,20 @@ def lighting_matrix(obs: Observations, probes: Union[Any, Sequence[Any]], n_t: i
 
     n_env = strategy_counts(n_dirs).get("environment", 0) if sampling == "mis" else 0
     pooled = n_env > 0 and pool_bytes(n_env) <= POOL_BYTES
-    pool, pool_of = None, None
+
+    def chunks():
+        pool, pool_of = None, None
+        for p, o, rows in jobs:  # grouped by probe: one probe's pool is held at a time
+            extra = {}
+            if pooled:
+                if pool_of != p:  # the environment's directions, sampled once per probe (lighting.mis)
+                    pool, pool_of = None, p
+                    pool = environment_pool(probes[p], n_env, seed, stream=p)
+                extra = {"pool": pool}
+            yield rows, target_fn(packets[rows], probes[p], n_t, n_s, n_dirs, scenes[o] if o >= 0 else None, **extra)
+
     L = np.empty((m_total, n_nodes, 3), dtype=np.float32)
-    for p, o, rows in jobs:  # grouped by probe: one probe's pool is held at a time
-        extra = {}
-        if pooled:
-            if pool_of != p:  # the environment's directions, sampled once per probe (lighting.mis)
-                pool, pool_of = None, p
-                pool = environment_pool(probes[p], n_env, seed, stream=p)
-            extra = {"pool": pool}
-        L[rows] = chunk_fn(packets[rows], probes[p], n_t, n_s, n_dirs, scenes[o] if o >= 0 else None, **extra)
+    _fill(L, chunks())
     if obs.has_footprints:
         _footprint_rows(L, obs, n_nodes, chunk, lambda sub, b: lighting_matrix(
             sub, probes, n_t=n_t, n_s=n_s, n_dirs=n_dirs, seed=seed + 1 + b, chunk=chunk, progress=False,
@@ -321,19 +351,23 @@ def texel_lighting_matrix(obs: Observations, probes: Union[Any, Sequence[Any]], 
     rows_per_chunk = _chunk_rows(n_nodes, chunk)
     order = _spatial_order(obs.normals)
     order = order[np.isin(order, _centre_rows(obs))] if obs.has_footprints else order
+
+    def chunks():
+        for p in np.unique(obs.probe_index):
+            probe = probes[int(p)]
+            factor = max(f for f in range(1, downsample + 1) if probe.width % f == 0)
+            coarse = probe.downsampled(factor)
+            directions, solid_angle = coarse.texel_directions()
+            radiance = coarse.data.reshape(-1, 3).astype(np.float64) * solid_angle[:, None]
+            texels = (mi.Vector3f(*directions.astype(np.float32).T),
+                      mi.Color3f(*radiance.astype(np.float32).T), len(solid_angle))
+            rows = order[obs.probe_index[order] == p]
+            for i in range(0, len(rows), rows_per_chunk):
+                sel = rows[i:i + rows_per_chunk]
+                yield sel, _texel_target(packets[sel], texels, n_t, n_s)
+
     L = np.empty((m_total, n_nodes, 3), dtype=np.float32)
-    for p in np.unique(obs.probe_index):
-        probe = probes[int(p)]
-        factor = max(f for f in range(1, downsample + 1) if probe.width % f == 0)
-        coarse = probe.downsampled(factor)
-        directions, solid_angle = coarse.texel_directions()
-        radiance = coarse.data.reshape(-1, 3).astype(np.float64) * solid_angle[:, None]
-        texels = (mi.Vector3f(*directions.astype(np.float32).T),
-                  mi.Color3f(*radiance.astype(np.float32).T), len(solid_angle))
-        rows = order[obs.probe_index[order] == p]
-        for i in range(0, len(rows), rows_per_chunk):
-            sel = rows[i:i + rows_per_chunk]
-            L[sel] = _texel_chunk(packets[sel], texels, n_t, n_s)
+    _fill(L, chunks())
     if obs.has_footprints:
         _footprint_rows(L, obs, n_nodes, chunk, lambda sub, b: texel_lighting_matrix(
             sub, probes, n_t=n_t, n_s=n_s, downsample=downsample, chunk=chunk))

@@ -3,9 +3,11 @@
 One lane per (row, lattice point); per lane the light direction(s), the envmap
 lookup(s), the Rusinkiewicz angles and a bilinear splat of RGB, padded to a 4-wide
 packet, into ``[rows, n_t * n_s, 4]`` with ``ReduceMode.Expand`` (per-thread copies of
-the target, no atomics). The chunk functions return the ``(m, n_t * n_s, 3)`` RGB
-view of that target (not copied): :func:`mi_bivariate.lighting.lighting_matrix`
-writes it straight into L.
+the target, no atomics). The ``*_target`` functions return that target with its kernel
+launched and not awaited (on the LLVM backend Dr.Jit runs it on its thread pool while
+Python goes on); :func:`_rgb_rows` is its ``(m, n_t * n_s, 3)`` RGB view (not copied),
+which :func:`mi_bivariate.lighting.lighting_matrix` copies into L while the next chunk's
+kernel runs.
 """
 
 from __future__ import annotations
@@ -122,9 +124,23 @@ def _occluded(data: Any, row: Any, d: Any, active: Any, occluder: Any) -> Any:
     return shadow & occluder.ray_test(si.spawn_ray(d), active=shadow & active)
 
 
-def _lighting_chunk(packets: np.ndarray, probe: Any, n_t: int, n_s: int, n_dirs: int,
-                    occluder: Any = None) -> np.ndarray:
-    """Rows of L for one chunk: one fused kernel, ``(m, n_t * n_s, 3) float32``.
+def _launched(target: Any) -> Any:
+    """``target`` with its kernel launched (``dr.eval``; on the LLVM backend it runs
+    asynchronously until something reads the data)."""
+    dr.eval(target)
+    return target
+
+
+def _rgb_rows(target: Any, m: int, n_nodes: int) -> np.ndarray:
+    """The ``(m, n_nodes, 3) float32`` RGB view of a chunk's 4-wide target (waits for its kernel;
+    a view of Dr.Jit's memory on the LLVM backend, not a copy)."""
+    return target.numpy().reshape(m, n_nodes, 4)[:, :, :3]
+
+
+def _lighting_target(packets: np.ndarray, probe: Any, n_t: int, n_s: int, n_dirs: int,
+                     occluder: Any = None) -> Any:
+    """Rows of L for one chunk by the uniform lattice: one fused kernel, launched
+    (:func:`_launched`; :func:`_rgb_rows` reads it).
 
     One lane per mirrored direction pair: two envmap lookups (and, with an
     ``occluder`` scene, two shadow rays), one set of Rusinkiewicz angles and
@@ -151,7 +167,9 @@ def _lighting_chunk(packets: np.ndarray, probe: Any, n_t: int, n_s: int, n_dirs:
         lit_minus = ~_occluded(data, row, d_minus, True, occluder)
         radiance = probe.eval_dr(d_plus, lit_plus) + probe.eval_dr(d_minus, lit_minus)  # 0 where blocked
     weight = lz * (_TWO_PI / (2 * n_pairs))
-    return _splat(m, row, lx, ly, lz, sin_v, cos_v, radiance * weight, n_t, n_s)
+    target = dr.zeros(mi.Float, m * n_t * n_s * 4)
+    _splat(m, row, lx, ly, lz, sin_v, cos_v, radiance * weight, n_t, n_s, target=target)
+    return _launched(target)
 
 
 
@@ -195,12 +213,12 @@ def _splat(m: int, row: Any, lx: Any, ly: Any, lz: Any, sin_v: Any, cos_v: Any, 
                           mode=dr.ReduceMode.Expand)
     if given:
         return None
-    out = target.numpy().reshape(m, n_nodes, 4)
-    return out[:, :, :3]  # a view: the caller copies it into L once
+    return _rgb_rows(target, m, n_nodes)  # a view: the caller copies it into L once
 
 
-def _texel_chunk(packets: np.ndarray, texels: Tuple[Any, Any, int], n_t: int, n_s: int) -> np.ndarray:
-    """Rows of the texel-quadrature L for one chunk, ``(m, n_t * n_s, 3) float32``."""
+def _texel_target(packets: np.ndarray, texels: Tuple[Any, Any, int], n_t: int, n_s: int) -> Any:
+    """Rows of the texel-quadrature L for one chunk, launched (:func:`_launched`; :func:`_rgb_rows`
+    reads it)."""
     directions, radiance_weight, n_texels = texels
     m = len(packets)
     data = _row_data(packets)
@@ -213,5 +231,7 @@ def _texel_chunk(packets: np.ndarray, texels: Tuple[Any, Any, int], n_t: int, n_
     ly = p1.x * d.x + p1.y * d.y + p1.z * d.z
     lz = p2.x * d.x + p2.y * d.y + p2.z * d.z
     value = dr.gather(mi.Color3f, radiance_weight, texel) * lz
-    return _splat(m, row, lx, ly, lz, p0.w, p1.w, value, n_t, n_s, active=lz > 0.0)
+    target = dr.zeros(mi.Float, m * n_t * n_s * 4)
+    _splat(m, row, lx, ly, lz, p0.w, p1.w, value, n_t, n_s, active=lz > 0.0, target=target)
+    return _launched(target)
 

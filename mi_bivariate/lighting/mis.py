@@ -35,7 +35,8 @@ import numpy as np
 
 from mi_bivariate.common import LUMINANCE_WEIGHTS, luminance
 from mi_bivariate.lighting.directions import _TWO_PI
-from mi_bivariate.lighting.kernels import _PACKETS, _lattice_lanes, _occluded, _row_data, _splat, fibonacci_point
+from mi_bivariate.lighting.kernels import (_PACKETS, _lattice_lanes, _launched, _occluded, _rgb_rows, _row_data, _splat,
+                                          fibonacci_point)
 
 #: Light-direction sampling of :func:`lighting_matrix`: the fraction of the K
 #: directions drawn by each strategy of the ``"mis"`` mixture (see :func:`_mis_chunk`).
@@ -308,10 +309,18 @@ def _mis_lanes(data: Any, m: int, probe: Any, strategy: str, counts: dict,
     return row, lx, ly, lz, d, weight, sin_v, cos_v, above, radiance
 
 
-def _mis_chunk(packets: np.ndarray, probe: Any, n_t: int, n_s: int, n_dirs: int,
-               occluder: Any = None, fractions: Optional[dict] = None, pool: Any = None,
-               env_density: str = "proxy") -> np.ndarray:
-    """Rows of L for one chunk by multiple importance sampling, ``(m, n_t * n_s, 3) float32``.
+def _mis_chunk(packets: np.ndarray, probe: Any, n_t: int, n_s: int, n_dirs: int, **kwargs: Any) -> np.ndarray:
+    """Rows of L for one chunk by multiple importance sampling, ``(m, n_t * n_s, 3) float32``
+    (:func:`_mis_target`, awaited)."""
+    return _rgb_rows(_mis_target(packets, probe, n_t, n_s, n_dirs, **kwargs), len(packets), n_t * n_s)
+
+
+def _mis_target(packets: np.ndarray, probe: Any, n_t: int, n_s: int, n_dirs: int,
+                occluder: Any = None, fractions: Optional[dict] = None, pool: Any = None,
+                env_density: str = "proxy") -> Any:
+    """Rows of L for one chunk by multiple importance sampling: the chunk's 4-wide target with
+    its kernels launched (:func:`~mi_bivariate.lighting.kernels._launched`;
+    :func:`~mi_bivariate.lighting.kernels._rgb_rows` reads it).
 
     Three stratified strategies share the K directions (:data:`MIS_FRACTIONS`):
     uniform over the hemisphere (the paper's), the environment's own
@@ -335,5 +344,4 @@ def _mis_chunk(packets: np.ndarray, probe: Any, n_t: int, n_s: int, n_dirs: int,
         if occluder is not None:  # blocked directions contribute nothing (their weight needs the radiance)
             radiance = dr.select(_occluded(data, row, d, active, occluder), 0.0, radiance)
         _splat(m, row, lx, ly, lz, sin_v, cos_v, radiance * weight, n_t, n_s, active=active, target=target)
-    out = target.numpy().reshape(m, n_t * n_s, 4)
-    return out[:, :, :3]  # a view: the caller copies it into L once
+    return _launched(target)
