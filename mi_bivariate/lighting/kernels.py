@@ -88,7 +88,7 @@ def fibonacci_point(k: Any, n_points: int, shift_u: Any, shift_v: Any) -> Tuple[
 
 
 def _lattice_lanes(data: Any, m: int, n_points: int):
-    """One lane per (lattice point, row) of a chunk of ``m`` rows: the row frame and the
+    """One lane per (row, lattice point) of a chunk of ``m`` rows: the row frame and the
     row's Cranley-Patterson-shifted Fibonacci lattice point ``(u1, u2)`` in [0, 1)^2.
 
     Lane order: row, then lattice point. A row's lanes are contiguous, so each thread's
