@@ -9,9 +9,11 @@ import pytest
 
 
 def pytest_configure(config: pytest.Config) -> None:
+    from helpers import suite_variant
+
     from mi_bivariate.variants import ensure_variant
 
-    ensure_variant("llvm_ad_rgb")
+    ensure_variant(suite_variant())
 
 
 def _data_dir() -> Path | None:

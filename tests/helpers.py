@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import os
 from typing import Tuple
 
 import numpy as np
@@ -13,6 +14,13 @@ from mi_bivariate.evaluate.config import EvalConfig
 from mi_bivariate.evaluate.renders import Renderer
 from mi_bivariate.probes import Probe
 from mi_bivariate.sources import load_probe, load_truth, resolve_materials
+from mi_bivariate.variants import DEFAULT_VARIANT
+
+
+def suite_variant() -> str:
+    """The Mitsuba variant the suite runs under: ``$MI_BIVARIATE_VARIANT`` (``cuda_ad_rgb`` on a
+    machine with a GPU: ``scripts/gpu_check.sh``) or the toolkit's default, ``llvm_ad_rgb``."""
+    return os.environ.get("MI_BIVARIATE_VARIANT") or DEFAULT_VARIANT
 
 
 def sun_sky_probe() -> Probe:

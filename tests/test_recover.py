@@ -256,7 +256,8 @@ def test_cli_recover_batch_stops_on_a_shared_problem_and_warns_for_every_photo(t
     probe.save_exr(tmp_path / "probe.exr")
     run = [sys.executable, "-m", "mi_bivariate", "recover-batch", *map(str, photos), "--probe",
            str(tmp_path / "probe.exr"), "--normals", "400", "--dirs", "2000", "--no-report"]
-    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    path = [str(Path(__file__).resolve().parents[1]), os.environ.get("PYTHONPATH", "")]
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in path if p))
     shared = subprocess.run(run + ["--out-dir", str(tmp_path / "o1"), "--grid", "1", "8"], capture_output=True,
                             text=True, env=env, timeout=300)
     errors = [line for line in shared.stderr.splitlines() if line.startswith("mi-bivariate: error:")]
