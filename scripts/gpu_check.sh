@@ -6,9 +6,10 @@
 # Runs, with MI_BIVARIATE_VARIANT=cuda_ad_rgb:
 #   1. `mi-bivariate info` (variant, GPU) and nvidia-smi's name of the card;
 #   2. the tests of the plugins (mitsuba.chi2, Mitsuba's renderer, finite-difference gradients
-#      under prb), of the lighting matrix, the renderers and `recover` (tests/GPU_TESTS below);
+#      under prb), of the lighting matrix, the renderers and `recover` (GPU_TESTS below);
 #   3. the speed benchmark (benchmarks/bench_speed.py), its peers measured in the same run;
-#   4. `recover` on the benchmark sphere under both variants, the tables compared.
+#   4. with GPU_RECOVER_INPUT=DIR (sphere.exr, probe.exr): `recover` of that image, its table to
+#      $OUT/table_cuda.npz, for scripts/gpu_compare.py to compare with llvm_ad_rgb's table elsewhere.
 # Logs go to $OUT (the device tool's folder) or ./out/gpu_check.
 #
 # Where mitsuba, drjit, OpenEXR and trimesh are not installed (a bare machine with CUDA and the
