@@ -136,6 +136,28 @@ def test_blurred_probe_warns_and_grace_does_not(data_dir):
         recover(image, probes.shared_probe("grace_latlong_1k", data_dir), geometry, **kwargs)
 
 
+def test_a_grid_without_the_packaged_basis_prior_says_so(any_probe):
+    """The packaged basis prior is learnt on 32 x 32: a recovery on another grid runs without it, and
+    says so and how to learn one for its grid; one given no basis prior (``basis_prior=None``) is not told."""
+    import warnings
+
+    from mi_bivariate.basis_prior import default_basis_prior
+    from mi_bivariate.errors import InputWarning
+    from mi_bivariate.geometry import SphereGeometry
+
+    packaged = default_basis_prior()
+    assert packaged is not None and (packaged.n_t, packaged.n_s) == (32, 32)
+    image = np.full((48, 48, 3), 0.5, np.float32)
+    geometry = SphereGeometry(24, 24, 20)
+    kwargs = dict(n_normals=400, n_dirs=1000, grid=(8, 8))
+    with pytest.warns(InputWarning, match=r"learnt on a 32 x 32 grid .* 8 x 8: .*learn-prior .*--grid 8 8") as seen:
+        result = recover(image, any_probe, geometry, **kwargs)
+    assert result.brdf.provenance.get("basis_prior") is None and len(seen) >= 1
+    with warnings.catch_warnings():
+        warnings.filterwarnings("error", message=".*basis prior.*")
+        recover(image, any_probe, geometry, basis_prior=None, **kwargs)
+
+
 def test_bad_input_is_reported(any_probe):
     from mi_bivariate.geometry import SphereGeometry
 
