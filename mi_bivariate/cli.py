@@ -113,8 +113,8 @@ def _add_recover_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--normals", type=int, default=8000, help="number of normals M")
     p.add_argument("--dirs", type=int, default=None, help="light directions per normal K (default 8000)")
     p.add_argument("--grid", type=int, nargs=2, default=(32, 32), metavar=("N_T", "N_S"),
-                   help="st grid (theta_h nodes, theta_d nodes); the packaged basis prior is learnt on 32 x 32, so "
-                        "another grid uses the smoothness prior alone unless --prior names priors learnt on it")
+                   help="st grid (theta_h nodes, theta_d nodes); the packaged priors are learnt on 32 x 32 and "
+                        "resampled to another grid, unless --prior names priors learnt on it")
     p.add_argument("--alpha", type=_parse_alpha, default=None,
                    help="smoothness weight: a number, or how to choose it: 'discrepancy' (default: the largest "
                         "weight, at most 1e-2, whose fit explains the image to within its expected error) or 'gcv'")

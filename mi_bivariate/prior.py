@@ -382,8 +382,8 @@ class Prior:
             return Prior(self.pairs, self.provenance)
         new_pairs = {}
         for name, (sigma_s, sigma_t) in self.pairs.items():
-            e_s = _resample_2d(np.log(sigma_s[:, :-1]), _nodes(self.n_t), _mids(self.n_s), _nodes(n_t), _mids(n_s))
-            e_t = _resample_2d(np.log(sigma_t[:-1, :]), _mids(self.n_t), _nodes(self.n_s), _mids(n_t), _nodes(n_s))
+            e_s = resample_2d(np.log(sigma_s[:, :-1]), _nodes(self.n_t), _mids(self.n_s), _nodes(n_t), _mids(n_s))
+            e_t = resample_2d(np.log(sigma_t[:-1, :]), _mids(self.n_t), _nodes(self.n_s), _mids(n_t), _nodes(n_s))
             new_pairs[name] = _pad_edges(np.exp(e_s), np.exp(e_t))
         prov = dict(self.provenance)
         prov["resampled_from"] = _grid_meta(self.n_t, self.n_s)
@@ -439,14 +439,18 @@ def _mids(n: int) -> np.ndarray:
     return (np.arange(n - 1) + 0.5) / (n - 1)
 
 
-def _interp_matrix(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
-    """``(len(dst), len(src))`` linear interpolation weights, clamped at the ends."""
+def interpolation_matrix(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """``(len(dst), len(src))`` linear interpolation weights from coordinates ``src`` to ``dst``,
+    clamped at the ends."""
     eye = np.eye(src.size)
     return np.stack([np.interp(dst, src, row) for row in eye], axis=1)
 
 
-def _resample_2d(values: np.ndarray, src_t, src_s, dst_t, dst_s) -> np.ndarray:
-    return _interp_matrix(src_t, dst_t) @ values @ _interp_matrix(src_s, dst_s).T
+def resample_2d(values: np.ndarray, src_t: np.ndarray, src_s: np.ndarray, dst_t: np.ndarray,
+                dst_s: np.ndarray) -> np.ndarray:
+    """``(len(dst_t), len(dst_s))`` bilinear resampling of ``values`` ``(len(src_t), len(src_s))``
+    given at coordinates ``src_t`` x ``src_s`` (clamped at the ends)."""
+    return interpolation_matrix(src_t, dst_t) @ values @ interpolation_matrix(src_s, dst_s).T
 
 
 # ---------------------------------------------------------------------------

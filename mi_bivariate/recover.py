@@ -149,8 +149,8 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
         prior: smoothness prior (default: the packaged one, resampled to ``grid``).
         basis_prior: the data-driven table prior (:mod:`mi_bivariate.basis_prior`):
             ``"default"`` the packaged one (learnt from the 73 shared MERL-NBRDF
-            materials, used when its grid matches; on another grid the recovery warns
-            and runs without it), a :class:`BasisPrior`, or
+            materials on 32 x 32, resampled to ``grid`` as the smoothness prior is), a
+            :class:`BasisPrior` (on ``grid``), or
             ``None`` for the smoothness prior alone. With it the solve runs twice:
             the first estimate and its per-node confidence give the basis prior's
             prediction, which then joins Eq. 6 as a per-node Gaussian.
@@ -254,7 +254,9 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
         "prior_winner": list(solution.winner), "prior_pair_rule": solution.pair_rule, "seed": int(seed),
         "image_weights": image_weights, "image_sigma_factors": [float(v) for v in factors],
         "basis_prior": None if basis is None else {"materials": len(basis.materials),
-                                                    "components": int(basis.basis.shape[1])},
+                                                    "components": int(basis.basis.shape[1]),
+                                                    "grid": [basis.n_t, basis.n_s],
+                                                    "resampled_from": basis.provenance.get("resampled_from")},
         "noise": None if noise_models is None else [None if v is None else [np.asarray(x).tolist() for x in v]
                                                     for v in noise_models],
         "probes": [getattr(p, "source", "?") for p in probe_list],
@@ -278,15 +280,7 @@ def _basis_prior(value: Union[BasisPrior, None, str], n_t: int, n_s: int) -> Opt
     if value != "default":
         raise InputError("basis_prior", f"must be 'default', None or a BasisPrior, got {value!r}")
     packaged = default_basis_prior()
-    if packaged is None:
-        return None
-    if (packaged.n_t, packaged.n_s) != (n_t, n_s):
-        warnings.warn(f"the packaged basis prior is learnt on a {packaged.n_t} x {packaged.n_s} grid and this "
-                      f"recovery's is {n_t} x {n_s}: the nodes the image does not observe follow the smoothness "
-                      f"prior alone (learn both priors on this grid: mi-bivariate learn-prior MATERIALS --grid "
-                      f"{n_t} {n_s} --out prior.npz, then recover --prior prior.npz)", InputWarning, stacklevel=3)
-        return None
-    return packaged
+    return None if packaged is None else packaged.resampled(n_t, n_s)
 
 
 #: The largest median ratio of a row's noise to its value that a recovery accepts: beyond it the

@@ -11,11 +11,11 @@ from mi_bivariate.errors import InputError
 N_T, N_S = 8, 7
 
 
-def _family(n: int, seed: int) -> dict:
+def _family(n: int, seed: int, n_t: int = N_T, n_s: int = N_S) -> dict:
     """Tables from a known 2-parameter family: a lobe of varying width on a Fresnel-like rise."""
     rng = np.random.default_rng(seed)
-    t = np.linspace(0, 1, N_T)[:, None]
-    s = np.linspace(0, 1, N_S)[None, :]
+    t = np.linspace(0, 1, n_t)[:, None]
+    s = np.linspace(0, 1, n_s)[None, :]
     tables = {}
     for i in range(n):
         width, rise = rng.uniform(0.1, 0.4), rng.uniform(0.5, 3.0)
@@ -61,3 +61,33 @@ def test_leave_one_out_and_files(tmp_path):
         prior.predict(np.ones((4, 4, 3)), np.ones((4, 4, 3)), np.ones((4, 4, 3)))
     with pytest.raises(InputError):
         BasisPrior.learn({"a": np.ones((N_T, N_S, 1))})
+
+
+def test_resampled_to_a_finer_grid_interpolates_and_still_predicts():
+    """On a grid whose every other node is an old node (2 (n - 1) + 1 per axis) the resampled prior has the
+    old mean, residual and per-node covariance there and their averages between; and it fills the hidden
+    nodes of a table of the same family tabulated on that grid (the property of the first test)."""
+    prior = BasisPrior.learn(_family(40, 0), components=8)
+    fine_t, fine_s = 2 * (N_T - 1) + 1, 2 * (N_S - 1) + 1
+    fine = prior.resampled(fine_t, fine_s)
+    assert (fine.n_t, fine.n_s) == (fine_t, fine_s) and fine.provenance["resampled_from"] == [N_T, N_S]
+    mean, old_mean = fine.mean.reshape(fine_t, fine_s), prior.mean.reshape(N_T, N_S)
+    np.testing.assert_allclose(mean[::2, ::2], old_mean, atol=1e-12)
+    np.testing.assert_allclose(mean[1::2, ::2], 0.5 * (old_mean[:-1] + old_mean[1:]), atol=1e-12)
+    np.testing.assert_allclose(fine.residual.reshape(fine_t, fine_s)[::2, ::2], prior.residual.reshape(N_T, N_S))
+    variance = np.einsum("nk,k,nk->n", fine.basis, fine.variances, fine.basis).reshape(fine_t, fine_s)
+    old_variance = np.einsum("nk,k,nk->n", prior.basis, prior.variances, prior.basis).reshape(N_T, N_S)
+    np.testing.assert_allclose(variance[::2, ::2], old_variance, rtol=1e-10)
+
+    truth = _family(1, 99, fine_t, fine_s)["m0"]
+    observed = np.broadcast_to((np.linspace(0, 1, fine_s) <= 0.7)[None, :, None], truth.shape)
+    first = np.where(observed, truth, truth[:, :1])
+    predicted, _ = fine.predict(first, observed.astype(float), 0.01 * first)
+    hidden = ~observed
+    err_first = np.abs(first - truth)[hidden].mean() / truth[hidden].mean()
+    err_prior = np.abs(predicted - truth)[hidden].mean() / truth[hidden].mean()
+    assert err_prior < 0.3 * err_first
+
+    assert prior.resampled(N_T, N_S) is prior
+    with pytest.raises(InputError, match="grid"):
+        prior.resampled(1, 8)

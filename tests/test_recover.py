@@ -136,13 +136,11 @@ def test_blurred_probe_warns_and_grace_does_not(data_dir):
         recover(image, probes.shared_probe("grace_latlong_1k", data_dir), geometry, **kwargs)
 
 
-def test_a_grid_without_the_packaged_basis_prior_says_so(any_probe):
-    """The packaged basis prior is learnt on 32 x 32: a recovery on another grid runs without it, and
-    says so and how to learn one for its grid; one given no basis prior (``basis_prior=None``) is not told."""
-    import warnings
-
+def test_the_packaged_basis_prior_is_resampled_to_the_recoverys_grid(any_probe):
+    """The packaged basis prior is learnt on 32 x 32; a recovery on another grid uses it resampled (as the
+    smoothness prior is), records that, and the solve's second stage uses it; ``basis_prior=None`` runs
+    without it."""
     from mi_bivariate.basis_prior import default_basis_prior
-    from mi_bivariate.errors import InputWarning
     from mi_bivariate.geometry import SphereGeometry
 
     packaged = default_basis_prior()
@@ -150,12 +148,13 @@ def test_a_grid_without_the_packaged_basis_prior_says_so(any_probe):
     image = np.full((48, 48, 3), 0.5, np.float32)
     geometry = SphereGeometry(24, 24, 20)
     kwargs = dict(n_normals=400, n_dirs=1000, grid=(8, 8))
-    with pytest.warns(InputWarning, match=r"learnt on a 32 x 32 grid .* 8 x 8: .*learn-prior .*--grid 8 8") as seen:
-        result = recover(image, any_probe, geometry, **kwargs)
-    assert result.brdf.provenance.get("basis_prior") is None and len(seen) >= 1
-    with warnings.catch_warnings():
-        warnings.filterwarnings("error", message=".*basis prior.*")
-        recover(image, any_probe, geometry, basis_prior=None, **kwargs)
+    with_basis = recover(image, any_probe, geometry, **kwargs)
+    used = with_basis.brdf.provenance["basis_prior"]
+    assert used["grid"] == [8, 8] and used["resampled_from"] == [32, 32], used
+    assert "basis prior on" in with_basis.summary()
+    without = recover(image, any_probe, geometry, basis_prior=None, **kwargs)
+    assert without.brdf.provenance["basis_prior"] is None and "basis prior off" in without.summary()
+    assert not np.allclose(with_basis.brdf.table, without.brdf.table)
 
 
 def test_bad_input_is_reported(any_probe):
