@@ -14,7 +14,7 @@ import math
 import os
 import sys
 import warnings
-from typing import Dict, Optional, Sequence
+from typing import Dict, Optional, Sequence, Tuple
 
 from mi_bivariate.errors import InputError
 
@@ -84,6 +84,16 @@ def _parse_noise(text: str):
     return (a, b)
 
 
+def _parse_rotation(text: str) -> Tuple[float, float, float]:
+    try:
+        angles = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        angles = ()
+    if len(angles) != 3 or not all(math.isfinite(v) for v in angles):
+        raise argparse.ArgumentTypeError(f"expected three angles in degrees RX,RY,RZ, got {text!r}")
+    return angles
+
+
 def _add_variant(p: argparse.ArgumentParser) -> None:
     p.add_argument("--variant", default=None,
                    help="Mitsuba variant (llvm_ad_rgb default, cuda_ad_rgb on a GPU; env MI_BIVARIATE_VARIANT)")
@@ -97,6 +107,10 @@ def _add_data(p: argparse.ArgumentParser) -> None:
 def _add_recover_options(p: argparse.ArgumentParser) -> None:
     """The options ``recover`` and ``recover-batch`` share."""
     p.add_argument("--probe", required=True, help="environment map file or shared probe name")
+    p.add_argument("--probe-rotation", type=_parse_rotation, default=None, metavar="RX,RY,RZ",
+                   help="turn the probe by these angles in degrees, about world x, then y, then z (after a shared "
+                        "probe's own rotation; world: y up, the camera on +z), for a probe stored in another "
+                        "orientation than the photo's; write a negative first angle as --probe-rotation=-90,0,0")
     p.add_argument("--sphere", default="auto", type=_parse_sphere, metavar="CX,CY,R",
                    help="sphere centre and radius in pixels (pixel centres at i+0.5, y down; write a negative "
                         "centre as --sphere=-10,32,40); default 'auto': fitted to the image (or --mask), with the "

@@ -340,6 +340,14 @@ def _recover_image(args: argparse.Namespace, image_path: str, probe, priors: tup
     return result, paths
 
 
+def _recover_probe(args: argparse.Namespace):
+    """``--probe``, turned by ``--probe-rotation`` when given."""
+    probe = load_probe(args.probe, args.data)
+    if args.probe_rotation is not None:
+        probe = probe.rotated(euler_deg=args.probe_rotation)
+    return probe
+
+
 def cmd_recover(args: argparse.Namespace) -> int:
     _check_recover_args(args)
     _check_out_file(args.out)
@@ -351,7 +359,7 @@ def cmd_recover(args: argparse.Namespace) -> int:
     args.source_names["lighting matrix L"] = str(args.probe)
     ensure_variant(args.variant)
     with jit_threads(args.threads):
-        probe = load_probe(args.probe, args.data)
+        probe = _recover_probe(args)
         result, paths = _recover_image(args, args.image, probe, _recover_priors(args), Path(args.out))
     print(result.summary())
     for p in paths:
@@ -384,7 +392,7 @@ def cmd_recover_batch(args: argparse.Namespace) -> int:
     ensure_variant(args.variant)
     failed: List[str] = []
     with jit_threads(args.threads):
-        probe = load_probe(args.probe, args.data)
+        probe = _recover_probe(args)
         priors = _recover_priors(args)
         for k, (image, out) in enumerate(zip(args.images, outs), 1):
             t0 = time.perf_counter()

@@ -561,8 +561,12 @@ def shared_probe(name: str, data_dir: Optional[PathLike] = None) -> Probe:
         data_dir: the shared data folder (or its ``probes`` subfolder);
             defaults to ``$MI_BIVARIATE_DATA``.
     """
-    rotation = GRACE_LATLONG_ROTATION if name == "grace_latlong_1k" else None
-    return Probe.load(shared_probe_path(name, data_dir), rotation=rotation)
+    return Probe.load(shared_probe_path(name, data_dir), rotation=shared_rotation(name))
+
+
+def shared_rotation(name: str) -> Optional[np.ndarray]:
+    """The rotation :func:`shared_probe` gives the shared probe ``name`` (``None``: as stored)."""
+    return GRACE_LATLONG_ROTATION if name == "grace_latlong_1k" else None
 
 
 def shared_probe_path(name: str, data_dir: Optional[PathLike] = None) -> Path:

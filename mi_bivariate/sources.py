@@ -252,7 +252,10 @@ def input_files(*specs: Optional[PathLike], data_dir: Optional[PathLike] = None)
 def load_probe(spec: str, data_dir: Optional[PathLike] = None, cache: bool = False) -> "probes.Probe":
     """A probe by file path, shared name or ``synthetic:SEED``.
 
-    ``synthetic:SEED`` is :func:`synthetic_environment` (a 128 x 256 sky with
+    A path to a shared probe's own file (in ``data_dir``, ``$MI_BIVARIATE_DATA``, or a shared data
+    folder: ``probes/`` beside ``merl_nbrdf/``) is that shared probe, with its rotation
+    (``grace_latlong_1k``: :data:`~mi_bivariate.probes.GRACE_LATLONG_ROTATION`); any other file is
+    read as is. ``synthetic:SEED`` is :func:`synthetic_environment` (a 128 x 256 sky with
     sun and windows), for runs without the shared data. With ``cache`` the
     probe is kept for the rest of the process (keyed by spec and data folder):
     batch runs load each probe once.
@@ -271,12 +274,31 @@ def load_probe(spec: str, data_dir: Optional[PathLike] = None, cache: bool = Fal
                 raise InputError(spec, "synthetic probe seed must be an integer") from None
             probe = probes.Probe(synthetic_environment(seed=seed), source=spec)
         elif Path(spec).suffix:
-            probe = probes.Probe.load(Path(spec))
+            name = _shared_probe_name(Path(spec), data_dir)
+            probe = probes.Probe.load(Path(spec), rotation=None if name is None else probes.shared_rotation(name))
         else:
             probe = probes.shared_probe(spec, data_dir=data_dir)
     if cache:
         _PROBE_CACHE[key] = probe
     return probe
+
+
+def _shared_probe_name(path: Path, data_dir: Optional[PathLike]) -> Optional[str]:
+    """The shared probe whose file ``path`` is (the same file on disk), else ``None``."""
+    if path.stem not in probes.SHARED_PROBES or not path.is_file():
+        return None
+    folders = [data_dir, os.environ.get("MI_BIVARIATE_DATA")]
+    if path.parent.name == "probes" and (path.parent.parent / "merl_nbrdf").is_dir():
+        folders.append(path.parent)
+    for folder in folders:
+        if not folder:
+            continue
+        try:
+            if os.path.samefile(path, probes.shared_probe_path(path.stem, folder)):
+                return path.stem
+        except (InputError, OSError):
+            continue
+    return None
 
 
 def probe_label(spec: str) -> str:

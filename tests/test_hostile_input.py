@@ -300,7 +300,10 @@ def test_cli_one_line_error(files, tmp_path, monkeypatch, capsys, case, argv, na
     (["--sphere", "1,2,-3"], "radius must be positive"),
     (["--threads", "4", "--deterministic"], "--deterministic: not allowed with argument --threads"),
     (["--no-report", "--report-render"], "--report-render: not allowed with argument --no-report"),
-], ids=["negative radius", "deterministic with threads", "report-render without a report"])
+    (["--probe-rotation", "0,85"], "expected three angles in degrees RX,RY,RZ"),
+    (["--probe-rotation=0,nan,0"], "expected three angles in degrees RX,RY,RZ"),
+], ids=["negative radius", "deterministic with threads", "report-render without a report",
+        "two probe angles", "a NaN probe angle"])
 def test_cli_usage_errors_are_argparse_errors(capsys, extra, match):
     """Malformed or conflicting arguments are usage errors (argparse: exit status 2, one line, no traceback)."""
     with pytest.raises(SystemExit) as info:

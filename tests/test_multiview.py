@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 import trimesh
@@ -10,7 +12,7 @@ from helpers import sky_probe
 from mi_bivariate import mesh
 from mi_bivariate.analytic import BivariateLobe
 from mi_bivariate.bivariate import BivariateBRDF
-from mi_bivariate.errors import InputError
+from mi_bivariate.errors import InputError, InputWarning
 from mi_bivariate.geometry import Camera, PerspectiveSphereGeometry
 from mi_bivariate.probes import rotation_matrix
 from mi_bivariate.recover import recover
@@ -68,8 +70,10 @@ def test_views_and_probes_stack_into_one_solve(views):
     one = recover(ortho[0].image, probes[0], ortho[0].geometry, **FAST)
     geo = PerspectiveSphereGeometry((64 / (2 * np.tan(np.radians(15))),) * 2 + (32.0, 32.0),
                                     [0.0, 0.0, -persp.camera.distance], 1.0, rotation_matrix((20, -100, 0)))
-    three = recover([r.image for r in ortho] + [persp.image], [probes[0], probes[1], probes[1]],
-                    [r.geometry for r in ortho] + [geo], **FAST)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("error", message=".*table explains", category=InputWarning)
+        three = recover([r.image for r in ortho] + [persp.image], [probes[0], probes[1], probes[1]],
+                        [r.geometry for r in ortho] + [geo], **FAST)
     assert set(np.unique(three.observations.image_index)) == {0, 1, 2}
     assert list(np.unique(three.observations.probe_index)) == [0, 1, 2]
     # Each image is explained by the one table: poses, probes and perspective are all right.
@@ -82,7 +86,10 @@ def test_views_and_probes_stack_into_one_solve(views):
     assert three.adequacy.unobserved_nodes <= one.adequacy.unobserved_nodes
 
     # Negative control: swapping the two poses breaks the joint fit.
-    swapped = recover([r.image for r in ortho], probes, [ortho[1].geometry, ortho[0].geometry], **FAST)
+    # The recovery says so, for each image, as it does not for the right poses.
+    with pytest.warns(InputWarning, match=r"^image [01]: the recovered table explains \d+% of the image") as seen:
+        swapped = recover([r.image for r in ortho], probes, [ortho[1].geometry, ortho[0].geometry], **FAST)
+    assert {str(w.message)[:7] for w in seen if "table explains" in str(w.message)} == {"image 0", "image 1"}
     assert swapped.relative_residual() > 2.0 * three.relative_residual()
 
 

@@ -131,9 +131,34 @@ def test_blurred_probe_warns_and_grace_does_not(data_dir):
     kwargs = dict(n_normals=3000, n_dirs=8000, saturation=10.0)
     with pytest.warns(InputWarning, match="inadequate illumination"):
         recover(image, probes.shared_probe("royal_esplanade_1k", data_dir), geometry, **kwargs)
-    with warnings.catch_warnings():
-        warnings.simplefilter("error", InputWarning)
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always", InputWarning)
         recover(image, probes.shared_probe("grace_latlong_1k", data_dir), geometry, **kwargs)
+    # The only warning: no table lit by grace makes a uniform disc (the fit check, not adequacy).
+    problems = [str(w.message) for w in seen if issubclass(w.category, InputWarning)]
+    assert all("the recovered table explains" in p for p in problems) and len(problems) <= 1, problems
+
+
+def test_a_probe_that_does_not_match_the_photo_warns():
+    """A sphere rendered under a sky, recovered under that sky turned upside down (the shared grace_latlong_1k
+    file read without its rotation looks like this): the table cannot explain the image, and the recovery
+    says so; under the right probe it does not."""
+    import warnings
+
+    from mi_bivariate.errors import InputWarning
+
+    sky = probes.Probe(synthetic_environment(seed=1), source="sky")
+    merl = analytic.to_merl(analytic.Lambertian(np.array([0.7, 0.45, 0.2])))
+    shot = render.render_sphere(render.bsdf_dict(merl), sky, resolution=64, spp=64, seed=3)
+    kwargs = dict(n_normals=1000, n_dirs=4000)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("error", message=".*explains", category=InputWarning)
+        right = recover(shot.image, sky, shot.geometry, **kwargs)
+    upside_down = sky.rotated(probes.rotation_matrix([180.0, 0.0, 0.0]))
+    with pytest.warns(InputWarning, match=r"^image: the recovered table explains \d+% of the image's variation "
+                                          r"\(relative residual 0\.\d\d\): the probe, the camera or the sphere"):
+        wrong = recover(shot.image, upside_down, shot.geometry, **kwargs)
+    assert wrong.relative_residual() > 3 * right.relative_residual()
 
 
 def test_the_packaged_basis_prior_is_resampled_to_the_recoverys_grid(any_probe):
@@ -375,3 +400,33 @@ def test_a_very_bright_image_recovers_like_a_dim_one(any_probe):
     assert bright.relative_residual() == pytest.approx(base.relative_residual(), rel=1e-4)
     np.testing.assert_allclose(bright.brdf.table, base.brdf.table * 1e20, rtol=1e-3,
                                atol=1e-6 * 1e20 * base.brdf.table.max())
+
+
+def test_cli_probe_rotation_turns_a_probe_stored_in_another_orientation(tmp_path, capsys):
+    """A photo lit by a sky turned upside down (180 degrees about x), with the sky's file stored unturned: recover
+    warns that the table does not explain the photo, and with --probe-rotation=180,0,0 it does not,
+    records the rotation in the table's provenance, and fits the photo far better."""
+    import json
+    import warnings
+
+    sky = probes.Probe(synthetic_environment(seed=1), source="sky")
+    turned = sky.rotated(euler_deg=(180.0, 0.0, 0.0))
+    merl = analytic.to_merl(analytic.Lambertian(np.array([0.7, 0.45, 0.2])))
+    shot = render.render_sphere(render.bsdf_dict(merl), turned, resolution=64, spp=64, seed=3)
+    write_exr(tmp_path / "photo.exr", shot.image)
+    sky.save_exr(tmp_path / "sky.exr")
+    residual = {}
+    for rotation in ([], ["--probe-rotation=180,0,0"]):
+        out = tmp_path / f"x{len(rotation)}.npz"
+        argv = ["recover", str(tmp_path / "photo.exr"), "--probe", str(tmp_path / "sky.exr"), "--out", str(out),
+                "--normals", "1000", "--dirs", "4000", "--grid", "16", "16", "--no-report"] + rotation
+        with warnings.catch_warnings(record=True) as seen:  # pytest records warnings before stderr sees them
+            warnings.simplefilter("always")
+            assert cli_main(argv) == 0
+        captured = capsys.readouterr()
+        residual[bool(rotation)] = float(captured.out.split("relative residual ")[1].split()[0])
+        warned = any("the recovered table explains" in str(w.message) for w in seen)
+        assert warned != bool(rotation), [str(w.message) for w in seen]
+        to_world = json.loads(str(np.load(out)["meta"]))["provenance"]["probe_to_world"][0]
+        np.testing.assert_allclose(to_world, turned.to_world if rotation else np.eye(4), atol=1e-12)
+    assert residual[True] < 0.5 * residual[False], residual

@@ -79,3 +79,25 @@ def test_synthetic_probes_and_labels():
         sources.load_probe("synthetic:x")
     assert sources.probe_label("/a/b/pisa_256.hdr") == "pisa_256"
     assert sources.probe_label("synthetic:1") == "synthetic:1"
+
+
+def test_a_shared_probe_by_path_is_the_shared_probe_and_a_copy_is_read_as_is(data_dir, tmp_path, monkeypatch):
+    """``--probe .../probes/grace_latlong_1k.exr`` and ``--probe grace_latlong_1k`` are one probe (its rotation:
+    the file is stored upside down, pbrt's convention); a copy of the file elsewhere is read as stored."""
+    import shutil
+
+    from mi_bivariate import probes
+
+    monkeypatch.delenv("MI_BIVARIATE_DATA", raising=False)
+    by_name = sources.load_probe("grace_latlong_1k", data_dir)
+    path = probes.shared_probe_path("grace_latlong_1k", data_dir)
+    np.testing.assert_array_equal(by_name.to_world[:3, :3], probes.GRACE_LATLONG_ROTATION)
+    for given in (data_dir, None):  # found through the data folder, or as a shared data folder's probes/
+        by_path = sources.load_probe(str(path), given)
+        np.testing.assert_array_equal(by_path.to_world, by_name.to_world)
+        np.testing.assert_array_equal(by_path.data, by_name.data)
+    copy = tmp_path / path.name
+    shutil.copyfile(path, copy)
+    np.testing.assert_array_equal(sources.load_probe(str(copy), data_dir).to_world, np.eye(4))
+    other = probes.shared_probe_path("pisa_256", data_dir)
+    np.testing.assert_array_equal(sources.load_probe(str(other), data_dir).to_world, np.eye(4))
