@@ -44,7 +44,7 @@ from mi_bivariate.common import PathLike
 from .atomic import atomic_path
 from .errors import InputError
 from .npzio import read_npz
-from .prior import interpolation_matrix
+from .prior import check_grid, interpolation_matrix
 
 FORMAT = "mi_bivariate.basis_prior"
 FORMAT_VERSION = 1
@@ -201,8 +201,7 @@ class BasisPrior:
         on 48 x 48, 1.75 with none; on 6 development materials 1.31, 1.32 and 2.13
         (``docs/recovery.md`` section 6).
         """
-        if int(n_t) != n_t or int(n_s) != n_s or n_t < 2 or n_s < 2:
-            raise InputError("basis prior grid", f"needs at least 2 x 2 integer nodes, got {n_t} x {n_s}")
+        check_grid(n_t, n_s, "basis prior grid")
         n_t, n_s = int(n_t), int(n_s)
         if (n_t, n_s) == (self.n_t, self.n_s):
             return self

@@ -113,15 +113,16 @@ def difference_operators(n_t: int, n_s: int) -> Tuple[sp.csr_matrix, sp.csr_matr
         ``(f[it + 1, is] - f[it, is]) (n_t - 1)`` ~ dF/dt.
         Columns follow the table's C order (``it * n_s + is``).
     """
-    _check_grid(n_t, n_s)
+    check_grid(n_t, n_s)
     ds = sp.kron(sp.identity(n_t, format="csr"), _forward_difference(n_s), format="csr")
     dt = sp.kron(_forward_difference(n_t), sp.identity(n_s, format="csr"), format="csr")
     return ds, dt
 
 
-def _check_grid(n_t: int, n_s: int) -> None:
+def check_grid(n_t: int, n_s: int, what: str = "prior grid") -> None:
+    """Raise :class:`InputError` (source ``what``) unless ``(n_t, n_s)`` is at least 2 x 2 integer nodes."""
     if int(n_t) != n_t or int(n_s) != n_s or n_t < 2 or n_s < 2:
-        raise InputError("prior grid", f"needs at least 2 x 2 integer nodes, got {n_t} x {n_s}")
+        raise InputError(what, f"needs at least 2 x 2 integer nodes, got {n_t} x {n_s}")
 
 
 def _edge_sigmas(sigma_s: np.ndarray, sigma_t: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
@@ -260,7 +261,7 @@ class Prior:
                 if not np.all(np.isfinite(m)) or np.any(m <= 0):
                     raise InputError("prior", f"pair {name!r} has non-positive or non-finite sigmas")
             checked[name] = maps  # type: ignore[assignment]
-        _check_grid(*shape)
+        check_grid(*shape)
         self.pairs = checked
         self.provenance = dict(provenance or {})
 
@@ -281,7 +282,7 @@ class Prior:
     @classmethod
     def uniform(cls, n_t: int = 32, n_s: int = 32) -> "Prior":
         """Both pairs all ones: plain (unweighted) first-order Tikhonov smoothing."""
-        _check_grid(n_t, n_s)
+        check_grid(n_t, n_s)
         ones = np.ones((n_t, n_s))
         return cls({p: (ones, ones) for p in PAIRS}, {"kind": "uniform", "grid": _grid_meta(n_t, n_s)})
 
@@ -377,7 +378,7 @@ class Prior:
         the ends). Because the operators are derivatives on the unit square, sigmas need
         no rescaling with the grid spacing.
         """
-        _check_grid(n_t, n_s)
+        check_grid(n_t, n_s)
         if (n_t, n_s) == (self.n_t, self.n_s):
             return Prior(self.pairs, self.provenance)
         new_pairs = {}

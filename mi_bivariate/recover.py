@@ -323,9 +323,11 @@ def _check_explained(values: np.ndarray, predicted: np.ndarray, sigma: np.ndarra
     """
     for k in range(n_images):
         rows = image_index == k
+        if not np.any(rows):
+            continue
         v = np.asarray(values[rows], np.float64)
         residual = float(np.sum((v - predicted[rows]) ** 2))
-        if not np.any(rows) or residual <= 16.0 * float(np.sum(np.square(sigma[rows], dtype=np.float64))):
+        if residual <= 16.0 * float(np.sum(np.square(sigma[rows], dtype=np.float64))):
             continue
         spread = float(np.sum((v - v.mean(axis=0)) ** 2))
         explained = 1.0 - residual / spread if spread > 0.0 else -np.inf
@@ -336,7 +338,8 @@ def _check_explained(values: np.ndarray, predicted: np.ndarray, sigma: np.ndarra
         warnings.warn(f"{source}: the recovered table explains {100.0 * max(explained, 0.0):.0f}% of the image's "
                       f"variation (relative residual {rel:.2f}): the probe, the camera or the sphere may not match "
                       f"the photo (check the probe's orientation: a shared probe carries its rotation, another "
-                      f"file is read as stored, --probe-rotation turns it; --fov for a perspective photo; --sphere)",
+                      f"file is read as stored, --probe-rotation or Probe.rotated turns it; --fov for a perspective "
+                      f"photo; --sphere)",
                       InputWarning, stacklevel=3)
 
 
