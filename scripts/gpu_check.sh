@@ -10,6 +10,11 @@
 #   3. the speed benchmark (benchmarks/bench_speed.py), its peers measured in the same run;
 #   4. with GPU_RECOVER_INPUT=DIR (sphere.exr, probe.exr): `recover` of that image, its table to
 #      $OUT/table_cuda.npz, for scripts/gpu_compare.py to compare with llvm_ad_rgb's table elsewhere.
+# Options (environment): GPU_TEST_SET=all runs the whole suite (one process) instead of GPU_TESTS
+# below; GPU_BENCH=0 skips step 3;
+# GPU_REPEAT_RECOVER=1 recovers the image of step 4 a second time and prints how far the two tables
+# differ (CUDA's atomic adds run in no fixed order); GPU_SYNTHESIS_BUDGET=S runs
+# benchmarks/bench_synthesis.py with AbS given S seconds per material.
 # Logs go to $OUT (the device tool's folder) or ./out/gpu_check.
 #
 # Where mitsuba, drjit, OpenEXR and trimesh are not installed (a bare machine with CUDA and the
@@ -40,21 +45,53 @@ GPU_TESTS=(tests/test_plugins.py tests/test_gradients.py tests/test_lighting.py 
 } 2>&1 | tee "$OUT/info.log"
 
 set -o pipefail
+# Not pytest-xdist: on 2026-12-05 the H100 machine stopped answering during `-n 8` (cause unknown).
+[ "${GPU_TEST_SET:-}" = all ] && GPU_TESTS=(tests)
 timeout "${GPU_TEST_TIMEOUT:-240}" "$PY" -m pytest -q -p no:cacheprovider -m "not slow" --durations=10 \
     "${GPU_TESTS[@]}" 2>&1 | tee "$OUT/tests.log"
 tests_rc=$?
 
-timeout "${GPU_BENCH_TIMEOUT:-240}" "$PY" benchmarks/bench_speed.py --rows 40 2>&1 | tee "$OUT/bench.log"
-bench_rc=$?
+bench_rc=0
+if [ "${GPU_BENCH:-1}" != 0 ]; then
+    timeout "${GPU_BENCH_TIMEOUT:-240}" "$PY" benchmarks/bench_speed.py --rows 40 2>&1 | tee "$OUT/bench.log"
+    bench_rc=$?
+fi
 
 # The same recovery under both variants: recover a given image here; the caller compares the table
 # with the one llvm_ad_rgb recovers from the same files (scripts/gpu_compare.py).
 recover_rc=0
 if [ -n "${GPU_RECOVER_INPUT:-}" ]; then
+    t0=$(date +%s.%N)
     "$PY" -m mi_bivariate recover "$GPU_RECOVER_INPUT/sphere.exr" --probe "$GPU_RECOVER_INPUT/probe.exr" \
         --out "$OUT/table_cuda.npz" --no-report 2>&1 | tee "$OUT/recover.log"
     recover_rc=$?
+    echo "recover wall $("$PY" -c "import time; print(round(time.time() - $t0, 2))") s (one fresh process, kernels cached by the run above)" \
+        | tee -a "$OUT/recover.log"
+    if [ "${GPU_REPEAT_RECOVER:-0}" = 1 ] && [ "$recover_rc" = 0 ]; then
+        "$PY" -m mi_bivariate recover "$GPU_RECOVER_INPUT/sphere.exr" --probe "$GPU_RECOVER_INPUT/probe.exr" \
+            --out "$OUT/table_cuda_2.npz" --no-report > /dev/null 2>&1
+        "$PY" - "$OUT/table_cuda.npz" "$OUT/table_cuda_2.npz" <<'PY' 2>&1 | tee -a "$OUT/recover.log"
+import sys
+import numpy as np
+with np.load(sys.argv[1]) as a, np.load(sys.argv[2]) as b:
+    for key in ("table", "confidence"):
+        if key in a.files:
+            x, y = a[key], b[key]
+            print(f"repeat recover, {key}: {np.count_nonzero(x != y)} of {x.size} entries differ; largest "
+                  f"|difference| {np.max(np.abs(x - y)) / np.max(np.abs(x)):.2e} of the largest entry")
+PY
+        rm -f "$OUT/table_cuda_2.npz" "$OUT/table_cuda_2.exr" "$OUT/table_cuda.exr"  # the tool brings back 8 files
+    fi
 fi
 
-echo "tests exit $tests_rc, benchmark exit $bench_rc, recover exit $recover_rc" | tee -a "$OUT/info.log"
-[ "$tests_rc" = 0 ] && [ "$bench_rc" = 0 ] && [ "$recover_rc" = 0 ]
+synthesis_rc=0
+if [ -n "${GPU_SYNTHESIS_BUDGET:-}" ]; then
+    mkdir -p "$OUT/abs"
+    timeout "${GPU_SYNTHESIS_TIMEOUT:-300}" "$PY" benchmarks/bench_synthesis.py --budget "$GPU_SYNTHESIS_BUDGET" \
+        --out "$OUT/abs" --figure "$OUT/abs/abs_vs_solve.png" 2>&1 | tee "$OUT/synthesis.log"
+    synthesis_rc=$?
+fi
+
+echo "tests exit $tests_rc, benchmark exit $bench_rc, recover exit $recover_rc, synthesis exit $synthesis_rc" \
+    | tee -a "$OUT/info.log"
+[ "$tests_rc" = 0 ] && [ "$bench_rc" = 0 ] && [ "$recover_rc" = 0 ] && [ "$synthesis_rc" = 0 ]

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import assert_same_sums, sums_in_fixed_order
 
 from mi_bivariate import capture, cli, images, lighting, render, solve, spherefit
 from mi_bivariate.bivariate import BivariateBRDF
@@ -791,7 +792,8 @@ def test_black_probe_error_names_the_probe_file(files, tmp_path, capsys):
 
 
 def test_recover_threads_1_is_bit_identical(files, tmp_path):
-    """``recover --threads 1`` twice: the same bytes in every table array (and no EXR hang)."""
+    """``recover --threads 1`` twice: the same bytes in every table array (and no EXR hang). Under CUDA,
+    whose atomic adds run in no fixed order, the same to float32 rounding."""
     tables = []
     for k in range(2):
         out = tmp_path / f"run{k}.npz"
@@ -801,8 +803,13 @@ def test_recover_threads_1_is_bit_identical(files, tmp_path):
                               timeout=180)
         assert proc.returncode == 0, proc.stderr[-2000:]
         with np.load(out) as z:
-            tables.append({k: z[k].tobytes() for k in z.files if k != "meta"})
-    assert tables[0] == tables[1]
+            tables.append({k: z[k] for k in z.files if k != "meta"})
+    assert tables[0].keys() == tables[1].keys()
+    for key, value in tables[0].items():
+        if sums_in_fixed_order():
+            assert value.tobytes() == tables[1][key].tobytes(), key
+        else:
+            assert_same_sums(tables[1][key], value, rel=1e-4, err_msg=key)
 
 
 def test_unavailable_variant_is_one_line(tmp_path):
