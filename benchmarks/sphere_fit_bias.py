@@ -4,9 +4,11 @@ For each material and input probe, a sphere rendered at 128 and 256 px (64 spp, 
 background, the geometry known exactly) is fitted by :func:`mi_bivariate.spherefit.fit_sphere`
 with the default coverage refinement (``REFINE_PASSES`` = 2) and with the crack points of the
 thresholded region alone (0 passes). The script prints the centre and radius errors (pixels). With
-``--relight``, the 256 px sphere under grace_latlong_1k is also recovered with the exact and the
-two fitted geometries, each table is rendered under pisa_256 by the converged reference
-quadrature (128 px), and the relight error is printed beside the recovery's relative residual.
+``--relight``, each 256 px sphere is also recovered with the exact geometry, the two fitted ones and
+the default fit refined by shading (:func:`mi_bivariate.recover.refine_sphere_and_recover`, what
+``recover --refine-sphere`` runs); each table is rendered under a novel probe (pisa_256 for the
+grace_latlong_1k input, uffizi_256 for the pisa_256 input) by the converged reference quadrature
+(128 px), and the relight error is printed beside the recovery's relative residual.
 
     MI_BIVARIATE_DATA=/work/shared/data python benchmarks/sphere_fit_bias.py [--relight]
 """
@@ -24,7 +26,6 @@ from _machine import machine  # benchmarks/_machine.py
 MATERIALS = ("gold-metallic-paint3", "red-phenolic", "yellow-matte-plastic", "chrome-steel", "blue-acrylic",
              "brass", "black-fabric", "nickel")
 PROBES = ("grace_latlong_1k", "pisa_256")
-RELIGHT_MATERIALS = ("gold-metallic-paint3", "red-phenolic", "nickel", "yellow-matte-plastic")
 
 
 def fit_errors(image: np.ndarray, truth, passes: int):
@@ -47,7 +48,7 @@ def main(argv: Sequence[str] = None) -> None:
     args = parser.parse_args(argv)
 
     from mi_bivariate import metrics, nbrdf, probes, reference, render
-    from mi_bivariate.recover import recover
+    from mi_bivariate.recover import recover, refine_sphere_and_recover
     from mi_bivariate.variants import ensure_variant
 
     ensure_variant()
@@ -76,23 +77,38 @@ def main(argv: Sequence[str] = None) -> None:
 
     if not args.relight:
         return
-    grace, pisa = probes.shared_probe("grace_latlong_1k"), probes.shared_probe("pisa_256")
-    print("\n| material | geometry | centre error | radius error | relative residual | relight error (pisa_256) |")
-    print("|---|---|---:|---:|---:|---:|")
-    for material in RELIGHT_MATERIALS:
-        truth = nbrdf.nbrdf_merl(material)
-        shot = render.render_sphere(render.bsdf_dict(truth), grace, resolution=256, spp=64, seed=0)
-        want = reference.render_reference(truth, pisa, resolution=128, seed=1)
-        candidates = [("exact", 0.0, 0.0, shot.geometry)]
-        for passes in (2, 0):
-            dc, dr, geometry = fit_errors(shot.image, shot.geometry, passes)
-            candidates.append((f"fitted, {passes} passes", dc, dr, geometry))
-        for name, dc, dr, geometry in candidates:
-            result = recover(shot.image, grace, geometry, seed=0)
-            got = reference.render_reference(result.brdf, pisa, resolution=128, seed=1)
-            relight = metrics.image_relative_rmse(got.image, want.image, want.mask)
-            print(f"| {material} | {name} | {dc:.2f} | {dr:+.2f} | {result.relative_residual():.4f} | {relight:.4f} |",
-                  flush=True)
+    print("\n| input probe | material | geometry | centre error | radius error | relative residual "
+          "| relight error | / exact geometry's |")
+    print("|---|---|---|---:|---:|---:|---:|---:|")
+    ratios = {"fitted, 2 passes": [], "fitted, 0 passes": [], "refined": []}
+    for probe_name, novel_name in (("grace_latlong_1k", "pisa_256"), ("pisa_256", "uffizi_256")):
+        probe, novel = probes.shared_probe(probe_name), probes.shared_probe(novel_name)
+        for material in args.materials:
+            truth = nbrdf.nbrdf_merl(material)
+            shot = render.render_sphere(render.bsdf_dict(truth), probe, resolution=256, spp=64, seed=0)
+            want = reference.render_reference(truth, novel, resolution=128, seed=1)
+            runs = [("exact", recover(shot.image, probe, shot.geometry, seed=0))]
+            for passes in (2, 0):
+                runs.append((f"fitted, {passes} passes",
+                             recover(shot.image, probe, fit_errors(shot.image, shot.geometry, passes)[2], seed=0)))
+            refined = refine_sphere_and_recover(shot.image, probe, runs[1][1], seed=0)
+            refinement = refined.sphere_refinement
+            runs.append(("refined" if refinement.accepted else
+                         f"refined (not taken: {refinement.shift_px:.2f} px away)", refined))
+            exact = None
+            for name, result in runs:
+                geometry = result.geometries[0]
+                dc = float(np.hypot(geometry.cx - shot.geometry.cx, geometry.cy - shot.geometry.cy))
+                dr = float(geometry.radius - shot.geometry.radius)
+                got = reference.render_reference(result.brdf, novel, resolution=128, seed=1)
+                relight = metrics.image_relative_rmse(got.image, want.image, want.mask)
+                exact = relight if exact is None else exact
+                if name.split(" (")[0] in ratios:
+                    ratios[name.split(" (")[0]].append(relight / exact)
+                print(f"| {probe_name} | {material} | {name} | {dc:.3f} | {dr:+.3f} | {result.relative_residual():.4f} "
+                      f"| {relight:.4f} | {relight / exact:.3f} |", flush=True)
+    print("\nmedian relight error / the exact geometry's: " + ", ".join(
+        f"{name} {np.median(r):.3f} (max {np.max(r):.3f})" for name, r in ratios.items()))
 
 
 if __name__ == "__main__":

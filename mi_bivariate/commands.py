@@ -287,7 +287,8 @@ def _check_recover_args(args: argparse.Namespace) -> None:
     _check_float("--saturation", args.saturation, 0.0, float("inf"), lo_open=True)
     _check_float("--fov", args.fov, MIN_FOV, MAX_FOV, what="a horizontal field of view (degrees)")
     if args.fov is not None:
-        for flag, given in (("--footprint", args.footprint is not None), ("--report-render", args.report_render)):
+        for flag, given in (("--footprint", args.footprint is not None), ("--report-render", args.report_render),
+                            ("--refine-sphere", args.refine_sphere)):
             if given:
                 raise InputError(flag, "models an orthographic view only", "leave it out with --fov")
     if not isinstance(args.alpha, str):
@@ -323,11 +324,16 @@ def _recover_image(args: argparse.Namespace, image_path: str, probe, priors: tup
     try:
         # No BLAS oversubscription on a shared machine; --threads also caps the solve's workers.
         with blas_threads(), solve_thread_limit(args.threads):
-            result = rec.recover(
-                image, probe, fit.geometry, masks=mask, n_normals=args.normals, n_dirs=args.dirs,
-                grid=tuple(args.grid), alpha=args.alpha, pair_rule=args.pair_rule, seed=args.seed,
-                max_view_angle_deg=args.max_view_angle, footprint=args.footprint, saturation=args.saturation,
-                noise=args.noise, sampling=args.sampling, prior=priors[0], basis_prior=priors[1])
+            options = dict(masks=mask, n_normals=args.normals, n_dirs=args.dirs, grid=tuple(args.grid),
+                           alpha=args.alpha, pair_rule=args.pair_rule, seed=args.seed,
+                           max_view_angle_deg=args.max_view_angle, footprint=args.footprint,
+                           saturation=args.saturation, noise=args.noise, sampling=args.sampling, prior=priors[0],
+                           basis_prior=priors[1])
+            result = rec.recover(image, probe, fit.geometry, **options)
+            if args.refine_sphere:
+                print(f"refining the sphere by the image's shading (relative residual {result.relative_residual():.4f} "
+                      "under the fitted sphere) ...", flush=True)
+                result = rec.refine_sphere_and_recover(image, probe, result, **options)
     except InputError as exc:
         # The library names its arguments ("image", "lighting matrix L"); name the user's files. The noise
         # check measures this photo's own rows (its own estimate with --noise auto): a problem of the photo.

@@ -141,7 +141,7 @@ LAYERS = (
     "variants threads",
     "geometry silhouette spherefit mesh capture noise",
     "lighting adequacy",
-    "prior basis_prior training_set solve alignment",
+    "prior basis_prior training_set solve alignment sphere_refine",
     "recover",
     "render reference metrics baselines report export figures evaluate synthesis demo cli commands __main__",
 )
