@@ -93,8 +93,9 @@ def main(argv: Sequence[str] = None) -> None:
                              recover(shot.image, probe, fit_errors(shot.image, shot.geometry, passes)[2], seed=0)))
             refined = refine_sphere_and_recover(shot.image, probe, runs[1][1], seed=0)
             refinement = refined.sphere_refinement
-            runs.append(("refined" if refinement.accepted else
-                         f"refined (not taken: {refinement.shift_px:.2f} px away)", refined))
+            runs.append((f"refined ({refinement.evaluations} evaluations, {refinement.seconds:.1f} s)"
+                         if refinement.accepted else
+                         f"refined (not taken: {refinement.shift_px:.2f} px away; {refinement.seconds:.1f} s)", refined))
             exact = None
             for name, result in runs:
                 geometry = result.geometries[0]

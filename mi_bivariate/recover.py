@@ -402,7 +402,7 @@ def refine_sphere_and_recover(image: np.ndarray, probe: Probe, first: Recovery, 
     :func:`mi_bivariate.sphere_refine.refine_sphere`, with ``first``'s alpha and prior variant
     per channel, and the table recovered again under them. Measured on 8 materials under
     grace_latlong_1k (256 px, docs/recovery.md section 9): median relight error 1.17x the
-    exact geometry's with the silhouette fit, 1.01x refined. Costs about 10-20 s on two cores.
+    exact geometry's with the silhouette fit, 1.01x refined. Costs 6-30 s on two cores.
 
     Args:
         image: the ``(H, W, 3)`` image ``first`` was recovered from (one image, orthographic sphere).
@@ -411,7 +411,10 @@ def refine_sphere_and_recover(image: np.ndarray, probe: Probe, first: Recovery, 
         kwargs: :func:`recover`'s options, the same as ``first``'s.
 
     A minimum found more than :data:`mi_bivariate.sphere_refine.MAX_SHIFT_PX` from the starting
-    outline is not taken: it warns and keeps ``first``'s sphere and table.
+    outline is not taken, nor is a sphere too small to refine: it warns and returns ``first``
+    (sphere and table), with the refinement recorded in its provenance. The user's normals,
+    directions and footprint do not apply to the refinement (M 2000, K 2000, centre normals, view
+    angles up to :data:`~mi_bivariate.sphere_refine.MAX_VIEW_ANGLE_DEG` or the user's, if lower).
 
     Returns:
         The new :class:`Recovery`, with ``sphere_refinement`` set and recorded in the table's provenance.
@@ -419,10 +422,17 @@ def refine_sphere_and_recover(image: np.ndarray, probe: Probe, first: Recovery, 
     if len(first.geometries) != 1:
         raise InputError(None, "refining the sphere needs a recovery from one image")
     mask = kwargs.get("masks")
-    refinement = sphere_refine.refine_sphere(
-        image, probe, first.geometries[0], alphas=first.solution.alphas, winner=first.solution.winner,
-        prior=kwargs.get("prior"), grid=kwargs.get("grid", (32, 32)), saturation=kwargs.get("saturation"),
-        mask=mask[0] if isinstance(mask, (list, tuple)) else mask, seed=kwargs.get("seed", 0))
+    try:
+        refinement = sphere_refine.refine_sphere(
+            image, probe, first.geometries[0], alphas=first.solution.alphas, winner=first.solution.winner,
+            prior=kwargs.get("prior"), grid=kwargs.get("grid", (32, 32)), saturation=kwargs.get("saturation"),
+            mask=mask[0] if isinstance(mask, (list, tuple)) else mask, seed=kwargs.get("seed", 0),
+            sampling=kwargs.get("sampling", "mis"),
+            max_view_angle_deg=min(sphere_refine.MAX_VIEW_ANGLE_DEG, kwargs.get("max_view_angle_deg", 80.0)))
+    except InputError as exc:  # the first recovery stands
+        warnings.warn(f"image: sphere not refined: {exc.problem}; kept the fitted sphere", InputWarning, stacklevel=2)
+        first.brdf.provenance["sphere_refinement"] = {"accepted": False, "status": exc.problem}
+        return first
     if refinement.accepted:
         result = recover(image, probe, refinement.geometry, **kwargs)
     else:
@@ -433,7 +443,7 @@ def refine_sphere_and_recover(image: np.ndarray, probe: Probe, first: Recovery, 
     start, end, found = refinement.start, refinement.geometry, refinement.found
     result.brdf.provenance["sphere_refinement"] = {
         "start": [start.cx, start.cy, start.radius], "refined": [end.cx, end.cy, end.radius],
-        "found": [found.cx, found.cy, found.radius], "accepted": refinement.accepted,
+        "found": [found.cx, found.cy, found.radius], "accepted": refinement.accepted, "status": refinement.status,
         "cost": [refinement.cost_start, refinement.cost], "evaluations": refinement.evaluations}
     return result
 
@@ -464,7 +474,7 @@ def recover_from_photo(image: np.ndarray, probe: Probe, *, intrinsics: Any = Non
             the aligned probe (the main error source for captured data).
         yaw_kwargs: options for :func:`~mi_bivariate.alignment.estimate_yaw`.
         refine_sphere: then refine the sphere by the image's shading and recover again
-            (:func:`refine_sphere_and_recover`; orthographic only, about 10-20 s).
+            (:func:`refine_sphere_and_recover`; orthographic only, 6-30 s).
         kwargs: passed to :func:`recover`.
 
     Returns:

@@ -16,9 +16,11 @@ starting geometry, up to :data:`MAX_VIEW_ANGLE_DEG`), minimise over the geometry
 This is variable projection. ``f`` is the table, re-solved in closed form (ridge, no
 non-negativity) at every candidate geometry, with the first recovery's alpha and prior variant
 per channel. ``sigma`` is the rows' model error (:func:`mi_bivariate.solve.row_sigma`). The
-geometry moves by ``scipy.optimize.least_squares`` with a finite-difference Jacobian. The pixels
-and the lighting matrix's random numbers stay fixed (one seed), so the objective is a smooth
-function of the geometry.
+geometry moves by ``scipy.optimize.least_squares`` with a central-difference Jacobian (0.05 px
+steps). The pixels and the lighting matrix's random numbers stay fixed (one seed), so the
+objective changes smoothly with the geometry at the scale of a pixel (not of its hundredth: a
+forward-difference Jacobian stopped short of the minimum). The pixel set stays on any sphere within
+:data:`MAX_SHIFT_PX` of the start.
 
 A minimum further than :data:`MAX_SHIFT_PX` from the starting outline is found but not taken.
 
@@ -31,6 +33,7 @@ final one (:func:`mi_bivariate.recover.refine_sphere_and_recover`).
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 import warnings
 from dataclasses import dataclass
@@ -64,6 +67,10 @@ STEP_PX = 0.05
 MAX_SHIFT_PX = 1.0
 
 
+class _Budget(Exception):
+    """The search spent its evaluations (raised inside the objective, caught by :func:`refine_sphere`)."""
+
+
 @dataclass
 class SphereRefinement:
     """The result of :func:`refine_sphere`.
@@ -74,11 +81,9 @@ class SphereRefinement:
         cost_start, cost: half the objective at the start and at the end.
         evaluations: objective evaluations (the Jacobian's included).
         seconds: wall time.
-        std_px: ``(3,)`` the refined (cx, cy, radius)'s standard errors, pixels, from the
-            Jacobian at the end (Gauss-Newton, residual variance from the fit itself; the model's
-            error is systematic, so they are lower bounds).
         found: the minimum found (it is ``geometry`` unless it lay beyond :data:`MAX_SHIFT_PX`).
         accepted: whether ``geometry`` is the minimum found; if not, it is ``start``.
+        status: why the search stopped (``least_squares``'s message, or the evaluation budget).
     """
 
     geometry: SphereGeometry
@@ -87,9 +92,9 @@ class SphereRefinement:
     cost: float
     evaluations: int
     seconds: float
-    std_px: np.ndarray
     found: SphereGeometry
     accepted: bool
+    status: str
 
     @property
     def shift_px(self) -> float:
@@ -98,10 +103,13 @@ class SphereRefinement:
         return float(np.hypot(f.cx - s.cx, f.cy - s.cy) + abs(f.radius - s.radius))
 
     def summary(self) -> str:
+        """One line: refined (from, to, cost, evaluations, time), or why not."""
         f, s = self.found, self.start
         moved = (f"centre ({s.cx:.2f}, {s.cy:.2f}) -> ({f.cx:.2f}, {f.cy:.2f}) px, radius {s.radius:.2f} -> "
                  f"{f.radius:.2f} px, cost {self.cost_start:.4g} -> {self.cost:.4g} ({self.evaluations} evaluations, "
                  f"{self.seconds:.1f} s)")
+        if self.accepted and self.shift_px < 1e-3:
+            return f"sphere not moved by the shading ({self.status}): {moved}"
         if self.accepted:
             return f"sphere refined by shading: {moved}"
         return (f"sphere not refined: the shading's best sphere lies {self.shift_px:.2f} px from the fitted outline "
@@ -112,8 +120,8 @@ def refine_sphere(image: np.ndarray, probe: Probe, geometry: SphereGeometry, *,
                   alphas: Sequence[float], winner: Sequence[str], prior: Optional[Prior] = None,
                   grid: Sequence[int] = (32, 32), n_normals: int = 2000, n_dirs: int = 2000,
                   max_view_angle_deg: float = MAX_VIEW_ANGLE_DEG, saturation: Optional[float] = None,
-                  mask: Optional[np.ndarray] = None, seed: int = 0, max_evaluations: int = 60,
-                  source: str = "image") -> SphereRefinement:
+                  mask: Optional[np.ndarray] = None, seed: int = 0, sampling: str = "mis",
+                  max_evaluations: int = 80, source: str = "image") -> SphereRefinement:
     """The sphere's centre and radius that let the bivariate model explain ``image`` best.
 
     Args:
@@ -131,15 +139,18 @@ def refine_sphere(image: np.ndarray, probe: Probe, geometry: SphereGeometry, *,
         saturation: drop pixels with any channel at or above it.
         mask: ``(H, W) bool`` usable pixels.
         seed: the lattice's and the lighting matrix's seed.
-        max_evaluations: the most objective evaluations ``least_squares`` may spend.
+        sampling: the lighting matrix's light directions (:func:`mi_bivariate.lighting.lighting_matrix`).
+        max_evaluations: the most objective evaluations, the Jacobian's included (each central-
+            difference Jacobian costs 6); at the budget the best geometry evaluated is taken.
         source: the image's name in messages.
 
     Raises:
-        InputError: a geometry other than an orthographic sphere, or alphas / winner not one per channel.
+        InputError: a geometry other than an orthographic sphere, alphas / winner not one per channel,
+            or fewer than 64 pixels to refine with.
     """
     if not isinstance(geometry, SphereGeometry):
         raise InputError(source, f"refining the sphere needs an orthographic sphere, got {type(geometry).__name__}",
-                         "drop --refine-sphere for a perspective photo or a mesh")
+                         "refine only orthographic spheres")
     alphas = [float(a) for a in alphas]
     winner = [str(w) for w in winner]
     if len(alphas) != 3 or len(winner) != 3:
@@ -150,43 +161,63 @@ def refine_sphere(image: np.ndarray, probe: Probe, geometry: SphereGeometry, *,
     if (prior.n_t, prior.n_s) != (n_t, n_s):
         prior = prior.resampled(n_t, n_s)
     penalties = {w: (lambda r: (r.T @ r).toarray())(prior.regulariser(w)) for w in set(winner)}
+    # Pixels that stay on any sphere within MAX_SHIFT_PX of the start (a pixel's corner is 0.71 px
+    # from its centre): on a small sphere this cuts below max_view_angle_deg.
+    inner = max(0.0, 1.0 - (MAX_SHIFT_PX + math.sqrt(0.5)) / float(geometry.radius))
+    angle = min(float(max_view_angle_deg), math.degrees(math.asin(inner)))
     with warnings.catch_warnings():  # the recovery this refines has said what it had to say about the image
         warnings.simplefilter("ignore", InputWarning)
-        obs0 = capture.observations_from_sphere(image, geometry, n_normals=n_normals,
-                                                max_view_angle_deg=max_view_angle_deg, saturation=saturation,
-                                                mask=mask, seed=seed, source=source)
+        obs0 = capture.observations_from_sphere(image, geometry, n_normals=n_normals, max_view_angle_deg=angle,
+                                                saturation=saturation, mask=mask, seed=seed, source=source)
+    if len(obs0.values) < 64:
+        raise InputError(source, f"only {len(obs0.values)} pixels to refine the sphere with",
+                         "refine a larger sphere, or give the sphere explicitly")
     rows = obs0.pixels[:, 0].astype(np.float64) + 0.5
     cols = obs0.pixels[:, 1].astype(np.float64) + 0.5
     values = np.asarray(obs0.values, np.float64)
     sigma = solve_mod.row_sigma(values, obs0.image_index, noise=None)
     rot = np.asarray(geometry.camera_to_world, np.float64)
     count = [0]
+    best = [math.inf, None]  # (cost, geometry) of the best evaluation, for a search stopped at the budget
 
     def residuals(p: np.ndarray) -> np.ndarray:
+        if count[0] >= max_evaluations:
+            raise _Budget
         count[0] += 1
         cx, cy, radius = p
         x, y = (cols - cx) / radius, -(rows - cy) / radius
+        # A trial step far beyond MAX_SHIFT_PX can put a rim pixel off the sphere: held just on it.
+        scale = np.minimum(1.0, (1.0 - 1e-6) / np.maximum(np.hypot(x, y), 1e-300))
+        x, y = x * scale, y * scale
         n_cam = np.stack([x, y, np.sqrt(np.clip(1.0 - x * x - y * y, 0.0, None))], axis=-1)
         obs = dataclasses.replace(obs0, normals=n_cam @ rot.T)
-        L = lighting.lighting_matrix(obs, probe, n_t=n_t, n_s=n_s, n_dirs=n_dirs, seed=seed, progress=False)
+        L = lighting.lighting_matrix(obs, probe, n_t=n_t, n_s=n_s, n_dirs=n_dirs, seed=seed, sampling=sampling,
+                                     progress=False)
         data = solve_mod.prepare_data_term(L, values, sigma)
         table = np.empty((n_t * n_s, 3))
         for k in range(3):
             lam = penalty_weight(alphas[k], n_t * n_s, data.level[k])
             table[:, k] = scipy.linalg.solve(data.gram[k] + lam * penalties[winner[k]], data.rhs[k], assume_a="pos")
         predicted = np.einsum("mnc,nc->mc", L, table, optimize=True)
-        return ((values - predicted) / sigma).ravel()
+        r = ((values - predicted) / sigma).ravel()
+        cost = 0.5 * float(r @ r)
+        if cost < best[0]:
+            best[0], best[1] = cost, np.array(p, np.float64)
+        return r
 
     start = np.array([geometry.cx, geometry.cy, geometry.radius], np.float64)
     r0 = residuals(start)
-    fit = least_squares(residuals, start, diff_step=STEP_PX / np.abs(start).clip(1.0), x_scale=np.ones(3),
-                        xtol=1e-3 * STEP_PX / np.linalg.norm(start), max_nfev=max_evaluations)
-    found = dataclasses.replace(geometry, cx=float(fit.x[0]), cy=float(fit.x[1]), radius=float(fit.x[2]))
-    dof = max(len(fit.fun) - 3, 1)
-    with np.errstate(all="ignore"):
-        cov = np.linalg.pinv(fit.jac.T @ fit.jac) * (2.0 * fit.cost / dof)
-    shift = float(np.hypot(*(fit.x[:2] - start[:2])) + abs(fit.x[2] - start[2]))
-    accepted = bool(np.all(np.isfinite(fit.x)) and shift <= MAX_SHIFT_PX)
+    try:
+        # Central differences: the objective is smooth at the scale of a pixel but not of its
+        # hundredth (a forward-difference Jacobian stopped the search short of the minimum).
+        fit = least_squares(residuals, start, jac="3-point", diff_step=STEP_PX / np.abs(start).clip(1.0),
+                            x_scale=np.ones(3), xtol=1e-3 * STEP_PX / np.linalg.norm(start))
+        x, cost, status = fit.x, float(fit.cost), fit.message
+    except _Budget:
+        x, cost, status = best[1], best[0], f"stopped at the budget of {max_evaluations} evaluations"
+    found = dataclasses.replace(geometry, cx=float(x[0]), cy=float(x[1]), radius=float(x[2]))
+    shift = float(np.hypot(*(x[:2] - start[:2])) + abs(x[2] - start[2]))
+    accepted = bool(np.all(np.isfinite(x)) and shift <= MAX_SHIFT_PX)
     return SphereRefinement(geometry=found if accepted else geometry, start=geometry, cost_start=0.5 * float(r0 @ r0),
-                            cost=float(fit.cost), evaluations=count[0], seconds=time.perf_counter() - t0,
-                            std_px=np.sqrt(np.clip(np.diag(cov), 0.0, None)), found=found, accepted=accepted)
+                            cost=cost, evaluations=count[0], seconds=time.perf_counter() - t0, found=found,
+                            accepted=accepted, status=str(status))

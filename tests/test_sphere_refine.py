@@ -14,6 +14,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -23,7 +24,7 @@ from mi_bivariate.cli import main as cli_main
 from mi_bivariate.errors import InputError, InputWarning
 from mi_bivariate.geometry import Intrinsics, PerspectiveSphereGeometry
 from mi_bivariate.images import write_exr
-from mi_bivariate.recover import recover, refine_sphere_and_recover
+from mi_bivariate.recover import recover, recover_from_photo, refine_sphere_and_recover
 from mi_bivariate.reference import render_reference
 from mi_bivariate.sources import synthetic_environment
 
@@ -40,31 +41,53 @@ def probe():
 
 @pytest.fixture(scope="module")
 def shot(probe):
-    """A glossy bivariate lobe, 96 px, converged (the reference renderer)."""
+    """A glossy bivariate lobe, 96 px, converged (the reference renderer), padded to 103 x 99 px so
+    that the sphere sits off the image's centre with cx != cy (a swapped axis would show)."""
     truth = analytic.BivariateLobe(diffuse=(0.2, 0.15, 0.1), specular=(1.5, 1.5, 1.5), width=0.2, f0=1.0)
-    return render_reference(render.bsdf_dict(analytic.to_merl(truth)), probe, resolution=96, seed=1)
+    rendered = render_reference(render.bsdf_dict(analytic.to_merl(truth)), probe, resolution=96, seed=1)
+    g = rendered.geometry
+    return SimpleNamespace(image=np.pad(rendered.image, ((3, 0), (7, 0), (0, 0))),
+                           geometry=dataclasses.replace(g, cx=g.cx + 7.0, cy=g.cy + 3.0))
 
 
 def _errors(geometry, truth):
     return float(np.hypot(geometry.cx - truth.cx, geometry.cy - truth.cy)), float(geometry.radius - truth.radius)
 
 
-def _refine(shot, probe, start):
-    first = recover(shot.image, probe, start, noise=None, **SMALL)
-    return sphere_refine.refine_sphere(shot.image, probe, start, alphas=first.solution.alphas,
+def _refine(image, probe, start, mask=None):
+    first = recover(image, probe, start, noise=None, masks=mask, **SMALL)
+    return sphere_refine.refine_sphere(image, probe, start, alphas=first.solution.alphas,
                                        winner=first.solution.winner, n_normals=SMALL["n_normals"],
-                                       n_dirs=SMALL["n_dirs"], grid=SMALL["grid"])
+                                       n_dirs=SMALL["n_dirs"], grid=SMALL["grid"], mask=mask)
 
 
-def test_a_shifted_sphere_comes_back_to_the_rendered_one(shot, probe):
+@pytest.mark.parametrize("offset", [(0.4, -0.3, -0.4), (-0.3, 0.2, 0.45)], ids=["radius small", "radius large"])
+def test_a_shifted_sphere_comes_back_to_the_rendered_one(shot, probe, offset):
     truth = shot.geometry
-    start = dataclasses.replace(truth, cx=truth.cx + 0.4, cy=truth.cy - 0.3, radius=truth.radius - 0.4)
-    result = _refine(shot, probe, start)
+    start = dataclasses.replace(truth, cx=truth.cx + offset[0], cy=truth.cy + offset[1], radius=truth.radius + offset[2])
+    result = _refine(shot.image, probe, start)
     centre, radius = _errors(result.geometry, truth)
     assert result.accepted and result.geometry == result.found, result.summary()
     assert centre < 0.08 and abs(radius) < 0.08, result.summary()
     assert result.cost < 0.5 * result.cost_start
-    assert 0.8 < result.shift_px <= sphere_refine.MAX_SHIFT_PX and "sphere refined by shading" in result.summary()
+    assert 0.7 < result.shift_px <= sphere_refine.MAX_SHIFT_PX and "sphere refined by shading" in result.summary()
+
+
+def test_masked_pixels_do_not_count(shot, probe):
+    """A bright blot on the sphere (a reflection of something the probe lacks) pulls the refinement off;
+    masked out, it does not."""
+    truth = shot.geometry
+    start = dataclasses.replace(truth, cx=truth.cx + 0.4, cy=truth.cy - 0.3, radius=truth.radius - 0.4)
+    image = shot.image.copy()
+    rows, cols = slice(int(truth.cy) - 30, int(truth.cy) - 10), slice(int(truth.cx) + 5, int(truth.cx) + 25)
+    image[rows, cols] *= 4.0
+    mask = np.ones(image.shape[:2], bool)
+    mask[rows, cols] = False
+    masked = _errors(_refine(image, probe, start, mask).geometry, truth)
+    blotted = _errors(_refine(image, probe, start).geometry, truth)
+    print(masked, blotted)
+    assert masked[0] < 0.08 and abs(masked[1]) < 0.08, masked
+    assert blotted[0] + abs(blotted[1]) > 2 * (masked[0] + abs(masked[1])) + 0.1, (blotted, masked)
 
 
 def test_a_sphere_further_off_than_the_silhouette_allows_is_not_taken(shot, probe):
@@ -80,7 +103,7 @@ def test_a_sphere_further_off_than_the_silhouette_allows_is_not_taken(shot, prob
 
 
 def test_the_rendered_sphere_stays_put(shot, probe):
-    result = _refine(shot, probe, shot.geometry)
+    result = _refine(shot.image, probe, shot.geometry)
     centre, radius = _errors(result.geometry, shot.geometry)
     assert centre < 0.08 and abs(radius) < 0.08, result.summary()
     assert result.cost <= result.cost_start
@@ -91,6 +114,8 @@ def test_only_an_orthographic_sphere_is_refined(shot, probe):
     with pytest.raises(InputError, match="orthographic"):
         sphere_refine.refine_sphere(shot.image, probe, PerspectiveSphereGeometry(k, [0.0, 0.0, -5.0], 1.0),
                                     alphas=(1e-3,) * 3, winner=("gloss",) * 3)
+    with pytest.raises(InputError, match="orthographic"):  # refused before the fit
+        recover_from_photo(shot.image, probe, intrinsics=(100.0, 100.0, 48.0, 48.0), refine_sphere=True)
     with pytest.raises(InputError, match="one value per channel"):
         sphere_refine.refine_sphere(shot.image, probe, shot.geometry, alphas=(1e-3,), winner=("gloss",) * 3)
 
