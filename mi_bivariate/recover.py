@@ -402,7 +402,7 @@ def refine_sphere_and_recover(image: np.ndarray, probe: Probe, first: Recovery, 
     :func:`mi_bivariate.sphere_refine.refine_sphere`, with ``first``'s alpha and prior variant
     per channel, and the table recovered again under them. Measured on 8 materials under
     grace_latlong_1k (256 px, docs/recovery.md section 9): median relight error 1.17x the
-    exact geometry's with the silhouette fit, 1.01x refined. Costs 6-30 s on two cores.
+    exact geometry's with the silhouette fit, 1.00x refined. Costs 10-30 s on two cores.
 
     Args:
         image: the ``(H, W, 3)`` image ``first`` was recovered from (one image, orthographic sphere).
@@ -474,7 +474,7 @@ def recover_from_photo(image: np.ndarray, probe: Probe, *, intrinsics: Any = Non
             the aligned probe (the main error source for captured data).
         yaw_kwargs: options for :func:`~mi_bivariate.alignment.estimate_yaw`.
         refine_sphere: then refine the sphere by the image's shading and recover again
-            (:func:`refine_sphere_and_recover`; orthographic only, 6-30 s).
+            (:func:`refine_sphere_and_recover`; orthographic only, 10-30 s).
         kwargs: passed to :func:`recover`.
 
     Returns:

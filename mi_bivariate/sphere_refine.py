@@ -4,8 +4,8 @@
 sphere's rim darkens over its last 2-3 pixels (masking at grazing view), so on such spheres that
 fit is 0.1-0.5 px off in centre and 0.2-0.6 px in radius. Under grace_latlong_1k that raised four
 metals' relight error by 25-85% over the exact sphere's (``benchmarks/sphere_fit_bias.py``,
-docs/recovery.md section 9); refined, the median over 8 materials went 1.17 -> 1.01 times the exact
-sphere's, the worst 1.84 -> 1.24.
+docs/recovery.md section 9); refined, the median over 8 materials went 1.17 -> 1.00 times the exact
+sphere's, the worst 1.84 -> 1.19.
 
 This module finds the centre and radius under which the bivariate model explains the image best.
 The criterion is the recovery's own: over a fixed set of pixels (the lattice pixels of the
@@ -26,7 +26,7 @@ A minimum further than :data:`MAX_SHIFT_PX` from the starting outline is found b
 
 Orthographic spheres (:class:`~mi_bivariate.geometry.SphereGeometry`) only. Each evaluation is a
 lighting matrix of ``n_normals`` rows and a solve, about 0.2-0.3 s on two cores. A refinement
-takes 30-70 of them, 6-24 s. ``recover --refine-sphere`` runs it between a first recovery and the
+takes 32-80 of them (a budget of 80), 10-28 s. ``recover --refine-sphere`` runs it between a first recovery and the
 final one (:func:`mi_bivariate.recover.refine_sphere_and_recover`).
 """
 
