@@ -8,7 +8,8 @@ thresholded region alone (0 passes). The script prints the centre and radius err
 the default fit refined by shading (:func:`mi_bivariate.recover.refine_sphere_and_recover`, what
 ``recover --refine-sphere`` runs); each table is rendered under a novel probe (pisa_256 for the
 grace_latlong_1k input, uffizi_256 for the pisa_256 input) by the converged reference quadrature
-(128 px), and the relight error is printed beside the recovery's relative residual.
+(128 px), and the relight error is printed beside the recovery's relative residual and the own
+noise of the truth's and the refined table's renders (their images at a second seed).
 
     MI_BIVARIATE_DATA=/work/shared/data python benchmarks/sphere_fit_bias.py [--relight]
 """
@@ -93,9 +94,10 @@ def main(argv: Sequence[str] = None) -> None:
                              recover(shot.image, probe, fit_errors(shot.image, shot.geometry, passes)[2], seed=0)))
             refined = refine_sphere_and_recover(shot.image, probe, runs[1][1], seed=0)
             refinement = refined.sphere_refinement
-            runs.append((f"refined ({refinement.evaluations} evaluations, {refinement.seconds:.1f} s)"
-                         if refinement.accepted else
-                         f"refined (not taken: {refinement.shift_px:.2f} px away; {refinement.seconds:.1f} s)", refined))
+            label = (f"refined ({refinement.evaluations} evaluations, {refinement.seconds:.1f} s)"
+                     if refinement.accepted else
+                     f"refined (not taken: {refinement.shift_px:.2f} px away; {refinement.seconds:.1f} s)")
+            runs.append((label, refined))
             exact = None
             for name, result in runs:
                 geometry = result.geometries[0]
@@ -108,6 +110,12 @@ def main(argv: Sequence[str] = None) -> None:
                     ratios[name.split(" (")[0]].append(relight / exact)
                 print(f"| {probe_name} | {material} | {name} | {dc:.3f} | {dr:+.3f} | {result.relative_residual():.4f} "
                       f"| {relight:.4f} | {relight / exact:.3f} |", flush=True)
+            # The scoring renders' own noise: the truth's and the last (refined) table's, at another seed.
+            noise = [metrics.image_relative_rmse(a.image, reference.render_reference(b, novel, resolution=128,
+                                                                                     seed=2).image, a.mask)
+                     / np.sqrt(2.0) for a, b in ((want, truth), (got, result.brdf))]
+            print(f"| {probe_name} | {material} | own noise of the scoring renders (seeds 1, 2; / sqrt 2) | | | | "
+                  f"truth {noise[0]:.5f} | refined table {noise[1]:.5f} |", flush=True)
     print("\nmedian relight error / the exact geometry's: " + ", ".join(
         f"{name} {np.median(r):.3f} (max {np.max(r):.3f})" for name, r in ratios.items()))
 

@@ -404,17 +404,17 @@ def refine_sphere_and_recover(image: np.ndarray, probe: Probe, first: Recovery, 
     grace_latlong_1k (256 px, docs/recovery.md section 9): median relight error 1.17x the
     exact geometry's with the silhouette fit, 1.00x refined. Costs 10-30 s on two cores.
 
-    Args:
-        image: the ``(H, W, 3)`` image ``first`` was recovered from (one image, orthographic sphere).
-        probe: its probe.
-        first: the recovery under the starting sphere.
-        kwargs: :func:`recover`'s options, the same as ``first``'s.
-
     A minimum found more than :data:`mi_bivariate.sphere_refine.MAX_SHIFT_PX` from the starting
     outline is not taken, nor is a sphere too small to refine: it warns and returns ``first``
     (sphere and table), with the refinement recorded in its provenance. The user's normals,
     directions and footprint do not apply to the refinement (M 2000, K 2000, centre normals, view
     angles up to :data:`~mi_bivariate.sphere_refine.MAX_VIEW_ANGLE_DEG` or the user's, if lower).
+
+    Args:
+        image: the ``(H, W, 3)`` image ``first`` was recovered from (one image, orthographic sphere).
+        probe: its probe.
+        first: the recovery under the starting sphere.
+        kwargs: :func:`recover`'s options, the same as ``first``'s.
 
     Returns:
         The new :class:`Recovery`, with ``sphere_refinement`` set and recorded in the table's provenance.

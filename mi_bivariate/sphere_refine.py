@@ -26,8 +26,8 @@ A minimum further than :data:`MAX_SHIFT_PX` from the starting outline is found b
 
 Orthographic spheres (:class:`~mi_bivariate.geometry.SphereGeometry`) only. Each evaluation is a
 lighting matrix of ``n_normals`` rows and a solve, about 0.2-0.3 s on two cores. A refinement
-takes 32-80 of them (a budget of 80), 10-28 s. ``recover --refine-sphere`` runs it between a first recovery and the
-final one (:func:`mi_bivariate.recover.refine_sphere_and_recover`).
+takes 32-80 of them (a budget of 80), 10-28 s. ``recover --refine-sphere`` runs it between a
+first recovery and the final one (:func:`mi_bivariate.recover.refine_sphere_and_recover`).
 """
 
 from __future__ import annotations
@@ -63,7 +63,7 @@ STEP_PX = 0.05
 #: ``|centre shift| + |radius change|``, pixels. The silhouette places the outline to within the
 #: rim's last pixel (its fit was at most 0.61 px off in 32 measured cases); a refinement that moves
 #: it further is led by the model's own error where the shading says little about the geometry
-#: (measured: a dark diffuse fabric moved 1.1-2.6 px and relit 8-11% worse), and is not taken.
+#: (measured: a dark diffuse fabric moved 1.1-6.3 px and relit 8-11% worse), and is not taken.
 MAX_SHIFT_PX = 1.0
 
 
@@ -160,7 +160,8 @@ def refine_sphere(image: np.ndarray, probe: Probe, geometry: SphereGeometry, *,
     prior = default_prior() if prior is None else prior
     if (prior.n_t, prior.n_s) != (n_t, n_s):
         prior = prior.resampled(n_t, n_s)
-    penalties = {w: (lambda r: (r.T @ r).toarray())(prior.regulariser(w)) for w in set(winner)}
+    regularisers = {w: prior.regulariser(w) for w in set(winner)}
+    penalties = {w: (r.T @ r).toarray() for w, r in regularisers.items()}  # R^T R, (N, N)
     # Pixels that stay on any sphere within MAX_SHIFT_PX of the start (a pixel's corner is 0.71 px
     # from its centre): on a small sphere this cuts below max_view_angle_deg.
     inner = max(0.0, 1.0 - (MAX_SHIFT_PX + math.sqrt(0.5)) / float(geometry.radius))

@@ -64,7 +64,8 @@ def _refine(image, probe, start, mask=None):
 @pytest.mark.parametrize("offset", [(0.4, -0.3, -0.4), (-0.3, 0.2, 0.45)], ids=["radius small", "radius large"])
 def test_a_shifted_sphere_comes_back_to_the_rendered_one(shot, probe, offset):
     truth = shot.geometry
-    start = dataclasses.replace(truth, cx=truth.cx + offset[0], cy=truth.cy + offset[1], radius=truth.radius + offset[2])
+    dx, dy, dr = offset
+    start = dataclasses.replace(truth, cx=truth.cx + dx, cy=truth.cy + dy, radius=truth.radius + dr)
     result = _refine(shot.image, probe, start)
     centre, radius = _errors(result.geometry, truth)
     assert result.accepted and result.geometry == result.found, result.summary()
