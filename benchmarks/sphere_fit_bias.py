@@ -9,7 +9,9 @@ the default fit refined by shading (:func:`mi_bivariate.recover.refine_sphere_an
 ``recover --refine-sphere`` runs); each table is rendered under a novel probe (pisa_256 for the
 grace_latlong_1k input, uffizi_256 for the pisa_256 input) by the converged reference quadrature
 (128 px), and the relight error is printed beside the recovery's relative residual and the own
-noise of the truth's and the refined table's renders (their images at a second seed).
+noise of the truth's and the refined table's renders (their images at a second seed). Every
+recovery of a shared material uses priors learnt without it (leave-one-out, as the evaluation
+does); ``--packaged-priors`` uses the packaged ones, which saw all 73 shared materials.
 
     MI_BIVARIATE_DATA=/work/shared/data python benchmarks/sphere_fit_bias.py [--relight]
 """
@@ -46,9 +48,12 @@ def main(argv: Sequence[str] = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--materials", nargs="+", default=list(MATERIALS))
     parser.add_argument("--relight", action="store_true", help="also measure what the bias costs a recovery")
+    parser.add_argument("--packaged-priors", action="store_true",
+                        help="recover with the packaged priors (learnt on all 73 shared materials, these included) "
+                             "instead of leave-one-out ones")
     args = parser.parse_args(argv)
 
-    from mi_bivariate import metrics, nbrdf, probes, reference, render
+    from mi_bivariate import metrics, nbrdf, probes, reference, render, training_set
     from mi_bivariate.recover import recover, refine_sphere_and_recover
     from mi_bivariate.variants import ensure_variant
 
@@ -78,6 +83,7 @@ def main(argv: Sequence[str] = None) -> None:
 
     if not args.relight:
         return
+    print(f"\npriors: {'packaged (73 shared materials)' if args.packaged_priors else 'leave-one-out (72 materials)'}")
     print("\n| input probe | material | geometry | centre error | radius error | relative residual "
           "| relight error | / exact geometry's |")
     print("|---|---|---|---:|---:|---:|---:|---:|")
@@ -86,13 +92,16 @@ def main(argv: Sequence[str] = None) -> None:
         probe, novel = probes.shared_probe(probe_name), probes.shared_probe(novel_name)
         for material in args.materials:
             truth = nbrdf.nbrdf_merl(material)
+            priors = {} if args.packaged_priors else dict(zip(
+                ("prior", "basis_prior"), training_set.leave_one_out_priors(material)))
             shot = render.render_sphere(render.bsdf_dict(truth), probe, resolution=256, spp=64, seed=0)
             want = reference.render_reference(truth, novel, resolution=128, seed=1)
-            runs = [("exact", recover(shot.image, probe, shot.geometry, seed=0))]
+            runs = [("exact", recover(shot.image, probe, shot.geometry, seed=0, **priors))]
             for passes in (2, 0):
                 runs.append((f"fitted, {passes} passes",
-                             recover(shot.image, probe, fit_errors(shot.image, shot.geometry, passes)[2], seed=0)))
-            refined = refine_sphere_and_recover(shot.image, probe, runs[1][1], seed=0)
+                             recover(shot.image, probe, fit_errors(shot.image, shot.geometry, passes)[2], seed=0,
+                                     **priors)))
+            refined = refine_sphere_and_recover(shot.image, probe, runs[1][1], seed=0, **priors)
             refinement = refined.sphere_refinement
             label = (f"refined ({refinement.evaluations} evaluations, {refinement.seconds:.1f} s)"
                      if refinement.accepted else

@@ -104,13 +104,17 @@ def _add_data(p: argparse.ArgumentParser) -> None:
                    help="shared data folder with probes/ and merl_nbrdf/ (default: $MI_BIVARIATE_DATA)")
 
 
+def _add_probe_rotation(p: argparse.ArgumentParser, whose: str) -> None:
+    p.add_argument("--probe-rotation", type=_parse_rotation, default=None, metavar="RX,RY,RZ",
+                   help="turn the probe by these angles in degrees, about world x, then y, then z (after a shared "
+                        f"probe's own rotation; world: y up, the camera on +z), for a probe stored in another "
+                        f"orientation than {whose}; write a negative first angle as --probe-rotation=-90,0,0")
+
+
 def _add_recover_options(p: argparse.ArgumentParser) -> None:
     """The options ``recover`` and ``recover-batch`` share."""
     p.add_argument("--probe", required=True, help="environment map file or shared probe name")
-    p.add_argument("--probe-rotation", type=_parse_rotation, default=None, metavar="RX,RY,RZ",
-                   help="turn the probe by these angles in degrees, about world x, then y, then z (after a shared "
-                        "probe's own rotation; world: y up, the camera on +z), for a probe stored in another "
-                        "orientation than the photo's; write a negative first angle as --probe-rotation=-90,0,0")
+    _add_probe_rotation(p, "the photo's")
     p.add_argument("--sphere", default="auto", type=_parse_sphere, metavar="CX,CY,R",
                    help="sphere centre and radius in pixels (pixel centres at i+0.5, y down; write a negative "
                         "centre as --sphere=-10,32,40); default 'auto': fitted to the image (or --mask), with the "
@@ -183,6 +187,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("brdf", help="MERL .binary, bivariate .npz, MERL-NBRDF name, or analytic spec "
                                 "(e.g. 'ggx:alpha=0.1')")
     p.add_argument("--probe", required=True, help="environment map file (.exr/.hdr/.pfm) or shared probe name")
+    _add_probe_rotation(p, "the render's (as given to recover)")
     p.add_argument("--out", type=_parse_path, default="render.exr",
                    help="output EXR (a PNG preview is written beside it)")
     p.add_argument("--resolution", type=int, default=256, help="image width and height in pixels")
@@ -328,6 +333,7 @@ def main(argv: Optional[Sequence[str]] = None, *, own_process: bool = False) -> 
     parser = build_parser()
     args = parser.parse_args(argv)
     args.source_names = {}  # filled by commands that know which user file an internal name stands for
+    formatwarning = warnings.formatwarning  # restored on return: a notebook calling main keeps its own
     warnings.formatwarning = _warning_formatter(args.source_names)
     try:
         commands = importlib.import_module("mi_bivariate.commands")  # the pipeline, loaded only to run
@@ -357,6 +363,8 @@ def main(argv: Optional[Sequence[str]] = None, *, own_process: bool = False) -> 
     except KeyboardInterrupt:
         print("mi-bivariate: interrupted", file=sys.stderr)
         return 130
+    finally:
+        warnings.formatwarning = formatwarning
 
 
 def run() -> int:

@@ -209,7 +209,7 @@ def cmd_render(args: argparse.Namespace) -> int:
         raise InputError(out, "render writes OpenEXR (and a PNG preview beside it)", "give --out a name ending in .exr")
     ensure_variant(args.variant)
     brdf = load_brdf(args.brdf, args.data)
-    probe = load_probe(args.probe, args.data)
+    probe = _load_turned_probe(args)
     check_lit(probe, args.probe)
     result = render.render_sphere(render.bsdf_dict(brdf), probe, resolution=args.resolution, spp=args.spp,
                                   camera=args.camera, seed=args.seed)
@@ -346,7 +346,7 @@ def _recover_image(args: argparse.Namespace, image_path: str, probe, priors: tup
     return result, paths
 
 
-def _recover_probe(args: argparse.Namespace):
+def _load_turned_probe(args: argparse.Namespace):
     """``--probe``, turned by ``--probe-rotation`` when given."""
     probe = load_probe(args.probe, args.data)
     if args.probe_rotation is not None:
@@ -365,7 +365,7 @@ def cmd_recover(args: argparse.Namespace) -> int:
     args.source_names["lighting matrix L"] = str(args.probe)
     ensure_variant(args.variant)
     with jit_threads(args.threads):
-        probe = _recover_probe(args)
+        probe = _load_turned_probe(args)
         result, paths = _recover_image(args, args.image, probe, _recover_priors(args), Path(args.out))
     print(result.summary())
     for p in paths:
@@ -398,7 +398,7 @@ def cmd_recover_batch(args: argparse.Namespace) -> int:
     ensure_variant(args.variant)
     failed: List[str] = []
     with jit_threads(args.threads):
-        probe = _recover_probe(args)
+        probe = _load_turned_probe(args)
         priors = _recover_priors(args)
         for k, (image, out) in enumerate(zip(args.images, outs), 1):
             t0 = time.perf_counter()

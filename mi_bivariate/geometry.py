@@ -118,15 +118,27 @@ class SphereGeometry(Geometry):
 
         A pixel counts when its centre lies inside the sphere's silhouette.
         """
-        x = (np.arange(width) + 0.5 - self.cx) / self.radius
-        y = -(np.arange(height) + 0.5 - self.cy) / self.radius
-        xx, yy = np.meshgrid(x, y)
-        r2 = xx * xx + yy * yy
+        xx, yy = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
+        r2 = ((xx - self.cx) / self.radius) ** 2 + ((yy - self.cy) / self.radius) ** 2
         mask = r2 < 1.0
-        zz = np.sqrt(np.clip(1.0 - r2, 0.0, None))
-        n_cam = np.stack([xx, yy, zz], axis=-1)
-        n_cam[~mask] = 0.0
-        return n_cam @ np.asarray(self.camera_to_world, dtype=np.float64).T, mask
+        normals = self.normals_at(xx, yy)
+        normals[~mask] = 0.0
+        return normals, mask
+
+    def normals_at(self, x: np.ndarray, y: np.ndarray, onto_sphere: bool = False) -> np.ndarray:
+        """World normals ``(..., 3) float64`` at image positions ``x, y`` (pixels, x right, y down).
+
+        A position outside the silhouette gets the normal of its rim point (z = 0); with
+        ``onto_sphere`` it is first pulled just inside the rim, so its normal stays a unit vector in
+        the visible hemisphere (a trial geometry that leaves a few pixels off the sphere).
+        """
+        x = (np.asarray(x, np.float64) - self.cx) / self.radius
+        y = -(np.asarray(y, np.float64) - self.cy) / self.radius
+        if onto_sphere:
+            scale = np.minimum(1.0, (1.0 - 1e-6) / np.maximum(np.hypot(x, y), 1e-300))
+            x, y = x * scale, y * scale
+        z = np.sqrt(np.clip(1.0 - (x * x + y * y), 0.0, None))
+        return np.stack([x, y, z], axis=-1) @ np.asarray(self.camera_to_world, dtype=np.float64).T
 
     def view_direction(self) -> np.ndarray:
         """World direction from the surface towards the camera, ``(3,) float64``."""

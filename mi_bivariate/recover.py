@@ -436,7 +436,7 @@ def refine_sphere_and_recover(image: np.ndarray, probe: Probe, first: Recovery, 
     if refinement.accepted:
         result = recover(image, probe, refinement.geometry, **kwargs)
     else:
-        warnings.warn(f"image: {refinement.summary()}", InputWarning, stacklevel=2)
+        warnings.warn(f"image: {refinement.rejection()}", InputWarning, stacklevel=2)  # the summary has the numbers
         result = first  # its table stands; the refinement is recorded on it
     result.sphere_refinement = refinement
     result.timings = {"sphere refinement": refinement.seconds, **result.timings}

@@ -112,8 +112,14 @@ class SphereRefinement:
             return f"sphere not moved by the shading ({self.status}): {moved}"
         if self.accepted:
             return f"sphere refined by shading: {moved}"
+        return f"{self.rejection()}: {moved}"
+
+    def rejection(self) -> str:
+        """One short line: why the minimum found was not taken (empty when it was)."""
+        if self.accepted:
+            return ""
         return (f"sphere not refined: the shading's best sphere lies {self.shift_px:.2f} px from the fitted outline "
-                f"(more than {MAX_SHIFT_PX:g} px: the shading does not pin the sphere down; kept the fit): {moved}")
+                f"(more than {MAX_SHIFT_PX:g} px: the shading does not pin the sphere down; kept the fit)")
 
 
 def refine_sphere(image: np.ndarray, probe: Probe, geometry: SphereGeometry, *,
@@ -177,7 +183,6 @@ def refine_sphere(image: np.ndarray, probe: Probe, geometry: SphereGeometry, *,
     cols = obs0.pixels[:, 1].astype(np.float64) + 0.5
     values = np.asarray(obs0.values, np.float64)
     sigma = solve_mod.row_sigma(values, obs0.image_index, noise=None)
-    rot = np.asarray(geometry.camera_to_world, np.float64)
     count = [0]
     best = [math.inf, None]  # (cost, geometry) of the best evaluation, for a search stopped at the budget
 
@@ -185,13 +190,9 @@ def refine_sphere(image: np.ndarray, probe: Probe, geometry: SphereGeometry, *,
         if count[0] >= max_evaluations:
             raise _Budget
         count[0] += 1
-        cx, cy, radius = p
-        x, y = (cols - cx) / radius, -(rows - cy) / radius
+        trial = dataclasses.replace(geometry, cx=float(p[0]), cy=float(p[1]), radius=float(p[2]))
         # A trial step far beyond MAX_SHIFT_PX can put a rim pixel off the sphere: held just on it.
-        scale = np.minimum(1.0, (1.0 - 1e-6) / np.maximum(np.hypot(x, y), 1e-300))
-        x, y = x * scale, y * scale
-        n_cam = np.stack([x, y, np.sqrt(np.clip(1.0 - x * x - y * y, 0.0, None))], axis=-1)
-        obs = dataclasses.replace(obs0, normals=n_cam @ rot.T)
+        obs = dataclasses.replace(obs0, normals=trial.normals_at(cols, rows, onto_sphere=True))
         L = lighting.lighting_matrix(obs, probe, n_t=n_t, n_s=n_s, n_dirs=n_dirs, seed=seed, sampling=sampling,
                                      progress=False)
         data = solve_mod.prepare_data_term(L, values, sigma)

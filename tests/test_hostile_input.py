@@ -102,6 +102,18 @@ def test_ldr_image_warns_not_radiometric(files):
         images.load_image(files["png"], allow_ldr=False)
 
 
+def test_cli_main_leaves_the_callers_warning_format(files, tmp_path, capsys):
+    """In the CLI a warning is one ``mi-bivariate: warning:`` line; a notebook that called ``cli.main`` gets
+    its own warning format back afterwards, on success and on an error alike."""
+    before = warnings.formatwarning
+    assert cli.main(["render", "lambertian:albedo=0.5", "--probe", str(files["negative_probe"]),
+                     "--out", str(tmp_path / "r.exr")]) == 2
+    assert cli.main(["info"]) == 0
+    capsys.readouterr()
+    assert warnings.formatwarning is before
+    assert not warnings.formatwarning("x", UserWarning, "f.py", 1).startswith("mi-bivariate")
+
+
 def test_nan_and_inf_pixels_are_counted_and_dropped():
     image = _sphere_image()
     image[20:40, 20:40] = np.nan

@@ -95,9 +95,13 @@ def test_a_sphere_further_off_than_the_silhouette_allows_is_not_taken(shot, prob
     truth = shot.geometry
     start = dataclasses.replace(truth, cx=truth.cx + 1.5)
     first = recover(shot.image, probe, start, noise=None, **SMALL)
-    with pytest.warns(InputWarning, match="sphere not refined.*kept the fit"):
+    with pytest.warns(InputWarning, match="sphere not refined.*kept the fit") as seen:
         result = refine_sphere_and_recover(shot.image, probe, first, noise=None, **SMALL)
     refinement = result.sphere_refinement
+    # The warning says why in one short line; the numbers are in the summary (printed once by the CLI).
+    message = [str(w.message) for w in seen if "sphere not refined" in str(w.message)]
+    assert len(message) == 1 and "->" not in message[0], message
+    assert refinement.rejection() in result.summary() and "->" in result.summary()
     assert not refinement.accepted and refinement.geometry == start and result is first
     assert refinement.shift_px > sphere_refine.MAX_SHIFT_PX and _errors(refinement.found, truth)[0] < 0.5
     assert result.brdf.provenance["sphere_refinement"]["accepted"] is False
