@@ -417,8 +417,11 @@ def analyse(L: np.ndarray, n_t: int = 32, n_s: int = 32, probes: Optional[Sequen
                             unobserved_nodes=int(np.count_nonzero(~observed)), observation_map=omap,
                             regions=regions)
     if rank < min_rank_fraction * n_t * n_s:
+        rows = int(np.shape(L)[0]) if np.ndim(L) >= 2 else 0
+        cause = (f"only {rows} observed normals for {n_t * n_s} nodes (use more pixels: a larger sphere or more "
+                 "--normals)" if rows < min_rank_fraction * n_t * n_s else "too little variety in the lighting")
         report.reasons.append(f"the lighting matrix has numerical rank {rank} of {n_t * n_s} nodes "
-                              f"(below {min_rank_fraction:.0%}): too little variety in the lighting")
+                              f"(below {min_rank_fraction:.0%}): {cause}")
     if detail is not None:
         report.detail = detail
         if max(report.detail) < min_detail:

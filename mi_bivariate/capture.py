@@ -246,8 +246,9 @@ def _finish(image: np.ndarray, rows: np.ndarray, cols: np.ndarray, normals: np.n
 
     n_ok = int(np.count_nonzero(keep))
     if n_ok == 0:
-        raise InputError(source, "no usable pixel on the object",
-                         f"dropped: {', '.join(f'{k} {v}' for k, v in dropped.items() if v)}")
+        raise InputError(source, "no usable pixel on the object (dropped: "
+                         f"{', '.join(f'{k} {v}' for k, v in dropped.items() if v)})",
+                         "check the sphere, the mask and --max-view-angle")
     if not np.any(values[keep] > 0.0):
         raise InputError(source, "the image is black on the object (no positive pixel value)",
                          "check the exposure, the sphere position and the mask")

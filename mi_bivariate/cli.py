@@ -16,6 +16,7 @@ import sys
 import warnings
 from typing import Dict, Optional, Sequence, Tuple
 
+from mi_bivariate import __version__
 from mi_bivariate.errors import InputError
 
 
@@ -50,6 +51,8 @@ def _parse_sphere(text: str):
         cx, cy, r = (float(v) for v in text.split(","))
     except ValueError:
         raise argparse.ArgumentTypeError(f"--sphere expects CX,CY,R in pixels, got {text!r}")
+    if not all(math.isfinite(v) for v in (cx, cy, r)):
+        raise argparse.ArgumentTypeError(f"--sphere expects finite CX,CY,R in pixels, got {text!r}")
     if not r > 0:
         raise argparse.ArgumentTypeError(f"--sphere radius must be positive, got {r}")
     return cx, cy, r
@@ -96,7 +99,7 @@ def _parse_rotation(text: str) -> Tuple[float, float, float]:
 
 def _add_variant(p: argparse.ArgumentParser) -> None:
     p.add_argument("--variant", default=None,
-                   help="Mitsuba variant (llvm_ad_rgb default, cuda_ad_rgb on a GPU; env MI_BIVARIATE_VARIANT)")
+                   help="Mitsuba variant: llvm_ad_rgb (default) or cuda_ad_rgb on a GPU (env MI_BIVARIATE_VARIANT)")
 
 
 def _add_data(p: argparse.ArgumentParser) -> None:
@@ -175,6 +178,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="mi-bivariate",
         description="Passive reflectometry for Mitsuba 3: recover a bivariate (theta_h, theta_d) BRDF "
                     "from an HDR image of a known sphere under a known light probe.")
+    parser.add_argument("--version", action="version", version=f"mi-bivariate {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
 

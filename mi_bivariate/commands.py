@@ -31,9 +31,9 @@ from mi_bivariate import evaluate as ev
 from mi_bivariate import export, lighting, merl
 from mi_bivariate import recover as rec
 from mi_bivariate import render, spherefit, synthesis, training_set
-from mi_bivariate.atomic import atomic_paths, check_outputs
+from mi_bivariate.atomic import atomic_paths, check_outputs, same_file
 from mi_bivariate.basis_prior import BasisPrior
-from mi_bivariate.errors import InputError
+from mi_bivariate.errors import InputError, InputWarning
 from mi_bivariate.geometry import Intrinsics
 from mi_bivariate.images import load_image, load_mask, write_exr, write_png
 from mi_bivariate.nbrdf import ALL_NBRDF_MATERIALS
@@ -138,8 +138,13 @@ def _check_float(flag: str, value: Optional[float], lo: float, hi: float, lo_ope
         return
     ok = math.isfinite(value) and (value > lo if lo_open else value >= lo) and value <= hi
     if not ok:
-        interval = f"{'(' if lo_open else '['}{lo:g}, {hi:g}]"
-        raise InputError(flag, f"must be {what} in {interval}, got {value}")
+        if math.isinf(lo) and math.isinf(hi):
+            bounds = ""
+        elif math.isinf(hi):
+            bounds = f" {'>' if lo_open else '>='} {lo:g}"
+        else:
+            bounds = f" in {'(' if lo_open else '['}{lo:g}, {hi:g}]"
+        raise InputError(flag, f"must be {what}{bounds}, got {value}")
 
 
 def _input_files(args: argparse.Namespace, *specs: Optional[str]) -> List[Path]:
@@ -165,7 +170,11 @@ def _check_out_folder(out: Path, flag: str = "--out") -> None:
     """An output folder (given by ``flag``) must not be an existing file and must be creatable/writable."""
     if out.exists() and not out.is_dir():
         raise InputError(out, f"{flag} must be a folder, but this is a file", f"choose another {flag}")
-    check_outputs([out / ".probe-write"], flag=flag)
+    try:
+        check_outputs([out / ".probe-write"], flag=flag)
+    except InputError as exc:  # name the folder, not the file standing in for what it will hold
+        problem = exc.problem.replace(str(out / ".probe-write"), str(out))
+        raise InputError(out, problem, exc.hint) from None
 
 
 # --------------------------------------------------------------------------- info
@@ -204,13 +213,14 @@ def cmd_render(args: argparse.Namespace) -> int:
     _check_out_file(args.out)
     out = Path(args.out)
     args.source_names["merl table"] = str(args.brdf)  # an analytic spec's tabulated values
-    check_outputs([out, out.with_suffix(".png")], _input_files(args, args.brdf, args.probe))
+    inputs = _input_files(args, args.brdf, args.probe)
+    check_outputs([out], inputs)  # an input's name first: that is the problem to say, whatever its suffix
     if out.suffix.lower() != ".exr":
         raise InputError(out, "render writes OpenEXR (and a PNG preview beside it)", "give --out a name ending in .exr")
-    ensure_variant(args.variant)
+    check_outputs([out, out.with_suffix(".png")], inputs)
+    ensure_variant(args.variant, vectorised=True)  # the plugins and the lighting matrix are JIT code
     brdf = load_brdf(args.brdf, args.data)
     probe = _load_turned_probe(args)
-    check_lit(probe, args.probe)
     result = render.render_sphere(render.bsdf_dict(brdf), probe, resolution=args.resolution, spp=args.spp,
                                   camera=args.camera, seed=args.seed)
     bad = int(np.count_nonzero(~np.isfinite(result.image)))
@@ -237,9 +247,16 @@ def cmd_reduce(args: argparse.Namespace) -> int:
     if Path(args.merl).suffix.lower() != ".binary":
         raise InputError(args.merl, "is not a MERL .binary file", "give the 3D table to reduce as a .binary file")
     out = Path(args.out) if args.out else Path(args.merl).with_suffix(".npz")
-    check_outputs([out, out.with_suffix(".exr")], _input_files(args, args.merl))
+    inputs = _input_files(args, args.merl)
+    check_outputs([out], inputs)  # an input's name first: that is the problem to say, whatever its suffix
     _check_npz_out(out, "reduce writes a .npz table (and its .exr view beside it)")
+    check_outputs([out, out.with_suffix(".exr")], inputs)
     source = merl.MERLBRDF.read(args.merl)  # refuses a table with no positive value
+    if not args.out:  # X.npz beside X.binary may be the recovery that `recover --merl` wrote with it
+        for existing in (out, out.with_suffix(".exr")):
+            if existing.exists():
+                raise InputError(existing, "exists already, and reduce would replace it (it writes beside its "
+                                 "input unless --out says where)", "give --out to write elsewhere or to replace it")
     biv = bivariate.BivariateBRDF.reduce(source, n_t=args.grid[0], n_s=args.grid[1])
     exact = bivariate.exact_floor(source)
     grid = bivariate.reduction_error(source, biv)
@@ -292,9 +309,23 @@ def _check_recover_args(args: argparse.Namespace) -> None:
             if given:
                 raise InputError(flag, "models an orthographic view only", "leave it out with --fov")
     if not isinstance(args.alpha, str):
-        _check_float("--alpha", args.alpha, float("-inf"), float("inf"))  # the sign is the library's check
-    if args.threads is not None and not 1 <= args.threads <= 1024:
+        _check_float("--alpha", args.alpha, 0.0, float("inf"))  # the library refuses the same, after the sphere fit
+    _check_threads(args)
+
+
+def _check_threads(args: argparse.Namespace) -> None:
+    """``--threads`` from 1 to 1024, and at most this machine's CPUs: beyond them Dr.Jit gains nothing,
+    and each thread's copy of the lighting matrix's chunk makes the chunks smaller (measured on 2 cores:
+    64 threads took the lighting matrix from 1 s to 20 s), so more are lowered to the CPU count, with a warning."""
+    if args.threads is None:
+        return
+    if not 1 <= args.threads <= 1024:
         raise InputError("--threads", f"must be from 1 to 1024, got {args.threads}")
+    cpus = os.cpu_count() or 1
+    if args.threads > cpus:
+        warnings.warn(f"--threads: {args.threads} is more than this machine's {cpus} CPUs; using {cpus}",
+                      InputWarning, stacklevel=2)
+        args.threads = cpus
 
 
 def _recover_priors(args: argparse.Namespace) -> tuple:
@@ -341,14 +372,22 @@ def _recover_image(args: argparse.Namespace, image_path: str, probe, priors: tup
         if exc.source in names:
             raise InputError(names[exc.source], exc.problem, exc.hint) from None
         raise
+    result.brdf.provenance["photos"] = [str(image_path)]
     paths = export.write_outputs(result, out, merl=args.merl, report=not args.no_report,
                               report_render=args.report_render)
     return result, paths
 
 
-def _load_turned_probe(args: argparse.Namespace):
-    """``--probe``, turned by ``--probe-rotation`` when given."""
+def _load_turned_probe(args: argparse.Namespace, every_channel: bool = False):
+    """``--probe``, turned by ``--probe-rotation`` when given; refused when black (or, with
+    ``every_channel``, as a recovery needs, black in any colour channel)."""
     probe = load_probe(args.probe, args.data)
+    check_lit(probe, args.probe)
+    if every_channel:
+        dark = [name for name, lit in zip("RGB", np.any(probe.data[..., :3] > 0.0, axis=(0, 1))) if not lit]
+        if dark:
+            raise InputError(args.probe, f"the probe sheds no light in its {'/'.join(dark)} channel: the table "
+                             "cannot be measured there", "give a probe with light in every colour channel")
     if args.probe_rotation is not None:
         probe = probe.rotated(euler_deg=args.probe_rotation)
     return probe
@@ -363,9 +402,9 @@ def cmd_recover(args: argparse.Namespace) -> int:
     outputs = export.output_paths(args.out, merl=args.merl, report=not args.no_report)
     check_outputs(outputs, _input_files(args, args.image, args.probe, args.mask))
     args.source_names["lighting matrix L"] = str(args.probe)
-    ensure_variant(args.variant)
+    ensure_variant(args.variant, vectorised=True)  # the plugins and the lighting matrix are JIT code
     with jit_threads(args.threads):
-        probe = _load_turned_probe(args)
+        probe = _load_turned_probe(args, every_channel=True)
         result, paths = _recover_image(args, args.image, probe, _recover_priors(args), Path(args.out))
     print(result.summary())
     for p in paths:
@@ -389,16 +428,18 @@ def cmd_recover_batch(args: argparse.Namespace) -> int:
     first_of: Dict[Path, str] = {}
     for image, out in zip(args.images, outs):
         if out in first_of:
+            if same_file(Path(image), Path(first_of[out])):
+                raise InputError(image, "is given twice", "give each photo once")
             raise InputError(image, f"writes {out}, as {first_of[out]} does",
                              "rename one of them, or recover them in separate batches")
         first_of[out] = image
     outputs = [p for out in outs for p in export.output_paths(out, merl=args.merl, report=not args.no_report)]
     check_outputs(outputs, _input_files(args, *args.images, args.probe, args.mask), flag="--out-dir")
     args.source_names["lighting matrix L"] = str(args.probe)
-    ensure_variant(args.variant)
+    ensure_variant(args.variant, vectorised=True)  # the plugins and the lighting matrix are JIT code
     failed: List[str] = []
     with jit_threads(args.threads):
-        probe = _load_turned_probe(args)
+        probe = _load_turned_probe(args, every_channel=True)
         priors = _recover_priors(args)
         for k, (image, out) in enumerate(zip(args.images, outs), 1):
             t0 = time.perf_counter()
@@ -434,7 +475,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     _check_out_folder(Path(args.out))
     check_outputs([Path(args.out) / name for name in demo.OUTPUTS],
                   _input_files(args, args.material, args.input_probe, args.novel_probe))
-    ensure_variant(args.variant)
+    ensure_variant(args.variant, vectorised=True)  # the plugins and the lighting matrix are JIT code
     return demo.run_demo(out_dir=Path(args.out), material=args.material, input_probe=args.input_probe,
                          novel_probe=args.novel_probe, data_dir=args.data, spp=args.spp, seed=args.seed,
                          resolution=args.resolution)
@@ -452,16 +493,15 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
                         resolution_flag="--novel-resolution")
     _check_seed(args.seed)
     if not isinstance(args.alpha, str):
-        _check_float("--alpha", args.alpha, float("-inf"), float("inf"))
+        _check_float("--alpha", args.alpha, 0.0, float("inf"))
     _check_float("--abs-time-factor", args.abs_time_factor, 0.0, 1e6, lo_open=True)
     if args.abs < 0:
         raise InputError("--abs", f"must be >= 0 (the number of materials), got {args.abs}")
     if not 1 <= args.jobs <= 256:
         raise InputError("--jobs", f"must be from 1 to 256, got {args.jobs}")
-    if args.threads is not None and not 1 <= args.threads <= 1024:
-        raise InputError("--threads", f"must be from 1 to 1024, got {args.threads}")
+    _check_threads(args)
     _check_out_folder(Path(args.out))
-    ensure_variant(args.variant)
+    ensure_variant(args.variant, vectorised=True)  # the plugins and the lighting matrix are JIT code
     data = args.data
     materials = list(args.materials) or (ev.quick_materials(data) if args.quick else ["nbrdf"])
     overrides = {k: v for k, v in {

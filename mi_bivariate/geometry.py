@@ -21,9 +21,10 @@ camera-to-world rotation applied to camera-frame directions.
 from __future__ import annotations
 
 import abc
+import dataclasses
 import math
 from dataclasses import dataclass, field
-from typing import Any, Optional, Sequence, Tuple, Union
+from typing import Any, Dict, Optional, Sequence, Tuple, Union
 
 import mitsuba as mi
 import numpy as np
@@ -95,6 +96,27 @@ class Geometry(abc.ABC):
     def occluder(self) -> Optional[Any]:
         """The shape that casts shadows on itself (``lighting_matrix(occluder=...)``), or ``None``."""
         return None
+
+    def record(self) -> Dict[str, Any]:
+        """A JSON-ready description for a table's provenance: the type and the small fields (numbers,
+        and arrays of at most 16 values; a mesh's arrays are left out)."""
+        return {"type": type(self).__name__, **_small_fields(self)}
+
+
+def _small_fields(obj: Any) -> Dict[str, Any]:
+    out: Dict[str, Any] = {}
+    for f in dataclasses.fields(obj) if dataclasses.is_dataclass(obj) else ():
+        value = getattr(obj, f.name)
+        if dataclasses.is_dataclass(value):
+            out[f.name] = _small_fields(value)
+        elif isinstance(value, (bool, int, float, str)) or value is None:
+            out[f.name] = value
+        elif isinstance(value, (np.ndarray, list, tuple)) and np.size(value) <= 16:
+            try:
+                out[f.name] = np.asarray(value, np.float64).tolist()
+            except (TypeError, ValueError):
+                pass
+    return out
 
 
 @dataclass(frozen=True)

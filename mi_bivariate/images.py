@@ -105,7 +105,7 @@ def read_image(path: PathLike, allow_ldr: bool = True) -> Tuple[np.ndarray, Dict
         raise InputError(path, f"unknown image type: extension {path.suffix or '(none)'!r}",
                          f"use one of {', '.join(HDR_SUFFIXES + LDR_SUFFIXES)}")
     if not path.exists():
-        raise InputError(path, "no such file")
+        raise InputError(path, "no such file", "check the path")
     if not path.is_file():
         raise InputError(path, "not a file")
     try:
@@ -392,7 +392,8 @@ def load_mask(path: PathLike, shape: tuple) -> np.ndarray:
         warnings.simplefilter("ignore", InputWarning)
         data = load_image(path, allow_ldr=True)
     if data.shape[:2] != tuple(shape[:2]):
-        raise InputError(path, f"mask is {data.shape[1]}x{data.shape[0]} but the image is {shape[1]}x{shape[0]}")
+        raise InputError(path, f"mask is {data.shape[1]}x{data.shape[0]} but the image is {shape[1]}x{shape[0]}",
+                         "give a mask of the image's size")
     return np.any(data > 0, axis=2)
 
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import time
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
@@ -206,6 +206,7 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
                                          saturation=saturation, mask=mask, seed=seed + k, footprint=footprint,
                                          source=f"image {k}" if n > 1 else "image")
         parts.append(obs.with_probe_index(k))
+        _check_grey_photo(obs.values, probe_list[k], f"image {k}" if n > 1 else "image")
     observations = capture.stack(parts)
     timings["observations"] = time.perf_counter() - t0
 
@@ -266,6 +267,7 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
                                                     "resampled_from": basis.provenance.get("resampled_from")},
         "noise": None if noise_models is None else [None if v is None else [np.asarray(x).tolist() for x in v]
                                                     for v in noise_models],
+        "geometries": [g.record() if hasattr(g, "record") else {"type": type(g).__name__} for g in geometries],
         "probes": [getattr(p, "source", "?") for p in probe_list],
         "probe_to_world": [np.asarray(getattr(p, "to_world", np.eye(4))).tolist() for p in probe_list],
         "visibility": bool(any(o is not None for o in occluders)),
@@ -348,6 +350,25 @@ def _check_explained(values: np.ndarray, predicted: np.ndarray, sigma: np.ndarra
                       InputWarning, stacklevel=3)
 
 
+#: A probe whose mean colour's channels differ by more than this ratio is coloured (:func:`_check_grey_photo`).
+GREY_PROBE_RATIO = 1.05
+
+
+def _check_grey_photo(values: np.ndarray, probe: Probe, source: str) -> None:
+    """Warn when a grey photo (``values``: ``(M, 3)`` rows with R = G = B, e.g. a one-channel EXR) is lit
+    by a coloured probe: each channel's table is then fitted to light of another colour than the pixels
+    show, and the recovered colour is the probe's inverse, not the material's."""
+    if not len(values) or np.any(values[:, 0] != values[:, 1]) or np.any(values[:, 0] != values[:, 2]):
+        return
+    mean = np.asarray(probe.mean_radiance(), np.float64)
+    if mean.min() > 0.0 and mean.max() <= GREY_PROBE_RATIO * mean.min():
+        return
+    warnings.warn(f"{source}: the photo is grey (R = G = B on the object) but the probe is coloured (mean RGB "
+                  f"{', '.join(f'{v:.3g}' for v in mean)}): the recovered table's colour will be the probe's "
+                  "inverse, not the material's (give an RGB photo, or a grey probe for a grey photo)",
+                  InputWarning, stacklevel=3)
+
+
 def _noise_list(noise: Any, images: Sequence[np.ndarray]) -> Optional[list]:
     """Per-image ``(a, b)`` (or None) from ``"auto"``, one pair, a list, or None."""
     n = len(images)
@@ -427,7 +448,7 @@ def refine_sphere_and_recover(image: np.ndarray, probe: Probe, first: Recovery, 
             image, probe, first.geometries[0], alphas=first.solution.alphas, winner=first.solution.winner,
             prior=kwargs.get("prior"), grid=kwargs.get("grid", (32, 32)), saturation=kwargs.get("saturation"),
             mask=mask[0] if isinstance(mask, (list, tuple)) else mask, seed=kwargs.get("seed", 0),
-            sampling=kwargs.get("sampling", "mis"),
+            sampling=kwargs.get("sampling", "mis"), noise=(first.brdf.provenance.get("noise") or [None])[0],
             max_view_angle_deg=min(sphere_refine.MAX_VIEW_ANGLE_DEG, kwargs.get("max_view_angle_deg", 80.0)))
     except InputError as exc:  # the first recovery stands
         warnings.warn(f"image: sphere not refined: {exc.problem}; kept the fitted sphere", InputWarning, stacklevel=2)
@@ -435,7 +456,12 @@ def refine_sphere_and_recover(image: np.ndarray, probe: Probe, first: Recovery, 
         return first
     if refinement.accepted:
         result = recover(image, probe, refinement.geometry, **kwargs)
-    else:
+        before, after = first.relative_residual(), result.relative_residual()
+        if after > sphere_refine.MAX_RESIDUAL_RISE * before:  # the objective led astray: the first recovery stands
+            refinement = replace(refinement, accepted=False, geometry=refinement.start, reason=(
+                f"the recovery under the refined sphere fits the image worse (relative residual {after:.4f} "
+                f"against {before:.4f})"))
+    if not refinement.accepted:
         warnings.warn(f"image: {refinement.rejection()}", InputWarning, stacklevel=2)  # the summary has the numbers
         result = first  # its table stands; the refinement is recorded on it
     result.sphere_refinement = refinement
@@ -444,7 +470,8 @@ def refine_sphere_and_recover(image: np.ndarray, probe: Probe, first: Recovery, 
     result.brdf.provenance["sphere_refinement"] = {
         "start": [start.cx, start.cy, start.radius], "refined": [end.cx, end.cy, end.radius],
         "found": [found.cx, found.cy, found.radius], "accepted": refinement.accepted, "status": refinement.status,
-        "cost": [refinement.cost_start, refinement.cost], "evaluations": refinement.evaluations}
+        "cost": [refinement.cost_start, refinement.cost], "evaluations": refinement.evaluations,
+        "reason": refinement.rejection()}
     return result
 
 

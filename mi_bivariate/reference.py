@@ -222,7 +222,7 @@ def render_reference(bsdf: Any, probe: Any, resolution: int = 64, seed: int = 0,
         pixels whose centre lies on the sphere), ``normals``, ``mask`` (pixels
         fully covered, as ``render_sphere``), ``geometry``.
     """
-    ensure_variant()
+    ensure_variant(vectorised=True)
     directions = tuple(int(k) for k in directions)
     if len(directions) != 3 or min(directions) < 0 or sum(directions) == 0:
         raise InputError("directions", f"need 3 non-negative counts (cosine, lobe, environment), got {directions}")
@@ -273,7 +273,7 @@ def quadrature_noise(bsdf: Any, probe: Any, resolution: int = 64, directions: Se
     the directions (includes any bias the two seeds share). ``seconds``: one
     render's wall time, ``cpu_seconds`` its CPU time.
     """
-    ensure_variant()
+    ensure_variant(vectorised=True)
     plugin = bsdf if hasattr(bsdf, "sampler") else mi.load_dict(bsdf_dict(bsdf))
     a = render_reference(plugin, probe, resolution, seeds[0], directions)
     b = render_reference(plugin, probe, resolution, seeds[1], directions)

@@ -91,7 +91,7 @@ def bsdf_dict(source: Any, interpolation: str = "linear", sampling: str = "table
     Raises:
         InputError: unknown file type or object.
     """
-    ensure_variant()
+    ensure_variant(vectorised=True)
     if isinstance(source, dict):
         if "type" not in source:
             raise InputError("bsdf", "a BSDF dictionary needs a 'type' entry")
@@ -173,7 +173,7 @@ def render_sphere(bsdf: Any, probe: Any, resolution: Union[int, Sequence[int]] =
         distance: camera distance from the sphere centre (perspective).
         camera_to_world: ``(3, 3)`` rotation of the camera about the sphere's centre.
     """
-    ensure_variant()
+    ensure_variant(vectorised=True)
     if int(spp) < 1:
         raise InputError("spp", f"must be >= 1, got {spp}")
     bsdf = bsdf_dict(bsdf)
@@ -198,7 +198,7 @@ def render_like(bsdf: Any, probe: Any, geometry: SphereGeometry, width: int, hei
     pose, and the sphere is moved so its centre lands on ``(cx, cy)``.
     The returned ``mask`` marks pixels whose centre sees the sphere.
     """
-    ensure_variant()
+    ensure_variant(vectorised=True)
     cam = SphereCamera.create("orthographic", (width, height), radius_fraction=geometry.radius / min(width, height),
                               camera_to_world=geometry.camera_to_world)
     offset = np.array([(geometry.cx - 0.5 * width) / geometry.radius,
@@ -232,7 +232,7 @@ def render_mesh(bsdf: Any, probe: Any, view: MeshView, spp: int = 64, seed: int 
                 max_depth: int = 2) -> np.ndarray:
     """Render ``view.shape`` with ``bsdf`` (anything :func:`mi_bivariate.render.bsdf_dict` takes)
     under ``probe`` from ``view.camera``: ``(H, W, 3) float32`` linear RGB (background 0)."""
-    ensure_variant()
+    ensure_variant(vectorised=True)
     if int(spp) < 1:
         raise InputError("spp", f"must be >= 1, got {spp}")
     scene = load_scene(mesh_scene_dict(view.shape, bsdf_dict(bsdf), probe, view.camera, max_depth))

@@ -98,7 +98,8 @@ def show_difference(ax: Any, image: np.ndarray, reference: np.ndarray, mask: np.
     im = ax.imshow(diff, cmap="magma", vmin=0.0, vmax=max(1.0, np.nanpercentile(diff, 99)))
     ax.set_title(title, fontsize=9)
     ax.set_axis_off()
-    ax.figure.colorbar(im, ax=ax, fraction=0.046, pad=0.02)
+    bar = ax.figure.colorbar(im, ax=ax, fraction=0.046, pad=0.02)
+    bar.set_label("% of the mean pixel" if scale == 100.0 else f"x{scale:g} of the mean pixel", fontsize=7)
 
 
 def plot_table(ax: Any, brdf: BivariateBRDF, title: str, channel: Optional[int] = None,

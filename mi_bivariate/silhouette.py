@@ -46,7 +46,8 @@ def luminance_map(image: np.ndarray, source: str = "image") -> np.ndarray:
         raise InputError(source, f"expected an (H, W) or (H, W, 3) image, got shape {image.shape}")
     lum = np.asarray(image, dtype=np.float64)
     if lum.shape[0] < 3 or lum.shape[1] < 3:
-        raise InputError(source, f"image of {lum.shape[1]}x{lum.shape[0]} pixels is too small to hold a sphere")
+        raise InputError(source, f"image of {lum.shape[1]}x{lum.shape[0]} pixels is too small to hold a sphere",
+                         "give a photo with the sphere at least a few pixels across")
     return np.where(np.isfinite(lum), lum, np.nan)
 
 
@@ -56,10 +57,10 @@ def _check_mask(mask: Any, shape: Tuple[int, int], source: str) -> np.ndarray:
         mask = np.any(mask[..., :3] > 0, axis=2)
     if mask.shape != shape:
         raise InputError(source, f"mask is {mask.shape[1] if mask.ndim > 1 else '?'}x{mask.shape[0] if mask.ndim else '?'}"
-                                 f" but the image is {shape[1]}x{shape[0]}")
+                                 f" but the image is {shape[1]}x{shape[0]}", "give a mask of the image's size")
     mask = mask.astype(bool)
     if not mask.any():
-        raise InputError(source, "the mask selects no pixel")
+        raise InputError(source, "the mask selects no pixel", "check the mask: the sphere's pixels must be non-zero")
     return mask
 
 
@@ -278,7 +279,7 @@ def segment_sphere(image: np.ndarray, mask: Optional[np.ndarray] = None, source:
         mask = _check_mask(mask, (height, width), source)
         return _fill_components(mask, min_area=1, keep=1)[0]
     if not np.isfinite(lum).any():
-        raise InputError(source, "has no finite pixel")
+        raise InputError(source, "has no finite pixel", "check the file: every value is NaN or infinite")
     log_lum = log_luminance(lum)
     finite = log_lum[np.isfinite(log_lum)]
     thresholds = np.unique(np.concatenate([[otsu_threshold(finite)], np.quantile(finite, THRESHOLD_QUANTILES)]))

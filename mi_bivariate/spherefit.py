@@ -251,7 +251,7 @@ def fit_sphere(image: Optional[np.ndarray] = None, mask: Optional[np.ndarray] = 
         return _user_sphere(sphere, lum, mask, shape, k, radius, rot, source)
 
     if lum is not None and mask is None and not np.isfinite(lum).any():
-        raise InputError(source, "has no finite pixel")
+        raise InputError(source, "has no finite pixel", "check the file: every value is NaN or infinite")
     region = segment_sphere(lum if lum is not None else np.zeros(shape), mask, source, seed=seed)
     points, _, _ = crack_points(region)
     if len(points) < 8:

@@ -320,7 +320,7 @@ def analysis_by_synthesis(material: Any, input_probe: str = "grace_latlong_1k", 
         ``ladder_speedup`` (the same over the fastest linear run, ladder
         included, that reaches AbS's best) and ``trace``.
     """
-    ensure_variant()
+    ensure_variant(vectorised=True)
     config = config or EvalConfig()
     settings = settings or SynthesisSettings()
     overrides = {k: v for k, v in (("spp", spp), ("learning_rate", learning_rate)) if v is not None}

@@ -8,6 +8,7 @@ the check; remove the mark when it is added.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import subprocess
@@ -315,8 +316,9 @@ def test_cli_one_line_error(files, tmp_path, monkeypatch, capsys, case, argv, na
     (["--no-report", "--report-render"], "--report-render: not allowed with argument --no-report"),
     (["--probe-rotation", "0,85"], "expected three angles in degrees RX,RY,RZ"),
     (["--probe-rotation=0,nan,0"], "expected three angles in degrees RX,RY,RZ"),
+    (["--sphere", "nan,32,28"], "--sphere expects finite CX,CY,R"),
 ], ids=["negative radius", "deterministic with threads", "report-render without a report",
-        "two probe angles", "a NaN probe angle"])
+        "two probe angles", "a NaN probe angle", "a NaN sphere centre"])
 def test_cli_usage_errors_are_argparse_errors(capsys, extra, match):
     """Malformed or conflicting arguments are usage errors (argparse: exit status 2, one line, no traceback)."""
     with pytest.raises(SystemExit) as info:
@@ -929,3 +931,79 @@ def test_a_file_named_like_a_parameter_keeps_its_name(files, tmp_path, capsys, m
     (tmp_path / "noise").write_bytes(b"not an image")
     line = _cli(_recover_args(files, image="noise"), capsys)
     assert line.startswith("mi-bivariate: error: noise: "), line
+
+
+def test_review_findings_are_one_line_and_early(files, tmp_path, capsys, monkeypatch):
+    """What a new user's review found (stop 34): each is one error line, found before any work, naming the
+    right thing."""
+    # scalar_rgb cannot run the plugins: refused up front, not a traceback from the plugin.
+    line = _cli(["render", str(files["npz"]), "--probe", str(files["probe"]), "--out", str(tmp_path / "r.exr"),
+                 "--variant", "scalar_rgb"], capsys)
+    assert line.startswith("mi-bivariate: error: --variant: ") and "llvm_ad_rgb" in line, line
+    # A black probe is refused when loaded: no sphere fit, lighting matrix or adequacy warning before it.
+    status = cli.main(_recover_args(files, probe=str(files["black_probe"]), out=str(tmp_path / "b.npz")))
+    err = capsys.readouterr().err.strip().splitlines()
+    assert status == 2 and len(err) == 1 and "probe is black" in err[0], err
+    red = _write_bitmap(tmp_path / "red.exr", np.stack([np.ones((8, 16)), np.zeros((8, 16)), np.zeros((8, 16))], -1))
+    line = _cli(_recover_args(files, probe=str(red), out=str(tmp_path / "c.npz")), capsys)
+    assert line.startswith(f"mi-bivariate: error: {red}: the probe sheds no light in its G/B channel"), line
+    # The wrong suffix is said as such, not as "written twice".
+    line = _cli(["render", str(files["npz"]), "--probe", str(files["probe"]), "--out", str(tmp_path / "a.png")], capsys)
+    assert "render writes OpenEXR" in line, line
+    line = _cli(["reduce", str(files["merl"]), "--out", str(tmp_path / "rd.exr")], capsys)
+    assert "reduce writes a .npz table" in line, line
+    # Range messages that say what is allowed, checked before the recovery starts.
+    for value in ("nan", "inf", "-1"):
+        line = _cli(_recover_args(files, alpha=value), capsys)
+        assert line.startswith("mi-bivariate: error: --alpha: must be a finite number >= 0, got "), line
+    line = _cli(_recover_args(files, saturation="nan"), capsys)
+    assert "--saturation: must be a finite number > 0, got nan" in line, line
+    # An --out-dir under a file names the folder asked for, not an internal file.
+    line = _cli(["recover-batch", str(files["image"]), "--probe", str(files["probe"]), "--out-dir",
+                 str(files["image"] / "sub")], capsys)
+    assert ".probe-write" not in line and f"{files['image'] / 'sub'}: cannot be written" in line, line
+
+
+def test_threads_beyond_the_cpus_are_lowered_with_a_warning(files, tmp_path, capsys, monkeypatch):
+    """``--threads`` above the CPU count (each Dr.Jit thread holds a copy of the lighting matrix's chunk:
+    64 threads on 2 cores took it from 1 s to 20 s) is lowered to it, and says so."""
+    monkeypatch.setattr(os, "cpu_count", lambda: 1)
+    seen = []
+    monkeypatch.setattr(cli.importlib.import_module("mi_bivariate.commands"), "jit_threads",
+                        lambda n: (seen.append(n), contextlib.nullcontext())[1])
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert cli.main(_recover_args(files, threads="64", out=str(tmp_path / "t.npz"))) == 0
+    assert seen == [1], seen
+    assert any("--threads: 64 is more than this machine's 1 CPUs; using 1" in str(w.message) for w in caught)
+
+
+def test_reduce_does_not_replace_a_table_beside_its_input_unasked(files, tmp_path, capsys):
+    """``recover --merl`` writes X.npz beside X.binary; ``reduce X.binary`` (no --out) must not replace that
+    recovery; with --out naming it, it does."""
+    merl = tmp_path / "x.binary"
+    merl.write_bytes(files["merl"].read_bytes())
+    kept = tmp_path / "x.npz"
+    kept.write_bytes(b"a recovery")
+    line = _cli(["reduce", str(merl)], capsys)
+    assert line.startswith(f"mi-bivariate: error: {kept}: exists already") and "--out" in line, line
+    assert kept.read_bytes() == b"a recovery" and not (tmp_path / "x.exr").exists()
+    assert cli.main(["reduce", str(merl), "--out", str(kept)]) == 0
+    assert BivariateBRDF.load(kept).table.shape == (32, 32, 3)
+
+
+def test_review_messages_say_what_to_do(files, tmp_path, capsys):
+    """Errors from a new user's review (stop 34): each one line with what to do, naming the right thing."""
+    line = _cli(["recover", str(tmp_path / "nope.exr"), "--probe", str(files["probe"])], capsys)
+    assert line.endswith("no such file (check the path)"), line
+    line = _cli(_recover_args(files, mask=str(files["small_mask"])), capsys)
+    assert "mask is 64x32 but the image is 64x64 (give a mask of the image's size)" in line, line
+    line = _cli(["render", str(files["npz"]), "--probe", "grace_256", "--data", str(tmp_path / "none"),
+                 "--out", str(tmp_path / "r.exr")], capsys)
+    assert "the shared data folder does not exist" in line and "MI_BIVARIATE_DATA or --data" in line, line
+    line = _cli(["recover-batch", str(files["image"]), str(files["image"]), "--probe", str(files["probe"]),
+                 "--out-dir", str(tmp_path / "b")], capsys)
+    assert line == f"mi-bivariate: error: {files['image']}: is given twice (give each photo once)", line
+    out = subprocess.run([sys.executable, "-m", "mi_bivariate", "--version"], capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 0 and out.stdout.startswith("mi-bivariate 0."), (out.stdout, out.stderr)

@@ -432,3 +432,24 @@ def test_cli_probe_rotation_turns_a_probe_stored_in_another_orientation(tmp_path
         to_world = json.loads(str(np.load(out)["meta"]))["provenance"]["probe_to_world"][0]
         np.testing.assert_allclose(to_world, turned.to_world if rotation else np.eye(4), atol=1e-12)
     assert residual[True] < 0.5 * residual[False], residual
+
+
+def test_a_grey_photo_under_a_coloured_probe_warns():
+    """A one-channel photo read as R = G = B, lit by a coloured probe, warns (its table's colour would be the
+    probe's inverse); an RGB photo, or a grey photo under a grey probe, does not."""
+    import warnings
+
+    from mi_bivariate.errors import InputWarning
+
+    warm = probes.Probe(np.full((16, 32, 3), (1.0, 0.8, 0.5), np.float32), source="warm")
+    grey = probes.Probe(np.full((16, 32, 3), 0.8, np.float32), source="grey")
+    merl = analytic.to_merl(analytic.Lambertian(np.array([0.7, 0.45, 0.2])))
+    shot = render.render_sphere(render.bsdf_dict(merl), warm, resolution=32, spp=16, seed=3)
+    luminance = shot.image.mean(axis=-1, keepdims=True).repeat(3, axis=-1)
+    small = dict(n_normals=300, n_dirs=1000, grid=(8, 8), noise=None)
+    for image, probe, expected in ((luminance, warm, True), (shot.image, warm, False), (luminance, grey, False)):
+        with warnings.catch_warnings(record=True) as seen:
+            warnings.simplefilter("always")
+            recover(image, probe, shot.geometry, **small)
+        said = [str(w.message) for w in seen if issubclass(w.category, InputWarning) and "photo is grey" in str(w.message)]
+        assert bool(said) == expected, (probe.source, said)

@@ -107,6 +107,27 @@ def test_a_sphere_further_off_than_the_silhouette_allows_is_not_taken(shot, prob
     assert result.brdf.provenance["sphere_refinement"]["accepted"] is False
 
 
+def test_a_refined_sphere_that_fits_worse_is_given_up(shot, probe, monkeypatch):
+    """The refinement sees the image as the recovery does (the first recovery's camera-noise model is
+    passed on), and a refined sphere whose recovery fits the image worse than the first one is not
+    taken (forced here by a tolerance below 1: the refined sphere fits better)."""
+    truth = shot.geometry
+    start = dataclasses.replace(truth, cx=truth.cx + 0.3, cy=truth.cy - 0.2, radius=truth.radius - 0.3)
+    noisy = shot.image + np.random.default_rng(0).normal(size=shot.image.shape).astype(np.float32) * 1e-3
+    first = recover(noisy, probe, start, noise="auto", **SMALL)
+    seen = {}
+    refine = sphere_refine.refine_sphere
+    monkeypatch.setattr(sphere_refine, "refine_sphere", lambda *a, **k: (seen.update(k), refine(*a, **k))[1])
+    monkeypatch.setattr(sphere_refine, "MAX_RESIDUAL_RISE", 0.5)
+    with pytest.warns(InputWarning, match="sphere not refined: the recovery under the refined sphere fits the image "
+                                          "worse.*kept the fit"):
+        result = refine_sphere_and_recover(noisy, probe, first, noise="auto", **SMALL)
+    assert seen["noise"] == first.brdf.provenance["noise"][0] and seen["noise"] is not None
+    assert result is first and not result.sphere_refinement.accepted
+    assert result.sphere_refinement.geometry == start and _errors(result.sphere_refinement.found, truth)[0] < 0.15
+    assert "fits the image worse" in result.brdf.provenance["sphere_refinement"]["reason"]
+
+
 def test_the_rendered_sphere_stays_put(shot, probe):
     result = _refine(shot.image, probe, shot.geometry)
     centre, radius = _errors(result.geometry, shot.geometry)
@@ -139,6 +160,11 @@ def test_cli_recover_refine_sphere(tmp_path, shot, probe, capsys):
     with np.load(tmp_path / "x.npz") as z:
         meta = json.loads(str(z["meta"]))
     refinement = meta["provenance"]["sphere_refinement"]
+    # The table records the photo and the sphere it was recovered under (the refined one).
+    assert meta["provenance"]["photos"] == [str(tmp_path / "photo.exr")]
+    recorded = meta["provenance"]["geometries"][0]
+    assert recorded["type"] == "SphereGeometry"
+    assert [recorded["cx"], recorded["cy"], recorded["radius"]] == refinement["refined"]
     truth = shot.geometry
     fitted = np.hypot(refinement["start"][0] - truth.cx, refinement["start"][1] - truth.cy)
     refined = np.hypot(refinement["refined"][0] - truth.cx, refinement["refined"][1] - truth.cy)

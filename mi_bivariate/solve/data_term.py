@@ -148,6 +148,7 @@ def prepare_data_term(L: np.ndarray, I: np.ndarray, sigma: Optional[np.ndarray] 
     thread_map(channel, range(3))  # the channels' products release the GIL (mi_bivariate.threads)
     for k in range(3):
         if not np.any(np.diag(gram[k]) > 0):
-            raise InputError("lighting matrix L", f"channel {k} is all zero: the probe sheds no light in it")
+            raise InputError("lighting matrix L", f"channel {k} is all zero: the probe sheds no light in it",
+                             "give a probe with light in every colour channel")
         level[k] = max(0.0, float(ones @ rhs[k]) / float(ones @ gram[k] @ ones))
     return DataTerm(gram, rhs, yy, level, sigma, L, I, time.perf_counter() - start)
