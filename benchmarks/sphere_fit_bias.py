@@ -51,6 +51,9 @@ def main(argv: Sequence[str] = None) -> None:
     parser.add_argument("--packaged-priors", action="store_true",
                         help="recover with the packaged priors (learnt on all 73 shared materials, these included) "
                              "instead of leave-one-out ones")
+    parser.add_argument("--refine-without-noise", action="store_true",
+                        help="refine with the model error alone in the objective (as before the objective took the camera noise in), not the "
+                             "first recovery's camera-noise model")
     args = parser.parse_args(argv)
 
     from mi_bivariate import metrics, nbrdf, probes, reference, render, training_set
@@ -59,6 +62,11 @@ def main(argv: Sequence[str] = None) -> None:
 
     ensure_variant()
     warnings.simplefilter("ignore")
+    if args.refine_without_noise:
+        from mi_bivariate import sphere_refine
+
+        refine = sphere_refine.refine_sphere
+        sphere_refine.refine_sphere = lambda *a, **k: refine(*a, **{**k, "noise": None})
     print(f"Machine: {machine()}\n")
     print("| probe | material | px | centre error, 2 passes | radius error, 2 passes | centre error, 0 passes "
           "| radius error, 0 passes |")

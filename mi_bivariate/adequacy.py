@@ -347,7 +347,9 @@ class AdequacyReport:
     def summary(self) -> str:
         """One line for logs and the CLI."""
         parts = [f"rank {self.numerical_rank}/{self.n_t * self.n_s} (tol {RANK_TOL:g})",
-                 f"effective rank {self.effective_rank:.0f}", f"cond {self.condition_number:.3g}",
+                 f"effective rank {self.effective_rank:.0f}",
+                 f"cond {self.condition_number:.3g}" + (" (rank-deficient: the priors hold the null space)"
+                                                        if math.isinf(self.condition_number) else ""),
                  f"unobserved nodes {self.unobserved_nodes}"]
         if self.detail:
             parts.append("detail " + ", ".join(f"{d:.3f}" for d in self.detail))
@@ -419,7 +421,7 @@ def analyse(L: np.ndarray, n_t: int = 32, n_s: int = 32, probes: Optional[Sequen
     if rank < min_rank_fraction * n_t * n_s:
         rows = int(np.shape(L)[0]) if np.ndim(L) >= 2 else 0
         cause = (f"only {rows} observed normals for {n_t * n_s} nodes (use more pixels: a larger sphere or more "
-                 "--normals)" if rows < min_rank_fraction * n_t * n_s else "too little variety in the lighting")
+                 "normals)" if rows < min_rank_fraction * n_t * n_s else "too little variety in the lighting")
         report.reasons.append(f"the lighting matrix has numerical rank {rank} of {n_t * n_s} nodes "
                               f"(below {min_rank_fraction:.0%}): {cause}")
     if detail is not None:

@@ -191,7 +191,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("brdf", help="MERL .binary, bivariate .npz, MERL-NBRDF name, or analytic spec "
                                 "(e.g. 'ggx:alpha=0.1')")
     p.add_argument("--probe", required=True, help="environment map file (.exr/.hdr/.pfm) or shared probe name")
-    _add_probe_rotation(p, "the render's (as given to recover)")
+    _add_probe_rotation(p, "the render's (give the angles given to recover)")
     p.add_argument("--out", type=_parse_path, default="render.exr",
                    help="output EXR (a PNG preview is written beside it)")
     p.add_argument("--resolution", type=int, default=256, help="image width and height in pixels")

@@ -15,6 +15,7 @@ import json
 import math
 import os
 import platform
+import re
 import sys
 import time
 import warnings
@@ -39,6 +40,7 @@ from mi_bivariate.images import load_image, load_mask, write_exr, write_png
 from mi_bivariate.nbrdf import ALL_NBRDF_MATERIALS
 from mi_bivariate.prior import Prior
 from mi_bivariate.probes import check_lit
+from mi_bivariate.solve import check_alpha
 from mi_bivariate.sources import have_shared_data, input_files, load_brdf, load_probe
 from mi_bivariate.threads import blas_threads, jit_threads, solve_thread_limit
 from mi_bivariate.training_set import basis_path_for
@@ -173,8 +175,7 @@ def _check_out_folder(out: Path, flag: str = "--out") -> None:
     try:
         check_outputs([out / ".probe-write"], flag=flag)
     except InputError as exc:  # name the folder, not the file standing in for what it will hold
-        problem = exc.problem.replace(str(out / ".probe-write"), str(out))
-        raise InputError(out, problem, exc.hint) from None
+        raise InputError(out, exc.problem, exc.hint or f"choose another {flag}") from None
 
 
 # --------------------------------------------------------------------------- info
@@ -308,24 +309,34 @@ def _check_recover_args(args: argparse.Namespace) -> None:
                             ("--refine-sphere", args.refine_sphere)):
             if given:
                 raise InputError(flag, "models an orthographic view only", "leave it out with --fov")
-    if not isinstance(args.alpha, str):
-        _check_float("--alpha", args.alpha, 0.0, float("inf"))  # the library refuses the same, after the sphere fit
+    _check_alpha(args.alpha)
     _check_threads(args)
 
 
-def _check_threads(args: argparse.Namespace) -> None:
-    """``--threads`` from 1 to 1024, and at most this machine's CPUs: beyond them Dr.Jit gains nothing,
-    and each thread's copy of the lighting matrix's chunk makes the chunks smaller (measured on 2 cores:
-    64 threads took the lighting matrix from 1 s to 20 s), so more are lowered to the CPU count, with a warning."""
+def _check_alpha(alpha) -> None:
+    """``--alpha`` as the solve will check it, before any work (a rule name or a number in its range)."""
+    try:
+        check_alpha(alpha)
+    except InputError as exc:
+        raise InputError("--alpha", exc.problem, exc.hint) from None
+
+
+def _check_threads(args: argparse.Namespace, jobs: int = 1) -> None:
+    """``--threads`` from 1 to 1024, and at most this machine's CPUs shared by ``jobs`` processes: beyond
+    them Dr.Jit gains nothing, and each thread's copy of the lighting matrix's chunk makes the chunks
+    smaller (measured on 2 cores: 64 threads took the lighting matrix from 1 s to 20 s), so more are
+    lowered to that count, with a warning."""
     if args.threads is None:
         return
     if not 1 <= args.threads <= 1024:
         raise InputError("--threads", f"must be from 1 to 1024, got {args.threads}")
     cpus = os.cpu_count() or 1
-    if args.threads > cpus:
-        warnings.warn(f"--threads: {args.threads} is more than this machine's {cpus} CPUs; using {cpus}",
+    share = max(1, cpus // max(1, jobs))
+    if args.threads > share:
+        per_job = f" shared by {jobs} jobs" if jobs > 1 else ""
+        warnings.warn(f"--threads: {args.threads} is more than this machine's {cpus} CPU(s){per_job}; using {share}",
                       InputWarning, stacklevel=2)
-        args.threads = cpus
+        args.threads = share
 
 
 def _recover_priors(args: argparse.Namespace) -> tuple:
@@ -360,11 +371,17 @@ def _recover_image(args: argparse.Namespace, image_path: str, probe, priors: tup
                            max_view_angle_deg=args.max_view_angle, footprint=args.footprint,
                            saturation=args.saturation, noise=args.noise, sampling=args.sampling, prior=priors[0],
                            basis_prior=priors[1])
-            result = rec.recover(image, probe, fit.geometry, **options)
+            with warnings.catch_warnings(record=True) as said:
+                warnings.simplefilter("always")
+                result = rec.recover(image, probe, fit.geometry, **options)
+            _warn_again(said)
             if args.refine_sphere:
                 print(f"refining the sphere by the image's shading (relative residual {result.relative_residual():.4f} "
                       "under the fitted sphere) ...", flush=True)
-                result = rec.refine_sphere_and_recover(image, probe, result, **options)
+                with warnings.catch_warnings(record=True) as said_again:
+                    warnings.simplefilter("always")
+                    result = rec.refine_sphere_and_recover(image, probe, result, **options)
+                _warn_again(said_again, already=said)  # the second recovery's repeats of the first's are not said twice
     except InputError as exc:
         # The library names its arguments ("image", "lighting matrix L"); name the user's files. The noise
         # check measures this photo's own rows (its own estimate with --noise auto): a problem of the photo.
@@ -376,6 +393,20 @@ def _recover_image(args: argparse.Namespace, image_path: str, probe, priors: tup
     paths = export.write_outputs(result, out, merl=args.merl, report=not args.no_report,
                               report_render=args.report_render)
     return result, paths
+
+
+def _warning_key(w: warnings.WarningMessage) -> tuple:
+    """A warning's category and text with its numbers blanked (a second recovery's "explains 47%" repeats "45%")."""
+    return w.category, re.sub(r"[-+]?\d[\d.e+-]*", "#", str(w.message))
+
+
+def _warn_again(records: Sequence[warnings.WarningMessage], already: Sequence[warnings.WarningMessage] = ()) -> None:
+    """Issue recorded warnings again (through the caller's filters), but not those ``already`` said."""
+    seen = {_warning_key(w) for w in already}
+    for w in records:
+        if _warning_key(w) not in seen:
+            seen.add(_warning_key(w))
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno, source=w.source)
 
 
 def _load_turned_probe(args: argparse.Namespace, every_channel: bool = False):
@@ -492,14 +523,16 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     _check_render_sizes(given(args.novel_resolution, 64), args.novel_spp, flag="--novel-spp",
                         resolution_flag="--novel-resolution")
     _check_seed(args.seed)
-    if not isinstance(args.alpha, str):
-        _check_float("--alpha", args.alpha, 0.0, float("inf"))
+    _check_alpha(args.alpha)
     _check_float("--abs-time-factor", args.abs_time_factor, 0.0, 1e6, lo_open=True)
     if args.abs < 0:
         raise InputError("--abs", f"must be >= 0 (the number of materials), got {args.abs}")
     if not 1 <= args.jobs <= 256:
         raise InputError("--jobs", f"must be from 1 to 256, got {args.jobs}")
-    _check_threads(args)
+    if args.dask is None:  # with --dask the threads run on the cluster's machines
+        _check_threads(args, jobs=args.jobs)
+    elif args.threads is not None and not 1 <= args.threads <= 1024:
+        raise InputError("--threads", f"must be from 1 to 1024, got {args.threads}")
     _check_out_folder(Path(args.out))
     ensure_variant(args.variant, vectorised=True)  # the plugins and the lighting matrix are JIT code
     data = args.data

@@ -150,9 +150,10 @@ class SphereGeometry(Geometry):
     def normals_at(self, x: np.ndarray, y: np.ndarray, onto_sphere: bool = False) -> np.ndarray:
         """World normals ``(..., 3) float64`` at image positions ``x, y`` (pixels, x right, y down).
 
-        A position outside the silhouette gets the normal of its rim point (z = 0); with
-        ``onto_sphere`` it is first pulled just inside the rim, so its normal stays a unit vector in
-        the visible hemisphere (a trial geometry that leaves a few pixels off the sphere).
+        Unit vectors inside the silhouette. Outside it the result is ``(x, y, 0)`` in the camera frame,
+        longer than 1 and not a normal (:meth:`normals` masks those pixels), unless ``onto_sphere``
+        first pulls such a position just inside the rim, so that its normal stays a unit vector in the
+        visible hemisphere (a trial geometry that leaves a few pixels off the sphere).
         """
         x = (np.asarray(x, np.float64) - self.cx) / self.radius
         y = -(np.asarray(y, np.float64) - self.cy) / self.radius

@@ -37,10 +37,10 @@ def test_constant_environment_is_inadequate(sphere_obs):
     assert "rank" in report.summary() and "INADEQUATE" in report.summary()
 
 
-def test_a_rank_short_for_want_of_rows_says_so(sphere_obs, data_dir):
+def test_a_rank_short_for_want_of_rows_says_so(sphere_obs):
     """Too few rows, not the lighting, is named as the cause when the rows alone cap the rank; with
     enough rows a constant probe is blamed on the lighting (the negative control)."""
-    _, report, caught = analyse(sphere_obs.subset(np.arange(5)), Probe.constant(1.0, 32))
+    _, report, _ = analyse(sphere_obs.subset(np.arange(5)), Probe.constant(1.0, 32))
     assert not report.adequate and "only 5 observed normals for 1024 nodes" in report.summary(), report.summary()
     _, report, _ = analyse(sphere_obs, Probe.constant(1.0, 32))
     assert "too little variety in the lighting" in report.summary(), report.summary()

@@ -934,8 +934,8 @@ def test_a_file_named_like_a_parameter_keeps_its_name(files, tmp_path, capsys, m
 
 
 def test_review_findings_are_one_line_and_early(files, tmp_path, capsys, monkeypatch):
-    """What a new user's review found (stop 34): each is one error line, found before any work, naming the
-    right thing."""
+    """What a new user's review found: each is one error line, found before any work, naming the right
+    thing."""
     # scalar_rgb cannot run the plugins: refused up front, not a traceback from the plugin.
     line = _cli(["render", str(files["npz"]), "--probe", str(files["probe"]), "--out", str(tmp_path / "r.exr"),
                  "--variant", "scalar_rgb"], capsys)
@@ -953,9 +953,10 @@ def test_review_findings_are_one_line_and_early(files, tmp_path, capsys, monkeyp
     line = _cli(["reduce", str(files["merl"]), "--out", str(tmp_path / "rd.exr")], capsys)
     assert "reduce writes a .npz table" in line, line
     # Range messages that say what is allowed, checked before the recovery starts.
-    for value in ("nan", "inf", "-1"):
-        line = _cli(_recover_args(files, alpha=value), capsys)
-        assert line.startswith("mi-bivariate: error: --alpha: must be a finite number >= 0, got "), line
+    for value, said in (("nan", "must be finite and >= 0"), ("inf", "must be finite and >= 0"),
+                        ("-1", "must be finite and >= 0"), ("1e9", "must be 0 or between")):
+        line = _cli(_recover_args(files, alpha=value, sphere="1000,1000,5"), capsys)  # a sphere fit would fail
+        assert line.startswith(f"mi-bivariate: error: --alpha: {said}"), line
     line = _cli(_recover_args(files, saturation="nan"), capsys)
     assert "--saturation: must be a finite number > 0, got nan" in line, line
     # An --out-dir under a file names the folder asked for, not an internal file.
@@ -975,7 +976,7 @@ def test_threads_beyond_the_cpus_are_lowered_with_a_warning(files, tmp_path, cap
         warnings.simplefilter("always")
         assert cli.main(_recover_args(files, threads="64", out=str(tmp_path / "t.npz"))) == 0
     assert seen == [1], seen
-    assert any("--threads: 64 is more than this machine's 1 CPUs; using 1" in str(w.message) for w in caught)
+    assert any("--threads: 64 is more than this machine's 1 CPU(s); using 1" in str(w.message) for w in caught)
 
 
 def test_reduce_does_not_replace_a_table_beside_its_input_unasked(files, tmp_path, capsys):
@@ -993,7 +994,7 @@ def test_reduce_does_not_replace_a_table_beside_its_input_unasked(files, tmp_pat
 
 
 def test_review_messages_say_what_to_do(files, tmp_path, capsys):
-    """Errors from a new user's review (stop 34): each one line with what to do, naming the right thing."""
+    """Errors from a new user's review: each one line with what to do, naming the right thing."""
     line = _cli(["recover", str(tmp_path / "nope.exr"), "--probe", str(files["probe"])], capsys)
     assert line.endswith("no such file (check the path)"), line
     line = _cli(_recover_args(files, mask=str(files["small_mask"])), capsys)

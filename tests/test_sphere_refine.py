@@ -125,7 +125,8 @@ def test_a_refined_sphere_that_fits_worse_is_given_up(shot, probe, monkeypatch):
     assert seen["noise"] == first.brdf.provenance["noise"][0] and seen["noise"] is not None
     assert result is first and not result.sphere_refinement.accepted
     assert result.sphere_refinement.geometry == start and _errors(result.sphere_refinement.found, truth)[0] < 0.15
-    assert "fits the image worse" in result.brdf.provenance["sphere_refinement"]["reason"]
+    assert "fits the image worse" in result.brdf.provenance["sphere_refinement"]["rejection"]
+    assert "refined recovery (given up)" in result.timings
 
 
 def test_the_rendered_sphere_stays_put(shot, probe):
@@ -173,3 +174,23 @@ def test_cli_recover_refine_sphere(tmp_path, shot, probe, capsys):
     assert cli_main(argv + ["--fov", "40"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("mi-bivariate: error: --refine-sphere: ") and "--fov" in err[0], err
+
+
+def test_cli_refine_sphere_says_each_warning_once(tmp_path, shot, probe, capsys):
+    """The recovery after the refinement repeats the first one's warnings about the photo (here: a grey
+    photo under a coloured probe); the CLI says each once."""
+    tinted = probes.Probe(probe.data * np.array([1.0, 0.8, 0.5], np.float32), to_world=probe.to_world, source="tinted")
+    grey = np.repeat(shot.image.mean(axis=-1, keepdims=True), 3, axis=-1)
+    write_exr(tmp_path / "grey.exr", grey)
+    tinted.save_exr(tmp_path / "tinted.exr")
+    argv = ["recover", str(tmp_path / "grey.exr"), "--probe", str(tmp_path / "tinted.exr"), "--out",
+            str(tmp_path / "g.npz"), "--normals", "1500", "--dirs", "1500", "--grid", "16", "16", "--noise", "none",
+            "--no-report", "--refine-sphere"]
+    import warnings
+
+    with warnings.catch_warnings(record=True) as seen:  # pytest records warnings before stderr sees them
+        warnings.simplefilter("always")
+        assert cli_main(argv) == 0
+    lines = [str(w.message) for w in seen if issubclass(w.category, InputWarning)]
+    assert sum("photo is grey" in line for line in lines) == 1, lines
+    assert len(lines) == len(set(lines)), lines

@@ -101,7 +101,7 @@ def check_alpha(alpha) -> Union[str, np.ndarray]:
         raise InputError("alpha", f"must be a number (or 3) or one of {', '.join(ALPHA_RULES)}, "
                          f"got {alpha!r}") from None
     if not np.all(np.isfinite(values)) or np.any(values < 0):
-        raise InputError("alpha", f"must be finite and >= 0, got {alpha}")
+        raise InputError("alpha", f"must be finite and >= 0, got {alpha}", "1e-2 is the learnt default")
     lo, hi = ALPHA_RANGE
     if np.any((values != 0) & ((values < lo) | (values > hi))):
         raise InputError("alpha", f"must be 0 or between {lo:g} and {hi:g} (alpha is dimensionless: 1e-2 is the "
