@@ -347,9 +347,7 @@ class AdequacyReport:
     def summary(self) -> str:
         """One line for logs and the CLI."""
         parts = [f"rank {self.numerical_rank}/{self.n_t * self.n_s} (tol {RANK_TOL:g})",
-                 f"effective rank {self.effective_rank:.0f}",
-                 f"cond {self.condition_number:.3g}" + (" (rank-deficient: the priors hold the null space)"
-                                                        if math.isinf(self.condition_number) else ""),
+                 f"effective rank {self.effective_rank:.0f}", f"cond {self.condition_number:.3g}",
                  f"unobserved nodes {self.unobserved_nodes}"]
         if self.detail:
             parts.append("detail " + ", ".join(f"{d:.3f}" for d in self.detail))

@@ -219,7 +219,8 @@ def build_parser() -> argparse.ArgumentParser:
     
 
     p = sub.add_parser("recover", help="recover a bivariate BRDF from an HDR image of a sphere under a known probe")
-    p.add_argument("image", help="linear HDR image (.exr/.hdr/.pfm)")
+    p.add_argument("image", help="linear HDR image (.exr, .hdr/.rgbe/.pic, .pfm; an 8-bit .png/.jpg is read "
+                                 "with a warning: not radiometric)")
     p.add_argument("--out", type=_parse_path, default="brdf.npz",
                    help="output .npz (EXR view and PNG report beside it)")
     _add_recover_options(p)
@@ -232,7 +233,7 @@ def build_parser() -> argparse.ArgumentParser:
                                    "every photo. A photo whose file or sphere is the problem gets its one-line "
                                    "error and the others go on (exit status 2); a problem shared by every photo "
                                    "(an option, the probe, the priors) stops the batch.")
-    p.add_argument("images", nargs="+", help="linear HDR images (.exr/.hdr/.pfm), each of a sphere under --probe")
+    p.add_argument("images", nargs="+", help="linear HDR images (as for recover), each of a sphere under --probe")
     p.add_argument("--out-dir", type=_parse_path, required=True,
                    help="output folder: STEM.npz per photo (its EXR view and PNG report beside it, and with "
                         "--merl its .binary)")
@@ -302,6 +303,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_variant(p)
     _add_data(p)
     
+    parser.command_parsers = sub.choices  # {command: its parser}, for errors pointing at the command's --help
     return parser
 
 
@@ -335,7 +337,9 @@ def main(argv: Optional[Sequence[str]] = None, *, own_process: bool = False) -> 
     Tests and notebooks calling :func:`main` keep the default, which leaves the collector as it is.
     """
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args, unknown = parser.parse_known_args(argv)
+    if unknown:  # said by the command's own parser: its --help lists what it takes
+        parser.command_parsers[args.command].error(f"unrecognized arguments: {' '.join(unknown)}")
     args.source_names = {}  # filled by commands that know which user file an internal name stands for
     formatwarning = warnings.formatwarning  # restored on return: a notebook calling main keeps its own
     warnings.formatwarning = _warning_formatter(args.source_names)

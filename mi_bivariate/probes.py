@@ -61,6 +61,7 @@ PROBE_FORMATS: Dict[str, str] = {
     ".exr": "OpenEXR",
     ".hdr": "Radiance RGBE",
     ".rgbe": "Radiance RGBE",
+    ".pic": "Radiance RGBE",
     ".pfm": "PFM",
 }
 
@@ -122,8 +123,8 @@ def read_hdr_image(path: PathLike) -> Tuple[np.ndarray, Optional[np.ndarray]]:
     path = Path(path)
     ext = path.suffix.lower()
     if ext not in PROBE_FORMATS:
-        raise InputError(path, f"unknown image type {ext or '(no extension)'!r}",
-                         "use " + ", ".join(PROBE_FORMATS))
+        raise InputError(path, f"unknown image type: extension {path.suffix or '(none)'!r}",
+                         f"use one of {', '.join(PROBE_FORMATS)}")
     pixels, metadata = read_image(path, allow_ldr=False)
     check_radiance(pixels, path)
     to_world = None

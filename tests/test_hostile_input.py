@@ -1008,3 +1008,24 @@ def test_review_messages_say_what_to_do(files, tmp_path, capsys):
     out = subprocess.run([sys.executable, "-m", "mi_bivariate", "--version"], capture_output=True, text=True,
                          timeout=120)
     assert out.returncode == 0 and out.stdout.startswith("mi-bivariate 0."), (out.stdout, out.stderr)
+
+
+def test_a_pic_probe_loads_as_its_hdr_twin(files, tmp_path):
+    """``.pic`` (Radiance RGBE), which the photo reader takes, is a probe file too; another extension is refused
+    with the same wording as for photos."""
+    hdr = _write_bitmap(tmp_path / "p.hdr", np.linspace(0.1, 2.0, 8 * 16 * 3).reshape(8, 16, 3))
+    pic = tmp_path / "p.pic"
+    pic.write_bytes(hdr.read_bytes())
+    np.testing.assert_array_equal(Probe.load(pic).data, Probe.load(hdr).data)
+    odd = tmp_path / "p.dat"
+    odd.write_bytes(hdr.read_bytes())
+    with pytest.raises(InputError, match=r"unknown image type: extension '\.dat' \(use one of \.exr"):
+        Probe.load(odd)
+
+
+def test_an_unknown_option_points_at_the_commands_help(capsys):
+    with pytest.raises(SystemExit) as info:
+        cli.main(["recover", "x.exr", "--probe", "p.exr", "--bogus"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert info.value.code == 2 and len(err) == 1, err
+    assert err[0] == "mi-bivariate: error: unrecognized arguments: --bogus (see 'mi-bivariate recover --help')", err
