@@ -421,13 +421,16 @@ def refine_sphere_and_recover(image: np.ndarray, probe: Probe, first: Recovery, 
     The silhouette fit of a glossy sphere can be 0.3-0.6 px off (its rim darkens); the centre
     and radius under which the bivariate model explains the image best are found by
     :func:`mi_bivariate.sphere_refine.refine_sphere`, with ``first``'s alpha and prior variant
-    per channel, and the table recovered again under them. Measured on 8 materials under
-    grace_latlong_1k (256 px, docs/recovery.md section 9): median relight error 1.17x the
-    exact geometry's with the silhouette fit, 1.00x refined. Costs 10-30 s on two cores.
+    per channel and its camera-noise model, and the table recovered again under them. Measured
+    on 8 materials under grace_latlong_1k (256 px, leave-one-out priors, docs/recovery.md section
+    9): median relight error 1.17x the exact geometry's with the silhouette fit, 1.01x refined.
+    Costs 10-32 s on two cores.
 
     A minimum found more than :data:`mi_bivariate.sphere_refine.MAX_SHIFT_PX` from the starting
-    outline is not taken, nor is a sphere too small to refine: it warns and returns ``first``
-    (sphere and table), with the refinement recorded in its provenance. The user's normals,
+    outline is not taken, nor is a sphere too small to refine, nor one whose recovery fits the
+    image worse than ``first`` by more than :data:`~mi_bivariate.sphere_refine.MAX_RESIDUAL_RISE`
+    (relative residual over the pixels both use): it warns and returns ``first`` (sphere and
+    table), with the refinement recorded in its provenance. The user's normals,
     directions and footprint do not apply to the refinement (M 2000, K 2000, centre normals, view
     angles up to :data:`~mi_bivariate.sphere_refine.MAX_VIEW_ANGLE_DEG` or the user's, if lower).
 
