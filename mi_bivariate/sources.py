@@ -284,7 +284,9 @@ def load_probe(spec: str, data_dir: Optional[PathLike] = None, cache: bool = Fal
 
 
 def _shared_probe_name(path: Path, data_dir: Optional[PathLike]) -> Optional[str]:
-    """The shared probe whose file ``path`` is (the same file on disk), else ``None``."""
+    """The shared probe whose file ``path`` is (the same file on disk, through any symbolic links),
+    else ``None``."""
+    path = Path(os.path.realpath(path))  # a link to a shared probe's file is that file
     if path.stem not in probes.SHARED_PROBES or not path.is_file():
         return None
     folders = [data_dir, os.environ.get("MI_BIVARIATE_DATA")]

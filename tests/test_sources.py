@@ -101,3 +101,6 @@ def test_a_shared_probe_by_path_is_the_shared_probe_and_a_copy_is_read_as_is(dat
     np.testing.assert_array_equal(sources.load_probe(str(copy), data_dir).to_world, np.eye(4))
     other = probes.shared_probe_path("pisa_256", data_dir)
     np.testing.assert_array_equal(sources.load_probe(str(other), data_dir).to_world, np.eye(4))
+    link = tmp_path / "my_probe.exr"  # a symbolic link to the shared file, under any name, is that file
+    link.symlink_to(path)
+    np.testing.assert_array_equal(sources.load_probe(str(link), None).to_world, by_name.to_world)
