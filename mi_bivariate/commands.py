@@ -427,11 +427,13 @@ def _load_turned_probe(args: argparse.Namespace, every_channel: bool = False):
 def cmd_recover(args: argparse.Namespace) -> int:
     _check_recover_args(args)
     _check_out_file(args.out)
+    inputs = _input_files(args, args.image, args.probe, args.mask)
+    check_outputs([args.out], inputs)  # an input's name first: that is the problem to say, whatever its suffix
     if Path(args.out).suffix.lower() not in ("", ".npz"):
         raise InputError(args.out, "recover writes a .npz table (and its .exr view and report beside it)",
                          "give --out a name ending in .npz")
     outputs = export.output_paths(args.out, merl=args.merl, report=not args.no_report)
-    check_outputs(outputs, _input_files(args, args.image, args.probe, args.mask))
+    check_outputs(outputs, inputs)
     args.source_names["lighting matrix L"] = str(args.probe)
     ensure_variant(args.variant, vectorised=True)  # the plugins and the lighting matrix are JIT code
     with jit_threads(args.threads):

@@ -574,7 +574,7 @@ def _snapshot(folder: Path) -> dict:
     return {p.name: p.read_bytes() for p in folder.iterdir() if p.is_file()}
 
 
-@pytest.mark.parametrize("case", ["recover npz beside photo", "recover onto probe", "reduce onto input",
+@pytest.mark.parametrize("case", ["recover npz beside photo", "recover onto probe", "recover onto its photo", "reduce onto input",
                                   "render onto probe", "render onto brdf", "render png onto probe",
                                   "learn-prior onto source", "recover onto a shared probe by name",
                                   "learn-prior onto the weights behind a name", "recover onto the prior's basis",
@@ -594,6 +594,7 @@ def test_no_output_overwrites_an_input(files, tmp_path, capsys, case):
     argv, victim = {
         "recover npz beside photo": (rec + ["--out", str(d / "photo.npz")], photo),
         "recover onto probe": (rec + ["--out", str(d / "p.npz")], probe),
+        "recover onto its photo": (rec + ["--out", str(photo)], photo),
         "reduce onto input": (["reduce", str(merl), "--out", str(merl)], merl),
         "render onto probe": (["render", "lambertian", "--probe", str(probe), "--out", str(probe)], probe),
         "render onto brdf": (["render", str(npz), "--probe", str(probe), "--out", str(npz)], npz),
