@@ -126,7 +126,8 @@ def _add_recover_options(p: argparse.ArgumentParser) -> None:
                    help="then refine the sphere's centre and radius by the image's shading and recover again "
                         "(orthographic view only; 10-30 s): the silhouette fit of a glossy sphere can be "
                         "0.3-0.6 px off, which raised four metals' relight error by 25-85%% under grace; a "
-                        "refinement that would move the outline more than 1 px is not taken (a warning says so)")
+                        "refinement that would move the outline more than 1 px, or whose recovery fits the image "
+                        "worse, is not taken (a warning says so)")
     p.add_argument("--mask", default=None, help="optional mask image (non-zero = usable)")
     p.add_argument("--fov", type=float, default=None, metavar="DEG",
                    help="the photo's horizontal field of view for a pinhole camera with its principal point at "
