@@ -192,7 +192,7 @@ def cmd_info(args: argparse.Namespace) -> int:
         "variant": variant,
         "variants_available": [v for v in mi.variants() if v.endswith("_rgb")],
         "llvm_backend": bool(dr.has_backend(dr.JitBackend.LLVM)),
-        "cuda_backend (GPU)": bool(dr.has_backend(dr.JitBackend.CUDA)),
+        "cuda_backend": bool(dr.has_backend(dr.JitBackend.CUDA)),  # the GPU
         "DRJIT_LIBLLVM_PATH": os.environ.get("DRJIT_LIBLLVM_PATH", "(search)"),
         "MI_BIVARIATE_DATA": os.environ.get("MI_BIVARIATE_DATA", "(unset)"),
         "cpu_count": os.cpu_count(),

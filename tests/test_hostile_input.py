@@ -1030,3 +1030,13 @@ def test_an_unknown_option_points_at_the_commands_help(capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert info.value.code == 2 and len(err) == 1, err
     assert err[0] == "mi-bivariate: error: unrecognized arguments: --bogus (see 'mi-bivariate recover --help')", err
+
+
+def test_info_json_keys_are_plain_names(capsys):
+    """``info --json`` is for scripts: every key a plain name (no spaces or brackets), the backends booleans."""
+    import json
+
+    assert cli.main(["info", "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert all(re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", key) for key in info), list(info)
+    assert isinstance(info["cuda_backend"], bool) and isinstance(info["llvm_backend"], bool)
