@@ -5,8 +5,9 @@ silhouette fit finds; refined as ``recover --refine-sphere`` runs it (the object
 recovery's camera-noise model, and the second guard); refined with the model error alone and no
 second guard (the objective before 2026-12-05, late). Every recovery uses leave-one-out priors and
 is relit under pisa_256 by the reference quadrature (128 px). The script prints each sphere's centre
-and radius errors (px), the recovery's relative residual and its relight error (docs/recovery.md
-section 9).
+and radius errors (px), the recovery's relative residual and its relight error, and the scoring
+renders' own noise (the truth's and the refined table's, each against its render at a second seed,
+over sqrt 2) (docs/recovery.md section 9).
 
     MI_BIVARIATE_DATA=/work/shared/data OPENBLAS_NUM_THREADS=1 python benchmarks/refine_noisy.py
 """
@@ -62,6 +63,12 @@ def main(argv: Sequence[str] = None) -> None:
             relight = metrics.image_relative_rmse(got.image, want.image, want.mask)
             print(f"| {material} | {name} | {np.hypot(g.cx - g0.cx, g.cy - g0.cy):.3f} | {g.radius - g0.radius:+.3f} "
                   f"| {result.relative_residual():.4f} | {relight:.4f} |", flush=True)
+        noise = [metrics.image_relative_rmse(reference.render_reference(brdf, pisa, resolution=128, seed=2).image,
+                                             first_render.image, want.mask) / np.sqrt(2.0)
+                 for brdf, first_render in ((truth, want), (runs["refined (now)"].brdf, reference.render_reference(
+                     runs["refined (now)"].brdf, pisa, resolution=128, seed=1)))]
+        print(f"| {material} | own noise of the scoring renders (seeds 1, 2; / sqrt 2) | | | truth {noise[0]:.5f} "
+              f"| refined table {noise[1]:.5f} |", flush=True)
 
 
 if __name__ == "__main__":

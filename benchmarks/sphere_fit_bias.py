@@ -52,7 +52,8 @@ def main(argv: Sequence[str] = None) -> None:
                         help="recover with the packaged priors (learnt on all 73 shared materials, these included) "
                              "instead of leave-one-out ones")
     parser.add_argument("--refine-without-noise", action="store_true",
-                        help="refine with the model error alone in the objective (as before the objective took the camera noise in), not the "
+                        help="refine with the model error alone in the objective (as before the objective took "
+                             "the camera noise in), not the "
                              "first recovery's camera-noise model")
     args = parser.parse_args(argv)
 

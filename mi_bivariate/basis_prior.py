@@ -232,7 +232,8 @@ class BasisPrior:
     def load(cls, path: PathLike) -> "BasisPrior":
         path = Path(path)
         keys = ("meta", "mean", "basis", "variances", "residual")
-        z = read_npz(path, what="mi_bivariate basis prior", required=keys, hint="make it with mi-bivariate learn-prior or BasisPrior.save")
+        z = read_npz(path, what="mi_bivariate basis prior", required=keys,
+                     hint="make it with mi-bivariate learn-prior or BasisPrior.save")
         try:
             meta = json.loads(str(z["meta"]))
             arrays = {k: np.asarray(z[k], np.float64) for k in keys[1:]}

@@ -214,11 +214,8 @@ def cmd_render(args: argparse.Namespace) -> int:
     _check_out_file(args.out)
     out = Path(args.out)
     args.source_names["merl table"] = str(args.brdf)  # an analytic spec's tabulated values
-    inputs = _input_files(args, args.brdf, args.probe)
-    check_outputs([out], inputs)  # an input's name first: that is the problem to say, whatever its suffix
-    if out.suffix.lower() != ".exr":
-        raise InputError(out, "render writes OpenEXR (and a PNG preview beside it)", "give --out a name ending in .exr")
-    check_outputs([out, out.with_suffix(".png")], inputs)
+    _check_outputs_of(out, (".exr",), "render writes OpenEXR (and a PNG preview beside it)",
+                      [out, out.with_suffix(".png")], _input_files(args, args.brdf, args.probe))
     ensure_variant(args.variant, vectorised=True)  # the plugins and the lighting matrix are JIT code
     brdf = load_brdf(args.brdf, args.data)
     probe = _load_turned_probe(args)
@@ -237,9 +234,15 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 # --------------------------------------------------------------------------- reduce
 
-def _check_npz_out(out: Path, what: str) -> None:
-    if out.suffix.lower() != ".npz":
-        raise InputError(out, what, "give --out a name ending in .npz")
+def _check_outputs_of(out: Path, suffixes: Sequence[str], what: str, outputs: Sequence[Path],
+                      inputs: Sequence[Path]) -> None:
+    """A command's outputs checked in the order a user should hear of them: ``--out`` naming an input,
+    then ``--out``'s type (``suffixes``, ``what`` it writes), then all ``outputs`` (written twice, not
+    writable: :func:`~mi_bivariate.atomic.check_outputs`)."""
+    check_outputs([out], inputs)
+    if out.suffix.lower() not in suffixes:
+        raise InputError(out, what, f"give --out a name ending in {[x for x in suffixes if x][0]}")
+    check_outputs(outputs, inputs)
 
 
 def cmd_reduce(args: argparse.Namespace) -> int:
@@ -248,10 +251,8 @@ def cmd_reduce(args: argparse.Namespace) -> int:
     if Path(args.merl).suffix.lower() != ".binary":
         raise InputError(args.merl, "is not a MERL .binary file", "give the 3D table to reduce as a .binary file")
     out = Path(args.out) if args.out else Path(args.merl).with_suffix(".npz")
-    inputs = _input_files(args, args.merl)
-    check_outputs([out], inputs)  # an input's name first: that is the problem to say, whatever its suffix
-    _check_npz_out(out, "reduce writes a .npz table (and its .exr view beside it)")
-    check_outputs([out, out.with_suffix(".exr")], inputs)
+    _check_outputs_of(out, (".npz",), "reduce writes a .npz table (and its .exr view beside it)",
+                      [out, out.with_suffix(".exr")], _input_files(args, args.merl))
     source = merl.MERLBRDF.read(args.merl)  # refuses a table with no positive value
     if not args.out:  # X.npz beside X.binary may be the recovery that `recover --merl` wrote with it
         for existing in (out, out.with_suffix(".exr")):
@@ -280,8 +281,8 @@ def cmd_learn_prior(args: argparse.Namespace) -> int:
             raise InputError(source, "no such file or folder, and not a MERL-NBRDF name",
                              "give MERL .binary files, folders of them, or shared MERL-NBRDF names")
     basis_out = training_set.basis_path_for(args.out)
-    check_outputs([args.out, basis_out], _input_files(args, *args.sources))
-    _check_npz_out(Path(args.out), "learn-prior writes a .npz prior (and its basis beside it)")
+    _check_outputs_of(Path(args.out), (".npz",), "learn-prior writes a .npz prior (and its basis beside it)",
+                      [Path(args.out), basis_out], _input_files(args, *args.sources))
     smooth, basis = training_set.learn_priors_from_merl(args.sources, n_t=args.grid[0], n_s=args.grid[1],
                                                         data_dir=args.data)
     with atomic_paths([args.out, basis_out], suffixes=[".npz", ".npz"]) as (tmp_smooth, tmp_basis):
@@ -321,15 +322,17 @@ def _check_alpha(alpha) -> None:
         raise InputError("--alpha", exc.problem, exc.hint) from None
 
 
-def _check_threads(args: argparse.Namespace, jobs: int = 1) -> None:
-    """``--threads`` from 1 to 1024, and at most this machine's CPUs shared by ``jobs`` processes: beyond
-    them Dr.Jit gains nothing, and each thread's copy of the lighting matrix's chunk makes the chunks
-    smaller (measured on 2 cores: 64 threads took the lighting matrix from 1 s to 20 s), so more are
-    lowered to that count, with a warning."""
+def _check_threads(args: argparse.Namespace, jobs: int = 1, local: bool = True) -> None:
+    """``--threads`` from 1 to 1024, and, for threads on this machine (``local``), at most its CPUs shared
+    by ``jobs`` processes: beyond them Dr.Jit gains nothing, and each thread's copy of the lighting
+    matrix's chunk makes the chunks smaller (measured on 2 cores: 64 threads took the lighting matrix
+    from 1 s to 20 s), so more are lowered to that count, with a warning."""
     if args.threads is None:
         return
     if not 1 <= args.threads <= 1024:
         raise InputError("--threads", f"must be from 1 to 1024, got {args.threads}")
+    if not local:
+        return
     cpus = os.cpu_count() or 1
     share = max(1, cpus // max(1, jobs))
     if args.threads > share:
@@ -427,13 +430,9 @@ def _load_turned_probe(args: argparse.Namespace, every_channel: bool = False):
 def cmd_recover(args: argparse.Namespace) -> int:
     _check_recover_args(args)
     _check_out_file(args.out)
-    inputs = _input_files(args, args.image, args.probe, args.mask)
-    check_outputs([args.out], inputs)  # an input's name first: that is the problem to say, whatever its suffix
-    if Path(args.out).suffix.lower() not in ("", ".npz"):
-        raise InputError(args.out, "recover writes a .npz table (and its .exr view and report beside it)",
-                         "give --out a name ending in .npz")
-    outputs = export.output_paths(args.out, merl=args.merl, report=not args.no_report)
-    check_outputs(outputs, inputs)
+    _check_outputs_of(Path(args.out), ("", ".npz"), "recover writes a .npz table (and its .exr view and report "
+                      "beside it)", export.output_paths(args.out, merl=args.merl, report=not args.no_report),
+                      _input_files(args, args.image, args.probe, args.mask))
     args.source_names["lighting matrix L"] = str(args.probe)
     ensure_variant(args.variant, vectorised=True)  # the plugins and the lighting matrix are JIT code
     with jit_threads(args.threads):
@@ -531,10 +530,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         raise InputError("--abs", f"must be >= 0 (the number of materials), got {args.abs}")
     if not 1 <= args.jobs <= 256:
         raise InputError("--jobs", f"must be from 1 to 256, got {args.jobs}")
-    if args.dask is None:  # with --dask the threads run on the cluster's machines
-        _check_threads(args, jobs=args.jobs)
-    elif args.threads is not None and not 1 <= args.threads <= 1024:
-        raise InputError("--threads", f"must be from 1 to 1024, got {args.threads}")
+    _check_threads(args, jobs=args.jobs, local=args.dask is None)  # with --dask they run on the cluster's machines
     _check_out_folder(Path(args.out))
     ensure_variant(args.variant, vectorised=True)  # the plugins and the lighting matrix are JIT code
     data = args.data

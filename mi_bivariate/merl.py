@@ -294,5 +294,6 @@ def merl_files_in(folder: Union[str, os.PathLike]) -> List[Path]:
     folder = Path(folder)
     files = sorted(folder.glob("*.binary"))
     if not files:
-        raise InputError(folder, "folder holds no MERL .binary files", "give a folder of MERL .binary files, or the files")
+        raise InputError(folder, "folder holds no MERL .binary files",
+                         "give a folder of MERL .binary files, or the files")
     return files

@@ -411,7 +411,8 @@ class Prior:
         """Read a file written by :meth:`save`; InputError naming the file if unusable."""
         path = Path(path)
         keys = ["meta"] + [f"{p}_sigma_{axis}" for p in PAIRS for axis in "st"]
-        z = read_npz(path, what="mi_bivariate prior file", required=keys, hint="make it with mi-bivariate learn-prior or Prior.save")
+        z = read_npz(path, what="mi_bivariate prior file", required=keys,
+                     hint="make it with mi-bivariate learn-prior or Prior.save")
         try:
             meta = json.loads(str(z["meta"]))
         except (ValueError, RecursionError):

@@ -574,7 +574,8 @@ def _snapshot(folder: Path) -> dict:
     return {p.name: p.read_bytes() for p in folder.iterdir() if p.is_file()}
 
 
-@pytest.mark.parametrize("case", ["recover npz beside photo", "recover onto probe", "recover onto its photo", "reduce onto input",
+@pytest.mark.parametrize("case", ["recover npz beside photo", "recover onto probe", "recover onto its photo",
+                                  "reduce onto input",
                                   "render onto probe", "render onto brdf", "render png onto probe",
                                   "learn-prior onto source", "recover onto a shared probe by name",
                                   "learn-prior onto the weights behind a name", "recover onto the prior's basis",

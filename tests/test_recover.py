@@ -454,5 +454,6 @@ def test_a_grey_photo_under_a_coloured_probe_warns():
         with warnings.catch_warnings(record=True) as seen:
             warnings.simplefilter("always")
             recover(image, probe, shot.geometry, **small)
-        said = [str(w.message) for w in seen if issubclass(w.category, InputWarning) and "photo is grey" in str(w.message)]
+        said = [str(w.message) for w in seen
+                if issubclass(w.category, InputWarning) and "photo is grey" in str(w.message)]
         assert bool(said) == expected, (probe.source, said)
