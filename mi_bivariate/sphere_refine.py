@@ -77,6 +77,11 @@ MAX_SHIFT_PX = 1.0
 MAX_RESIDUAL_RISE = 1.05
 
 
+def outline_shift(a: SphereGeometry, b: SphereGeometry) -> float:
+    """The farthest circle ``a``'s outline lies from ``b``'s, ``|centre shift| + |radius change|``, px."""
+    return float(np.hypot(a.cx - b.cx, a.cy - b.cy) + abs(a.radius - b.radius))
+
+
 class _Budget(Exception):
     """The search spent its evaluations (raised inside the objective, caught by :func:`refine_sphere`)."""
 
@@ -110,9 +115,8 @@ class SphereRefinement:
 
     @property
     def shift_px(self) -> float:
-        """The farthest the found circle lies from the starting one, ``|centre shift| + |radius change|``, px."""
-        f, s = self.found, self.start
-        return float(np.hypot(f.cx - s.cx, f.cy - s.cy) + abs(f.radius - s.radius))
+        """The farthest the found circle lies from the starting one (:func:`outline_shift`), px."""
+        return outline_shift(self.found, self.start)
 
     def summary(self) -> str:
         """One line: refined (from, to, cost, evaluations, time), or why not."""
@@ -183,8 +187,7 @@ def refine_sphere(image: np.ndarray, probe: Probe, geometry: SphereGeometry, *,
     prior = default_prior() if prior is None else prior
     if (prior.n_t, prior.n_s) != (n_t, n_s):
         prior = prior.resampled(n_t, n_s)
-    regularisers = {w: prior.regulariser(w) for w in set(winner)}
-    penalties = {w: (r.T @ r).toarray() for w, r in regularisers.items()}  # R^T R, (N, N)
+    penalties = {w: prior.penalty_matrix(w) for w in set(winner)}  # R^T R, (N, N)
     # Pixels that stay on any sphere within MAX_SHIFT_PX of the start (a pixel's corner is 0.71 px
     # from its centre): on a small sphere this cuts below max_view_angle_deg.
     inner = max(0.0, 1.0 - (MAX_SHIFT_PX + math.sqrt(0.5)) / float(geometry.radius))
@@ -235,8 +238,7 @@ def refine_sphere(image: np.ndarray, probe: Probe, geometry: SphereGeometry, *,
     except _Budget:
         x, cost, status = best[1], best[0], f"stopped at the budget of {max_evaluations} evaluations"
     found = dataclasses.replace(geometry, cx=float(x[0]), cy=float(x[1]), radius=float(x[2]))
-    shift = float(np.hypot(*(x[:2] - start[:2])) + abs(x[2] - start[2]))
-    accepted = bool(np.all(np.isfinite(x)) and shift <= MAX_SHIFT_PX)
+    accepted = bool(np.all(np.isfinite(x)) and outline_shift(found, geometry) <= MAX_SHIFT_PX)
     return SphereRefinement(geometry=found if accepted else geometry, start=geometry, cost_start=0.5 * float(r0 @ r0),
                             cost=cost, evaluations=count[0], seconds=time.perf_counter() - t0, found=found,
                             accepted=accepted, status=str(status))
