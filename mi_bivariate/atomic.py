@@ -132,8 +132,10 @@ def check_outputs(outputs: Iterable[PathLike], inputs: Iterable[Optional[PathLik
     Raises:
         InputError: naming the output, if it is one of ``inputs`` (same file by
             ``os.path.samefile`` or resolved path), two outputs coincide, it is
-            an existing directory, its parent is a file, or its folder exists
-            but is not writable.
+            an existing directory, its parent is a file, or its folder (the
+            nearest existing one) is not writable: a temporary file is made and
+            removed there, which also catches what permissions do not say
+            (a read-only or special file system such as ``/proc``).
     """
     outputs = [Path(o) for o in outputs]
     inputs = [Path(i) for i in inputs if i is not None and str(i)]
@@ -154,3 +156,9 @@ def check_outputs(outputs: Iterable[PathLike], inputs: Iterable[Optional[PathLik
         if not os.access(parent, os.W_OK | os.X_OK):
             raise InputError(out, f"cannot be written: the folder {parent} is not writable",
                              f"choose another {flag}")
+        try:  # what os.access cannot tell (root, read-only or special file systems such as /proc)
+            with tempfile.TemporaryFile(dir=parent):
+                pass
+        except OSError as error:
+            raise InputError(out, f"cannot be written: a file cannot be made in {parent} "
+                             f"({error.strerror or error})", f"choose another {flag}") from None

@@ -94,6 +94,8 @@ def _parse_rotation(text: str) -> Tuple[float, float, float]:
         angles = ()
     if len(angles) != 3 or not all(math.isfinite(v) for v in angles):
         raise argparse.ArgumentTypeError(f"expected three angles in degrees RX,RY,RZ, got {text!r}")
+    if not all(-360.0 <= v <= 360.0 for v in angles):  # a turn more or less is the same rotation
+        raise argparse.ArgumentTypeError(f"each angle must be in [-360, 360] degrees, got {text!r}")
     return angles
 
 

@@ -316,9 +316,10 @@ def test_cli_one_line_error(files, tmp_path, monkeypatch, capsys, case, argv, na
     (["--no-report", "--report-render"], "--report-render: not allowed with argument --no-report"),
     (["--probe-rotation", "0,85"], "expected three angles in degrees RX,RY,RZ"),
     (["--probe-rotation=0,nan,0"], "expected three angles in degrees RX,RY,RZ"),
+    (["--probe-rotation=0,1e308,0"], "each angle must be in [-360, 360] degrees"),
     (["--sphere", "nan,32,28"], "--sphere expects finite CX,CY,R"),
 ], ids=["negative radius", "deterministic with threads", "report-render without a report",
-        "two probe angles", "a NaN probe angle", "a NaN sphere centre"])
+        "two probe angles", "a NaN probe angle", "a probe angle of no precision", "a NaN sphere centre"])
 def test_cli_usage_errors_are_argparse_errors(capsys, extra, match):
     """Malformed or conflicting arguments are usage errors (argparse: exit status 2, one line, no traceback)."""
     with pytest.raises(SystemExit) as info:
@@ -790,6 +791,19 @@ def test_read_only_output_folder(files, tmp_path, capsys):
     finally:
         folder.chmod(0o755)
     assert "not writable" in line and list(folder.iterdir()) == []
+
+
+@pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="needs Linux's /proc")
+def test_output_folder_where_no_file_can_be_made_is_refused_before_work(files, capsys, monkeypatch):
+    """/proc passes os.access for root, but no file can be made there: refused up front, not after the work."""
+    from mi_bivariate import merl
+
+    def no_read(*args, **kwargs):
+        raise AssertionError("the input was read before the output was checked")
+
+    monkeypatch.setattr(merl.MERLBRDF, "read", no_read)
+    line = _cli(["reduce", str(files["merl"]), "--grid", "4", "4", "--out", "/proc/x.npz"], capsys)
+    assert line.startswith("mi-bivariate: error: /proc/x.npz: cannot be written: a file cannot be made in /proc"), line
 
 
 def test_output_folder_that_is_a_file(files, tmp_path, capsys):
