@@ -185,8 +185,18 @@ def _check_image(image: np.ndarray, source: str) -> np.ndarray:
         raise InputError(source, f"expected an (H, W, 3) RGB image, got shape {image.shape}")
     if image.shape[0] < 1 or image.shape[1] < 1:
         raise InputError(source, f"empty image of shape {image.shape}")
-    if not np.issubdtype(image.dtype, np.number):
-        raise InputError(source, f"image has non-numeric dtype {image.dtype}")
+    if not np.issubdtype(image.dtype, np.number) or np.issubdtype(image.dtype, np.complexfloating):
+        raise InputError(source, f"image has dtype {image.dtype}; expected real numbers (linear radiance)")
+    if np.issubdtype(image.dtype, np.integer):
+        warnings.warn(f"{source}: the image holds integers ({image.dtype}), read as linear radiance as they are; "
+                      "an 8- or 16-bit photo is usually gamma-encoded and clipped (give a linear HDR image, "
+                      "e.g. an EXR merged from several exposures)", InputWarning, stacklevel=3)
+    elif image.dtype.itemsize > 4:
+        finite = image[np.isfinite(image)]
+        top = float(np.max(np.abs(finite))) if finite.size else 0.0
+        if top > np.finfo(np.float32).max:
+            raise InputError(source, f"image values up to {top:.3g} do not fit in float32 (the toolkit's precision)",
+                             "scale the image (and its probe) down")
     return image.astype(np.float32, copy=False)
 
 

@@ -29,7 +29,7 @@ import scipy
 
 from mi_bivariate import __version__, bivariate, demo
 from mi_bivariate import evaluate as ev
-from mi_bivariate import export, lighting, merl
+from mi_bivariate import export, lighting, limits, merl
 from mi_bivariate import recover as rec
 from mi_bivariate import render, spherefit, synthesis, training_set
 from mi_bivariate.atomic import atomic_paths, check_outputs, same_file
@@ -46,88 +46,26 @@ from mi_bivariate.threads import blas_threads, jit_threads, solve_thread_limit
 from mi_bivariate.training_set import basis_path_for
 from mi_bivariate.variants import ensure_variant
 
-# Limits on user numbers, checked before anything is allocated. Each is far above
-# the documented defaults and below what a 16 GB machine (or Dr.Jit's 32-bit
-# array sizes) can hold.
-#: Nodes per st axis, and nodes of the whole grid (the solve's normal equations are N x N).
-MAX_GRID_AXIS = 256
-MAX_GRID_NODES = 64 * 64
-#: Normals M and light directions K of a recovery.
-MAX_NORMALS = 1_000_000
-MAX_DIRS = 10_000_000
-#: Bytes of the lighting matrix (M x N x 3 float32).
-MAX_LIGHTING_BYTES = 4 << 30
-#: Lanes of one lighting kernel (rows of a chunk x direction pairs): Dr.Jit indexes with uint32.
-MAX_KERNEL_LANES = 1 << 31
-#: Render width/height, samples per pixel, and samples of one render (width x height x spp).
-MAX_RESOLUTION = 8192
-MAX_SPP = 1 << 16
-MAX_RENDER_SAMPLES = 1 << 28
-#: Sampler seeds are unsigned 32-bit integers.
-MAX_SEED = 2**32 - 1
-
-
-def _check_max(flag: str, value: Optional[int], limit: int, hint: str = "") -> None:
-    if value is not None and value > limit:
-        raise InputError(flag, f"{value} is over the limit of {limit}", hint or None)
-
-
 def _check_seed(seed: Optional[int]) -> None:
-    if seed is not None and not 0 <= seed <= MAX_SEED:
-        raise InputError("--seed", f"must be an integer from 0 to {MAX_SEED}, got {seed}")
+    if seed is not None:
+        limits.check_seed(seed, "--seed")
 
 
 def _check_grid(grid: Optional[Sequence[int]]) -> None:
-    if grid is None:
-        return
-    n_t, n_s = grid
-    for flag, n in (("--grid N_T", n_t), ("--grid N_S", n_s)):
-        _check_max(flag, n, MAX_GRID_AXIS)
-        if n < 2:
-            raise InputError(flag, f"{n} nodes is too small", "each st axis needs at least 2 nodes")
-    if n_t > 0 and n_s > 0 and n_t * n_s > MAX_GRID_NODES:
-        raise InputError("--grid", f"{n_t} x {n_s} = {n_t * n_s} nodes is over the limit of {MAX_GRID_NODES}",
-                         "the solve's normal equations grow as the square of the node count")
+    if grid is not None:
+        limits.check_grid(grid, "--grid", ("--grid N_T", "--grid N_S"))
 
 
 def _check_recovery_sizes(normals: Optional[int], dirs: Optional[int], grid: Optional[Sequence[int]]) -> None:
-    """Limits on M, K and the grid, and on the lighting matrix and kernel they imply.
-
-    A one-node grid axis is the library's check, reported with its words.
-    """
-    _check_grid(grid)
-    if normals is not None and normals < 1:
-        raise InputError("--normals", f"must be at least 1, got {normals}")
-    if dirs is not None and dirs < 2:
-        raise InputError("--dirs", f"must be at least 2 (light directions per normal), got {dirs}")
-    _check_max("--normals", normals, MAX_NORMALS)
-    _check_max("--dirs", dirs, MAX_DIRS)
-    if normals is None or dirs is None or grid is None or min(normals, dirs, *grid) < 1:
-        return
-    n_nodes = grid[0] * grid[1]
-    size = normals * n_nodes * 3 * 4
-    if size > MAX_LIGHTING_BYTES:
-        raise InputError("--normals", f"the lighting matrix of {normals} normals x {n_nodes} nodes would take "
-                         f"{size / 2**30:.1f} GiB, over the limit of {MAX_LIGHTING_BYTES / 2**30:.0f} GiB",
-                         "use fewer normals or a smaller grid")
-    lanes = min(normals, lighting._chunk_rows(n_nodes, None)) * lighting.direction_pairs(dirs)
-    if lanes > MAX_KERNEL_LANES:
-        raise InputError("--dirs", f"{dirs} directions with a {grid[0]} x {grid[1]} grid make a lighting kernel of "
-                         f"{lanes} lanes, over the limit of {MAX_KERNEL_LANES}", "use fewer directions")
+    """Limits on M, K and the grid, and on the lighting matrix and kernel they imply."""
+    limits.check_recovery_sizes(normals, dirs, grid, ("--normals", "--dirs", "--grid"))
+    if normals is not None and dirs is not None and grid is not None:
+        lighting.check_kernel_lanes(normals, dirs, grid[0] * grid[1], "--dirs")
 
 
 def _check_render_sizes(resolution: Optional[int], spp: Optional[int], flag: str = "--spp",
                         resolution_flag: str = "--resolution") -> None:
-    _check_max(resolution_flag, resolution, MAX_RESOLUTION)
-    _check_max(flag, spp, MAX_SPP)
-    if resolution is not None and resolution < 2:
-        raise InputError(resolution_flag, f"must be at least 2 pixels, got {resolution}")
-    if spp is not None and spp < 1:
-        raise InputError(flag, f"must be at least 1, got {spp}")
-    if resolution and spp and resolution > 0 and spp > 0 and resolution * resolution * spp > MAX_RENDER_SAMPLES:
-        raise InputError(flag, f"{resolution} x {resolution} pixels x {spp} spp = {resolution * resolution * spp} "
-                         f"samples, over the limit of {MAX_RENDER_SAMPLES} for one render",
-                         "lower --spp or --resolution")
+    limits.check_render_sizes(resolution, spp, (resolution_flag, flag))
 
 
 #: ``recover --fov`` bounds (degrees): a photo's lens, from a long telephoto to a wide angle.

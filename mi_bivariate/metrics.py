@@ -21,11 +21,35 @@ import numpy as np
 from mi_bivariate.bivariate import BivariateBRDF
 from mi_bivariate.coordinates import ST_REGIONS, st_from_half_diff
 from mi_bivariate.merl import MERL_SHAPE, MERLBRDF, geometric_mask, node_angles
+from mi_bivariate.probes import Probe
 
 #: Regions of the (theta_h, theta_d) domain for the error breakdown (:data:`coordinates.ST_REGIONS`),
 #: in order of precedence: a cell belongs to the first region whose bound it meets; "rest" is every other cell.
 REGIONS: Tuple[Tuple[str, str, float, float], ...] = ST_REGIONS
 REGION_NAMES: Tuple[str, ...] = tuple(r[0] for r in REGIONS) + ("rest",)
+
+
+def _masked_pair(image: np.ndarray, reference: np.ndarray, mask: Optional[np.ndarray]) -> Tuple[np.ndarray, np.ndarray]:
+    """The two images' masked pixels (float64), after checking their shapes and the mask's.
+
+    Raises:
+        ValueError: the images' shapes differ; the mask is not boolean, not ``(H, W)`` of the
+            images, or selects no pixel.
+    """
+    a = np.asarray(image, dtype=np.float64)
+    b = np.asarray(reference, dtype=np.float64)
+    if a.shape != b.shape:
+        raise ValueError(f"image shapes differ: {a.shape} vs {b.shape}")
+    if mask is None:
+        return a, b
+    mask = np.asarray(mask)
+    if mask.dtype != bool:
+        raise ValueError(f"mask must be boolean, got {mask.dtype}")
+    if mask.shape != a.shape[:mask.ndim] or mask.ndim not in (a.ndim - 1, a.ndim):
+        raise ValueError(f"mask of shape {mask.shape} does not fit images of shape {a.shape}")
+    if not mask.any():
+        raise ValueError("mask selects no pixel")
+    return a[mask], b[mask]
 
 
 def image_relative_rmse(image: np.ndarray, reference: np.ndarray, mask: Optional[np.ndarray] = None) -> float:
@@ -35,22 +59,15 @@ def image_relative_rmse(image: np.ndarray, reference: np.ndarray, mask: Optional
         image, reference: ``(H, W, 3)`` linear images.
         mask: ``(H, W) bool``; all pixels when omitted.
     """
-    a = np.asarray(image, dtype=np.float64)
-    b = np.asarray(reference, dtype=np.float64)
-    if a.shape != b.shape:
-        raise ValueError(f"image shapes differ: {a.shape} vs {b.shape}")
-    if mask is not None:
-        a, b = a[mask], b[mask]
+    a, b = _masked_pair(image, reference, mask)
     denom = np.sqrt(np.mean(b * b))
     return float(np.sqrt(np.mean((a - b) ** 2)) / denom) if denom > 0 else float("inf")
 
 
 def image_psnr(image: np.ndarray, reference: np.ndarray, mask: Optional[np.ndarray] = None) -> float:
-    """PSNR in dB with the reference's masked maximum as peak (linear radiance)."""
-    a = np.asarray(image, dtype=np.float64)
-    b = np.asarray(reference, dtype=np.float64)
-    if mask is not None:
-        a, b = a[mask], b[mask]
+    """PSNR in dB with the reference's masked maximum as peak (linear radiance); arguments as
+    :func:`image_relative_rmse`."""
+    a, b = _masked_pair(image, reference, mask)
     mse = np.mean((a - b) ** 2)
     peak = float(np.max(b)) if b.size else 0.0
     if mse == 0:
@@ -250,7 +267,9 @@ class BRDFErrors:
     """
 
     def __init__(self, truth, min_value: float = 0.0):
-
+        if not isinstance(truth, MERLBRDF):
+            raise TypeError(f"the truth must be a 3D MERLBRDF (e.g. mi_bivariate.nbrdf.nbrdf_merl(name)), got a "
+                            f"{type(truth).__name__}: the truth comes first, the estimate second")
         valid = truth.valid_mask()
         self.index = np.nonzero(valid)                                   # cells: (i_h, i_d, i_p)
         self.f = np.asarray(truth.table[valid], np.float64)              # (n_cells, 3)
@@ -268,7 +287,7 @@ class BRDFErrors:
         if isinstance(estimate, (MERLBRDF, np.ndarray)):
             grid = estimate_on_merl_grid(estimate)
             return grid[i_h, i_d, 0] if grid.shape[2] == 1 else grid[i_h, i_d, i_p]
-        if callable(getattr(estimate, "eval", None)):
+        if callable(getattr(estimate, "eval", None)) and not isinstance(estimate, Probe):
             with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
                 return np.asarray(estimate.eval(*self.angles), np.float64)
         raise TypeError(f"cannot evaluate a {type(estimate).__name__} on the MERL grid")
@@ -314,9 +333,10 @@ def relight_errors(image: np.ndarray, floor_image: np.ndarray, truth_image: np.n
 
     ``rel_rmse``: :func:`image_relative_rmse` of the recovered BRDF's image
     against the 3D truth's; ``floor``: the same for the exact reduction's
-    table (the best any bivariate table on the grid can do); ``ratio``:
-    ``rel_rmse / floor`` (1 = as good as the exact reduction). All three
-    images must come from the same renderer.
+    table (the paper's phi_d mean on the grid; not a strict lower bound: a
+    table fitted to one view can relight that view better, ratios below 1
+    are measured); ``ratio``: ``rel_rmse / floor`` (1 = as good as the exact
+    reduction). All three images must come from the same renderer.
     """
     err = image_relative_rmse(image, truth_image, mask)
     floor = image_relative_rmse(floor_image, truth_image, mask)

@@ -39,8 +39,10 @@ import numpy as np
 from mi_bivariate.bivariate import BivariateBRDF
 from mi_bivariate.errors import InputError
 from mi_bivariate.geometry import Camera, SphereCamera, SphereGeometry
+from mi_bivariate.limits import check_render_sizes, check_seed
 from mi_bivariate.merl import MERLBRDF
 from mi_bivariate.mesh import MeshShape, MeshView
+from mi_bivariate.probes import Probe
 from mi_bivariate.variants import ensure_variant
 
 
@@ -112,6 +114,8 @@ def bsdf_dict(source: Any, interpolation: str = "linear", sampling: str = "table
     if isinstance(source, MERLBRDF):
         return {"type": "merl", "table": _merl_bitmap(source.table), "interpolation": interpolation,
                 "sampling": sampling}
+    if isinstance(source, Probe):
+        raise InputError("bsdf", "got a Probe where a BRDF goes", "pass the BRDF first and the probe second")
     if callable(getattr(source, "eval", None)):
         name = str(getattr(source, "name", type(source).__name__))
         merl = MERLBRDF.from_function(source.eval, name=name, dtype=np.float32)
@@ -140,6 +144,16 @@ def sphere_scene_dict(bsdf: dict, probe: Any, camera: SphereCamera, normals: boo
         "sphere": {"type": "sphere", "center": [float(c) for c in center], "radius": 1.0, "bsdf": bsdf},
         "probe": probe.emitter_dict(),
     }
+
+
+def _check_render_inputs(probe: Any, width: Any, height: Any, spp: Any, seed: Any, width_name: str = "width") -> None:
+    """The checks every render's front door makes before building a scene: the probe's type, the
+    image size and samples within :mod:`mi_bivariate.limits`, the seed an unsigned 32-bit integer."""
+    if not isinstance(probe, Probe):
+        raise InputError("probe", f"expected a mi_bivariate.probes.Probe, got a {type(probe).__name__}",
+                         "load one with Probe.load(path) or mi_bivariate.sources.load_probe(name)")
+    check_render_sizes(width, spp, (width_name, "spp"), hint="lower spp or the image size", height=height)
+    check_seed(seed)
 
 
 def load_scene(scene: dict) -> Any:
@@ -174,8 +188,12 @@ def render_sphere(bsdf: Any, probe: Any, resolution: Union[int, Sequence[int]] =
         camera_to_world: ``(3, 3)`` rotation of the camera about the sphere's centre.
     """
     ensure_variant(vectorised=True)
-    if int(spp) < 1:
-        raise InputError("spp", f"must be >= 1, got {spp}")
+    if np.ndim(resolution) == 0:
+        _check_render_inputs(probe, resolution, None, spp, seed, width_name="resolution")
+    elif len(resolution) == 2:
+        _check_render_inputs(probe, resolution[0], resolution[1], spp, seed)
+    else:
+        raise InputError("resolution", f"must be an int or (W, H), got {resolution!r}")
     bsdf = bsdf_dict(bsdf)
     cam = SphereCamera.create(camera, resolution, radius_fraction, fov, distance, camera_to_world)
     scene = load_scene(sphere_scene_dict(bsdf, probe, cam, normals=True))
@@ -199,6 +217,7 @@ def render_like(bsdf: Any, probe: Any, geometry: SphereGeometry, width: int, hei
     The returned ``mask`` marks pixels whose centre sees the sphere.
     """
     ensure_variant(vectorised=True)
+    _check_render_inputs(probe, width, height, spp, seed)
     cam = SphereCamera.create("orthographic", (width, height), radius_fraction=geometry.radius / min(width, height),
                               camera_to_world=geometry.camera_to_world)
     offset = np.array([(geometry.cx - 0.5 * width) / geometry.radius,
@@ -233,8 +252,7 @@ def render_mesh(bsdf: Any, probe: Any, view: MeshView, spp: int = 64, seed: int 
     """Render ``view.shape`` with ``bsdf`` (anything :func:`mi_bivariate.render.bsdf_dict` takes)
     under ``probe`` from ``view.camera``: ``(H, W, 3) float32`` linear RGB (background 0)."""
     ensure_variant(vectorised=True)
-    if int(spp) < 1:
-        raise InputError("spp", f"must be >= 1, got {spp}")
+    _check_render_inputs(probe, None, None, spp, seed)
     scene = load_scene(mesh_scene_dict(view.shape, bsdf_dict(bsdf), probe, view.camera, max_depth))
     out = np.array(mi.render(scene, spp=int(spp), seed=int(seed)), dtype=np.float32)
     return np.ascontiguousarray(out[..., :3])

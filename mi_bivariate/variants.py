@@ -6,7 +6,9 @@ BSDF plugins are registered per variant, so every switch goes through
 :func:`ensure_variant`.
 
 Only the front doors select the variant: the CLI's commands,
-:func:`mi_bivariate.recover.recover`, the rendering entry points
+:func:`mi_bivariate.recover.recover`, the lighting matrices
+(:func:`mi_bivariate.lighting.lighting_matrix`, ``texel_lighting_matrix``: they need a JIT
+variant and switch an active ``scalar_rgb`` to the default), the rendering entry points
 (``render``, including ``render.render_mesh``, and ``reference``), the demo and the
 evaluation's workers. Code below them (data-model methods such as
 ``BivariateBRDF.to_bitmap`` or ``Probe.emitter``) uses whatever variant is

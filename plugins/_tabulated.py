@@ -213,6 +213,10 @@ def make_tabulated_bsdf_base():
 
         def __init__(self, props: mi.Properties):
             mi.BSDF.__init__(self, props)
+            if not dr.is_jit_v(mi.Float):  # the table lookups and samplers are written for wide arrays
+                raise InputError(self.plugin_name, f"the plugin needs a JIT variant, not {mi.variant()}",
+                                 "use llvm_ad_rgb or cuda_ad_rgb: mi.set_variant or "
+                                 "mi_bivariate.variants.ensure_variant")
             sampling = props.get("sampling", "table")
             if sampling not in ("table", "cosine"):
                 raise InputError(self.plugin_name, f"sampling must be 'table' or 'cosine', got {sampling!r}")

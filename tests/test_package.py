@@ -137,7 +137,7 @@ def test_python_dash_m_package_runs_the_command():
 #: The README's "Layout" groups, in the order of the data flow (``plugins`` is the package's
 #: ``mi_bivariate.plugins``, at the bottom: the BSDFs know nothing of the pipeline).
 LAYERS = (
-    "__init__ common errors atomic npzio images coordinates merl analytic nbrdf bivariate probes sources plugins "
+    "__init__ common errors limits atomic npzio images coordinates merl analytic nbrdf bivariate probes sources plugins "
     "variants threads",
     "geometry silhouette spherefit mesh capture noise",
     "lighting adequacy",

@@ -76,6 +76,7 @@ import numpy as np
 
 from mi_bivariate.capture import Observations
 from mi_bivariate.errors import InputError
+from mi_bivariate.limits import MAX_DIRS, MAX_KERNEL_LANES, MAX_LIGHTING_BYTES, check_grid, check_max
 from mi_bivariate.lighting.directions import direction_pairs, hemisphere_offsets, light_directions, row_frames
 from mi_bivariate.lighting.kernels import _lighting_target, _rgb_rows, _row_packets, _spatial_order, _texel_target
 from mi_bivariate.lighting.mis import (
@@ -89,6 +90,7 @@ from mi_bivariate.lighting.mis import (
     pool_bytes,
     strategy_counts,
 )
+from mi_bivariate.probes import Probe
 from mi_bivariate.variants import ensure_variant
 
 __all__ = ["CHUNK_BYTES", "ENV_SHIFTS", "MIS_FRACTIONS", "PEAK_T_MAX", "PROGRESS_PAIRS", "SAMPLINGS",
@@ -118,15 +120,35 @@ def _as_probe_list(probes: Any) -> List[Any]:
     return [probes]
 
 
+def check_kernel_lanes(n_rows: int, n_dirs: int, n_nodes: int, name: str = "n_dirs",
+                       chunk: Optional[int] = None) -> None:
+    """Refuse a lighting kernel of more than :data:`~mi_bivariate.limits.MAX_KERNEL_LANES` lanes
+    (rows of a chunk x direction pairs; Dr.Jit indexes them with 32 bits), naming ``name``."""
+    lanes = min(int(n_rows), _chunk_rows(n_nodes, chunk)) * direction_pairs(n_dirs)
+    if lanes > MAX_KERNEL_LANES:
+        raise InputError(name, f"{n_dirs} directions with {n_nodes} grid nodes make a lighting kernel of "
+                         f"{lanes} lanes, over the limit of {MAX_KERNEL_LANES}", "use fewer directions")
+
+
 def _check_inputs(obs: Observations, probes: List[Any], n_t: int, n_s: int, n_dirs: int) -> None:
-    if n_t < 2 or n_s < 2:
-        raise InputError(None, f"st grid {n_t}x{n_s} is too small", "each axis needs at least 2 nodes")
+    check_grid((n_t, n_s))
     if n_dirs < 2:
         raise InputError(None, f"n_dirs must be at least 2, got {n_dirs}")
+    check_max("n_dirs", n_dirs, MAX_DIRS)
     if len(obs) == 0:
         raise InputError(None, "no observations")
+    size = len(obs) * n_t * n_s * 3 * 4
+    if size > MAX_LIGHTING_BYTES:
+        raise InputError(None, f"the lighting matrix of {len(obs)} rows x {n_t * n_s} nodes would take "
+                         f"{size / 2**30:.1f} GiB, over the limit of {MAX_LIGHTING_BYTES / 2**30:.0f} GiB",
+                         "use fewer normals or a smaller grid")
     if not probes:
         raise InputError(None, "no probe given")
+    for k, probe in enumerate(probes):
+        if not isinstance(probe, Probe):
+            raise InputError("probe" if len(probes) == 1 else f"probe {k}",
+                             f"expected a mi_bivariate.probes.Probe, got a {type(probe).__name__}",
+                             "load one with Probe.load(path) or mi_bivariate.sources.load_probe(name)")
     top = int(obs.probe_index.max())
     if top >= len(probes) or int(obs.probe_index.min()) < 0:
         raise InputError(None, f"observations refer to probe {top} but {len(probes)} probe(s) were given")
@@ -241,6 +263,7 @@ def lighting_matrix(obs: Observations, probes: Union[Any, Sequence[Any]], n_t: i
     ensure_variant(vectorised=True)
     probes = _as_probe_list(probes)
     _check_inputs(obs, probes, n_t, n_s, n_dirs)
+    check_kernel_lanes(len(obs), n_dirs, n_t * n_s, chunk=chunk)
     if sampling not in SAMPLINGS:
         raise InputError(None, f"unknown sampling {sampling!r}", f"use one of {', '.join(SAMPLINGS)}")
     target_fn = _mis_target if sampling == "mis" else _lighting_target

@@ -1,0 +1,128 @@
+"""Limits on user numbers, checked before anything is allocated: one home for the CLI and the library.
+
+Each limit is far above the documented defaults and below what a 16 GB machine (or Dr.Jit's 32-bit
+array sizes) can hold. The checks name the argument as the caller knows it: the library's front
+doors (:func:`mi_bivariate.recover.recover`, :func:`mi_bivariate.render.render_sphere`, ...) pass
+their parameter names (``n_normals``), the CLI its flags (``--normals``).
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+from typing import Any, Optional, Sequence, Tuple
+
+from mi_bivariate.errors import InputError
+
+#: Nodes per st axis, and nodes of the whole grid (the solve's normal equations are N x N).
+MAX_GRID_AXIS = 256
+MAX_GRID_NODES = 64 * 64
+#: Normals M and light directions K of a recovery.
+MAX_NORMALS = 1_000_000
+MAX_DIRS = 10_000_000
+#: Bytes of the lighting matrix (M x N x 3 float32).
+MAX_LIGHTING_BYTES = 4 << 30
+#: Lanes of one lighting kernel (rows of a chunk x direction pairs): Dr.Jit indexes with uint32.
+MAX_KERNEL_LANES = 1 << 31
+#: Render width/height, samples per pixel, and samples of one render (width x height x spp).
+MAX_RESOLUTION = 8192
+MAX_SPP = 1 << 16
+MAX_RENDER_SAMPLES = 1 << 28
+#: Sampler seeds are unsigned 32-bit integers.
+MAX_SEED = 2**32 - 1
+
+
+def whole_number(name: str, value: Any) -> int:
+    """``value`` as an ``int``, refused (:class:`InputError` naming ``name``) unless it is a whole
+    number: an integer type, or a finite float with no fraction (``8.0``, not ``8.7``)."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise InputError(name, f"must be a whole number, got {value!r}")
+    if not isinstance(value, numbers.Integral) and not (math.isfinite(value) and float(value).is_integer()):
+        raise InputError(name, f"must be a whole number, got {value!r}")
+    return int(value)
+
+
+def check_max(name: str, value: Optional[int], limit: int, hint: str = "") -> None:
+    if value is not None and value > limit:
+        raise InputError(name, f"{value} is over the limit of {limit}", hint or None)
+
+
+def check_seed(seed: Any, name: str = "seed") -> int:
+    """The seed as an ``int`` in ``[0, MAX_SEED]`` (the samplers' unsigned 32 bits)."""
+    if seed is None or isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or not 0 <= seed <= MAX_SEED:
+        raise InputError(name, f"must be an integer from 0 to {MAX_SEED}, got {seed}")
+    return int(seed)
+
+
+def check_grid(grid: Any, name: str = "grid", axis_names: Optional[Tuple[str, str]] = None,
+               max_nodes: Optional[int] = MAX_GRID_NODES) -> Tuple[int, int]:
+    """``(n_t, n_s)`` of an st grid, each a whole number from 2 to :data:`MAX_GRID_AXIS`, their
+    product at most ``max_nodes`` (the solve's limit, :data:`MAX_GRID_NODES`; ``None`` for a table
+    that is not solved for, e.g. a reduction at MERL's 91 x 91)."""
+    try:
+        n_t, n_s = grid
+    except (TypeError, ValueError):
+        raise InputError(name, f"must be two node counts (n_t, n_s), got {grid!r}") from None
+    axis_names = axis_names or (f"{name} n_t", f"{name} n_s")
+    n_t, n_s = whole_number(axis_names[0], n_t), whole_number(axis_names[1], n_s)
+    for axis, n in zip(axis_names, (n_t, n_s)):
+        check_max(axis, n, MAX_GRID_AXIS)
+        if n < 2:
+            raise InputError(axis, f"{n} nodes is too small", "each st axis needs at least 2 nodes")
+    if max_nodes is not None and n_t * n_s > max_nodes:
+        raise InputError(name, f"{n_t} x {n_s} = {n_t * n_s} nodes is over the limit of {max_nodes}",
+                         "the solve's normal equations grow as the square of the node count")
+    return n_t, n_s
+
+
+def check_recovery_sizes(normals: Optional[int], dirs: Optional[int], grid: Optional[Sequence[int]],
+                         names: Sequence[str] = ("n_normals", "n_dirs", "grid")) -> None:
+    """Limits on M (``normals``), K (``dirs``) and the grid, and on the lighting matrix they imply.
+    ``names``: how the caller calls the three. The kernel's lane count is
+    :func:`mi_bivariate.lighting.lighting_matrix`'s check (it knows its chunk size)."""
+    normals_name, dirs_name, grid_name = names
+    if grid is not None:
+        grid = check_grid(grid, grid_name, (f"{grid_name} N_T", f"{grid_name} N_S") if grid_name.startswith("--")
+                          else None)
+    if normals is not None:
+        normals = whole_number(normals_name, normals)
+        if normals < 1:
+            raise InputError(normals_name, f"must be at least 1, got {normals}")
+    if dirs is not None:
+        dirs = whole_number(dirs_name, dirs)
+        if dirs < 2:
+            raise InputError(dirs_name, f"must be at least 2 (light directions per normal), got {dirs}")
+    check_max(normals_name, normals, MAX_NORMALS)
+    check_max(dirs_name, dirs, MAX_DIRS)
+    if normals is None or grid is None:
+        return
+    n_nodes = grid[0] * grid[1]
+    size = normals * n_nodes * 3 * 4
+    if size > MAX_LIGHTING_BYTES:
+        raise InputError(normals_name, f"the lighting matrix of {normals} normals x {n_nodes} nodes would take "
+                         f"{size / 2**30:.1f} GiB, over the limit of {MAX_LIGHTING_BYTES / 2**30:.0f} GiB",
+                         "use fewer normals or a smaller grid")
+
+
+def check_render_sizes(resolution: Optional[int], spp: Optional[int], names: Sequence[str] = ("resolution", "spp"),
+                       hint: str = "lower --spp or --resolution", height: Optional[int] = None) -> None:
+    """Limits on a render's width (``resolution``; the height too unless ``height`` is given), its
+    samples per pixel and the samples of the whole render. ``names``: ``(resolution, spp)`` as the
+    caller calls them (``height`` is named ``height``)."""
+    resolution_name, spp_name = names
+    sizes = [(resolution_name, resolution), ("height", height)]
+    sizes = [(name, whole_number(name, value)) for name, value in sizes if value is not None]
+    spp = None if spp is None else whole_number(spp_name, spp)
+    for name, value in sizes:
+        check_max(name, value, MAX_RESOLUTION)
+        if value < 2:
+            raise InputError(name, f"must be at least 2 pixels, got {value}")
+    check_max(spp_name, spp, MAX_SPP)
+    if spp is not None and spp < 1:
+        raise InputError(spp_name, f"must be at least 1, got {spp}")
+    if sizes and spp:
+        width = sizes[0][1]
+        tall = sizes[1][1] if len(sizes) > 1 else width
+        if width * tall * spp > MAX_RENDER_SAMPLES:
+            raise InputError(spp_name, f"{width} x {tall} pixels x {spp} spp = {width * tall * spp} samples, over "
+                             f"the limit of {MAX_RENDER_SAMPLES} for one render", hint)

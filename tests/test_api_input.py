@@ -1,0 +1,234 @@
+"""The library's front doors refuse bad input as the CLI does: an :class:`InputError` naming the
+argument, before any work, not a traceback from deep inside Dr.Jit or numpy (a review of the Python
+API as a researcher uses it, 2026-12-06)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+import warnings
+
+import numpy as np
+import pytest
+
+from mi_bivariate import capture, metrics, recover as recover_mod, render
+from mi_bivariate.bivariate import BivariateBRDF
+from mi_bivariate.errors import InputError, InputWarning
+from mi_bivariate.geometry import SphereGeometry
+from mi_bivariate.probes import Probe
+from mi_bivariate.prior import default_prior
+from mi_bivariate.recover import recover
+
+IMAGE = np.full((48, 48, 3), 0.5, np.float32)
+SPHERE = SphereGeometry(24.0, 24.0, 20.0)
+SMALL = dict(n_normals=200, n_dirs=400, grid=(8, 8), basis_prior=None, noise=None)
+
+
+@pytest.fixture
+def probe() -> Probe:
+    return Probe.constant([1.0, 0.9, 0.8], res=16)
+
+
+@pytest.fixture
+def no_work(monkeypatch):
+    """Fail the test if a recovery gets as far as reading its image's pixels."""
+    def refuse(*args, **kwargs):
+        raise AssertionError("the recovery started work before refusing its arguments")
+
+    monkeypatch.setattr(capture, "image_observations", refuse)
+
+
+# ------------------------------------------------------------------ the table
+
+def test_a_table_is_a_checked_copy_and_save_writes_no_file_load_refuses(tmp_path):
+    """Before, the table shared the caller's array: a NaN put there afterwards was saved, and load refused
+    the file."""
+    values = np.ones((8, 8, 3), np.float32)
+    confidence = np.zeros((8, 8, 3))
+    brdf = BivariateBRDF(values, confidence={"measured": confidence})
+    values[0, 0, 0], confidence[0, 0, 0] = np.nan, np.nan
+    assert np.all(np.isfinite(brdf.table)) and np.all(np.isfinite(brdf.confidence["measured"]))
+    brdf.save(tmp_path / "t.npz")
+    np.testing.assert_array_equal(BivariateBRDF.load(tmp_path / "t.npz").table, np.ones((8, 8, 3)))
+    brdf.table[0, 0, 0] = -1.0
+    with pytest.raises(InputError, match="negative values") as info:
+        brdf.save(tmp_path / "u.npz")
+    assert info.value.source == str(tmp_path / "u.npz") and not (tmp_path / "u.npz").exists()
+
+
+def test_table_lookup_of_nan_angles_is_nan():
+    brdf = BivariateBRDF(np.ones((8, 8, 3)))
+    value = brdf.eval(np.array([np.nan, 0.2]), 0.3)
+    assert np.all(np.isnan(value[0])) and np.allclose(value[1], 1.0)
+
+
+def test_reduce_refuses_a_probe_and_a_grid_of_fractions(probe):
+    with pytest.raises(InputError, match="got a Probe where a BRDF goes"):
+        BivariateBRDF.reduce(probe, 8, 8)
+    with pytest.raises(InputError, match="must be a whole number"):
+        BivariateBRDF.reduce(BivariateBRDF(np.ones((8, 8, 3))), 8.5, 8)
+
+
+def test_plugins_refuse_a_scalar_variant_in_one_line(tmp_path):
+    """The plugins are written for wide arrays: under scalar_rgb they said a 30-line TypeError; now the
+    plugin's own error says which variants to use."""
+    BivariateBRDF(np.ones((8, 8, 3))).save(tmp_path / "t.npz")
+    code = textwrap.dedent(f"""
+        import mitsuba as mi
+        from mi_bivariate.variants import ensure_variant
+        ensure_variant("scalar_rgb")
+        try:
+            mi.load_dict({{"type": "bivariate", "filename": {str(tmp_path / "t.npz")!r}}})
+        except RuntimeError as exc:
+            print("refused:", "needs a JIT variant" in str(exc), "Traceback" in str(exc).split("InputError")[-1])
+    """)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert "refused: True False" in out.stdout, out.stdout + out.stderr[-2000:]
+
+
+# ------------------------------------------------------------------ recover
+
+@pytest.mark.parametrize("kwargs, name, problem", [
+    (dict(n_normals=10**9), "n_normals", "over the limit"),
+    (dict(n_dirs=10**10), "n_dirs", "over the limit"),
+    (dict(grid=(300, 300)), "grid n_t", "over the limit"),
+    (dict(grid=(64, 128)), "grid", "nodes is over the limit"),
+    (dict(grid=8), "grid", "must be two node counts"),
+    (dict(grid=(8,)), "grid", "must be two node counts"),
+    (dict(grid=(8.7, 8)), "grid n_t", "must be a whole number"),
+    (dict(n_normals=2.5), "n_normals", "must be a whole number"),
+    (dict(seed=-1), "seed", "must be an integer from 0"),
+    (dict(seed=1.5), "seed", "must be an integer from 0"),
+    (dict(seed=None), "seed", "must be an integer from 0"),
+    (dict(prior="foo"), "prior", "expected a mi_bivariate.prior.Prior"),
+    (dict(max_view_angle_deg=float("nan")), "max_view_angle_deg", "must be an angle in (0, 90]"),
+    (dict(max_view_angle_deg=95.0), "max_view_angle_deg", "must be an angle in (0, 90]"),
+    (dict(footprint=-1.0), "footprint", "must be an angle in (0, 90]"),
+    (dict(saturation=float("nan")), "saturation", "must be a positive number"),
+], ids=lambda v: v if isinstance(v, str) else None)
+def test_recover_refuses_bad_arguments_before_any_work(probe, no_work, kwargs, name, problem):
+    with pytest.raises(InputError) as info:
+        recover(IMAGE, probe, SPHERE, **{**SMALL, **kwargs})
+    assert info.value.source == name and problem in info.value.problem, str(info.value)
+
+
+@pytest.mark.parametrize("bad", ["grace_256", np.ones((8, 16, 3)), None])
+def test_recover_refuses_what_is_not_a_probe_before_any_work(no_work, bad):
+    with pytest.raises(InputError, match="expected a mi_bivariate.probes.Probe") as info:
+        recover(IMAGE, bad, SPHERE, **SMALL)
+    assert info.value.source == "probe"
+
+
+def test_recover_refuses_a_black_probe_before_any_work(no_work):
+    with pytest.raises(InputError, match="probe is black"):
+        recover(IMAGE, Probe.constant(0.0, res=16), SPHERE, **SMALL)
+
+
+def test_a_grey_two_dimensional_image_is_named_as_one_image(probe):
+    with pytest.raises(InputError, match=r"expected an \(H, W, 3\) RGB image, got shape \(48, 48\)") as info:
+        recover(IMAGE[..., 0], probe, SPHERE, **SMALL)
+    assert info.value.source == "image"
+
+
+def test_noise_as_one_number_is_refused_and_as_an_array_pair_accepted(probe):
+    with pytest.raises(InputError, match=r"give the pair \(a, b\)"):
+        recover(IMAGE, probe, SPHERE, **{**SMALL, "noise": 0.01})
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", InputWarning)
+        pair = recover(IMAGE, probe, SPHERE, **{**SMALL, "noise": np.array([1e-4, 1e-6])})
+        listed = recover(IMAGE, probe, SPHERE, **{**SMALL, "noise": (1e-4, 1e-6)})
+    # the same noise model (two Dr.Jit threads add the lighting matrix's sums in either order: 1e-7)
+    assert pair.brdf.provenance["noise"] == listed.brdf.provenance["noise"]
+    np.testing.assert_allclose(pair.brdf.table, listed.brdf.table, rtol=1e-4, atol=1e-6 * listed.brdf.table.max())
+
+
+def test_images_are_checked_for_their_number_type(probe):
+    with pytest.raises(InputError, match="expected real numbers"):
+        recover(IMAGE.astype(np.complex64), probe, SPHERE, **SMALL)
+    with pytest.raises(InputError, match="do not fit in float32"):
+        recover(IMAGE.astype(np.float64) * 1e300, probe, SPHERE, **SMALL)
+    with pytest.warns(InputWarning, match=r"the image holds integers \(uint8\)"):
+        recover(np.full((48, 48, 3), 128, np.uint8), probe, SPHERE, **SMALL)
+
+
+def test_a_recovery_keeps_copies_of_its_images(probe):
+    image = IMAGE.copy()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", InputWarning)
+        result = recover(image, probe, SPHERE, **SMALL)
+    image[:] = 0.0
+    np.testing.assert_array_equal(result.images[0], IMAGE)
+
+
+def test_the_fit_check_leaves_out_a_firefly_row_but_not_a_mismatch():
+    """One row with a Monte Carlo firefly's residual (600x the median pixel) no longer makes a perfect fit
+    "explain" under half of the image; a fit that misses every row still warns."""
+    rng = np.random.default_rng(0)
+    values = rng.uniform(0.005, 0.015, (2000, 3))
+    sigma = np.full_like(values, 1e-5)
+    index = np.zeros(2000, dtype=np.int64)
+    fitted = values.copy()
+    values_with_firefly = values.copy()
+    values_with_firefly[7] = 6.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", InputWarning)
+        recover_mod._check_explained(values_with_firefly, fitted, sigma, index, 1)
+    # the same firefly, unchecked, explains almost nothing: the trim is what keeps quiet
+    assert 1.0 - np.sum((values_with_firefly - fitted) ** 2) / np.sum(
+        (values_with_firefly - values_with_firefly.mean(0)) ** 2) < 0.01
+    with pytest.warns(InputWarning, match="the recovered table explains"):
+        recover_mod._check_explained(values, rng.permutation(values), sigma, index, 1)
+
+
+def test_a_smoothness_prior_is_still_accepted(probe):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", InputWarning)
+        result = recover(IMAGE, probe, SPHERE, **{**SMALL, "prior": default_prior()})
+    assert result.brdf.table.shape == (8, 8, 3)
+
+
+# ------------------------------------------------------------------ render
+
+@pytest.mark.parametrize("call, name, problem", [
+    (lambda p: render.render_sphere(p, p, resolution=16, spp=1), "bsdf", "got a Probe where a BRDF goes"),
+    (lambda p: render.render_sphere({"type": "diffuse"}, "grace_256", resolution=16, spp=1), "probe",
+     "expected a mi_bivariate.probes.Probe"),
+    (lambda p: render.render_sphere({"type": "diffuse"}, p, resolution=100000, spp=1), "resolution",
+     "over the limit"),
+    (lambda p: render.render_sphere({"type": "diffuse"}, p, resolution=(16, 1), spp=1), "height",
+     "must be at least 2 pixels"),
+    (lambda p: render.render_sphere({"type": "diffuse"}, p, resolution=16, spp=10**9), "spp", "over the limit"),
+    (lambda p: render.render_sphere({"type": "diffuse"}, p, resolution=16, spp=1, seed=-1), "seed",
+     "must be an integer from 0"),
+    (lambda p: render.render_sphere({"type": "diffuse"}, p, resolution=16, spp=1, seed=2**40), "seed",
+     "must be an integer from 0"),
+    (lambda p: render.render_like({"type": "diffuse"}, p, SPHERE, 48, 48, spp=0), "spp", "must be at least 1"),
+    (lambda p: render.render_like({"type": "diffuse"}, p, SPHERE, 0, 48, spp=4), "width",
+     "must be at least 2 pixels"),
+], ids=["probe as BRDF", "name as probe", "huge resolution", "one-pixel height", "huge spp", "negative seed",
+        "40-bit seed", "render_like spp 0", "render_like width 0"])
+def test_renders_refuse_bad_arguments(probe, call, name, problem):
+    with pytest.raises(InputError) as info:
+        call(probe)
+    assert info.value.source == name and problem in info.value.problem, str(info.value)
+
+
+# ------------------------------------------------------------------ metrics
+
+def test_image_metrics_check_shapes_and_masks():
+    a = np.ones((8, 8, 3))
+    with pytest.raises(ValueError, match="image shapes differ"):
+        metrics.image_psnr(a[..., :1], a)
+    for bad, match in ((np.ones((8, 8)), "mask must be boolean"), (np.ones((4, 4), bool), "does not fit"),
+                       (np.zeros((8, 8), bool), "selects no pixel")):
+        for metric in (metrics.image_psnr, metrics.image_relative_rmse):
+            with pytest.raises(ValueError, match=match):
+                metric(a, a, bad)
+    assert metrics.image_relative_rmse(a * 1.1, a, np.ones((8, 8), bool)) == pytest.approx(0.1)
+
+
+def test_brdf_errors_say_which_argument_is_the_truth(probe):
+    table = BivariateBRDF(np.ones((8, 8, 3)))
+    with pytest.raises(TypeError, match="the truth must be a 3D MERLBRDF"):
+        metrics.brdf_errors(table, table)
