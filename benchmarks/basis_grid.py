@@ -10,7 +10,8 @@ basis prior (learnt on 32 x 32) only on 32 x 32, so a near-mirror material recov
 grace_256 / pisa_256 / pedestrian_overpass_1k as ``L_novel f``, truth by the MIS quadrature of the 3D table),
 with leave-one-out priors. Every configuration uses ``recover``'s solve (discrepancy alpha, evidence pairs):
 
-- *32 x 32, packaged basis* (today's default grid, for reference);
+- *32 x 32, 32 x 32 basis* (today's default grid, for reference; the basis prior learnt leave-one-out,
+  as every prior here);
 - *grid G, no basis prior* (the default on G before: the 32 x 32 smoothness prior resampled, no basis prior);
 - *grid G, basis resampled* (the default now, :meth:`mi_bivariate.basis_prior.BasisPrior.resampled`): the
   32 x 32 basis prior's mean, components and residual interpolated bilinearly in (t, s) to G's nodes;
@@ -48,7 +49,7 @@ def main() -> None:
     L_novel = {k: {p: lighting.lighting_matrix(obs, novel[p], n_t=t, n_s=s, n_dirs=32768, seed=5) for p in NOVEL}
                for k, (t, s) in grids.items()}
     tables = {k: training_set.reduced_tables(t, s) for k, (t, s) in grids.items()}
-    labels = ("32 x 32, packaged basis", f"{g_t} x {g_s}, no basis prior (before)",
+    labels = ("32 x 32, 32 x 32 basis", f"{g_t} x {g_s}, no basis prior (before)",
               f"{g_t} x {g_s}, 32 x 32 basis resampled", f"{g_t} x {g_s}, both priors learnt on it")
     rows = []
     for name in args.materials.split(","):

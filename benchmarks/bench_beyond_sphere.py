@@ -17,6 +17,14 @@ Prints a Markdown report with four tables:
    plus the 5-degree case with the yaw estimated first.
 4. **Probe alignment**: the yaw estimate for a probe turned by 25 degrees.
 
+What its numbers are, and are not (an audit of 2026-12-06): a functional comparison of each
+capability with and without it, not a score. The recoveries use the **packaged priors**, which
+were learnt from every shared material, these included (not leave-one-out); no floor is printed
+beside the errors; and the novel-probe truths are **path traced** (64-512 spp), whose per-pixel
+noise (2-7%, ``mi_bivariate.reference``) is not measured here and is of the size of the errors.
+Compare rows within a table; for scores, use ``mi-bivariate evaluate`` (leave-one-out, converged
+references, both floors).
+
 Run: ``MI_BIVARIATE_DATA=../shared/data OPENBLAS_NUM_THREADS=1 python benchmarks/bench_beyond_sphere.py [--quick]``
 """
 
@@ -240,7 +248,9 @@ def main(argv=None) -> None:
     _setup()
     sections = {"visibility": bench_visibility, "multiview": bench_multiview, "realism": bench_realism,
                 "alignment": bench_alignment}
-    print(f"## Beyond the lab sphere ({'quick' if args.quick else 'full'} run)\n")
+    print(f"## Beyond the lab sphere ({'quick' if args.quick else 'full'} run)\n\n"
+          "Packaged priors (they saw these shared materials), no floors, path-traced truths of unmeasured "
+          "noise: compare rows within a table, not with the evaluation's scores.\n")
     for key, fn in sections.items():
         if args.only and key not in args.only:
             continue

@@ -4,7 +4,9 @@ the same local variance, and what an image-space despike does (docs/recovery.md 
 For each material, a 128 px sphere under grace_latlong_1k is path traced at ``--spp`` (default
 64) and at 1024 spp (the clean input). Four inputs are recovered with leave-one-out priors and
 ``recover``'s defaults, under the exact sphere, and relit under pisa_256 by the reference
-quadrature (128 px; relative RMS against the truth's render there):
+quadrature (128 px; relative RMS against the truth's render there; printed beside them: the relight
+floor, the 32 x 32 reduction's error rendered the same way, and the scoring renders' own noise, the
+truth's render against a second seed over sqrt 2):
 
 - ``clean``: the 1024-spp render;
 - ``monte carlo``: the ``--spp`` render (heavy-tailed per-pixel noise: its kurtosis is printed);
@@ -56,6 +58,7 @@ def main(argv: Sequence[str] = None) -> None:
     args = parser.parse_args(argv)
 
     from mi_bivariate import metrics, nbrdf, probes, reference, render, training_set
+    from mi_bivariate.bivariate import BivariateBRDF
     from mi_bivariate.recover import recover
     from mi_bivariate.variants import ensure_variant
 
@@ -63,13 +66,17 @@ def main(argv: Sequence[str] = None) -> None:
     warnings.simplefilter("ignore")
     print(f"Machine: {machine()}\n")
     print(f"| material | {args.spp}-spp relative noise, median / 99th pct | kurtosis | clean | monte carlo "
-          "| gaussian, same variance | despiked | spikes found: monte carlo / clean |")
-    print("|---|---:|---:|---:|---:|---:|---:|---:|")
+          "| gaussian, same variance | despiked | relight floor | scoring noise | spikes found: monte carlo / clean |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     grace, pisa = probes.shared_probe("grace_latlong_1k"), probes.shared_probe("pisa_256")
     for material in args.materials:
         truth = nbrdf.nbrdf_merl(material)
         priors = dict(zip(("prior", "basis_prior"), training_set.leave_one_out_priors(material)))
         want = reference.render_reference(truth, pisa, resolution=128, seed=1)
+        again = reference.render_reference(truth, pisa, resolution=128, seed=2)
+        scoring_noise = metrics.image_relative_rmse(again.image, want.image, want.mask) / np.sqrt(2.0)
+        reduced = reference.render_reference(BivariateBRDF.reduce(truth, 32, 32), pisa, resolution=128, seed=1)
+        floor = metrics.image_relative_rmse(reduced.image, want.image, want.mask)
         clean = render.render_sphere(render.bsdf_dict(truth), grace, resolution=128, spp=1024, seed=5)
         noisy = render.render_sphere(render.bsdf_dict(truth), grace, resolution=128, spp=args.spp, seed=0)
         mask = clean.mask
@@ -87,7 +94,8 @@ def main(argv: Sequence[str] = None) -> None:
             got = reference.render_reference(result.brdf, pisa, resolution=128, seed=1)
             relit.append(metrics.image_relative_rmse(got.image, want.image, want.mask))
         print(f"| {material} | {np.median(np.abs(relative)):.3f} / {np.percentile(np.abs(relative), 99):.3f} "
-              f"| {kurtosis:.1f} | " + " | ".join(f"{v:.4f}" for v in relit) + f" | {spikes} / {clean_spikes} |",
+              f"| {kurtosis:.1f} | " + " | ".join(f"{v:.4f}" for v in relit)
+              + f" | {floor:.4f} | {scoring_noise:.4f} | {spikes} / {clean_spikes} |",
               flush=True)
 
 

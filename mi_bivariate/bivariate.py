@@ -168,7 +168,8 @@ class BivariateBRDF:
         """
         n_t, n_s = check_grid((n_t, n_s), max_nodes=None)
         if isinstance(brdf, Probe):
-            raise InputError("brdf", "got a Probe where a BRDF goes", "reduce a MERLBRDF, a BRDF with eval() or a table")
+            raise InputError("brdf", "got a Probe where a BRDF goes",
+                             "reduce a MERLBRDF, a BRDF with eval() or a table")
         t_nodes, s_nodes = grid_nodes(n_t), grid_nodes(n_s)
         if isinstance(brdf, BivariateBRDF):  # already bivariate: resample
             table = brdf.eval_st(s_nodes[None, :], t_nodes[:, None])

@@ -46,6 +46,10 @@ from mi_bivariate.geometry import Geometry, SphereGeometry, check_rotation
 DROP_REASONS: Tuple[str, ...] = ("view_angle", "outside_image", "silhouette", "outside_mask",
                                  "duplicate", "nonfinite", "negative", "saturated")
 
+#: The largest pixel value accepted: a thousandth of float32's largest, so that the table (which scales
+#: with the image) and the solve's sums stay finite (measured: a recovery at 1e34 is right, at 1e37 it
+#: overflowed inside the priors).
+MAX_PIXEL = float(np.finfo(np.float32).max) / 1e3
 #: Fewer usable observations than this gives an :class:`InputWarning`.
 MIN_OBSERVATIONS = 256
 
@@ -191,12 +195,13 @@ def _check_image(image: np.ndarray, source: str) -> np.ndarray:
         warnings.warn(f"{source}: the image holds integers ({image.dtype}), read as linear radiance as they are; "
                       "an 8- or 16-bit photo is usually gamma-encoded and clipped (give a linear HDR image, "
                       "e.g. an EXR merged from several exposures)", InputWarning, stacklevel=3)
-    elif image.dtype.itemsize > 4:
+    else:
         finite = image[np.isfinite(image)]
         top = float(np.max(np.abs(finite))) if finite.size else 0.0
-        if top > np.finfo(np.float32).max:
-            raise InputError(source, f"image values up to {top:.3g} do not fit in float32 (the toolkit's precision)",
-                             "scale the image (and its probe) down")
+        if top > MAX_PIXEL:
+            raise InputError(source, f"image values up to {top:.3g} are too large for float32 and the solve's sums "
+                             f"(at most {MAX_PIXEL:.3g})", "scale the image (and its probe) down: the table scales "
+                             "with the image over the probe")
     return image.astype(np.float32, copy=False)
 
 

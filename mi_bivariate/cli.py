@@ -294,7 +294,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="renders that are scored: deterministic quadrature (default) or Mitsuba path tracing")
     p.add_argument("--novel-resolution", type=int, default=None,
                    help="width = height of the renders under the novel probes (default 64)")
-    p.add_argument("--prior", default=None, metavar="FILE", help="prior file for the recovery (default: packaged)")
+    p.add_argument("--prior", default=None, metavar="FILE",
+                   help="prior file for the recovery (default: for a shared MERL-NBRDF material, priors learnt "
+                        "leave-one-out from the other 72; for any other, the packaged ones)")
     p.add_argument("--pdf", action="store_true", help="figures also as PDF")
     p.add_argument("--no-figures", action="store_true", help="skip the figures (tables and results only)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")

@@ -11,19 +11,25 @@ noise). The images that are *scored* under the novel probe (the truth, the
 recovery and the exact reduction's table) come from the converged reference
 renderer (:mod:`mi_bivariate.reference`, at most 128 px, its default
 directions scaled by ``min(1, spp / 256)``). Headline numbers: the relight
-error and its floor (the exact reduction's table rendered the same way), Eq. 1
-over the observed cells, and the exact and grid floors
+error and its floor (the exact reduction's table rendered the same way), the
+scoring renders' own noise (the truth's render against a second seed, over
+sqrt 2), Eq. 1 over the observed cells, and the exact and grid floors
 (:func:`mi_bivariate.bivariate.floors`).
+
+A shared MERL-NBRDF material is recovered with priors learnt from the other 72
+(:func:`mi_bivariate.training_set.leave_one_out_priors`): the packaged ones saw
+it. Any other material gets the packaged priors. The summary says which.
 """
 
 from __future__ import annotations
 
 import json
+import math
 import time
 from pathlib import Path
 from typing import Optional, Tuple
 
-from mi_bivariate import adequacy, metrics, nbrdf, reference, render, report
+from mi_bivariate import adequacy, metrics, nbrdf, reference, render, report, training_set
 from mi_bivariate.atomic import atomic_paths
 from mi_bivariate.bivariate import BivariateBRDF, floors
 from mi_bivariate.errors import InputError
@@ -39,8 +45,8 @@ DEFAULT_INPUT_PROBE, DEFAULT_NOVEL_PROBE = "grace_latlong_1k", "pisa_256"
 
 
 def _materials_and_probes(material: Optional[str], input_probe: str, novel_probe: str,
-                          data_dir: Optional[str]) -> Tuple[str, MERLBRDF, Probe, Probe]:
-    """``(label, 3D truth, input probe, novel probe)``: shared data if present, else analytic + synthetic."""
+                          data_dir: Optional[str]) -> Tuple[str, str, MERLBRDF, Probe, Probe]:
+    """``(label, spec, 3D truth, input probe, novel probe)``: shared data if present, else analytic + synthetic."""
     if material is not None and Path(material).suffix.lower() == ".npz":
         raise InputError(material, "is a bivariate table: the demo measures a 3D BRDF and scores against it",
                          "give a MERL .binary file, a MERL-NBRDF name or an analytic spec")
@@ -50,7 +56,7 @@ def _materials_and_probes(material: Optional[str], input_probe: str, novel_probe
         probes = [load_probe(input_probe, data_dir), load_probe(novel_probe, data_dir)]
         for name, probe in zip((input_probe, novel_probe), probes):
             check_lit(probe, name)
-        return (label, load_brdf(spec, data_dir), *probes)
+        return (label, spec, load_brdf(spec, data_dir), *probes)
     if data_dir is not None or (material is not None and material in nbrdf.ALL_NBRDF_MATERIALS):
         nbrdf.data_dir(data_dir)  # raises the helpful "set MI_BIVARIATE_DATA" error
     spec = material or DEFAULT_ANALYTIC
@@ -68,7 +74,7 @@ def _materials_and_probes(material: Optional[str], input_probe: str, novel_probe
     print("shared data not found (set MI_BIVARIATE_DATA): "
           + ("using an analytic material" if material is None else f"material {spec}")
           + (f"; synthetic probes for the shared defaults ({', '.join(replaced)})" if replaced else ""))
-    return spec, load_brdf(spec, data_dir), probes[0], probes[1]
+    return spec, spec, load_brdf(spec, data_dir), probes[0], probes[1]
 
 
 #: The files :func:`run_demo` writes into its folder (all or none).
@@ -82,14 +88,18 @@ def run_demo(out_dir: Path = Path("out/demo"), material: Optional[str] = None,
     """Run the demo and write its outputs to ``out_dir``; returns a process exit code."""
     out_dir = Path(out_dir)
     t_start = time.perf_counter()
-    label, truth, probe_in, probe_novel = _materials_and_probes(material, input_probe, novel_probe, data_dir)
+    label, spec, truth, probe_in, probe_novel = _materials_and_probes(material, input_probe, novel_probe, data_dir)
 
     print(f"[1/4] rendering the input: {label} under {probe_in.source} ({resolution}^2, {spp} spp)")
     truth_bsdf = render.bsdf_dict(truth)
     shot = render.render_sphere(truth_bsdf, probe_in, resolution=resolution, spp=spp, seed=seed)
 
-    print("[2/4] recovering the bivariate BRDF from that one image")
-    rec = recover(shot.image, probe_in, shot.geometry, seed=seed)
+    priors, prior_note = {}, "packaged (learnt from the 73 shared MERL-NBRDF materials)"
+    if spec in nbrdf.ALL_NBRDF_MATERIALS:  # the packaged priors saw it: leave it out
+        priors = dict(zip(("prior", "basis_prior"), training_set.leave_one_out_priors(spec, data_dir=data_dir)))
+        prior_note = f"leave-one-out (learnt from the other {len(nbrdf.ALL_NBRDF_MATERIALS) - 1} shared materials)"
+    print(f"[2/4] recovering the bivariate BRDF from that one image; priors {prior_note}")
+    rec = recover(shot.image, probe_in, shot.geometry, seed=seed, **priors)
     print("      " + rec.summary().replace("\n", "\n      "))
 
     print(f"[3/4] re-rendering recovery, exact reduction and ground truth under the novel probe "
@@ -97,9 +107,11 @@ def run_demo(out_dir: Path = Path("out/demo"), material: Optional[str] = None,
     floor = BivariateBRDF.reduce(truth, n_t=rec.brdf.n_t, n_s=rec.brdf.n_s)
     ref_res = min(int(resolution), 128)
     directions = reference.scaled_directions(min(1.0, spp / 256.0))
-    novel_truth, novel_rec, novel_floor = (
-        reference.render_reference(b, probe_novel, resolution=ref_res, seed=seed + 1, directions=directions)
-        for b in (truth, rec.brdf, floor))
+    novel_truth, novel_rec, novel_floor, second_truth = (
+        reference.render_reference(b, probe_novel, resolution=ref_res, seed=s, directions=directions)
+        for b, s in ((truth, seed + 1), (rec.brdf, seed + 1), (floor, seed + 1), (truth, seed + 2)))
+    # the scoring renders' own noise: the truth's render against another seed's, over sqrt 2
+    noise = metrics.image_relative_rmse(second_truth.image, novel_truth.image, novel_truth.mask) / math.sqrt(2.0)
 
     print("[4/4] errors and figure")
     n_t, n_s = rec.brdf.n_t, rec.brdf.n_s
@@ -109,6 +121,7 @@ def run_demo(out_dir: Path = Path("out/demo"), material: Optional[str] = None,
     floor_values = floors(truth, n_t, n_s)
     numbers = {
         "material": label,
+        "priors": prior_note,
         "input_probe": probe_in.source,
         "novel_probe": probe_novel.source,
         "relight_error": relight["rel_rmse"],
@@ -119,10 +132,9 @@ def run_demo(out_dir: Path = Path("out/demo"), material: Optional[str] = None,
         "exact_floor": floor_values["exact_floor"],
         "grid_floor": floor_values["grid_floor"],
         "brdf_error_recovered_eq1": errors["eq1"],
-        "brdf_error_bivariate_floor_eq1": floor_values["grid_floor"],
         "image_relative_rmse_novel": relight["rel_rmse"],
         "image_psnr_novel_db": relight["psnr"],
-        "reference": {"resolution": ref_res, "directions": list(directions)},
+        "reference": {"resolution": ref_res, "directions": list(directions), "noise": noise},
         "relative_residual_input": rec.relative_residual(),
         "prior_winner_rgb": list(rec.solution.winner),
         "timings_s": {k: round(v, 3) for k, v in rec.timings.items()},
@@ -142,9 +154,11 @@ def run_demo(out_dir: Path = Path("out/demo"), material: Optional[str] = None,
 
     print()
     print(f"  material                                {label}")
+    print(f"  priors                                  {prior_note}")
     print(f"  relight error (novel probe, rel. RMSE)  {numbers['relight_error']:.4f}")
     print(f"  relight floor (exact reduction's table) {numbers['relight_floor']:.4f}"
           f"   ratio {numbers['relight_ratio']:.2f}")
+    print(f"  reference noise (truth, two seeds)      {noise:.4f}")
     print(f"  BRDF error, Eq. 1 on observed cells     {numbers['brdf_error_recovered_eq1_observed']:.4f}"
           f"   ({numbers['observed_cell_fraction']:.0%} of the cells)")
     print(f"  exact floor (Eq. 1, phi_d average)      {numbers['exact_floor']:.4f}")

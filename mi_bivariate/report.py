@@ -276,17 +276,19 @@ def write_demo_figure(path: PathLike, shot: Any, novel_rec: Any, novel_truth: An
     show_image(axes[0, 1], novel_rec.image, f"recovered, novel probe {probe_novel}", exposure)
     show_image(axes[0, 2], novel_truth.image, "ground truth (3D table)", exposure)
     show_difference(axes[0, 3], novel_rec.image, novel_truth.image, novel_truth.mask,
-                f"|difference| x100 / mean (rel. RMSE {numbers['image_relative_rmse_novel']:.3f})")
+                    f"|difference| x100 / mean (rel. RMSE {numbers['image_relative_rmse_novel']:.3f};\n"
+                    f"relight floor {numbers['relight_floor']:.3f}, reference noise "
+                    f"{numbers['reference']['noise']:.4f})")
     lo = float(np.log10(max(np.percentile(floor.table, 1), 1e-4)))
     hi = float(np.log10(max(floor.table.max(), 1e-3)))
-    plot_table(axes[1, 0], rec.brdf, f"recovered (Eq. 1 error {numbers['brdf_error_recovered_eq1']:.3f})",
-               vmin=lo, vmax=hi)
-    plot_table(axes[1, 1], floor, f"bivariate truth (floor {numbers['brdf_error_bivariate_floor_eq1']:.3f})",
-               vmin=lo, vmax=hi)
+    plot_table(axes[1, 0], rec.brdf, f"recovered (Eq. 1 {numbers['brdf_error_recovered_eq1']:.3f}; exact floor "
+               f"{numbers['exact_floor']:.3f})", vmin=lo, vmax=hi)
+    plot_table(axes[1, 1], floor, f"bivariate truth, {floor.n_t} x {floor.n_s} "
+               f"(grid floor {numbers['grid_floor']:.3f})", vmin=lo, vmax=hi)
     plot_incident_plane(axes[1, 2], {"3D truth": truth, "bivariate truth": floor, "recovered": rec.brdf},
                         theta_view_deg=30.0)
     plot_incident_plane(axes[1, 3], {"3D truth": truth, "bivariate truth": floor, "recovered": rec.brdf},
                         theta_view_deg=60.0)
-    fig.suptitle(f"{numbers['material']}: recovered from one image", fontsize=11)
+    fig.suptitle(f"{numbers['material']}: recovered from one image; priors {numbers['priors']}", fontsize=11)
     fig.tight_layout()
     return save_figure(fig, path)

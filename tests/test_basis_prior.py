@@ -91,3 +91,38 @@ def test_resampled_to_a_finer_grid_interpolates_and_still_predicts():
     assert prior.resampled(N_T, N_S) is prior
     with pytest.raises(InputError, match="grid"):
         prior.resampled(1, 8)
+
+
+def test_leave_one_out_priors_are_cached_per_material_and_learnt_again_when_damaged(tmp_path, monkeypatch):
+    """``training_set.leave_one_out_priors`` keeps each material's pair on disk (the basis prior takes
+    seconds to learn): a second call reads it back unchanged, another material or grid learns its own,
+    and a damaged entry is learnt again."""
+    from mi_bivariate import nbrdf, training_set
+
+    names = list(nbrdf.ALL_NBRDF_MATERIALS[:8])
+    rng = np.random.default_rng(0)
+    t = np.linspace(0, 1, 8)[:, None, None]
+    tables = {n: (0.1 + (1000.0 * np.exp(-(t / 0.1) ** 2) if k % 2 else 0.0))
+              * np.exp(rng.normal(0.0, 0.1, (8, 8, 3))) for k, n in enumerate(names)}  # diffuse and glossy
+    monkeypatch.setenv("MI_BIVARIATE_CACHE", str(tmp_path))
+    monkeypatch.setattr(training_set, "nbrdf_data_dir", lambda data_dir=None: tmp_path)
+    monkeypatch.setattr(training_set, "_data_digest", lambda root: "data")
+    monkeypatch.setattr(training_set, "reduced_tables", lambda n_t, n_s, data_dir=None: tables)
+    learnt = []
+    real_learn = training_set.learn_priors
+    monkeypatch.setattr(training_set, "learn_priors", lambda *a, **k: learnt.append(k["exclude"]) or real_learn(*a, **k))
+
+    first = training_set.leave_one_out_priors(names[0], 8, 8)
+    again = training_set.leave_one_out_priors(names[0], 8, 8)
+    assert learnt == [(names[0],)]
+    assert again[1].materials == first[1].materials and names[0] not in again[1].materials
+    for a, b in zip(first[0].pairs.values(), again[0].pairs.values()):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(first[1].basis, again[1].basis)
+    training_set.leave_one_out_priors(names[1], 8, 8)
+    assert learnt == [(names[0],), (names[1],)]
+    for path in tmp_path.glob(f"loo_priors_*_{names[0]}_basis.npz"):
+        path.write_bytes(b"damaged")
+    repaired = training_set.leave_one_out_priors(names[0], 8, 8)
+    assert learnt[-1] == (names[0],) and len(learnt) == 3
+    np.testing.assert_array_equal(repaired[1].basis, first[1].basis)

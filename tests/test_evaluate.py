@@ -16,6 +16,7 @@ from helpers import independent_relight_floor
 
 from mi_bivariate import analytic, baselines, bivariate
 from mi_bivariate import evaluate as ev
+from mi_bivariate import figures as figures_mod
 from mi_bivariate import metrics
 from mi_bivariate.bivariate import BivariateBRDF
 from mi_bivariate.cli import main
@@ -101,7 +102,20 @@ def test_quick_end_to_end(tmp_path, capsys):
     figures = sorted(p.name for p in (out / "figures").glob("*.png"))
     assert {"fig3_reduction.png", "fig5_validation.png", "fig6_errors.png", "fig6_incident.png",
             "fig7_environment.png", "tables.png", "baselines.png"} <= set(figures)
-    assert "materials" in capsys.readouterr().out
+    summary = capsys.readouterr().out
+    assert "materials" in summary
+    # The summary says where the priors came from (--quick: packaged, which saw shared materials).
+    sources = {e["prior"].split(":")[0].split(" (")[0] for r in records for e in r["inputs"].values()}
+    assert "  priors: " in summary and all(f"{k} (" in summary for k in sources), summary
+    # The Fig. 3 analogue draws the exact floor (the paper's curve), the grid floor beside it.
+    fig = figures_mod.plot_reduction_ranking(records, {r["material"]: ev.load_artifacts(ev.artifact_path(out, r))
+                                                       for r in records}, next(iter(records[0]["floor_images"])))
+    curves = {line.get_label(): line.get_ydata() for line in fig.axes[0].get_lines()}
+    order = sorted(records, key=lambda r: r["floors"]["exact_floor"])
+    np.testing.assert_allclose(curves["exact floor (phi_d average): Eq. 1"],
+                               [r["floors"]["exact_floor"] for r in order])
+    np.testing.assert_allclose(curves["grid floor (12 x 12 table): Eq. 1 relative RMS"],
+                               [r["floor"]["eq1"] for r in order])
     # The results page's tables come from one command over this folder.
     script = Path(__file__).resolve().parents[1] / "scripts" / "results_tables.py"
     page = subprocess.run([sys.executable, str(script), str(out)], capture_output=True, text=True, check=True).stdout

@@ -6,6 +6,7 @@ MERL grid, Mitsuba renders of the full 3D tables, and the bivariate reduction.
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -233,7 +234,16 @@ def test_demo_runs_small(tmp_path, capsys):
     assert code == 0
     for name in ("demo.png", "recovered.npz", "metrics.json", "novel_truth.exr", "novel_recovered.exr"):
         assert (tmp_path / name).is_file(), name
-    assert "BRDF error" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "BRDF error" in out
+    # A shared material is scored by priors that never saw it (the packaged ones did); the scoring
+    # renders' own noise is measured and stated.
+    numbers = json.loads((tmp_path / "metrics.json").read_text())
+    shared = "MERL-NBRDF" in numbers["material"]
+    assert numbers["priors"].startswith("leave-one-out" if shared else "packaged"), numbers["priors"]
+    assert f"priors                                  {numbers['priors']}" in out
+    assert 0.0 < numbers["reference"]["noise"] < 0.2 * numbers["relight_floor"], numbers
+    assert "brdf_error_bivariate_floor_eq1" not in numbers and numbers["grid_floor"] >= numbers["exact_floor"]
 
 
 def test_demo_without_shared_data_uses_the_probes_it_is_given(tmp_path, monkeypatch, capsys):

@@ -12,6 +12,7 @@ truth) go to ``materials/<config hash>/<slug>.npz`` so that
 
 from __future__ import annotations
 
+import collections
 import csv
 import io
 import json
@@ -262,6 +263,10 @@ def format_summary(records: Sequence[dict]) -> str:
     if not rows:
         return "no results"
     lines = [f"{len(records)} materials"]
+    sources = collections.Counter(str(entry.get("prior", "?")).split(":")[0].split(" (")[0]
+                                  for r in records for entry in r.get("inputs", {}).values())
+    if sources:  # packaged priors saw the shared materials: a score needs leave-one-out ones
+        lines.append("  priors: " + ", ".join(f"{k} ({v} recoveries)" for k, v in sorted(sources.items())))
     for probe in dict.fromkeys(r["input_probe"] for r in rows):
         sel = [r for r in rows if r["input_probe"] == probe]
         parts = []
