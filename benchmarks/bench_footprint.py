@@ -16,8 +16,9 @@ cells with f > 1e-3, each over the exact floor there (the phi_d average's Eq. 1,
 paper Fig. 3; the 32 x 32 table's own, the grid floor, is printed beside it),
 and the relight error under novel probes over the relight floor (the 32 x 32
 reduction's). Before 2026-12-06 the Eq. 1 ratios were over the grid floor,
-labelled "exact floor" (an audit found it; ``docs/recovery.md`` section 8 says so). Priors are leave-one-out: each material
-is recovered with priors learnt from the other 72 shared materials.
+labelled "exact floor" (an audit found it; ``docs/recovery.md`` section 8 says so).
+Priors are leave-one-out: each material is recovered with priors learnt from the other
+72 shared materials.
 
     python benchmarks/bench_footprint.py [MATERIAL ...] [--resolution 128] [--subpixels 4]
 

@@ -123,6 +123,18 @@ def same_file(a: PathLike, b: PathLike) -> bool:
     return Path(a).resolve() == Path(b).resolve()
 
 
+def _file_key(path: Path) -> tuple:
+    """What :func:`same_file` compares, as a key: the device and inode of an existing file, else the
+    resolved path (two paths have the same key exactly when ``same_file`` says they are one file)."""
+    try:
+        if os.path.exists(path):
+            st = os.stat(path)
+            return ("inode", st.st_dev, st.st_ino)
+    except OSError:
+        pass
+    return ("path", str(Path(path).resolve()))
+
+
 def check_outputs(outputs: Iterable[PathLike], inputs: Iterable[Optional[PathLike]] = (),
                   flag: str = "--out") -> None:
     """Refuse outputs that would clobber an input or cannot be written, before any work is done.
@@ -139,18 +151,23 @@ def check_outputs(outputs: Iterable[PathLike], inputs: Iterable[Optional[PathLik
     """
     outputs = [Path(o) for o in outputs]
     inputs = [Path(i) for i in inputs if i is not None and str(i)]
-    for k, out in enumerate(outputs):
+    seen = set()        # the outputs' identities so far (one pass, not a pair per two outputs)
+    probed = set()      # folders where a file was made
+    for out in outputs:
         for inp in inputs:
             if same_file(out, inp):
                 raise InputError(out, f"output would overwrite the input {inp}", f"choose another {flag}")
-        for other in outputs[:k]:
-            if same_file(out, other):
-                raise InputError(out, "is written twice by this command", f"choose another {flag}")
+        key = _file_key(out)
+        if key in seen:
+            raise InputError(out, "is written twice by this command", f"choose another {flag}")
+        seen.add(key)
         if out.is_dir():
             raise InputError(out, "output is a directory", "give a file name")
         parent = out.parent
         while not parent.exists() and parent != parent.parent:
             parent = parent.parent
+        if parent in probed:
+            continue
         if not parent.is_dir():
             raise InputError(out, f"cannot be written: {parent} is not a folder")
         if not os.access(parent, os.W_OK | os.X_OK):
@@ -162,3 +179,4 @@ def check_outputs(outputs: Iterable[PathLike], inputs: Iterable[Optional[PathLik
         except OSError as error:
             raise InputError(out, f"cannot be written: a file cannot be made in {parent} "
                              f"({error.strerror or error})", f"choose another {flag}") from None
+        probed.add(parent)

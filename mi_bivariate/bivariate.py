@@ -64,6 +64,14 @@ def validate_table(table: Any, source: str) -> np.ndarray:
     return np.array(table, dtype=np.float32, order="C", copy=True)
 
 
+def _checked_confidence(value: Any, name: str, shape: tuple, source: str) -> np.ndarray:
+    """A confidence map as a float32 copy, refused unless finite and shaped as the table."""
+    value = np.array(value, np.float32, copy=True)
+    if value.shape != shape or not np.all(np.isfinite(value)):
+        raise InputError(source, f"confidence map {name!r} must be finite and shaped {shape}")
+    return value
+
+
 class BivariateBRDF:
     """A bivariate BRDF table on the st grid.
 
@@ -88,10 +96,7 @@ class BivariateBRDF:
         self.provenance = dict(provenance or {})
         self.confidence = {}
         for name, value in (confidence or {}).items():
-            value = np.array(value, np.float32, copy=True)
-            if value.shape != self.table.shape or not np.all(np.isfinite(value)):
-                raise InputError(source, f"confidence map {name!r} must be finite and shaped {self.table.shape}")
-            self.confidence[str(name)] = value
+            self.confidence[str(name)] = _checked_confidence(value, name, self.table.shape, source)
 
     def __repr__(self) -> str:
         return f"BivariateBRDF(n_t={self.n_t}, n_s={self.n_s}, provenance={self.provenance!r})"
@@ -229,10 +234,13 @@ class BivariateBRDF:
         """Write ``.npz`` (atomic) with keys ``table``, ``s_nodes``, ``t_nodes``, ``meta`` (JSON string).
 
         Raises:
-            InputError: naming ``path``, if the table was made invalid since it was checked (NaN or
-                negative values written into ``table``): nothing is written that :meth:`load` refuses.
+            InputError: naming ``path``, if the table or a confidence map was made invalid since it
+                was checked (NaN or negative values written into it, another shape assigned):
+                nothing is written that :meth:`load` refuses.
         """
-        validate_table(self.table, os.fspath(path))
+        table = validate_table(self.table, os.fspath(path))
+        for name, value in self.confidence.items():
+            _checked_confidence(value, name, table.shape, os.fspath(path))
         meta = json.dumps(self.metadata(), default=str)
         with atomic_path(path) as tmp:
             with open(tmp, "wb") as f:

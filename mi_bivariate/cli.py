@@ -296,7 +296,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="width = height of the renders under the novel probes (default 64)")
     p.add_argument("--prior", default=None, metavar="FILE",
                    help="prior file for the recovery (default: for a shared MERL-NBRDF material, priors learnt "
-                        "leave-one-out from the other 72; for any other, the packaged ones)")
+                        "leave-one-out from the other 72, except with --quick; for any other, the packaged ones)")
     p.add_argument("--pdf", action="store_true", help="figures also as PDF")
     p.add_argument("--no-figures", action="store_true", help="skip the figures (tables and results only)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")

@@ -95,8 +95,9 @@ def run_demo(out_dir: Path = Path("out/demo"), material: Optional[str] = None,
     shot = render.render_sphere(truth_bsdf, probe_in, resolution=resolution, spp=spp, seed=seed)
 
     priors, prior_note = {}, "packaged (learnt from the 73 shared MERL-NBRDF materials)"
-    if spec in nbrdf.ALL_NBRDF_MATERIALS:  # the packaged priors saw it: leave it out
-        priors = dict(zip(("prior", "basis_prior"), training_set.leave_one_out_priors(spec, data_dir=data_dir)))
+    shared = next((n for n in (spec, Path(spec).stem) if n in nbrdf.ALL_NBRDF_MATERIALS), None)
+    if shared is not None:  # the packaged priors saw it (also as a MERL file named after it): leave it out
+        priors = dict(zip(("prior", "basis_prior"), training_set.leave_one_out_priors(shared, data_dir=data_dir)))
         prior_note = f"leave-one-out (learnt from the other {len(nbrdf.ALL_NBRDF_MATERIALS) - 1} shared materials)"
     print(f"[2/4] recovering the bivariate BRDF from that one image; priors {prior_note}")
     rec = recover(shot.image, probe_in, shot.geometry, seed=seed, **priors)

@@ -89,10 +89,10 @@ _METRIC_LABELS = {"eq1": "Eq. 1 relative RMS", "eq1_min": "Eq. 1, cells f > 1e-3
 
 
 def _grid_name(records: Sequence[dict]) -> str:
-    """``"n_t x n_s"`` of the records' reduced tables (``record["floors"]["grid"]``), else ``"grid"``."""
+    """``"n_t x n_s"`` of the records' reduced tables (``record["floors"]["grid"]``), else ``"reduced"``."""
     grids = {tuple(r.get("floors", {}).get("grid", ())) for r in records}
     grid = grids.pop() if len(grids) == 1 else ()
-    return f"{grid[0]} x {grid[1]}" if len(grid) == 2 else "grid"
+    return f"{grid[0]} x {grid[1]}" if len(grid) == 2 else "reduced"
 
 
 def plot_reduction_ranking(records: Sequence[dict], artifacts: Dict[str, Dict[str, np.ndarray]],

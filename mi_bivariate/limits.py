@@ -12,6 +12,8 @@ import math
 import numbers
 from typing import Any, Optional, Sequence, Tuple
 
+import numpy as np
+
 from mi_bivariate.errors import InputError
 
 #: Nodes per st axis, and nodes of the whole grid (the solve's normal equations are N x N).
@@ -48,10 +50,17 @@ def check_max(name: str, value: Optional[int], limit: int, hint: str = "") -> No
 
 
 def check_seed(seed: Any, name: str = "seed") -> int:
-    """The seed as an ``int`` in ``[0, MAX_SEED]`` (the samplers' unsigned 32 bits)."""
-    if seed is None or isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or not 0 <= seed <= MAX_SEED:
-        raise InputError(name, f"must be an integer from 0 to {MAX_SEED}, got {seed}")
-    return int(seed)
+    """The seed as an ``int`` in ``[0, MAX_SEED]`` (the samplers' unsigned 32 bits): a whole number
+    (:func:`whole_number`: ``3``, ``np.uint32(3)``, ``3.0`` or a 0-d array of one)."""
+    if isinstance(seed, np.ndarray) and seed.ndim == 0:
+        seed = seed.item()
+    try:
+        value = whole_number(name, seed)
+    except InputError:
+        value = None
+    if value is None or not 0 <= value <= MAX_SEED:
+        raise InputError(name, f"must be an integer from 0 to {MAX_SEED}, got {seed!r}")
+    return value
 
 
 def check_grid(grid: Any, name: str = "grid", axis_names: Optional[Tuple[str, str]] = None,

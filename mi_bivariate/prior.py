@@ -80,7 +80,7 @@ FORMAT_VERSION = 1
 #: 17.7 (yellow-matte-plastic), 23.6 (silver-metallic-paint2), then 71 (white-acrylic) ...
 #: 7.8e5 (tungsten-carbide): 30 sits in the widest gap, giving 10 diffuse and 13 glossy. Chosen on
 #: those development materials; on the 50 training materials alone it falls in their widest gap
-#: below 100, 14.0 (special-walnut-224) to 37.1 (green-metallic-paint): the same split either way.
+#: below 100 on a log scale, 14.0 (special-walnut-224) to 37.1 (green-metallic-paint): the same split.
 DEFAULT_GLOSS_THRESHOLD = 30.0
 #: Sigmas are floored at this fraction of their map's median.
 DEFAULT_FLOOR = 1e-2

@@ -18,10 +18,11 @@ import hashlib
 import os
 import sys
 from pathlib import Path
-from typing import Dict, Iterable, Optional, Sequence, Tuple, Union
+from typing import Any, Dict, Iterable, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
+from . import coordinates
 from .atomic import atomic_path
 from .basis_prior import BasisPrior
 from .bivariate import BivariateBRDF
@@ -55,7 +56,8 @@ def reduced_tables(n_t: int = 32, n_s: int = 32, names: Sequence[str] = ALL_NBRD
                    progress: bool = False) -> Dict[str, np.ndarray]:
     """Exact Eq. 1 reductions of shared MERL-NBRDF materials, ``{name: (n_t, n_s, 3) float64}`` (1/sr)."""
     root = nbrdf_data_dir(data_dir)
-    path = cache_dir() / f"nbrdf_reductions_{_data_digest(root)}_{int(n_t)}x{int(n_s)}.npz"
+    code = _code_digest(BivariateBRDF, MERLBRDF, nbrdf_merl, coordinates)  # the reduction and what it reads
+    path = cache_dir() / f"nbrdf_reductions_{_data_digest(root)}_{code}_{int(n_t)}x{int(n_s)}.npz"
     stored: Dict[str, np.ndarray] = {}
     if cache and path.is_file():
         try:
@@ -93,13 +95,23 @@ def learn_priors(tables: Dict[str, np.ndarray], exclude: Sequence[str] = (),
     return Prior.learn(kept), BasisPrior.learn(kept, provenance=prov)
 
 
-def _code_digest() -> str:
-    """A digest of the code that learns the priors (a cached prior is stale when it changes)."""
+def _code_digest(*objects: Any) -> str:
+    """A digest of the source files of ``objects`` (modules, or what they define): a cache entry is
+    stale when they change."""
     h = hashlib.sha256()
-    for module in (Prior, BasisPrior):
-        h.update(Path(sys.modules[module.__module__].__file__).read_bytes())
-    h.update(Path(__file__).read_bytes())
+    for item in objects:
+        path = getattr(item, "__file__", None) or sys.modules[item.__module__].__file__
+        h.update(Path(path).read_bytes())
     return h.hexdigest()[:12]
+
+
+def _tables_digest(tables: Dict[str, np.ndarray]) -> str:
+    """A digest of training tables (names and values): what the priors are learnt from."""
+    h = hashlib.sha256()
+    for name in sorted(tables):
+        h.update(name.encode())
+        h.update(np.ascontiguousarray(tables[name], np.float64).tobytes())
+    return h.hexdigest()[:16]
 
 
 def leave_one_out_priors(material: str, n_t: int = 32, n_s: int = 32,
@@ -107,20 +119,21 @@ def leave_one_out_priors(material: str, n_t: int = 32, n_s: int = 32,
     """Priors learnt from every shared MERL-NBRDF material except ``material``.
 
     For a material outside the shared set this is simply all 73. With ``cache`` the pair is kept
-    in :func:`cache_dir`, keyed by the shared data, the learning code, the grid and the material
-    (learning the basis prior takes ~5-10 s on two cores: its leave-one-material-out residuals).
+    in :func:`cache_dir`, keyed by the training tables themselves (their names and values: the
+    shared data and the reduction's code) and the code that learns the priors (learning the basis
+    prior takes ~5-10 s on two cores: its leave-one-material-out residuals).
     """
-    root = nbrdf_data_dir(data_dir)
-    left_out = material if material in ALL_NBRDF_MATERIALS else "none"
-    stem = cache_dir() / f"loo_priors_{_data_digest(root)}_{_code_digest()}_{int(n_t)}x{int(n_s)}_{left_out}"
+    tables = reduced_tables(n_t, n_s, data_dir=data_dir)
+    kept = {k: v for k, v in tables.items() if k != material}
+    excluded = (material,) if material in tables else ()
+    stem = cache_dir() / f"loo_priors_{_tables_digest(kept)}_{_code_digest(Prior, BasisPrior, learn_priors)}"
     paths = (stem.with_name(stem.name + "_smooth.npz"), stem.with_name(stem.name + "_basis.npz"))
     if cache and all(p.is_file() for p in paths):
         try:
             return Prior.load(paths[0]), BasisPrior.load(paths[1])
         except InputError:
             pass  # a damaged cache entry is learnt again
-    tables = reduced_tables(n_t, n_s, data_dir=data_dir)
-    priors = learn_priors(tables, exclude=(material,), provenance={"training": "shared MERL-NBRDF, leave-one-out"})
+    priors = learn_priors(tables, exclude=excluded, provenance={"training": "shared MERL-NBRDF, leave-one-out"})
     if cache:
         try:
             paths[0].parent.mkdir(parents=True, exist_ok=True)

@@ -55,6 +55,15 @@ def test_a_table_is_a_checked_copy_and_save_writes_no_file_load_refuses(tmp_path
     with pytest.raises(InputError, match="negative values") as info:
         brdf.save(tmp_path / "u.npz")
     assert info.value.source == str(tmp_path / "u.npz") and not (tmp_path / "u.npz").exists()
+    brdf.table[0, 0, 0] = 1.0
+    brdf.confidence["measured"][0, 0, 0] = np.nan
+    with pytest.raises(InputError, match="confidence map 'measured' must be finite"):
+        brdf.save(tmp_path / "u.npz")
+    brdf.confidence["measured"][0, 0, 0] = 0.0
+    brdf.table = np.ones((4, 4, 3), np.float32)  # another grid than the confidence maps'
+    with pytest.raises(InputError, match=r"confidence map 'measured' must be finite and shaped \(4, 4, 3\)"):
+        brdf.save(tmp_path / "u.npz")
+    assert not (tmp_path / "u.npz").exists()
 
 
 def test_table_lookup_of_nan_angles_is_nan():
@@ -207,12 +216,26 @@ def test_a_smoothness_prior_is_still_accepted(probe):
     (lambda p: render.render_like({"type": "diffuse"}, p, SPHERE, 48, 48, spp=0), "spp", "must be at least 1"),
     (lambda p: render.render_like({"type": "diffuse"}, p, SPHERE, 0, 48, spp=4), "width",
      "must be at least 2 pixels"),
+    (lambda p: render.render_sphere({"type": "diffuse"}, p, resolution=16, spp=1, seed=np.array([3])), "seed",
+     "must be an integer from 0"),
 ], ids=["probe as BRDF", "name as probe", "huge resolution", "one-pixel height", "huge spp", "negative seed",
-        "40-bit seed", "render_like spp 0", "render_like width 0"])
+        "40-bit seed", "render_like spp 0", "render_like width 0", "seed array"])
 def test_renders_refuse_bad_arguments(probe, call, name, problem):
     with pytest.raises(InputError) as info:
         call(probe)
     assert info.value.source == name and problem in info.value.problem, str(info.value)
+
+
+def test_renders_take_whole_numbers_in_any_numeric_type(probe):
+    """Sizes and seeds that are whole numbers in another type (16.0, numpy integers, a 0-d array) render as
+    their ints did before the checks, bit for bit."""
+    diffuse = {"type": "diffuse"}
+    want = render.render_sphere(diffuse, probe, resolution=16, spp=2, seed=3)
+    for resolution, seed in ((16.0, 3.0), (np.int64(16), np.uint32(3)), ((16, np.float64(16.0)), np.array(3))):
+        got = render.render_sphere(diffuse, probe, resolution=resolution, spp=2, seed=seed)
+        np.testing.assert_array_equal(got.image, want.image)
+    like = render.render_like(diffuse, probe, SPHERE, 48.0, np.int32(48), spp=2, seed=np.int16(1))
+    assert like.image.shape == (48, 48, 3) and like.seed == 1
 
 
 # ------------------------------------------------------------------ metrics

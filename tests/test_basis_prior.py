@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from mi_bivariate import nbrdf, training_set
 from mi_bivariate.basis_prior import BasisPrior
 from mi_bivariate.errors import InputError
 
@@ -93,36 +94,44 @@ def test_resampled_to_a_finer_grid_interpolates_and_still_predicts():
         prior.resampled(1, 8)
 
 
-def test_leave_one_out_priors_are_cached_per_material_and_learnt_again_when_damaged(tmp_path, monkeypatch):
-    """``training_set.leave_one_out_priors`` keeps each material's pair on disk (the basis prior takes
-    seconds to learn): a second call reads it back unchanged, another material or grid learns its own,
-    and a damaged entry is learnt again."""
-    from mi_bivariate import nbrdf, training_set
-
+def test_leave_one_out_priors_are_cached_per_training_set_and_learnt_again_when_damaged(tmp_path, monkeypatch):
+    """``training_set.leave_one_out_priors`` keeps each pair on disk, keyed by the training tables it was
+    learnt from (the basis prior takes seconds to learn): a second call reads it back unchanged, another
+    material, grid or set of tables learns its own, and a damaged entry is learnt again."""
     names = list(nbrdf.ALL_NBRDF_MATERIALS[:8])
-    rng = np.random.default_rng(0)
-    t = np.linspace(0, 1, 8)[:, None, None]
-    tables = {n: (0.1 + (1000.0 * np.exp(-(t / 0.1) ** 2) if k % 2 else 0.0))
-              * np.exp(rng.normal(0.0, 0.1, (8, 8, 3))) for k, n in enumerate(names)}  # diffuse and glossy
+
+    def tables_on(n: int, seed: int) -> dict:
+        rng, t = np.random.default_rng(seed), np.linspace(0, 1, n)[:, None, None]
+        return {name: (0.1 + (1000.0 * np.exp(-(t / 0.1) ** 2) if k % 2 else 0.0))
+                * np.exp(rng.normal(0.0, 0.1, (n, n, 3))) for k, name in enumerate(names)}  # diffuse and glossy
+
+    original = tables_on(8, 0)
+    by_grid = {8: original, 6: tables_on(6, 1)}
     monkeypatch.setenv("MI_BIVARIATE_CACHE", str(tmp_path))
-    monkeypatch.setattr(training_set, "nbrdf_data_dir", lambda data_dir=None: tmp_path)
-    monkeypatch.setattr(training_set, "_data_digest", lambda root: "data")
-    monkeypatch.setattr(training_set, "reduced_tables", lambda n_t, n_s, data_dir=None: tables)
+    monkeypatch.setattr(training_set, "reduced_tables", lambda n_t, n_s, data_dir=None: by_grid[n_t])
     learnt = []
     real_learn = training_set.learn_priors
-    monkeypatch.setattr(training_set, "learn_priors", lambda *a, **k: learnt.append(k["exclude"]) or real_learn(*a, **k))
+    monkeypatch.setattr(training_set, "learn_priors",
+                        lambda *a, **k: learnt.append(k["exclude"]) or real_learn(*a, **k))
 
     first = training_set.leave_one_out_priors(names[0], 8, 8)
+    entry = set(tmp_path.iterdir())
     again = training_set.leave_one_out_priors(names[0], 8, 8)
-    assert learnt == [(names[0],)]
+    assert learnt == [(names[0],)] and len(entry) == 2
     assert again[1].materials == first[1].materials and names[0] not in again[1].materials
     for a, b in zip(first[0].pairs.values(), again[0].pairs.values()):
         np.testing.assert_array_equal(a, b)
     np.testing.assert_array_equal(first[1].basis, again[1].basis)
-    training_set.leave_one_out_priors(names[1], 8, 8)
-    assert learnt == [(names[0],), (names[1],)]
-    for path in tmp_path.glob(f"loo_priors_*_{names[0]}_basis.npz"):
+    training_set.leave_one_out_priors(names[1], 8, 8)             # another material
+    training_set.leave_one_out_priors(names[0], 6, 6)             # another grid
+    by_grid[8] = tables_on(8, 2)                                  # other tables: new data or a changed reduction
+    training_set.leave_one_out_priors(names[0], 8, 8)
+    assert learnt == [(names[0],)] * 1 + [(names[1],), (names[0],), (names[0],)]
+    by_grid[8] = original
+    for path in entry:
         path.write_bytes(b"damaged")
     repaired = training_set.leave_one_out_priors(names[0], 8, 8)
-    assert learnt[-1] == (names[0],) and len(learnt) == 3
+    assert len(learnt) == 5 and learnt[-1] == (names[0],)
     np.testing.assert_array_equal(repaired[1].basis, first[1].basis)
+    outside = training_set.leave_one_out_priors("a-material-of-mine", 8, 8)  # all of them, nothing excluded
+    assert learnt[-1] == () and sorted(outside[1].materials) == sorted(names)

@@ -137,8 +137,8 @@ def test_python_dash_m_package_runs_the_command():
 #: The README's "Layout" groups, in the order of the data flow (``plugins`` is the package's
 #: ``mi_bivariate.plugins``, at the bottom: the BSDFs know nothing of the pipeline).
 LAYERS = (
-    "__init__ common errors limits atomic npzio images coordinates merl analytic nbrdf bivariate probes sources plugins "
-    "variants threads",
+    "__init__ common errors limits atomic npzio images coordinates merl analytic nbrdf bivariate probes sources "
+    "plugins variants threads",
     "geometry silhouette spherefit mesh capture noise",
     "lighting adequacy",
     "prior basis_prior training_set solve alignment sphere_refine",
