@@ -98,8 +98,8 @@ def _lattice_lanes(data: Any, m: int, n_points: int):
     (``docs/recovery.md``, Speed, Round 16): the MIS matrix's kernels 1.15-1.3x faster.
 
     Returns:
-        ``(row, x_axis, y_axis, normal, sin_v, cos_v, u1, u2, p3)`` with ``p3`` the row's
-        fourth packet (shift, surface position).
+        ``(row, x_axis, y_axis, normal, sin_v, cos_v, u1, u2, p3, shift_1)`` with ``p3`` the row's
+        fourth packet (shift_2, surface position) and ``shift_1`` the first of the row's shifts.
     """
     idx = dr.arange(mi.UInt32, m * n_points)
     row = idx // n_points
@@ -108,7 +108,7 @@ def _lattice_lanes(data: Any, m: int, n_points: int):
     x_axis, y_axis = mi.Vector3f(p0.x, p0.y, p0.z), mi.Vector3f(p1.x, p1.y, p1.z)
     normal = mi.Vector3f(p2.x, p2.y, p2.z)
     u1, u2 = fibonacci_point(k, n_points, p2.w, p3.x)
-    return row, x_axis, y_axis, normal, p0.w, p1.w, u1, u2, p3
+    return row, x_axis, y_axis, normal, p0.w, p1.w, u1, u2, p3, p2.w
 
 
 def _occluded(data: Any, row: Any, d: Any, active: Any, occluder: Any) -> Any:
@@ -150,7 +150,7 @@ def _lighting_target(packets: np.ndarray, probe: Any, n_t: int, n_s: int, n_dirs
     n_pairs = direction_pairs(n_dirs)
     data = _row_data(packets)
     # Shifted Fibonacci lattice (see light_directions()).
-    row, x_axis, y_axis, normal, sin_v, cos_v, u1, u2, _ = _lattice_lanes(data, m, n_pairs)
+    row, x_axis, y_axis, normal, sin_v, cos_v, u1, u2, _, _ = _lattice_lanes(data, m, n_pairs)
     r = dr.safe_sqrt(1.0 - u1 * u1)
     sin_phi, cos_phi = dr.sincos(math.pi * u2)
     lx, ly, lz = r * cos_phi, r * sin_phi, u1

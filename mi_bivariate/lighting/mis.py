@@ -273,12 +273,11 @@ def _mis_lanes(data: Any, m: int, probe: Any, strategy: str, counts: dict,
     ``pool`` (:func:`environment_pool`), the environment's lanes read the directions, true
     densities and radiances of the row's pooled shift.
     """
-    row, x_axis, y_axis, normal, sin_v, cos_v, u1, u2, _ = _lattice_lanes(data, m, counts[strategy])
+    row, x_axis, y_axis, normal, sin_v, cos_v, u1, u2, _, shift = _lattice_lanes(data, m, counts[strategy])
     own = None  # the environment lanes' true density p_env
     if strategy == "environment" and pool is not None:
         k = dr.arange(mi.UInt32, m * counts[strategy]) - row * counts[strategy]  # lanes: row, then point
-        shift = dr.gather(mi.Float, data, row * (4 * _PACKETS) + 11)  # the row's own random shift_1
-        entry = _pool_slot(shift) * counts[strategy] + k
+        entry = _pool_slot(shift) * counts[strategy] + k  # the row's own random shift_1 picks the slot
         head = dr.gather(mi.Vector4f, pool, 2 * entry)
         tail = dr.gather(mi.Vector4f, pool, 2 * entry + 1)
         d, own, radiance = mi.Vector3f(head.x, head.y, head.z), head.w, mi.Color3f(tail.x, tail.y, tail.z)
