@@ -229,6 +229,7 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
             raise InputError(source, f"expected a mi_bivariate.probes.Probe, got a {type(item).__name__}",
                              "load one with Probe.load(path) or mi_bivariate.sources.load_probe(name)")
         check_lit(item, source)
+    noise_models = _noise_list(noise, images)  # its form checked (and "auto" estimated) before any work
 
     timings: Dict[str, float] = {}
     t0 = time.perf_counter()
@@ -259,7 +260,6 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
     if (prior.n_t, prior.n_s) != (n_t, n_s):
         prior = prior.resampled(n_t, n_s)
     basis = _basis_prior(basis_prior, n_t, n_s)
-    noise_models = _noise_list(noise, images)
     with blas_threads():  # no BLAS oversubscription on a shared machine (mi_bivariate.threads)
         sigma = solve_mod.row_sigma(observations.values, observations.image_index, noise=noise_models)
         _check_noise_against_signal(sigma, observations.values)

@@ -140,9 +140,13 @@ def test_a_grey_two_dimensional_image_is_named_as_one_image(probe):
     assert info.value.source == "image"
 
 
-def test_noise_as_one_number_is_refused_and_as_an_array_pair_accepted(probe):
-    with pytest.raises(InputError, match=r"give the pair \(a, b\)"):
-        recover(IMAGE, probe, SPHERE, **{**SMALL, "noise": 0.01})
+def test_noise_as_one_number_is_refused_and_as_an_array_pair_accepted(probe, monkeypatch):
+    with monkeypatch.context() as patched:  # refused before any work
+        patched.setattr(capture, "image_observations", lambda *a, **k: pytest.fail("work started"))
+        with pytest.raises(InputError, match=r"give the pair \(a, b\)"):
+            recover(IMAGE, probe, SPHERE, **{**SMALL, "noise": 0.01})
+        with pytest.raises(InputError, match="3 noise models given for 1 images"):
+            recover(IMAGE, probe, SPHERE, **{**SMALL, "noise": [None, None, None]})
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", InputWarning)
         pair = recover(IMAGE, probe, SPHERE, **{**SMALL, "noise": np.array([1e-4, 1e-6])})
