@@ -196,8 +196,7 @@ def _check_image(image: np.ndarray, source: str) -> np.ndarray:
                       "an 8- or 16-bit photo is usually gamma-encoded and clipped (give a linear HDR image, "
                       "e.g. an EXR merged from several exposures)", InputWarning, stacklevel=3)
     else:
-        finite = image[np.isfinite(image)]
-        top = float(np.max(np.abs(finite))) if finite.size else 0.0
+        top = float(np.max(np.abs(image), initial=0.0, where=np.isfinite(image)))  # no copy of the image
         if top > MAX_PIXEL:
             raise InputError(source, f"image values up to {top:.3g} are too large for float32 and the solve's sums "
                              f"(at most {MAX_PIXEL:.3g})", "scale the image (and its probe) down: the table scales "

@@ -154,6 +154,15 @@ def check_radiance(data: np.ndarray, source: Any) -> None:
                          + ", ".join(parts) + ")", "repair the image; values are never clamped")
 
 
+def check_probe(value: Any, source: Any = "probe") -> "Probe":
+    """``value`` if it is a :class:`Probe`, else :class:`InputError` naming ``source`` (a front door's
+    check: a file name or an array given where a probe goes)."""
+    if not isinstance(value, Probe):
+        raise InputError(source, f"expected a mi_bivariate.probes.Probe, got a {type(value).__name__}",
+                         "load one with Probe.load(path) or mi_bivariate.sources.load_probe(name)")
+    return value
+
+
 def check_lit(probe: "Probe", source: Any) -> None:
     """Raise :class:`InputError` naming ``source`` if ``probe`` emits no light at all (every texel 0)."""
     if not np.any(probe.data > 0.0):

@@ -30,7 +30,7 @@ from mi_bivariate.bivariate import BivariateBRDF
 from mi_bivariate.errors import InputError, InputWarning
 from mi_bivariate.geometry import Geometry
 from mi_bivariate.noise import estimate_camera_noise
-from mi_bivariate.probes import Probe, check_lit
+from mi_bivariate.probes import Probe, check_lit, check_probe
 from mi_bivariate.solve import IMAGE_WEIGHTS, cross_image_factors, solve_stages
 from mi_bivariate.threads import blas_threads
 from mi_bivariate.variants import ensure_variant
@@ -225,10 +225,7 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
         raise InputError("image_weights", f"unknown rule {image_weights!r}", f"use one of {', '.join(IMAGE_WEIGHTS)}")
     for k, item in enumerate(probe_list):  # before any work: a wrong object or a black probe
         source = "probe" if n == 1 else f"probe {k}"
-        if not isinstance(item, Probe):
-            raise InputError(source, f"expected a mi_bivariate.probes.Probe, got a {type(item).__name__}",
-                             "load one with Probe.load(path) or mi_bivariate.sources.load_probe(name)")
-        check_lit(item, source)
+        check_lit(check_probe(item, source), source)
     noise_models = _noise_list(noise, images)  # its form checked (and "auto" estimated) before any work
 
     timings: Dict[str, float] = {}

@@ -42,7 +42,7 @@ from mi_bivariate.geometry import Camera, SphereCamera, SphereGeometry
 from mi_bivariate.limits import check_render_sizes, check_seed
 from mi_bivariate.merl import MERLBRDF
 from mi_bivariate.mesh import MeshShape, MeshView
-from mi_bivariate.probes import Probe
+from mi_bivariate.probes import Probe, check_probe
 from mi_bivariate.variants import ensure_variant
 
 
@@ -149,9 +149,7 @@ def sphere_scene_dict(bsdf: dict, probe: Any, camera: SphereCamera, normals: boo
 def _check_render_inputs(probe: Any, width: Any, height: Any, spp: Any, seed: Any, width_name: str = "width") -> None:
     """The checks every render's front door makes before building a scene: the probe's type, the
     image size and samples within :mod:`mi_bivariate.limits`, the seed an unsigned 32-bit integer."""
-    if not isinstance(probe, Probe):
-        raise InputError("probe", f"expected a mi_bivariate.probes.Probe, got a {type(probe).__name__}",
-                         "load one with Probe.load(path) or mi_bivariate.sources.load_probe(name)")
+    check_probe(probe)
     check_render_sizes(width, spp, (width_name, "spp"), hint="lower spp or the image size", height=height)
     check_seed(seed)
 

@@ -90,7 +90,7 @@ from mi_bivariate.lighting.mis import (
     pool_bytes,
     strategy_counts,
 )
-from mi_bivariate.probes import Probe
+from mi_bivariate.probes import check_probe
 from mi_bivariate.variants import ensure_variant
 
 __all__ = ["CHUNK_BYTES", "ENV_SHIFTS", "MIS_FRACTIONS", "PEAK_T_MAX", "PROGRESS_PAIRS", "SAMPLINGS",
@@ -145,10 +145,7 @@ def _check_inputs(obs: Observations, probes: List[Any], n_t: int, n_s: int, n_di
     if not probes:
         raise InputError(None, "no probe given")
     for k, probe in enumerate(probes):
-        if not isinstance(probe, Probe):
-            raise InputError("probe" if len(probes) == 1 else f"probe {k}",
-                             f"expected a mi_bivariate.probes.Probe, got a {type(probe).__name__}",
-                             "load one with Probe.load(path) or mi_bivariate.sources.load_probe(name)")
+        check_probe(probe, "probe" if len(probes) == 1 else f"probe {k}")
     top = int(obs.probe_index.max())
     if top >= len(probes) or int(obs.probe_index.min()) < 0:
         raise InputError(None, f"observations refer to probe {top} but {len(probes)} probe(s) were given")
