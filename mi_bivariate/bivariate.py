@@ -408,8 +408,8 @@ def exact_floor(merl: MERLBRDF, min_value: float = 0.0) -> float:
 
     The paper's reference for what a bivariate table loses, not a strict lower bound of Eq. 1: the
     constant per (theta_h, theta_d) that minimises a *relative* error is ``sum(1/f) / sum(1/f^2)``
-    over the node's phi_d, not their mean (checked independently on three shared materials:
-    0.048 against this floor's 0.112 for gold-metallic-paint3, 0.117 against 0.147 for red-phenolic).
+    over the node's phi_d, not their mean (``benchmarks/eq1_optimal.py``: 0.048 against this
+    floor's 0.112 for gold-metallic-paint3, 0.117 against 0.147 for red-phenolic).
     """
     return reduction_error(merl, None, min_value=min_value)
 
