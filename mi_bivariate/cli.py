@@ -167,11 +167,11 @@ def _add_recover_options(p: argparse.ArgumentParser) -> None:
                    help="seed of the light directions' random shifts (runs are deterministic for a seed)")
     threads = p.add_mutually_exclusive_group()
     threads.add_argument("--threads", type=int, default=None,
-                         help="Dr.Jit threads, and at most as many solve workers (1: bit-identical outputs from run "
-                              "to run; default: all cores, where the lighting matrix's parallel sums vary at "
-                              "float32 rounding)")
+                         help="Dr.Jit threads, and at most as many solve workers (default: all cores; on the CPU "
+                              "the outputs are bit-identical for any number)")
     threads.add_argument("--deterministic", dest="threads", action="store_const", const=1,
-                         help="same as --threads 1")
+                         help="same as --threads 1 (kept for scripts; on the CPU every thread count now "
+                              "gives bit-identical outputs)")
     _add_variant(p)
     _add_data(p)
 
@@ -270,7 +270,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--jobs", type=int, default=1, help="materials evaluated in parallel worker processes")
     p.add_argument("--dask", default=None, metavar="ADDRESS", help="send the materials to this Dask scheduler")
     p.add_argument("--threads", type=int, default=None,
-                   help="Dr.Jit threads per job (default: cores // jobs; 1 makes numbers bitwise reproducible)")
+                   help="Dr.Jit threads per job (default: cores // jobs)")
     p.add_argument("--quick", action="store_true",
                    help="a few materials at small sizes, seconds each: its sizes replace the defaults stated below "
                         "(48 px, 16 spp, 1000 normals, 3000 directions, a 12 x 12 grid, pisa_256 only, the "

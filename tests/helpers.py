@@ -25,7 +25,7 @@ def suite_variant() -> str:
 
 def sums_in_fixed_order() -> bool:
     """Whether the lighting matrix's sums run in one order, so that two runs agree bit for bit: on
-    the LLVM backend with one Dr.Jit thread. Not on CUDA, whose scatter-adds are atomics that land
+    the LLVM backend, for any number of Dr.Jit threads (a lane per row). Not on CUDA, whose scatter-adds are atomics that land
     in whatever order the GPU's threads reach them: there runs agree to float32 rounding only
     (measured on an H100: 2e-7 relative in one kernel's rows, 5e-7 in a recovered table)."""
     return not suite_variant().startswith("cuda")

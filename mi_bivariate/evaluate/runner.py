@@ -205,9 +205,9 @@ def run_evaluation(materials: Sequence[Union[str, MaterialSpec]], out_dir: PathL
         figures: draw the figures at the end (:func:`make_figures`).
         on_record: called with each new record after it is safely on disk.
         threads: Dr.Jit threads per job (default: cores // jobs in worker
-            processes; unchanged in-process and on Dask). Numbers are bitwise
-            reproducible only with 1 thread per job: with more, the lighting
-            matrix's parallel scatter-add sums in a varying order (~1e-6 relative).
+            processes; unchanged in-process and on Dask). On the CPU the numbers
+            are bitwise reproducible for any number (the lighting matrix sums each
+            entry in one order).
 
     Returns:
         All records of this configuration, in material order.

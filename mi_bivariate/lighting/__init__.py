@@ -39,9 +39,12 @@ visibility).
 
 Implementation: one fused Dr.Jit kernel per chunk of normals (directions,
 envmap lookups, Rusinkiewicz angles, bilinear weights) scatters RGB padded
-to a 4-wide packet into ``[rows, n_t * n_s, 4]`` with ``ReduceMode.Expand``
-(per-thread copies of the target, no atomics; see the field notes: ``Auto``
-silently picks ``Local`` on big targets, 7x slower).
+to a 4-wide packet into ``[rows, n_t * n_s, 4]`` (:mod:`.kernels`). On the
+LLVM backend a lane per row loops over the row's directions, so every element
+of L is summed by one lane in one order: L is the same bit for bit from run to
+run and for any number of threads. On CUDA a lane per (row, direction) scatters
+with atomics (``ReduceMode.Expand``; see the field notes: ``Auto`` silently
+picks ``Local`` on big targets, 7x slower), and sums agree to float32 rounding.
 Visibility (``occluder``): the paper assumes every light direction of the
 normal's hemisphere reaches the surface, which holds for a convex object
 only. Given the object as a Mitsuba scene, rows that know their surface
@@ -53,16 +56,13 @@ contribute nothing. With ``max_depth=2`` renders (no interreflection) the
 model is then exact for any shape.
 
 Rows are ordered along a space-filling curve of their normals (a chunk's
-rows are neighbours) and lanes run over (row, direction): a row's lanes are
-contiguous, so each thread splats into the few rows its block of lanes covers.
+rows are neighbours, and so are the rows of one SIMD packet on the CPU).
 Each chunk's kernels are launched and the previous chunk is copied into L while
 they run (:func:`_fill`).
 Memory: the ``(M, n_t * n_s, 3) float32`` result (94 MB at M = 8000,
-32 x 32) plus :data:`CHUNK_BYTES` for the running chunk's target and its
-per-thread copies (the rows per chunk shrink as Dr.Jit's threads grow), and the
+32 x 32) plus :data:`CHUNK_BYTES` for the running chunk's target, and the
 previous chunk's target while it is copied; the kernel itself stores no
-per-direction arrays. Accumulation order across threads varies, so results agree
-between runs to float32 rounding (~1e-7 relative), not bit for bit.
+per-direction arrays.
 """
 
 from __future__ import annotations
@@ -97,12 +97,11 @@ __all__ = ["CHUNK_BYTES", "ENV_SHIFTS", "MIS_FRACTIONS", "PEAK_T_MAX", "PROGRESS
            "direction_pairs", "environment_pool", "hemisphere_offsets", "light_directions", "lighting_matrix",
            "row_frames", "strategy_counts", "texel_lighting_matrix"]
 
-#: Memory for one chunk's scatter targets: on the LLVM backend ``ReduceMode.Expand`` gives each
-#: of Dr.Jit's threads its own ``(rows, n_t * n_s, 4) float32`` copy (measured: peak RSS grows
-#: ~14 MB per thread for a 16 MB target), so the rows per kernel shrink as threads grow. A
-#: thread's block of lanes splats into the few rows it covers, so the size sets how many kernels
-#: a matrix takes, not the cache's working set: at 32 x 32 and 2 threads, 1024 rows per kernel
-#: (``docs/recovery.md``, Speed, Round 16: 128, 256, 512, 1024 and 2048 rows measured).
+#: Memory for one chunk's scatter target, ``(rows, n_t * n_s, 4) float32``: 2048 rows at
+#: 32 x 32. The kernels hold one copy of it on either backend (:mod:`.kernels`: a lane per row
+#: on LLVM, atomics on CUDA); it sets how many kernels a matrix takes. Measured with the
+#: per-thread copies of ``ReduceMode.Expand`` (``docs/recovery.md``, Speed, Round 16: 128-2048
+#: rows) and with a lane per row (Round 21: 1024 against 2048 rows).
 CHUNK_BYTES = 32 * 2**20
 
 #: Show a progress bar when a job has more (normal, direction) pairs than this.
@@ -155,19 +154,11 @@ def _check_inputs(obs: Observations, probes: List[Any], n_t: int, n_s: int, n_di
         raise InputError(None, "some observed normals face away from their view (n . v <= 0)")
 
 
-def _target_copies() -> int:
-    """Copies of a chunk's scatter target a kernel holds: one per Dr.Jit thread on the LLVM
-    backend (``ReduceMode.Expand``), one on CUDA."""
-    if (mi.variant() or "").startswith("cuda"):
-        return 1
-    return max(1, dr.thread_count())
-
-
 def _chunk_rows(n_nodes: int, chunk: Optional[int]) -> int:
     if chunk is not None:
         return max(1, int(chunk))
-    # 16 B per node and row in each copy of the scatter target.
-    return max(16, CHUNK_BYTES // (n_nodes * 16 * _target_copies()))
+    # 16 B per node and row of the scatter target (one copy: see CHUNK_BYTES).
+    return max(16, CHUNK_BYTES // (n_nodes * 16))
 
 
 def _fill(L: np.ndarray, chunks: Iterable[Tuple[np.ndarray, Any]]) -> None:

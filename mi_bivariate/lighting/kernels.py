@@ -1,19 +1,27 @@
 """The Dr.Jit kernels of the lighting matrix: one fused kernel per chunk of rows.
 
-One lane per (row, lattice point); per lane the light direction(s), the envmap
-lookup(s), the Rusinkiewicz angles and a bilinear splat of RGB, padded to a 4-wide
-packet, into ``[rows, n_t * n_s, 4]`` with ``ReduceMode.Expand`` (per-thread copies of
-the target, no atomics). The ``*_target`` functions return that target with its kernel
-launched and not awaited (on the LLVM backend Dr.Jit runs it on its thread pool while
-Python goes on); :func:`_rgb_rows` is its ``(m, n_t * n_s, 3)`` RGB view (not copied),
-which :func:`mi_bivariate.lighting.lighting_matrix` copies into L while the next chunk's
-kernel runs.
+Per (row, lattice point) the light direction(s), the envmap lookup(s), the Rusinkiewicz
+angles and a bilinear splat of RGB, padded to a 4-wide packet, into ``[rows, n_t * n_s, 4]``.
+:func:`lattice_points` runs a per-point body over a chunk's rows in one of two layouts:
+
+- **LLVM (CPU): one lane per row**, a loop over the row's lattice points. Each element of
+  the target is written by one lane, in lattice order, so the sums do not depend on how
+  Dr.Jit's threads share the work: the matrix is the same bit for bit from run to run and
+  for any thread count, and the splat needs no atomics and no per-thread copies
+  (``ReduceMode.NoConflicts``).
+- **CUDA: one lane per (row, lattice point)**, as a GPU needs many threads; the splat uses
+  ``ReduceMode.Expand`` (atomics there), so sums agree between runs to float32 rounding.
+
+The ``*_target`` functions return that target with its kernel launched and not awaited (on the
+LLVM backend Dr.Jit runs it on its thread pool while Python goes on); :func:`_rgb_rows` is its
+``(m, n_t * n_s, 3)`` RGB view (not copied), which :func:`mi_bivariate.lighting.lighting_matrix`
+copies into L while the next chunk's kernel runs.
 """
 
 from __future__ import annotations
 
 import math
-from typing import Any, Optional, Tuple
+from typing import Any, Callable, NamedTuple, Optional, Tuple
 
 import drjit as dr
 import mitsuba as mi
@@ -87,15 +95,76 @@ def fibonacci_point(k: Any, n_points: int, shift_u: Any, shift_v: Any) -> Tuple[
     return u1 - dr.floor(u1), u2 - dr.floor(u2)
 
 
+class RowInputs(NamedTuple):
+    """A row's kernel inputs (:func:`_row_packets`), per lane: its frame (``x_axis``, ``y_axis``,
+    ``normal``: ``mi.Vector3f``), the view ``(sin_v, 0, cos_v)`` in that frame, its two
+    Cranley-Patterson shifts and its fourth packet ``p3`` (shift_2, surface position)."""
+
+    x_axis: Any
+    y_axis: Any
+    normal: Any
+    sin_v: Any
+    cos_v: Any
+    shift_1: Any
+    shift_2: Any
+    p3: Any
+
+
+def row_inputs(data: Any, row: Any) -> RowInputs:
+    """The :class:`RowInputs` of rows ``row`` (``mi.UInt32``) from the kernels' input ``data`` (:func:`_row_data`)."""
+    p0, p1, p2, p3 = (dr.gather(mi.Vector4f, data, row * _PACKETS + q) for q in range(4))
+    return RowInputs(mi.Vector3f(p0.x, p0.y, p0.z), mi.Vector3f(p1.x, p1.y, p1.z), mi.Vector3f(p2.x, p2.y, p2.z),
+                     p0.w, p1.w, p2.w, p3.x, p3)
+
+
+def lane_per_row() -> bool:
+    """Whether the kernels run one lane per row with a loop over its lattice points (the LLVM
+    backend: bit-reproducible sums), rather than one lane per (row, point) (CUDA)."""
+    return not (mi.variant() or "").startswith("cuda")
+
+
+def splat_mode() -> Any:
+    """The ``dr.ReduceMode`` of :func:`_splat` in the layout of :func:`lane_per_row`: ``NoConflicts``
+    with a lane per row (no two lanes write one row), else ``Expand``."""
+    return dr.ReduceMode.NoConflicts if lane_per_row() else dr.ReduceMode.Expand
+
+
+def lattice_points(data: Any, m: int, n_points: int,
+                   body: Callable[[Any, Any, RowInputs, Any, Any], None]) -> None:
+    """Call ``body(row, k, inputs, u1, u2)`` for every row of a chunk of ``m`` rows and every point
+    ``k`` of its ``n_points`` lattice, ``(u1, u2)`` the row's Cranley-Patterson-shifted Fibonacci
+    point (:func:`fibonacci_point`) and ``inputs`` the row's :class:`RowInputs`.
+
+    With :func:`lane_per_row`, one lane per row gathers its inputs once and loops over ``k``
+    (``dr.while_loop``, traced once: ``body`` runs in a symbolic loop and may scatter, as with
+    :func:`splat_mode`, but not read what it scatters, nor create arrays that outlive the loop:
+    build a probe's emitter before). Otherwise one lane per (row, point), row
+    then point: a row's lanes are contiguous, so each thread's block of lanes splats into the few
+    rows it covers of its copy of the target (``docs/recovery.md``, Speed, Round 16).
+    """
+    if lane_per_row():
+        row = dr.arange(mi.UInt32, m)
+        inputs = row_inputs(data, row)
+
+        def step(k: Any) -> Tuple[Any]:
+            u1, u2 = fibonacci_point(k, n_points, inputs.shift_1, inputs.shift_2)
+            body(row, k, inputs, u1, u2)
+            return (k + 1,)
+
+        dr.while_loop(state=(dr.zeros(mi.UInt32, m),), cond=lambda k: k < n_points, body=step)
+        return
+    idx = dr.arange(mi.UInt32, m * n_points)
+    row = idx // n_points
+    k = idx - row * n_points
+    inputs = row_inputs(data, row)
+    u1, u2 = fibonacci_point(k, n_points, inputs.shift_1, inputs.shift_2)
+    body(row, k, inputs, u1, u2)
+
+
 def _lattice_lanes(data: Any, m: int, n_points: int):
     """One lane per (row, lattice point) of a chunk of ``m`` rows: the row frame and the
-    row's Cranley-Patterson-shifted Fibonacci lattice point ``(u1, u2)`` in [0, 1)^2.
-
-    Lane order: row, then lattice point. A row's lanes are contiguous, so each thread's
-    block of lanes splats into the few rows it covers of its copy of the target (a
-    cache-resident part for any chunk size), and a row's directions, in lattice order,
-    sweep its hemisphere band by band. Measured against lattice point, then row
-    (``docs/recovery.md``, Speed, Round 16): the MIS matrix's kernels 1.15-1.3x faster.
+    row's Cranley-Patterson-shifted Fibonacci lattice point ``(u1, u2)`` in [0, 1)^2
+    (the layout of :func:`lattice_points` on CUDA, for the benchmarks that take lanes apart).
 
     Returns:
         ``(row, x_axis, y_axis, normal, sin_v, cos_v, u1, u2, p3, shift_1)`` with ``p3`` the row's
@@ -104,11 +173,9 @@ def _lattice_lanes(data: Any, m: int, n_points: int):
     idx = dr.arange(mi.UInt32, m * n_points)
     row = idx // n_points
     k = idx - row * n_points
-    p0, p1, p2, p3 = (dr.gather(mi.Vector4f, data, row * _PACKETS + q) for q in range(4))
-    x_axis, y_axis = mi.Vector3f(p0.x, p0.y, p0.z), mi.Vector3f(p1.x, p1.y, p1.z)
-    normal = mi.Vector3f(p2.x, p2.y, p2.z)
-    u1, u2 = fibonacci_point(k, n_points, p2.w, p3.x)
-    return row, x_axis, y_axis, normal, p0.w, p1.w, u1, u2, p3, p2.w
+    r = row_inputs(data, row)
+    u1, u2 = fibonacci_point(k, n_points, r.shift_1, r.shift_2)
+    return row, r.x_axis, r.y_axis, r.normal, r.sin_v, r.cos_v, u1, u2, r.p3, r.shift_1
 
 
 def _occluded(data: Any, row: Any, d: Any, active: Any, occluder: Any) -> Any:
@@ -142,44 +209,49 @@ def _lighting_target(packets: np.ndarray, probe: Any, n_t: int, n_s: int, n_dirs
     """Rows of L for one chunk by the uniform lattice: one fused kernel, launched
     (:func:`_launched`; :func:`_rgb_rows` reads it).
 
-    One lane per mirrored direction pair: two envmap lookups (and, with an
+    One lattice point per mirrored direction pair: two envmap lookups (and, with an
     ``occluder`` scene, two shadow rays), one set of Rusinkiewicz angles and
     one bilinear splat.
     """
     m = len(packets)
     n_pairs = direction_pairs(n_dirs)
     data = _row_data(packets)
-    # Shifted Fibonacci lattice (see light_directions()).
-    row, x_axis, y_axis, normal, sin_v, cos_v, u1, u2, _, _ = _lattice_lanes(data, m, n_pairs)
-    r = dr.safe_sqrt(1.0 - u1 * u1)
-    sin_phi, cos_phi = dr.sincos(math.pi * u2)
-    lx, ly, lz = r * cos_phi, r * sin_phi, u1
-
-    base = x_axis * lx + normal * lz
-    d_plus, d_minus = base + y_axis * ly, base - y_axis * ly
-    if occluder is None:
-        radiance = probe.eval_dr(d_plus) + probe.eval_dr(d_minus)
-    else:
-        # spawn_ray offsets along the geometric normal on the side of the
-        # direction, as a render's shadow rays do: a direction above the
-        # shading horizon but below the face goes into the object.
-        lit_plus = ~_occluded(data, row, d_plus, True, occluder)
-        lit_minus = ~_occluded(data, row, d_minus, True, occluder)
-        radiance = probe.eval_dr(d_plus, lit_plus) + probe.eval_dr(d_minus, lit_minus)  # 0 where blocked
-    weight = lz * (_TWO_PI / (2 * n_pairs))
     target = dr.zeros(mi.Float, m * n_t * n_s * 4)
-    _splat(m, row, lx, ly, lz, sin_v, cos_v, radiance * weight, n_t, n_s, target=target)
+    mode = splat_mode()
+    probe.emitter()  # built before the loop: a symbolic loop may not create the map's arrays
+
+    def body(row: Any, k: Any, r: RowInputs, u1: Any, u2: Any) -> None:
+        # Shifted Fibonacci lattice (see light_directions()).
+        radius = dr.safe_sqrt(1.0 - u1 * u1)
+        sin_phi, cos_phi = dr.sincos(math.pi * u2)
+        lx, ly, lz = radius * cos_phi, radius * sin_phi, u1
+        base = r.x_axis * lx + r.normal * lz
+        d_plus, d_minus = base + r.y_axis * ly, base - r.y_axis * ly
+        if occluder is None:
+            radiance = probe.eval_dr(d_plus) + probe.eval_dr(d_minus)
+        else:
+            # spawn_ray offsets along the geometric normal on the side of the
+            # direction, as a render's shadow rays do: a direction above the
+            # shading horizon but below the face goes into the object.
+            lit_plus = ~_occluded(data, row, d_plus, True, occluder)
+            lit_minus = ~_occluded(data, row, d_minus, True, occluder)
+            radiance = probe.eval_dr(d_plus, lit_plus) + probe.eval_dr(d_minus, lit_minus)  # 0 where blocked
+        weight = lz * (_TWO_PI / (2 * n_pairs))
+        _splat(m, row, lx, ly, lz, r.sin_v, r.cos_v, radiance * weight, n_t, n_s, target=target, mode=mode)
+
+    lattice_points(data, m, n_pairs, body)
     return _launched(target)
 
 
-
 def _splat(m: int, row: Any, lx: Any, ly: Any, lz: Any, sin_v: Any, cos_v: Any, value: Any,
-           n_t: int, n_s: int, active: Any = True, target: Any = None) -> Optional[np.ndarray]:
+           n_t: int, n_s: int, active: Any = True, target: Any = None,
+           mode: Any = dr.ReduceMode.Expand) -> Optional[np.ndarray]:
     """Bilinear splat of ``value`` (``mi.Color3f``) at the st point of each lane.
 
     ``(lx, ly, lz)`` is the light direction in the row frame, whose view is
     ``wo = (sin_v, 0, cos_v)``. Returns ``(m, n_t * n_s, 3) float32``, or
     accumulates into ``target`` (``m * n_t * n_s * 4`` floats) and returns ``None``.
+    ``mode``: the scatter's ``dr.ReduceMode`` (:func:`splat_mode` in :func:`lattice_points`).
     """
     # Rusinkiewicz angles; theta_d is half the angle between wi and wo. atan2
     # of a sine and a cosine keeps float32 precision at the specular peak,
@@ -205,12 +277,12 @@ def _splat(m: int, row: Any, lx: Any, ly: Any, lz: Any, sin_v: Any, cos_v: Any, 
     if not given:
         target = dr.zeros(mi.Float, m * n_nodes * 4)
     node = row * n_nodes + i_t * n_s + i_s
-    # 4-wide packets with ReduceMode.Expand: per-thread copies of the target,
-    # no atomics (Auto silently picks Local for big targets: 7x slower).
+    # 4-wide packets. Expand: per-thread copies of the target, no atomics (Auto silently
+    # picks Local for big targets: 7x slower); NoConflicts: a lane per row, no two lanes
+    # write one element.
     for offset, w in ((0, (1.0 - wt) * (1.0 - ws)), (1, (1.0 - wt) * ws),
                       (n_s, wt * (1.0 - ws)), (n_s + 1, wt * ws)):
-        dr.scatter_reduce(dr.ReduceOp.Add, target, rgb * w, node + offset, active=active,
-                          mode=dr.ReduceMode.Expand)
+        dr.scatter_reduce(dr.ReduceOp.Add, target, rgb * w, node + offset, active=active, mode=mode)
     if given:
         return None
     return _rgb_rows(target, m, n_nodes)  # a view: the caller copies it into L once
@@ -218,20 +290,19 @@ def _splat(m: int, row: Any, lx: Any, ly: Any, lz: Any, sin_v: Any, cos_v: Any, 
 
 def _texel_target(packets: np.ndarray, texels: Tuple[Any, Any, int], n_t: int, n_s: int) -> Any:
     """Rows of the texel-quadrature L for one chunk, launched (:func:`_launched`; :func:`_rgb_rows`
-    reads it)."""
+    reads it). The texels take the place of the lattice points (:func:`lattice_points`; the rows'
+    shifts are unused)."""
     directions, radiance_weight, n_texels = texels
     m = len(packets)
     data = _row_data(packets)
-    idx = dr.arange(mi.UInt32, m * n_texels)
-    row = idx // n_texels
-    texel = idx - row * n_texels
-    p0, p1, p2 = (dr.gather(mi.Vector4f, data, row * _PACKETS + q) for q in range(3))
-    d = dr.gather(mi.Vector3f, directions, texel)
-    lx = p0.x * d.x + p0.y * d.y + p0.z * d.z
-    ly = p1.x * d.x + p1.y * d.y + p1.z * d.z
-    lz = p2.x * d.x + p2.y * d.y + p2.z * d.z
-    value = dr.gather(mi.Color3f, radiance_weight, texel) * lz
     target = dr.zeros(mi.Float, m * n_t * n_s * 4)
-    _splat(m, row, lx, ly, lz, p0.w, p1.w, value, n_t, n_s, active=lz > 0.0, target=target)
-    return _launched(target)
+    mode = splat_mode()
 
+    def body(row: Any, texel: Any, r: RowInputs, u1: Any, u2: Any) -> None:
+        d = dr.gather(mi.Vector3f, directions, texel)
+        lx, ly, lz = dr.dot(r.x_axis, d), dr.dot(r.y_axis, d), dr.dot(r.normal, d)
+        value = dr.gather(mi.Color3f, radiance_weight, texel) * lz
+        _splat(m, row, lx, ly, lz, r.sin_v, r.cos_v, value, n_t, n_s, active=lz > 0.0, target=target, mode=mode)
+
+    lattice_points(data, m, n_texels, body)
+    return _launched(target)

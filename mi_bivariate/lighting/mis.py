@@ -35,8 +35,8 @@ import numpy as np
 
 from mi_bivariate.common import LUMINANCE_WEIGHTS, luminance
 from mi_bivariate.lighting.directions import _TWO_PI
-from mi_bivariate.lighting.kernels import (_PACKETS, _lattice_lanes, _launched, _occluded, _rgb_rows, _row_data, _splat,
-                                          fibonacci_point)
+from mi_bivariate.lighting.kernels import (RowInputs, _launched, _occluded, _rgb_rows, _row_data, _splat,
+                                          fibonacci_point, lattice_points, row_inputs, splat_mode)
 
 #: Light-direction sampling of :func:`lighting_matrix`: the fraction of the K
 #: directions drawn by each strategy of the ``"mis"`` mixture (see :func:`_mis_chunk`).
@@ -80,7 +80,7 @@ def environment_pool(probe: Any, n_points: int, seed: int = 0, stream: int = 0) 
     For shift ``q`` (drawn from ``seed`` and ``stream``: one stream per probe, so two images
     under rotated copies of one map do not share their lattices) and lattice point ``k`` of
     ``n_points``, the
-    Fibonacci point shifted by ``q`` (as :func:`~mi_bivariate.lighting.kernels._lattice_lanes`
+    Fibonacci point shifted by ``q`` (as :func:`~mi_bivariate.lighting.kernels.lattice_points`
     shifts a row's) through ``envmap.sample_direction``: the world direction, its solid-angle
     density and the radiance there (``weight * pdf``), :data:`_POOL_FLOATS` floats at entry
     ``q * n_points + k`` (a shift's points in lattice order: a row reads its shift's entries
@@ -134,7 +134,7 @@ def _peak_pdf(lx: Any, ly: Any, lz: Any, sin_v: Any, cos_v: Any) -> Any:
 @dataclass(frozen=True)
 class EnvironmentProxy:
     """What the balance heuristic needs of a probe to read the environment's density from the
-    radiance (:func:`_mis_lanes`): ``q(d) = luminance(E(d)) / scale``, and 0 in the polar bands.
+    radiance (:func:`_mis_lane`): ``q(d) = luminance(E(d)) / scale``, and 0 in the polar bands.
 
     ``scale`` is ``Z``, the integral of the luminance over the sphere (sr times radiance; 0 for a
     black probe, whose lanes all add 0). ``axis`` is the world direction of the map's first row
@@ -244,8 +244,22 @@ def _environment_density(counts: dict, probe: Any, d: Any, radiance: Any, horizo
 
 def _mis_lanes(data: Any, m: int, probe: Any, strategy: str, counts: dict,
                pool: Any = None, env_density: str = "proxy"):
-    """The lanes of one sampling strategy for ``m`` rows, one light direction per lane:
-    ``(row, lx, ly, lz, d, weight, sin_v, cos_v, above, radiance)``.
+    """The lanes of one sampling strategy for ``m`` rows, one lane per (row, light direction), row then
+    direction: ``(row, lx, ly, lz, d, weight, sin_v, cos_v, above, radiance)``
+    (:func:`_mis_lane`; the layout the benchmarks take apart).
+    """
+    idx = dr.arange(mi.UInt32, m * counts[strategy])
+    row = idx // counts[strategy]
+    k = idx - row * counts[strategy]
+    r = row_inputs(data, row)
+    u1, u2 = fibonacci_point(k, counts[strategy], r.shift_1, r.shift_2)
+    return (row,) + _mis_lane(k, r, u1, u2, probe, strategy, counts, pool, env_density)
+
+
+def _mis_lane(k: Any, r: RowInputs, u1: Any, u2: Any, probe: Any, strategy: str, counts: dict,
+              pool: Any = None, env_density: str = "proxy"):
+    """One light direction of one sampling strategy per lane, lattice point ``k`` (``(u1, u2)``) of a row
+    with inputs ``r``: ``(lx, ly, lz, d, weight, sin_v, cos_v, above, radiance)``.
 
     ``d`` is the world light direction, ``(lx, ly, lz)`` its row-frame coordinates and
     ``weight`` the multi-sample balance-heuristic weight of the lane (Veach's estimator),
@@ -273,11 +287,10 @@ def _mis_lanes(data: Any, m: int, probe: Any, strategy: str, counts: dict,
     ``pool`` (:func:`environment_pool`), the environment's lanes read the directions, true
     densities and radiances of the row's pooled shift.
     """
-    row, x_axis, y_axis, normal, sin_v, cos_v, u1, u2, _, shift = _lattice_lanes(data, m, counts[strategy])
+    x_axis, y_axis, normal, sin_v, cos_v = r.x_axis, r.y_axis, r.normal, r.sin_v, r.cos_v
     own = None  # the environment lanes' true density p_env
     if strategy == "environment" and pool is not None:
-        k = dr.arange(mi.UInt32, m * counts[strategy]) - row * counts[strategy]  # lanes: row, then point
-        entry = _pool_slot(shift) * counts[strategy] + k  # the row's own random shift_1 picks the slot
+        entry = _pool_slot(r.shift_1) * counts[strategy] + k  # the row's own random shift_1 picks the slot
         head = dr.gather(mi.Vector4f, pool, 2 * entry)
         tail = dr.gather(mi.Vector4f, pool, 2 * entry + 1)
         d, own, radiance = mi.Vector3f(head.x, head.y, head.z), head.w, mi.Color3f(tail.x, tail.y, tail.z)
@@ -305,7 +318,7 @@ def _mis_lanes(data: Any, m: int, probe: Any, strategy: str, counts: dict,
     else:
         cosine = lz
     weight = dr.select(above, cosine / density, 0.0)
-    return row, lx, ly, lz, d, weight, sin_v, cos_v, above, radiance
+    return lx, ly, lz, d, weight, sin_v, cos_v, above, radiance
 
 
 def _mis_chunk(packets: np.ndarray, probe: Any, n_t: int, n_s: int, n_dirs: int, **kwargs: Any) -> np.ndarray:
@@ -333,14 +346,22 @@ def _mis_target(packets: np.ndarray, probe: Any, n_t: int, n_s: int, n_dirs: int
     (:func:`environment_pool`, as :func:`~mi_bivariate.lighting.lighting_matrix` passes them);
     ``None``: sampled per row.
     """
+    if env_density not in ("proxy", "exact"):  # checked here: an error inside the loop's tracing is wrapped
+        raise ValueError(f"env_density must be 'proxy' or 'exact', not {env_density!r}")
     m = len(packets)
     counts = strategy_counts(n_dirs, fractions)
     data = _row_data(packets)
     target = dr.zeros(mi.Float, m * n_t * n_s * 4)
-    for strategy in counts:
-        row, lx, ly, lz, d, weight, sin_v, cos_v, active, radiance = _mis_lanes(
-            data, m, probe, strategy, counts, pool=pool, env_density=env_density)
-        if occluder is not None:  # blocked directions contribute nothing (their weight needs the radiance)
-            radiance = dr.select(_occluded(data, row, d, active, occluder), 0.0, radiance)
-        _splat(m, row, lx, ly, lz, sin_v, cos_v, radiance * weight, n_t, n_s, active=active, target=target)
+    mode = splat_mode()
+    probe.emitter()  # built before the loops: a symbolic loop may not create the map's arrays
+    for strategy in counts:  # one loop (or set of lanes) per strategy, all in one kernel
+        def body(row: Any, k: Any, r: RowInputs, u1: Any, u2: Any, strategy: str = strategy) -> None:
+            lx, ly, lz, d, weight, sin_v, cos_v, active, radiance = _mis_lane(
+                k, r, u1, u2, probe, strategy, counts, pool=pool, env_density=env_density)
+            if occluder is not None:  # blocked directions contribute nothing (their weight needs the radiance)
+                radiance = dr.select(_occluded(data, row, d, active, occluder), 0.0, radiance)
+            _splat(m, row, lx, ly, lz, sin_v, cos_v, radiance * weight, n_t, n_s, active=active, target=target,
+                   mode=mode)
+
+        lattice_points(data, m, counts[strategy], body)
     return _launched(target)
