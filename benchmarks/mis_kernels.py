@@ -10,6 +10,10 @@ environment sampled per row (``_mis_chunk`` without a pool) and from the pool
 (``lighting.mis.environment_pool``, as ``lighting_matrix`` runs it). Each figure is the median
 of 5 repeats after a warm-up (kernel compilation excluded).
 
+The lanes are those of the one-lane-per-(row, direction) layout (``lighting.mis._mis_lanes``, with
+``ReduceMode.Expand``): what CUDA runs, and what the CPU ran before a lane per row looped over its
+directions (``docs/recovery.md``, Speed, Round 21). The per-stage split of the work holds for both.
+
 Since the environment-density proxy (``docs/recovery.md``, Round 7) the lanes look the radiance
 up themselves (the balance heuristic's environment density is read from it), so "lanes" includes
 the radiance and "+ radiance" adds only the product with the weight.

@@ -262,9 +262,9 @@ def _check_alpha(alpha) -> None:
 
 def _check_threads(args: argparse.Namespace, jobs: int = 1, local: bool = True) -> None:
     """``--threads`` from 1 to 1024, and, for threads on this machine (``local``), at most its CPUs shared
-    by ``jobs`` processes: beyond them Dr.Jit gains nothing, and each thread's copy of the lighting
-    matrix's chunk makes the chunks smaller (measured on 2 cores: 64 threads took the lighting matrix
-    from 1 s to 20 s), so more are lowered to that count, with a warning."""
+    by ``jobs`` processes: beyond them Dr.Jit gains nothing and the threads only contend (measured on 2
+    cores, when each thread still held a copy of the lighting matrix's chunk: 64 threads took the
+    lighting matrix from 1 s to 20 s), so more are lowered to that count, with a warning."""
     if args.threads is None:
         return
     if not 1 <= args.threads <= 1024:

@@ -24,7 +24,8 @@ MAX_NORMALS = 1_000_000
 MAX_DIRS = 10_000_000
 #: Bytes of the lighting matrix (M x N x 3 float32).
 MAX_LIGHTING_BYTES = 4 << 30
-#: Lanes of one lighting kernel (rows of a chunk x direction pairs): Dr.Jit indexes with uint32.
+#: Lanes of one lighting kernel (on CUDA rows of a chunk x direction pairs, on the CPU its rows): Dr.Jit
+#: indexes with uint32.
 MAX_KERNEL_LANES = 1 << 31
 #: Render width/height, samples per pixel, and samples of one render (width x height x spp).
 MAX_RESOLUTION = 8192

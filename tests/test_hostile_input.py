@@ -653,6 +653,14 @@ LIMIT_CASES = [
 @pytest.mark.parametrize("case, extra, match", LIMIT_CASES, ids=[c[0] for c in LIMIT_CASES])
 def test_recover_limits_before_allocation(files, tmp_path, monkeypatch, capsys, case, extra, match):
     monkeypatch.chdir(tmp_path)
+    if case == "kernel lanes":
+        # Dr.Jit's 32-bit lane index binds where a lane runs per (row, direction), as on CUDA; on the
+        # CPU a lane per row loops over its directions (test_kernel_lane_limit_follows_the_layout).
+        from mi_bivariate import lighting
+        from mi_bivariate.lighting import kernels
+
+        monkeypatch.setattr(lighting, "lane_per_row", lambda: False)
+        monkeypatch.setattr(kernels, "lane_per_row", lambda: False)
     line = _cli(_recover_args(files) + extra, capsys)
     assert match in line, line
     assert sorted(p.name for p in tmp_path.iterdir()) == []

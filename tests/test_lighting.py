@@ -158,7 +158,8 @@ def test_chunk_rows_keep_the_target_within_budget_for_any_thread_count():
 @pytest.mark.parametrize("sampling", ["mis", "uniform", "texel"])
 def test_lighting_matrix_is_the_same_bit_for_bit_for_any_threads_and_chunks(sampling):
     # "Runs are deterministic for a given seed": on the LLVM backend each element of L is summed by
-    # one lane in one order, so neither the thread pool's schedule nor the chunking changes a bit.
+    # one lane in one order, so neither the thread pool's schedule nor the chunking changes a bit
+    # (rows without pixel footprints: a footprint block's seed follows the chunk size).
     # (Before, per-thread copies summed in schedule order: ~7% of the entries moved from call to call.)
     if not sums_in_fixed_order():
         pytest.skip("CUDA sums with atomics: equal to float32 rounding, not bit for bit")
@@ -174,16 +175,18 @@ def test_lighting_matrix_is_the_same_bit_for_bit_for_any_threads_and_chunks(samp
     threads = dr.thread_count()
     try:
         a = matrix()
-        b = matrix()
+        again = matrix()
+        chunked = matrix(chunk=37)
         dr.set_thread_count(1)
-        c = matrix()
+        one_thread = matrix()
         dr.set_thread_count(max(4, threads))
-        d = matrix(chunk=37)
+        four_threads = matrix()
     finally:
         dr.set_thread_count(threads)
     assert a.max() > 0.0
-    for other in (b, c, d):
-        assert np.array_equal(a, other)
+    for name, other in (("again", again), ("chunk 37", chunked), ("1 thread", one_thread),
+                        ("4 threads", four_threads)):
+        assert np.array_equal(a, other), name
 
 
 def test_stacked_probes_use_their_own_probe():
@@ -582,7 +585,7 @@ def test_footprint_rows_are_means_of_their_sub_rows_in_both_quadratures():
 
 def test_mis_masked_lookups_change_no_bit(monkeypatch):
     """The MIS kernels read no texels for directions below the horizon (masked lookups): their rows
-    equal, bit for bit on one thread (to float32 rounding under CUDA's atomics), those with every
+    equal, bit for bit (to float32 rounding under CUDA's atomics), those with every
     direction looked up."""
     from mi_bivariate.lighting import kernels, mis
 
@@ -590,7 +593,7 @@ def test_mis_masked_lookups_change_no_bit(monkeypatch):
     probe = synthetic_probe()
     packets = kernels._row_packets(obs.normals, obs.views, lighting.hemisphere_offsets(len(obs), 3))
     looked_up = Probe.eval_dr
-    with jit_threads(1):  # one accumulation order
+    with jit_threads(1):  # one accumulation order under CUDA too (its atomics still vary)
         got = np.array(mis._mis_chunk(packets, probe, 8, 8, 600))
         monkeypatch.setattr(Probe, "eval_dr", lambda self, d, active=True: looked_up(self, d))
         expected = np.array(mis._mis_chunk(packets, probe, 8, 8, 600))
@@ -617,3 +620,21 @@ def test_weighted_gram_by_row_blocks_matches_dense_product():
         np.testing.assert_allclose(rhs, a.T @ y, rtol=1e-13, atol=1e-13)
     assert gram.weighted_gram(channel, w)[1] is None
     np.testing.assert_array_equal(gram.touched_columns(L[100:140]), [])
+
+
+def test_kernel_lane_limit_follows_the_layout(monkeypatch):
+    """Dr.Jit indexes a kernel's lanes with 32 bits. A lane per (row, direction) (CUDA) makes
+    rows x direction pairs lanes, refused above MAX_KERNEL_LANES before any work; a lane per row
+    (the CPU) makes a chunk's rows, whatever K."""
+    from mi_bivariate.lighting import kernels
+    from mi_bivariate.limits import MAX_KERNEL_LANES
+
+    rows = lighting._chunk_rows(32 * 32, None)
+    too_many = 2 * (MAX_KERNEL_LANES // rows + 1)  # directions: pairs x rows just over the limit
+    monkeypatch.setattr(kernels, "lane_per_row", lambda: False)
+    monkeypatch.setattr(lighting, "lane_per_row", lambda: False)
+    lighting.check_kernel_lanes(8000, too_many - 4, 32 * 32)
+    with pytest.raises(InputError, match="--dirs.*lanes"):
+        lighting.check_kernel_lanes(8000, too_many, 32 * 32, "--dirs")
+    monkeypatch.setattr(lighting, "lane_per_row", lambda: True)
+    lighting.check_kernel_lanes(8000, too_many, 32 * 32, "--dirs")

@@ -266,8 +266,8 @@ def test_demo_without_shared_data_uses_the_probes_it_is_given(tmp_path, monkeypa
 
 
 def test_cli_recover_batch_matches_recover_and_goes_on_past_a_bad_photo(tmp_path, any_probe, capsys):
-    """``recover-batch``: each photo's table is bit-identical to ``recover``'s on it (``--threads 1``; to
-    float32 rounding under CUDA's atomics), a missing photo gets one error line while the others are
+    """``recover-batch``: each photo's table is bit-identical to ``recover``'s on it (to float32 rounding
+    under CUDA's atomics), a missing photo gets one error line while the others are
     written, and the exit status is then 2."""
     truth = analytic.to_merl(analytic.Lambertian(0.5))
     shot = render.render_sphere(render.bsdf_dict(truth), any_probe, resolution=48, spp=16, seed=0)

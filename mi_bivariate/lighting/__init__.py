@@ -43,8 +43,8 @@ to a 4-wide packet into ``[rows, n_t * n_s, 4]`` (:mod:`.kernels`). On the
 LLVM backend a lane per row loops over the row's directions, so every element
 of L is summed by one lane in one order: L is the same bit for bit from run to
 run and for any number of threads. On CUDA a lane per (row, direction) scatters
-with atomics (``ReduceMode.Expand``; see the field notes: ``Auto`` silently
-picks ``Local`` on big targets, 7x slower), and sums agree to float32 rounding.
+with atomics (``ReduceMode.Expand``, which Dr.Jit turns into atomics there), and
+sums agree to float32 rounding.
 Visibility (``occluder``): the paper assumes every light direction of the
 normal's hemisphere reaches the surface, which holds for a convex object
 only. Given the object as a Mitsuba scene, rows that know their surface
@@ -78,7 +78,8 @@ from mi_bivariate.capture import Observations
 from mi_bivariate.errors import InputError
 from mi_bivariate.limits import MAX_DIRS, MAX_KERNEL_LANES, MAX_LIGHTING_BYTES, check_grid, check_max
 from mi_bivariate.lighting.directions import direction_pairs, hemisphere_offsets, light_directions, row_frames
-from mi_bivariate.lighting.kernels import _lighting_target, _rgb_rows, _row_packets, _spatial_order, _texel_target
+from mi_bivariate.lighting.kernels import (_lighting_target, _rgb_rows, _row_packets, _spatial_order, _texel_target,
+                                          lane_per_row)
 from mi_bivariate.lighting.mis import (
     ENV_SHIFTS,
     MIS_FRACTIONS,
@@ -122,8 +123,11 @@ def _as_probe_list(probes: Any) -> List[Any]:
 def check_kernel_lanes(n_rows: int, n_dirs: int, n_nodes: int, name: str = "n_dirs",
                        chunk: Optional[int] = None) -> None:
     """Refuse a lighting kernel of more than :data:`~mi_bivariate.limits.MAX_KERNEL_LANES` lanes
-    (rows of a chunk x direction pairs; Dr.Jit indexes them with 32 bits), naming ``name``."""
-    lanes = min(int(n_rows), _chunk_rows(n_nodes, chunk)) * direction_pairs(n_dirs)
+    (Dr.Jit indexes them with 32 bits), naming ``name``: rows of a chunk x direction pairs where a
+    lane runs per (row, direction) (CUDA); a chunk's rows where a lane loops over its row's
+    directions (:func:`~mi_bivariate.lighting.kernels.lane_per_row`, the CPU)."""
+    per_row = 1 if lane_per_row() else direction_pairs(n_dirs)
+    lanes = min(int(n_rows), _chunk_rows(n_nodes, chunk)) * per_row
     if lanes > MAX_KERNEL_LANES:
         raise InputError(name, f"{n_dirs} directions with {n_nodes} grid nodes make a lighting kernel of "
                          f"{lanes} lanes, over the limit of {MAX_KERNEL_LANES}", "use fewer directions")

@@ -138,9 +138,10 @@ def lattice_points(data: Any, m: int, n_points: int,
     With :func:`lane_per_row`, one lane per row gathers its inputs once and loops over ``k``
     (``dr.while_loop``, traced once: ``body`` runs in a symbolic loop and may scatter, as with
     :func:`splat_mode`, but not read what it scatters, nor create arrays that outlive the loop:
-    build a probe's emitter before). Otherwise one lane per (row, point), row
-    then point: a row's lanes are contiguous, so each thread's block of lanes splats into the few
-    rows it covers of its copy of the target (``docs/recovery.md``, Speed, Round 16).
+    build a probe's emitter before). Dr.Jit then splits a kernel into at most one block per SIMD
+    packet of rows (16 rows with AVX-512): a chunk of 2048 rows keeps up to 128 threads busy, a
+    matrix of 100 rows only 7. Otherwise (CUDA) one lane per (row, point), row then point: a row's
+    lanes are contiguous (``docs/recovery.md``, Speed, Round 16).
     """
     if lane_per_row():
         row = dr.arange(mi.UInt32, m)
@@ -277,9 +278,9 @@ def _splat(m: int, row: Any, lx: Any, ly: Any, lz: Any, sin_v: Any, cos_v: Any, 
     if not given:
         target = dr.zeros(mi.Float, m * n_nodes * 4)
     node = row * n_nodes + i_t * n_s + i_s
-    # 4-wide packets. Expand: per-thread copies of the target, no atomics (Auto silently
-    # picks Local for big targets: 7x slower); NoConflicts: a lane per row, no two lanes
-    # write one element.
+    # 4-wide packets. NoConflicts (CPU): a lane per row, no two lanes write one element, a plain
+    # read-add-write. Expand (CUDA, a lane per (row, direction)): Dr.Jit's atomics there; on
+    # the CPU it would be per-thread copies, and Auto silently picks Local for big targets, 7x slower.
     for offset, w in ((0, (1.0 - wt) * (1.0 - ws)), (1, (1.0 - wt) * ws),
                       (n_s, wt * (1.0 - ws)), (n_s + 1, wt * ws)):
         dr.scatter_reduce(dr.ReduceOp.Add, target, rgb * w, node + offset, active=active, mode=mode)
@@ -300,7 +301,9 @@ def _texel_target(packets: np.ndarray, texels: Tuple[Any, Any, int], n_t: int, n
 
     def body(row: Any, texel: Any, r: RowInputs, u1: Any, u2: Any) -> None:
         d = dr.gather(mi.Vector3f, directions, texel)
-        lx, ly, lz = dr.dot(r.x_axis, d), dr.dot(r.y_axis, d), dr.dot(r.normal, d)
+        lx = r.x_axis.x * d.x + r.x_axis.y * d.y + r.x_axis.z * d.z
+        ly = r.y_axis.x * d.x + r.y_axis.y * d.y + r.y_axis.z * d.z
+        lz = r.normal.x * d.x + r.normal.y * d.y + r.normal.z * d.z
         value = dr.gather(mi.Color3f, radiance_weight, texel) * lz
         _splat(m, row, lx, ly, lz, r.sin_v, r.cos_v, value, n_t, n_s, active=lz > 0.0, target=target, mode=mode)
 
