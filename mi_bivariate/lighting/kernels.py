@@ -97,8 +97,8 @@ def fibonacci_point(k: Any, n_points: int, shift_u: Any, shift_v: Any) -> Tuple[
 
 class RowInputs(NamedTuple):
     """A row's kernel inputs (:func:`_row_packets`), per lane: its frame (``x_axis``, ``y_axis``,
-    ``normal``: ``mi.Vector3f``), the view ``(sin_v, 0, cos_v)`` in that frame, its two
-    Cranley-Patterson shifts and its fourth packet ``p3`` (shift_2, surface position)."""
+    ``normal``: ``mi.Vector3f``), the view ``(sin_v, 0, cos_v)`` in that frame and its two
+    Cranley-Patterson shifts."""
 
     x_axis: Any
     y_axis: Any
@@ -107,14 +107,13 @@ class RowInputs(NamedTuple):
     cos_v: Any
     shift_1: Any
     shift_2: Any
-    p3: Any
 
 
 def row_inputs(data: Any, row: Any) -> RowInputs:
     """The :class:`RowInputs` of rows ``row`` (``mi.UInt32``) from the kernels' input ``data`` (:func:`_row_data`)."""
     p0, p1, p2, p3 = (dr.gather(mi.Vector4f, data, row * _PACKETS + q) for q in range(4))
     return RowInputs(mi.Vector3f(p0.x, p0.y, p0.z), mi.Vector3f(p1.x, p1.y, p1.z), mi.Vector3f(p2.x, p2.y, p2.z),
-                     p0.w, p1.w, p2.w, p3.x, p3)
+                     p0.w, p1.w, p2.w, p3.x)
 
 
 def lane_per_row() -> bool:
@@ -154,29 +153,19 @@ def lattice_points(data: Any, m: int, n_points: int,
 
         dr.while_loop(state=(dr.zeros(mi.UInt32, m),), cond=lambda k: k < n_points, body=step)
         return
+    body(*_lattice_lanes(data, m, n_points))
+
+
+def _lattice_lanes(data: Any, m: int, n_points: int) -> Tuple[Any, Any, RowInputs, Any, Any]:
+    """One lane per (row, lattice point) of a chunk of ``m`` rows, row then point:
+    ``(row, k, inputs, u1, u2)`` as :func:`lattice_points` passes them to its body (its CUDA
+    layout; also for the benchmarks that take lanes apart)."""
     idx = dr.arange(mi.UInt32, m * n_points)
     row = idx // n_points
     k = idx - row * n_points
     inputs = row_inputs(data, row)
     u1, u2 = fibonacci_point(k, n_points, inputs.shift_1, inputs.shift_2)
-    body(row, k, inputs, u1, u2)
-
-
-def _lattice_lanes(data: Any, m: int, n_points: int):
-    """One lane per (row, lattice point) of a chunk of ``m`` rows: the row frame and the
-    row's Cranley-Patterson-shifted Fibonacci lattice point ``(u1, u2)`` in [0, 1)^2
-    (the layout of :func:`lattice_points` on CUDA, for the benchmarks that take lanes apart).
-
-    Returns:
-        ``(row, x_axis, y_axis, normal, sin_v, cos_v, u1, u2, p3, shift_1)`` with ``p3`` the row's
-        fourth packet (shift_2, surface position) and ``shift_1`` the first of the row's shifts.
-    """
-    idx = dr.arange(mi.UInt32, m * n_points)
-    row = idx // n_points
-    k = idx - row * n_points
-    r = row_inputs(data, row)
-    u1, u2 = fibonacci_point(k, n_points, r.shift_1, r.shift_2)
-    return row, r.x_axis, r.y_axis, r.normal, r.sin_v, r.cos_v, u1, u2, r.p3, r.shift_1
+    return row, k, inputs, u1, u2
 
 
 def _occluded(data: Any, row: Any, d: Any, active: Any, occluder: Any) -> Any:

@@ -35,8 +35,8 @@ import numpy as np
 
 from mi_bivariate.common import LUMINANCE_WEIGHTS, luminance
 from mi_bivariate.lighting.directions import _TWO_PI
-from mi_bivariate.lighting.kernels import (RowInputs, _launched, _occluded, _rgb_rows, _row_data, _splat,
-                                          fibonacci_point, lattice_points, row_inputs, splat_mode)
+from mi_bivariate.lighting.kernels import (RowInputs, _lattice_lanes, _launched, _occluded, _rgb_rows, _row_data,
+                                          _splat, fibonacci_point, lattice_points, splat_mode)
 
 #: Light-direction sampling of :func:`lighting_matrix`: the fraction of the K
 #: directions drawn by each strategy of the ``"mis"`` mixture (see :func:`_mis_chunk`).
@@ -248,11 +248,7 @@ def _mis_lanes(data: Any, m: int, probe: Any, strategy: str, counts: dict,
     direction: ``(row, lx, ly, lz, d, weight, sin_v, cos_v, above, radiance)``
     (:func:`_mis_lane`; the layout the benchmarks take apart).
     """
-    idx = dr.arange(mi.UInt32, m * counts[strategy])
-    row = idx // counts[strategy]
-    k = idx - row * counts[strategy]
-    r = row_inputs(data, row)
-    u1, u2 = fibonacci_point(k, counts[strategy], r.shift_1, r.shift_2)
+    row, k, r, u1, u2 = _lattice_lanes(data, m, counts[strategy])
     return (row,) + _mis_lane(k, r, u1, u2, probe, strategy, counts, pool, env_density)
 
 
