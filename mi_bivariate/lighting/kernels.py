@@ -151,7 +151,9 @@ def lattice_points(data: Any, m: int, n_points: int,
             body(row, k, inputs, u1, u2)
             return (k + 1,)
 
-        dr.while_loop(state=(dr.zeros(mi.UInt32, m),), cond=lambda k: k < n_points, body=step)
+        # Symbolic whatever dr.JitFlag.SymbolicLoops says: an evaluated loop would launch a kernel per point.
+        dr.while_loop(state=(dr.zeros(mi.UInt32, m),), cond=lambda k: k < n_points, body=step, mode="symbolic",
+                      label="lattice_points")
         return
     body(*_lattice_lanes(data, m, n_points))
 
