@@ -833,6 +833,8 @@ def test_black_probe_error_names_the_probe_file(files, tmp_path, capsys):
 def test_recover_is_bit_identical_for_any_thread_count(files, tmp_path):
     """``recover --threads 1`` and ``--threads 2``: the same bytes in every table array (and no EXR hang
     with one thread). Under CUDA, whose atomic adds run in no fixed order, the same to float32 rounding."""
+    if (os.cpu_count() or 1) < 2:
+        pytest.skip("one CPU: the CLI lowers --threads 2 to 1, so the two runs would not differ in threads")
     tables = []
     for k in range(2):
         out = tmp_path / f"run{k}.npz"
