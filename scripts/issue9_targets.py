@@ -9,7 +9,11 @@ all cells (the paper's Fig. 3 figure) and, like for like, by the exact floor ove
 (the exact phi_d average scored there; records written before stop 25 lack it); the confident
 cells also by the grid floor (the exact reduction on the recovery's grid) over the same cells.
 
-    python scripts/issue9_targets.py out/evaluate [--noisy out/evaluate_noise]
+    python scripts/issue9_targets.py out/evaluate [--noisy out/evaluate_noise] [--by-input]
+
+``--by-input`` prints instead results.md's table of the training materials: relight / floor for each
+input (grace, uffizi, both), both against the better single one (median relight errors), and the
+two Eq. 1 ratios to the exact floor, with the medians.
 """
 
 from __future__ import annotations
@@ -38,15 +42,38 @@ def ratio(entry: dict) -> float:
     return float(np.median([v["ratio"] for v in entry["images"].values() if "ratio" in v]))
 
 
+def by_input(records: dict, single: str, other: str) -> None:
+    """results.md's per-input table (the training section), medians last."""
+    both = f"{single}+{other}"
+    print("| material | relight / floor: grace | uffizi | both | both / better single | Eq. 1 observed / exact floor "
+          "| Eq. 1 f > 1e-3 / exact floor (f > 1e-3) |\n|---|---:|---:|---:|---:|---:|---:|")
+    rows = []
+    for name, r in sorted(records.items()):
+        e, floors = r["inputs"], r["floors"]
+        row = [ratio(e[single]), ratio(e[other]), ratio(e[both]),
+               relight(e[both]) / min(relight(e[single]), relight(e[other])),
+               e[single]["recovered"]["eq1_observed"] / floors["exact_floor"],
+               e[single]["recovered"]["eq1_min"] / floors["exact_floor_min"]]
+        rows.append(row)
+        print(f"| {name} | " + " | ".join(f"{v:.2f}" for v in row) + " |")
+    print("| **median** | " + " | ".join(f"**{v:.2f}**" for v in np.median(np.array(rows), axis=0)) + " |")
+    beat = sum(row[3] < 1.0 for row in rows)
+    print(f"\n{len(rows)} materials; two images better than the better single one on {beat}/{len(rows)}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("folder")
     parser.add_argument("--noisy", default=None, help="an evaluation of the same materials with --noise")
     parser.add_argument("--single", default="grace_latlong_1k")
     parser.add_argument("--other", default="uffizi_256")
+    parser.add_argument("--by-input", action="store_true", help="the per-input table of results.md's training section")
     args = parser.parse_args()
     records = load(args.folder)
     both = f"{args.single}+{args.other}"
+    if args.by_input:
+        by_input(records, args.single, args.other)
+        return
     rows = []
     for name, r in sorted(records.items()):
         e = r["inputs"]
