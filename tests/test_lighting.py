@@ -661,3 +661,26 @@ def test_lighting_loops_stay_symbolic_whatever_the_jit_flag():
         dr.set_flag(dr.JitFlag.KernelHistory, history)
     assert np.array_equal(got, expected)
     assert launched < 20, launched
+
+
+@pytest.mark.parametrize("sampling", ["mis", "uniform", "texel"])
+def test_both_lane_layouts_give_the_same_matrix(monkeypatch, sampling):
+    """The CPU's lane per row (a loop over the row's directions) and CUDA's lane per (row, direction)
+    are one estimator: the same terms, summed in another order. Run here on the CPU, so that a
+    change to either layout is caught without a GPU."""
+    from mi_bivariate.lighting import kernels
+
+    obs = random_observations(120, seed=5)
+    probe = synthetic_probe().rotated(euler_deg=(0.0, 30.0, 10.0))
+
+    def matrix():
+        if sampling == "texel":
+            return lighting.texel_lighting_matrix(obs, probe, n_t=12, n_s=12, downsample=2)
+        return lighting.lighting_matrix(obs, probe, n_t=12, n_s=12, n_dirs=2400, seed=3, sampling=sampling)
+
+    monkeypatch.setattr(kernels, "lane_per_row", lambda: True)
+    per_row = matrix()
+    monkeypatch.setattr(kernels, "lane_per_row", lambda: False)
+    per_direction = matrix()
+    assert per_row.max() > 0.0
+    np.testing.assert_allclose(per_direction, per_row, rtol=0.0, atol=2e-6 * per_row.max())
