@@ -146,12 +146,13 @@ def sphere_scene_dict(bsdf: dict, probe: Any, camera: SphereCamera, normals: boo
     }
 
 
-def _check_render_inputs(probe: Any, width: Any, height: Any, spp: Any, seed: Any, width_name: str = "width") -> None:
+def _check_render_inputs(probe: Any, width: Any, height: Any, spp: Any, seed: Any, width_name: str = "width") -> int:
     """The checks every render's front door makes before building a scene: the probe's type, the
-    image size and samples within :mod:`mi_bivariate.limits`, the seed an unsigned 32-bit integer."""
+    image size and samples within :mod:`mi_bivariate.limits`, the seed an unsigned 32-bit integer
+    (returned as an ``int``)."""
     check_probe(probe)
     check_render_sizes(width, spp, (width_name, "spp"), hint="lower spp or the image size", height=height)
-    check_seed(seed)
+    return check_seed(seed)
 
 
 def load_scene(scene: dict) -> Any:
@@ -187,14 +188,13 @@ def render_sphere(bsdf: Any, probe: Any, resolution: Union[int, Sequence[int]] =
     """
     ensure_variant(vectorised=True)
     if np.ndim(resolution) == 0:
-        _check_render_inputs(probe, resolution, None, spp, seed, width_name="resolution")
+        seed = _check_render_inputs(probe, resolution, None, spp, seed, width_name="resolution")
         resolution = int(resolution)
     elif len(resolution) == 2:
-        _check_render_inputs(probe, resolution[0], resolution[1], spp, seed)
+        seed = _check_render_inputs(probe, resolution[0], resolution[1], spp, seed)
         resolution = (int(resolution[0]), int(resolution[1]))
     else:
         raise InputError("resolution", f"must be an int or (W, H), got {resolution!r}")
-    seed = check_seed(seed)
     bsdf = bsdf_dict(bsdf)
     cam = SphereCamera.create(camera, resolution, radius_fraction, fov, distance, camera_to_world)
     scene = load_scene(sphere_scene_dict(bsdf, probe, cam, normals=True))
@@ -218,8 +218,8 @@ def render_like(bsdf: Any, probe: Any, geometry: SphereGeometry, width: int, hei
     The returned ``mask`` marks pixels whose centre sees the sphere.
     """
     ensure_variant(vectorised=True)
-    _check_render_inputs(probe, width, height, spp, seed)
-    width, height, seed = int(width), int(height), check_seed(seed)
+    seed = _check_render_inputs(probe, width, height, spp, seed)
+    width, height = int(width), int(height)
     cam = SphereCamera.create("orthographic", (width, height), radius_fraction=geometry.radius / min(width, height),
                               camera_to_world=geometry.camera_to_world)
     offset = np.array([(geometry.cx - 0.5 * width) / geometry.radius,
@@ -254,8 +254,7 @@ def render_mesh(bsdf: Any, probe: Any, view: MeshView, spp: int = 64, seed: int 
     """Render ``view.shape`` with ``bsdf`` (anything :func:`mi_bivariate.render.bsdf_dict` takes)
     under ``probe`` from ``view.camera``: ``(H, W, 3) float32`` linear RGB (background 0)."""
     ensure_variant(vectorised=True)
-    _check_render_inputs(probe, view.camera.width, view.camera.height, spp, seed)
-    seed = check_seed(seed)
+    seed = _check_render_inputs(probe, view.camera.width, view.camera.height, spp, seed)
     scene = load_scene(mesh_scene_dict(view.shape, bsdf_dict(bsdf), probe, view.camera, max_depth))
     out = np.array(mi.render(scene, spp=int(spp), seed=int(seed)), dtype=np.float32)
     return np.ascontiguousarray(out[..., :3])
