@@ -452,6 +452,28 @@ def test_bad_input():
         lighting.lighting_matrix(obs, synthetic_probe(), n_t=1)
 
 
+@pytest.mark.parametrize("kwargs, named", [
+    ({"seed": -1}, "seed"), ({"seed": 1.5}, "seed"), ({"seed": 2**40}, "seed"),
+    ({"n_t": 32.5}, "n_t"), ({"n_s": "8"}, "n_s"), ({"n_dirs": 300.7}, "n_dirs"), ({"n_dirs": 1}, "n_dirs"),
+    ({"chunk": 0}, "chunk"), ({"chunk": 2.5}, "chunk"), ({"sampling": "bad"}, "sampling"),
+    ({"occluder": "scene.xml"}, "occluder")])
+def test_front_door_names_the_bad_argument(kwargs, named):
+    """lighting_matrix refuses each bad argument before any work with an InputError that names it
+    (no numpy or Dr.Jit error from deep inside, no silent rounding of 300.7 directions)."""
+    obs = random_observations(5, seed=0)
+    with pytest.raises(InputError, match=f"^{named}: "):
+        lighting.lighting_matrix(obs, synthetic_probe(), **{"n_dirs": 300, **kwargs})
+
+
+@pytest.mark.parametrize("front_door", ["lighting_matrix", "texel_lighting_matrix"])
+def test_front_doors_refuse_what_is_not_observations(front_door):
+    image = np.ones((16, 16, 3), np.float32)
+    with pytest.raises(InputError, match="^obs: must be Observations"):
+        getattr(lighting, front_door)(image, synthetic_probe())
+    with pytest.raises(InputError, match="^downsample: "):
+        lighting.texel_lighting_matrix(random_observations(5, seed=0), synthetic_probe(), downsample=0)
+
+
 # ------------------------------------------------------- model agreement
 
 def test_model_agreement_with_mitsuba(data_dir_optional):
@@ -599,6 +621,53 @@ def test_mis_masked_lookups_change_no_bit(monkeypatch):
         expected = np.array(mis._mis_chunk(packets, probe, 8, 8, 600))
     assert np.any(got > 0)
     assert_same_sums(got, expected)
+
+
+@pytest.mark.parametrize("sampling", ["mis", "texel"])
+def test_skipping_directions_below_the_horizon_changes_no_bit(monkeypatch, sampling):
+    """The kernels jump over a lane's work where its light direction is below the horizon
+    (kernels.above_horizon: the pooled environment directions, the texels); the matrix equals, bit
+    for bit, the one with every lane's work run (where such lanes add 0 through their masks).
+    The same skip with a wrong test (the horizon at cos 0.1) changes it."""
+    from mi_bivariate.lighting import kernels, mis
+
+    obs = random_observations(64, seed=9)
+    probe = synthetic_probe()
+
+    def matrix():
+        with jit_threads(1):  # one accumulation order under CUDA too (its atomics still vary)
+            if sampling == "texel":
+                return lighting.texel_lighting_matrix(obs, probe, n_t=8, n_s=8, downsample=4)
+            return lighting.lighting_matrix(obs, probe, n_t=8, n_s=8, n_dirs=800, seed=3)
+
+    skipped = matrix()
+    for module in (kernels, mis):
+        monkeypatch.setattr(module, "above_horizon", lambda lz, work, args: work(*args))
+    assert_same_sums(skipped, matrix())
+    for module in (kernels, mis):
+        monkeypatch.setattr(module, "above_horizon", lambda lz, work, args: dr.if_stmt(
+            args=args, cond=lz > 0.1, true_fn=work, false_fn=lambda *a: None))
+    assert np.abs(matrix() - skipped).max() > 1e-3 * np.abs(skipped).max()
+
+
+def test_environment_pool_holds_each_shift_along_a_morton_curve(monkeypatch):
+    """Each shift of the pool holds the points of its lattice (the same set, by value, as in lattice
+    order), ordered along the Morton curve of their directions, so the k-th points of the shifts lie
+    near one another (what lets a packet of neighbouring rows skip them together)."""
+    from mi_bivariate.lighting import kernels, mis
+
+    probe = synthetic_probe()
+    n = 300
+    pool = np.array(mis.environment_pool(probe, n, seed=6)).reshape(mis.ENV_SHIFTS, n, 8)
+    monkeypatch.setattr(mis, "morton_key", lambda d: np.zeros(len(d), np.uint64))  # lattice order
+    lattice = np.array(mis.environment_pool(probe, n, seed=6)).reshape(mis.ENV_SHIFTS, n, 8)
+    assert not np.array_equal(pool, lattice)
+    for q in range(mis.ENV_SHIFTS):
+        np.testing.assert_array_equal(np.unique(pool[q], axis=0), np.unique(lattice[q], axis=0))
+        assert np.all(np.diff(kernels.morton_key(pool[q, :, :3]).astype(np.int64)) >= 0)
+    spread = np.degrees(np.arccos(np.clip(np.sum(pool[0, :, :3] * pool[1, :, :3], axis=1), -1, 1)))
+    spread_lattice = np.degrees(np.arccos(np.clip(np.sum(lattice[0, :, :3] * lattice[1, :, :3], axis=1), -1, 1)))
+    assert np.median(spread) < 0.25 * np.median(spread_lattice)
 
 
 def test_weighted_gram_by_row_blocks_matches_dense_product():

@@ -76,7 +76,8 @@ import numpy as np
 
 from mi_bivariate.capture import Observations
 from mi_bivariate.errors import InputError
-from mi_bivariate.limits import MAX_DIRS, MAX_KERNEL_LANES, MAX_LIGHTING_BYTES, check_grid, check_max
+from mi_bivariate.limits import (MAX_DIRS, MAX_KERNEL_LANES, MAX_LIGHTING_BYTES, check_grid, check_max, check_seed,
+                                 whole_number)
 from mi_bivariate.lighting.directions import direction_pairs, hemisphere_offsets, light_directions, row_frames
 from mi_bivariate.lighting.kernels import (_lighting_target, _rgb_rows, _row_packets, _spatial_order, _texel_target,
                                           lane_per_row)
@@ -133,29 +134,42 @@ def check_kernel_lanes(n_rows: int, n_dirs: int, n_nodes: int, name: str = "n_di
                          f"{lanes} lanes, over the limit of {MAX_KERNEL_LANES}", "use fewer directions")
 
 
-def _check_inputs(obs: Observations, probes: List[Any], n_t: int, n_s: int, n_dirs: int) -> None:
-    check_grid((n_t, n_s))
+def _check_inputs(obs: Observations, probes: List[Any], n_t: Any, n_s: Any, n_dirs: Any = 2, seed: Any = 0,
+                  chunk: Any = None) -> Tuple[int, int, int, int, Optional[int]]:
+    """The front doors' arguments checked, each refusal an :class:`InputError` naming the argument:
+    ``(n_t, n_s, n_dirs, seed, chunk)`` as ``int`` (``chunk`` may stay ``None``)."""
+    if not isinstance(obs, Observations):
+        raise InputError("obs", f"must be Observations, got a {type(obs).__name__}",
+                         "build them from an image with mi_bivariate.capture.image_observations")
+    n_t, n_s = check_grid((n_t, n_s), axis_names=("n_t", "n_s"))
+    n_dirs = whole_number("n_dirs", n_dirs)
     if n_dirs < 2:
-        raise InputError(None, f"n_dirs must be at least 2, got {n_dirs}")
+        raise InputError("n_dirs", f"must be at least 2, got {n_dirs}")
     check_max("n_dirs", n_dirs, MAX_DIRS)
+    seed = check_seed(seed)
+    if chunk is not None:
+        chunk = whole_number("chunk", chunk)
+        if chunk < 1:
+            raise InputError("chunk", f"must be at least 1 row, got {chunk}")
     if len(obs) == 0:
-        raise InputError(None, "no observations")
+        raise InputError("obs", "no observations")
     size = len(obs) * n_t * n_s * 3 * 4
     if size > MAX_LIGHTING_BYTES:
-        raise InputError(None, f"the lighting matrix of {len(obs)} rows x {n_t * n_s} nodes would take "
+        raise InputError("obs", f"the lighting matrix of {len(obs)} rows x {n_t * n_s} nodes would take "
                          f"{size / 2**30:.1f} GiB, over the limit of {MAX_LIGHTING_BYTES / 2**30:.0f} GiB",
                          "use fewer normals or a smaller grid")
     if not probes:
-        raise InputError(None, "no probe given")
+        raise InputError("probes", "no probe given")
     for k, probe in enumerate(probes):
-        check_probe(probe, "probe" if len(probes) == 1 else f"probe {k}")
+        check_probe(probe, "probes" if len(probes) == 1 else f"probes[{k}]")
     top = int(obs.probe_index.max())
     if top >= len(probes) or int(obs.probe_index.min()) < 0:
-        raise InputError(None, f"observations refer to probe {top} but {len(probes)} probe(s) were given")
+        raise InputError("probes", f"the observations refer to probe {top} but {len(probes)} probe(s) were given")
     if not (np.all(np.isfinite(obs.normals)) and np.all(np.isfinite(obs.views))):
-        raise InputError(None, "observations have non-finite normals or views")
+        raise InputError("obs", "the observations have non-finite normals or views")
     if np.any(np.sum(obs.normals * obs.views, axis=1) <= 0.0):
-        raise InputError(None, "some observed normals face away from their view (n . v <= 0)")
+        raise InputError("obs", "some observed normals face away from their view (n . v <= 0)")
+    return n_t, n_s, n_dirs, seed, chunk
 
 
 def _chunk_rows(n_nodes: int, chunk: Optional[int]) -> int:
@@ -184,7 +198,7 @@ def _occluder_scene(occluder: Any) -> Any:
         return occluder
     if callable(getattr(occluder, "scene", None)):
         return occluder.scene()
-    raise InputError(None, f"occluder must be a Mitsuba scene or have a scene() method, got {type(occluder).__name__}")
+    raise InputError("occluder", f"must be a Mitsuba scene or have a scene() method, got {type(occluder).__name__}")
 
 
 def _occluder_per_row(obs: Observations, occluder: Any) -> Tuple[List[Any], np.ndarray]:
@@ -202,7 +216,7 @@ def _occluder_per_row(obs: Observations, occluder: Any) -> Tuple[List[Any], np.n
         return [_occluder_scene(occluder)], np.zeros(m, dtype=np.int64)
     top = int(obs.image_index.max())
     if top >= len(per_image):
-        raise InputError(None, f"observations come from image {top} but {len(per_image)} occluder(s) were given")
+        raise InputError("occluder", f"the observations come from image {top} but {len(per_image)} occluder(s) were given")
     scenes: List[Any] = []
     index_of_image = []
     for item in per_image:
@@ -254,15 +268,15 @@ def lighting_matrix(obs: Observations, probes: Union[Any, Sequence[Any]], n_t: i
     """
     ensure_variant(vectorised=True)
     probes = _as_probe_list(probes)
-    _check_inputs(obs, probes, n_t, n_s, n_dirs)
+    n_t, n_s, n_dirs, seed, chunk = _check_inputs(obs, probes, n_t, n_s, n_dirs, seed, chunk)
     check_kernel_lanes(len(obs), n_dirs, n_t * n_s, chunk=chunk)
     if sampling not in SAMPLINGS:
-        raise InputError(None, f"unknown sampling {sampling!r}", f"use one of {', '.join(SAMPLINGS)}")
+        raise InputError("sampling", f"unknown sampling {sampling!r}", f"use one of {', '.join(SAMPLINGS)}")
     target_fn = _mis_target if sampling == "mis" else _lighting_target
     m_total, n_nodes = len(obs), n_t * n_s
     scenes, scene_of_row = _occluder_per_row(obs, occluder)
     if scenes and not obs.has_positions:
-        raise InputError(None, "an occluder was given but the observations have no surface positions",
+        raise InputError("occluder", "an occluder was given but the observations have no surface positions",
                          "build them from a mesh (mi_bivariate.mesh) or pass positions to "
                          "observations_from_normal_map")
     packets = _row_packets(obs.normals, obs.views, hemisphere_offsets(m_total, seed),
@@ -358,9 +372,10 @@ def texel_lighting_matrix(obs: Observations, probes: Union[Any, Sequence[Any]], 
     """
     ensure_variant(vectorised=True)
     probes = _as_probe_list(probes)
-    _check_inputs(obs, probes, n_t, n_s, 2)
+    n_t, n_s, _, _, chunk = _check_inputs(obs, probes, n_t, n_s, chunk=chunk)
+    downsample = whole_number("downsample", downsample)
     if downsample < 1:
-        raise InputError(None, f"downsample must be >= 1, got {downsample}")
+        raise InputError("downsample", f"must be at least 1, got {downsample}")
     m_total, n_nodes = len(obs), n_t * n_s
     packets = _row_packets(obs.normals, obs.views, np.zeros((m_total, 2), dtype=np.float32))
     rows_per_chunk = _chunk_rows(n_nodes, chunk)
