@@ -14,6 +14,7 @@ import math
 import os
 
 import drjit as dr
+import mitsuba as mi
 import numpy as np
 import pytest
 from helpers import assert_same_sums, suite_variant, sums_in_fixed_order
@@ -650,6 +651,31 @@ def test_skipping_directions_below_the_horizon_changes_no_bit(monkeypatch, sampl
     assert np.abs(matrix() - skipped).max() > 1e-3 * np.abs(skipped).max()
 
 
+@pytest.mark.parametrize("bits", [8, 10, 16])
+def test_morton_key_interleaves_the_octahedral_cells(bits):
+    """kernels.morton_key against a plain numpy version (bit by bit interleaving of the octahedral
+    map's cell indices); zero and non-finite vectors get the key of the map's centre."""
+    from mi_bivariate.lighting import kernels
+
+    d = np.random.default_rng(bits).normal(size=(20000, 3)).astype(np.float32)
+    d[:3] = [[0, 0, 1], [0, 0, -1], [1, -1, 0]]
+    n = d / np.abs(d).sum(axis=1, keepdims=True)
+    sign = np.where(n[:, :2] >= 0, 1.0, -1.0).astype(np.float32)
+    oct_xy = np.where(n[:, 2:] >= 0, n[:, :2], (1 - np.abs(n[:, ::-1][:, 1:])) * sign)
+    scale = 2**bits - 1
+    q = np.clip((oct_xy + 1) * np.float32(0.5 * scale), 0, scale).astype(np.uint64)
+    expected = np.zeros(len(d), np.uint64)
+    for b in range(bits):
+        expected |= ((q[:, 0] >> np.uint64(b)) & np.uint64(1)) << np.uint64(2 * b)
+        expected |= ((q[:, 1] >> np.uint64(b)) & np.uint64(1)) << np.uint64(2 * b + 1)
+    got = np.array(kernels.morton_key(mi.Vector3f(np.ascontiguousarray(d.T)), bits)).astype(np.uint64)
+    assert np.mean(got == expected) > 0.999   # a cell boundary may round the other way in float32
+    assert got.max() < 2 ** (2 * bits)
+    odd = kernels.morton_key(mi.Vector3f([0.0, np.nan, np.inf], [0.0, 1.0, 0.0], [0.0, 0.0, 0.0]), bits)
+    centre = kernels.morton_key(mi.Vector3f([0.0], [0.0], [1e-30]), bits)
+    assert np.all(np.array(odd) == np.array(centre)[0])
+
+
 def test_environment_pool_holds_each_shift_along_a_morton_curve(monkeypatch):
     """Each shift of the pool holds the points of its lattice (the same set, by value, as in lattice
     order), ordered along the Morton curve of their directions, so the k-th points of the shifts lie
@@ -659,12 +685,13 @@ def test_environment_pool_holds_each_shift_along_a_morton_curve(monkeypatch):
     probe = synthetic_probe()
     n = 300
     pool = np.array(mis.environment_pool(probe, n, seed=6)).reshape(mis.ENV_SHIFTS, n, 8)
-    monkeypatch.setattr(mis, "morton_key", lambda d: np.zeros(len(d), np.uint64))  # lattice order
+    monkeypatch.setattr(mis, "morton_key", lambda d, bits: dr.zeros(type(d.x), dr.width(d)))  # lattice order
     lattice = np.array(mis.environment_pool(probe, n, seed=6)).reshape(mis.ENV_SHIFTS, n, 8)
     assert not np.array_equal(pool, lattice)
     for q in range(mis.ENV_SHIFTS):
         np.testing.assert_array_equal(np.unique(pool[q], axis=0), np.unique(lattice[q], axis=0))
-        assert np.all(np.diff(kernels.morton_key(pool[q, :, :3]).astype(np.int64)) >= 0)
+        key = kernels.morton_key(mi.Vector3f(np.ascontiguousarray(pool[q, :, :3].T)), mis.POOL_MORTON_BITS)
+        assert np.all(np.diff(np.array(key).astype(np.int64)) >= 0)
     spread = np.degrees(np.arccos(np.clip(np.sum(pool[0, :, :3] * pool[1, :, :3], axis=1), -1, 1)))
     spread_lattice = np.degrees(np.arccos(np.clip(np.sum(lattice[0, :, :3] * lattice[1, :, :3], axis=1), -1, 1)))
     assert np.median(spread) < 0.25 * np.median(spread_lattice)

@@ -74,29 +74,39 @@ def _row_data(packets: np.ndarray) -> Any:
     return mi.Float(aligned)
 
 
-#: Bits per axis of :func:`morton_key` (a key below ``2 ** (2 * MORTON_BITS)``).
-MORTON_BITS = 10
+#: Bits per axis of the rows' Morton curve (:func:`_spatial_order`).
+ROW_MORTON_BITS = 10
 
 
-def morton_key(directions: np.ndarray) -> np.ndarray:
-    """``(N,) uint64`` position of each direction ``(N, 3)`` (any length) along a Morton
-    curve over the octahedral map of the sphere, :data:`MORTON_BITS` bits per axis: directions
-    with near keys are near on the sphere (up to the curve's jumps)."""
-    n = np.nan_to_num(np.asarray(directions, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
-    length = np.abs(n).sum(axis=1, keepdims=True)
-    n = n / np.where(length > 0.0, length, 1.0)  # a zero (or non-finite) vector gets the key of (0, 0, 0)
-    oct_xy = np.where(n[:, 2:] >= 0.0, n[:, :2], (1.0 - np.abs(n[:, ::-1][:, 1:])) * np.sign(n[:, :2]))
-    q = np.clip((oct_xy + 1.0) * 0.5 * (2**MORTON_BITS - 1), 0, 2**MORTON_BITS - 1).astype(np.uint64)
-    key = np.zeros(len(n), dtype=np.uint64)
-    for b in range(MORTON_BITS):
-        key |= ((q[:, 0] >> np.uint64(b)) & np.uint64(1)) << np.uint64(2 * b)
-        key |= ((q[:, 1] >> np.uint64(b)) & np.uint64(1)) << np.uint64(2 * b + 1)
-    return key
+def _spread_bits(q: Any) -> Any:
+    """The low 16 bits of ``q`` (``mi.UInt32``) moved to the even bit positions."""
+    q = (q | (q << 8)) & 0x00FF00FF
+    q = (q | (q << 4)) & 0x0F0F0F0F
+    q = (q | (q << 2)) & 0x33333333
+    return (q | (q << 1)) & 0x55555555
+
+
+def morton_key(d: Any, bits: int) -> Any:
+    """Position of each direction ``d`` (``mi.Vector3f``, any length) along a Morton curve over the
+    octahedral map of the sphere, ``bits`` (at most 16) per axis: ``mi.UInt32`` below
+    ``2 ** (2 * bits)``. Directions with near keys are near on the sphere (up to the curve's jumps);
+    a zero or non-finite vector gets the key of the map's centre."""
+    length = dr.abs(d.x) + dr.abs(d.y) + dr.abs(d.z)
+    usable = dr.isfinite(length) & (length > 0.0)
+    x, y, z = (dr.select(usable, c / length, 0.0) for c in (d.x, d.y, d.z))
+    lower = z < 0.0  # the lower hemisphere folded over the octahedron's faces
+    ox = dr.select(lower, (1.0 - dr.abs(y)) * dr.sign(x), x)
+    oy = dr.select(lower, (1.0 - dr.abs(x)) * dr.sign(y), y)
+    scale = float(2**bits - 1)
+    qx = mi.UInt32(dr.clip((ox + 1.0) * (0.5 * scale), 0.0, scale))
+    qy = mi.UInt32(dr.clip((oy + 1.0) * (0.5 * scale), 0.0, scale))
+    return _spread_bits(qx) | (_spread_bits(qy) << 1)
 
 
 def _spatial_order(normals: np.ndarray) -> np.ndarray:
     """Row order along a Morton curve over the octahedral map of the normals (:func:`morton_key`)."""
-    return np.argsort(morton_key(normals), kind="stable")
+    n = np.asarray(normals, dtype=np.float32)
+    return np.argsort(morton_key(mi.Vector3f(np.ascontiguousarray(n.T)), ROW_MORTON_BITS).numpy(), kind="stable")
 
 
 def fibonacci_point(k: Any, n_points: int, shift_u: Any, shift_v: Any) -> Tuple[Any, Any]:

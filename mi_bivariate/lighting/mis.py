@@ -39,9 +39,9 @@ import numpy as np
 
 from mi_bivariate.common import LUMINANCE_WEIGHTS, luminance
 from mi_bivariate.lighting.directions import _TWO_PI
-from mi_bivariate.lighting.kernels import (MORTON_BITS, RowInputs, _lattice_lanes, _launched, _occluded, _rgb_rows,
-                                          _row_data, _splat, above_horizon, fibonacci_point, lattice_points,
-                                          morton_key, splat_mode)
+from mi_bivariate.lighting.kernels import (RowInputs, _lattice_lanes, _launched, _occluded, _rgb_rows, _row_data,
+                                          _splat, above_horizon, fibonacci_point, lattice_points, morton_key,
+                                          splat_mode)
 
 #: Light-direction sampling of :func:`lighting_matrix`: the fraction of the K
 #: directions drawn by each strategy of the ``"mis"`` mixture (see :func:`_mis_chunk`).
@@ -59,6 +59,9 @@ ENV_SHIFTS = 64
 POLE_RATIO = 4.0
 #: :func:`environment_proxy` per probe.
 _PROXIES: "weakref.WeakKeyDictionary[Any, EnvironmentProxy]" = weakref.WeakKeyDictionary()
+#: Bits per axis of the Morton curve that orders each pooled shift (:func:`environment_pool`):
+#: keys of 16 bits, which numpy sorts by radix.
+POOL_MORTON_BITS = 8
 #: Floats per pooled direction: ``(d.x, d.y, d.z, pdf, radiance r, g, b, 0)``.
 _POOL_FLOATS = 8
 #: The largest pool :func:`~mi_bivariate.lighting.lighting_matrix` builds (bytes, per probe);
@@ -107,16 +110,20 @@ def environment_pool(probe: Any, n_points: int, seed: int = 0, stream: int = 0) 
                               dr.gather(mi.Float, shifts, 2 * q + 1))
     ds, weight = probe.emitter().sample_direction(dr.zeros(mi.Interaction3f), mi.Point2f(u1, u2))
     radiance = weight * ds.pdf
-    # Each shift's points along a Morton curve: the entry of point idx is its rank by (q, key).
-    key = morton_key(np.array(ds.d).T)
-    shift = np.arange(key.size, dtype=np.uint64) // np.uint64(n_points)
-    order = np.argsort((shift << np.uint64(2 * MORTON_BITS)) | key, kind="stable")
-    rank = np.empty(order.size, dtype=np.uint32)
-    rank[order] = np.arange(order.size, dtype=np.uint32)
-    entry = mi.UInt32(rank)
-    pool = dr.zeros(mi.Float, int(n_points) * ENV_SHIFTS * _POOL_FLOATS)
-    dr.scatter(pool, mi.Vector4f(ds.d.x, ds.d.y, ds.d.z, ds.pdf), 2 * entry)
-    dr.scatter(pool, mi.Vector4f(radiance[0], radiance[1], radiance[2], 0.0), 2 * entry + 1)
+    head = mi.Vector4f(ds.d.x, ds.d.y, ds.d.z, ds.pdf)
+    tail = mi.Vector4f(radiance[0], radiance[1], radiance[2], 0.0)
+    key = morton_key(ds.d, POOL_MORTON_BITS)
+    dr.eval(head, tail, key)  # one kernel
+    # Each shift's points along the curve (a stable radix sort of 16-bit keys): point j of shift q in
+    # that order, lattice point order[q, j], goes to entry q * n_points + j.
+    n = int(n_points)
+    order = np.argsort(key.numpy().astype(np.uint16).reshape(ENV_SHIFTS, n), axis=1, kind="stable")
+    entry = np.empty((ENV_SHIFTS, n), dtype=np.uint32)
+    np.put_along_axis(entry, order, np.arange(ENV_SHIFTS * n, dtype=np.uint32).reshape(ENV_SHIFTS, n), axis=1)
+    entry = mi.UInt32(entry.reshape(-1))
+    pool = dr.zeros(mi.Float, n * ENV_SHIFTS * _POOL_FLOATS)
+    dr.scatter(pool, head, 2 * entry)
+    dr.scatter(pool, tail, 2 * entry + 1)
     dr.eval(pool)
     return pool
 
@@ -391,7 +398,7 @@ def _mis_target(packets: np.ndarray, probe: Any, n_t: int, n_s: int, n_dirs: int
             # sorted (environment_pool), a packet of neighbouring rows skips them together.
             def body(row: Any, k: Any, r: RowInputs, u1: Any, u2: Any, lane: Any = lane) -> None:
                 d, _, _ = _pooled_sample(pool, r, k, counts["environment"])
-                above_horizon(dr.dot(d, r.normal), lane, (row, k, r, u1, u2))
+                above_horizon(dr.dot(d, r.normal), lambda: lane(row, k, r, u1, u2), ())
 
         lattice_points(data, m, counts[strategy], body)
     return _launched(target)
