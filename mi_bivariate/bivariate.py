@@ -28,7 +28,7 @@ from mi_bivariate.common import PathLike
 from mi_bivariate.coordinates import grid_nodes, half_diff_from_st, st_from_half_diff
 from mi_bivariate.errors import InputError
 from mi_bivariate.images import write_exr
-from mi_bivariate.limits import check_grid
+from mi_bivariate.limits import MAX_REDUCE_SAMPLES, check_grid, whole_number
 from mi_bivariate.merl import MERL_SHAPE, MERLBRDF, above_horizon, node_angles
 from mi_bivariate.npzio import read_npz
 from mi_bivariate.probes import Probe
@@ -170,11 +170,28 @@ class BivariateBRDF:
 
         Nodes without any valid sample take the value of the nearest node that
         has one. A :class:`BivariateBRDF` is resampled bilinearly.
+
+        Raises:
+            InputError: naming ``brdf`` for an object that is none of these (a file name: read it
+                with :meth:`MERLBRDF.read` or :meth:`load` first), ``n_t``/``n_s`` off the grid limits,
+                or ``n_phi`` not a whole number from 1 with ``n_t * n_s * n_phi`` at most
+                :data:`~mi_bivariate.limits.MAX_REDUCE_SAMPLES`.
         """
         n_t, n_s = check_grid((n_t, n_s), max_nodes=None)
         if isinstance(brdf, Probe):
             raise InputError("brdf", "got a Probe where a BRDF goes",
                              "reduce a MERLBRDF, a BRDF with eval() or a table")
+        if not isinstance(brdf, (BivariateBRDF, MERLBRDF)) and not callable(getattr(brdf, "eval", None)):
+            raise InputError("brdf", f"expected a MERLBRDF, a BivariateBRDF or a BRDF with eval(theta_h, theta_d, "
+                             f"phi_d), got a {type(brdf).__name__}",
+                             "read a file first: MERLBRDF.read(path) for a .binary, BivariateBRDF.load(path) for a "
+                             ".npz, BivariateBRDF(array) for an (n_t, n_s, 3) table")
+        n_phi = whole_number("n_phi", n_phi)
+        if n_phi < 1:
+            raise InputError("n_phi", f"must be at least 1, got {n_phi}")
+        if n_t * n_s * n_phi > MAX_REDUCE_SAMPLES:
+            raise InputError("n_phi", f"{n_t} x {n_s} nodes x {n_phi} = {n_t * n_s * n_phi} evaluations is over the "
+                             f"limit of {MAX_REDUCE_SAMPLES}", "lower n_phi (MERL's tables have 180)")
         t_nodes, s_nodes = grid_nodes(n_t), grid_nodes(n_s)
         if isinstance(brdf, BivariateBRDF):  # already bivariate: resample
             table = brdf.eval_st(s_nodes[None, :], t_nodes[:, None])

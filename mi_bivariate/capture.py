@@ -41,7 +41,7 @@ from typing import Dict, Optional, Sequence, Tuple
 import numpy as np
 
 from mi_bivariate.errors import InputError, InputWarning
-from mi_bivariate.geometry import Geometry, SphereGeometry, check_rotation
+from mi_bivariate.geometry import Geometry, SphereGeometry, check_rotation, check_sphere
 
 DROP_REASONS: Tuple[str, ...] = ("view_angle", "outside_image", "silhouette", "outside_mask",
                                  "duplicate", "nonfinite", "negative", "saturated")
@@ -183,10 +183,18 @@ def _frame_about(axis: np.ndarray) -> np.ndarray:
     return np.stack([x, np.cross(z, x), z], axis=1)
 
 
-def _check_image(image: np.ndarray, source: str) -> np.ndarray:
+def check_image(image: np.ndarray, source: str = "image") -> np.ndarray:
+    """``image`` as ``(H, W, 3) float32`` linear RGB (no copy when it is one), else :class:`InputError`
+    naming ``source``: another shape (a grey or RGBA image), no pixels, a type other than real numbers,
+    values beyond :data:`MAX_PIXEL`. Integers are read as they are, with an :class:`InputWarning`."""
     image = np.asarray(image)
     if image.ndim != 3 or image.shape[2] != 3:
-        raise InputError(source, f"expected an (H, W, 3) RGB image, got shape {image.shape}")
+        hint = None
+        if image.ndim == 2 or (image.ndim == 3 and image.shape[2] == 1):
+            hint = "a grey image: repeat it into three channels, np.dstack([image] * 3), under a grey probe"
+        elif image.ndim == 3 and image.shape[2] == 4:
+            hint = "drop the alpha channel: image[..., :3]"
+        raise InputError(source, f"expected an (H, W, 3) RGB image, got shape {image.shape}", hint)
     if image.shape[0] < 1 or image.shape[1] < 1:
         raise InputError(source, f"empty image of shape {image.shape}")
     if not np.issubdtype(image.dtype, np.number) or np.issubdtype(image.dtype, np.complexfloating):
@@ -312,15 +320,13 @@ def observations_from_sphere(image: np.ndarray, geometry: SphereGeometry, n_norm
         footprint: ``None`` (centre normals) or the largest normal spread,
             degrees, one sub-pixel sample may stand for (e.g. ``2.0``).
     """
-    image = _check_image(image, source)
+    image = check_image(image, source)
     if footprint is not None and not (math.isfinite(footprint) and footprint > 0.0):
         raise InputError(source, f"footprint must be a positive angle in degrees, got {footprint!r}")
     height, width = image.shape[:2]
     mask = _check_mask(mask, (height, width), source)
-    rot = check_rotation(geometry.camera_to_world, source)
+    rot = check_rotation(check_sphere(geometry, source).camera_to_world, source)
     cx, cy, radius = float(geometry.cx), float(geometry.cy), float(geometry.radius)
-    if not all(math.isfinite(v) for v in (cx, cy, radius)) or radius <= 0.0:
-        raise InputError(source, f"invalid sphere: centre ({cx:g}, {cy:g}), radius {radius:g} px")
     if cx + radius <= 0 or cy + radius <= 0 or cx - radius >= width or cy - radius >= height:
         raise InputError(source, f"the sphere (centre ({cx:g}, {cy:g}), radius {radius:g} px) "
                                  f"lies outside the {width}x{height} image")
@@ -439,7 +445,7 @@ def observations_from_normal_map(image: np.ndarray, normals: np.ndarray, mask: n
     """
     from scipy.spatial import cKDTree
 
-    image = _check_image(image, source)
+    image = check_image(image, source)
     height, width = image.shape[:2]
     normals = np.asarray(normals, dtype=np.float64)
     if normals.shape != (height, width, 3):

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
-from typing import List
+from typing import Iterable, List
 
-from mi_bivariate.atomic import atomic_paths
+from mi_bivariate.atomic import atomic_paths, check_outputs
 from mi_bivariate.common import PathLike
+from mi_bivariate.errors import InputError
 from mi_bivariate.recover import Recovery
 from mi_bivariate.report import write_recovery_report
 
@@ -24,8 +26,18 @@ def output_paths(out: PathLike, merl: bool = False, report: bool = True) -> List
     return paths
 
 
+def recovery_input_files(result: Recovery) -> List[Path]:
+    """The files a recovery is known to have read: its probes' files (:attr:`Probe.source
+    <mi_bivariate.probes.Probe.source>`, when that is a file) and the photos its table's provenance
+    names (``provenance["photos"]``, which ``mi-bivariate recover`` sets). A :class:`Recovery` holds its
+    images' pixels, not their paths: a photo read in Python is known only when the caller says so."""
+    names = [getattr(probe, "source", None) for probe in result.probes]
+    names += list(result.brdf.provenance.get("photos") or [])
+    return [Path(name) for name in names if isinstance(name, (str, os.PathLike)) and os.path.isfile(name)]
+
+
 def write_outputs(result: Recovery, out: PathLike, merl: bool = False, report: bool = True,
-                  report_render: bool = False) -> List[Path]:
+                  report_render: bool = False, inputs: Iterable[PathLike] = ()) -> List[Path]:
     """Write the table (``.npz``), its EXR view, optionally a MERL ``.binary`` and a PNG report.
 
     The report's re-render is the model's prediction ``L f`` unless ``report_render``
@@ -33,9 +45,24 @@ def write_outputs(result: Recovery, out: PathLike, merl: bool = False, report: b
 
     All or none: every file is written to a temporary first and they are
     renamed into place together (:func:`mi_bivariate.atomic.atomic_paths`).
+    Never over an input: before anything is written, the outputs are checked
+    (:func:`mi_bivariate.atomic.check_outputs`) against the files the recovery
+    knows it read (:func:`recovery_input_files`: its probes' files, and the photos
+    its provenance names) and ``inputs``. The recovery does not know the path of a
+    photo loaded in Python: give it in ``inputs`` (``inputs=["photo.exr"]``) or
+    record it as ``result.brdf.provenance["photos"]`` to protect it.
     Returns the paths written.
+
+    Raises:
+        InputError: naming ``out``, if an output would replace one of those inputs,
+            or cannot be written (a directory, a folder that is not writable).
     """
     paths = output_paths(out, merl=merl, report=report)
+    protected = recovery_input_files(result) + [Path(p) for p in inputs]
+    try:
+        check_outputs(paths, protected, flag="out")
+    except InputError as exc:
+        raise InputError("out", f"{exc.source}: {exc.problem}", exc.hint) from None
     with atomic_paths(paths) as temps:
         result.brdf.save(temps[0])
         result.brdf.save_exr(temps[1])

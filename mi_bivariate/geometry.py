@@ -23,6 +23,7 @@ from __future__ import annotations
 import abc
 import dataclasses
 import math
+import numbers
 from dataclasses import dataclass, field
 from typing import Any, Dict, Optional, Sequence, Tuple, Union
 
@@ -30,6 +31,7 @@ import mitsuba as mi
 import numpy as np
 
 from mi_bivariate.errors import InputError
+from mi_bivariate.limits import finite_number
 
 #: Distance of the orthographic render camera from the sphere's centre (any value > 1 works).
 ORTHO_DISTANCE = 5.0
@@ -41,7 +43,10 @@ def check_rotation(matrix: Any, source: str = "camera_to_world") -> np.ndarray:
     Raises:
         InputError: not a finite proper rotation (orthonormal to 1e-6, det > 0).
     """
-    rot = np.eye(3) if matrix is None else np.asarray(matrix, dtype=np.float64)
+    try:
+        rot = np.eye(3) if matrix is None else np.asarray(matrix, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError(source, f"camera_to_world is not a (3, 3) rotation matrix, got {matrix!r}") from None
     if rot.shape != (3, 3) or not np.all(np.isfinite(rot)) \
             or not np.allclose(rot @ rot.T, np.eye(3), atol=1e-6) or np.linalg.det(rot) < 0:
         raise InputError(source, "camera_to_world is not a (3, 3) rotation matrix")
@@ -174,6 +179,25 @@ class SphereGeometry(Geometry):
         normals, mask = self.normals(width, height)
         views = np.where(mask[..., None], self.view_direction(), 0.0)
         return SurfaceMaps(normals=normals, views=views, mask=mask)
+
+
+def check_sphere(geometry: Any, source: str = "geometry") -> SphereGeometry:
+    """``geometry`` if it is a :class:`SphereGeometry` with a finite centre, a finite positive radius (real
+    numbers, in pixels) and a proper ``camera_to_world`` rotation; else :class:`InputError` naming ``source``
+    (the one check of an orthographic sphere given by a caller)."""
+    if not isinstance(geometry, SphereGeometry):
+        raise InputError(source, f"expected a mi_bivariate.geometry.SphereGeometry, got a {type(geometry).__name__}",
+                         "e.g. SphereGeometry(cx, cy, radius) in pixels, or mi_bivariate.spherefit.fit_sphere(image)"
+                         ".geometry")
+    values = (geometry.cx, geometry.cy, geometry.radius)
+    if any(isinstance(v, bool) or not isinstance(v, numbers.Real) for v in values):
+        raise InputError(source, f"the sphere's centre and radius must be numbers, got {values!r}")
+    cx, cy, radius = (float(v) for v in values)
+    if not all(math.isfinite(v) for v in (cx, cy, radius)) or radius <= 0.0:
+        raise InputError(source, f"invalid sphere: centre ({cx:g}, {cy:g}), radius {radius:g} px",
+                         "the centre must be finite and the radius finite and positive")
+    check_rotation(geometry.camera_to_world, source)
+    return geometry
 
 
 @dataclass(frozen=True)
@@ -481,6 +505,7 @@ class SphereCamera:
         (orthographic) or of the width (perspective, unless ``distance`` is given)."""
         width, height = _resolution(resolution)
         rot = check_rotation(camera_to_world)
+        radius_fraction = finite_number("radius_fraction", radius_fraction)
         if not radius_fraction > 0.0:
             raise InputError("radius_fraction", f"must be positive, got {radius_fraction}")
         half_width = None
@@ -490,9 +515,10 @@ class SphereCamera:
             half_width, d, fov = 0.5 * width / radius_px, ORTHO_DISTANCE, None
             scale = mi.ScalarTransform4f().scale([half_width] * 2 + [1.0])
         elif kind == "perspective":
+            fov = finite_number("fov", fov)
             if not 0.0 < fov < 180.0:
                 raise InputError("fov", f"must be in (0, 180) degrees, got {fov}")
-            d = default_distance(fov, radius_fraction) if distance is None else float(distance)
+            d = default_distance(fov, radius_fraction) if distance is None else finite_number("distance", distance)
             if d <= 1.0:
                 raise InputError("distance", f"the camera must be outside the unit sphere, got {d}")
             fov = float(fov)

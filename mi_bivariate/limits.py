@@ -33,6 +33,10 @@ MAX_SPP = 1 << 16
 MAX_RENDER_SAMPLES = 1 << 28
 #: Sampler seeds are unsigned 32-bit integers.
 MAX_SEED = 2**32 - 1
+#: Evaluations of a BRDF in one reduction to the st grid (:meth:`~mi_bivariate.bivariate.BivariateBRDF.reduce`:
+#: n_t x n_s x n_phi; float64 RGB of 2^24 takes 400 MB): the default 32 x 32 x 180 is 184 320, 256 x 256 x 180
+#: 11.8 million.
+MAX_REDUCE_SAMPLES = 1 << 24
 
 
 def whole_number(name: str, value: Any) -> int:
@@ -43,6 +47,16 @@ def whole_number(name: str, value: Any) -> int:
     if not isinstance(value, numbers.Integral) and not (math.isfinite(value) and float(value).is_integer()):
         raise InputError(name, f"must be a whole number, got {value!r}")
     return int(value)
+
+
+def finite_number(name: str, value: Any) -> float:
+    """``value`` as a ``float``, refused (:class:`InputError` naming ``name``) unless it is a finite real
+    number (an integer or float type, not a string, a bool, NaN or an infinity); the caller checks its range."""
+    if isinstance(value, np.ndarray) and value.ndim == 0:
+        value = value.item()
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
+        raise InputError(name, f"must be a finite number, got {value!r}")
+    return float(value)
 
 
 def check_max(name: str, value: Optional[int], limit: int, hint: str = "") -> None:

@@ -55,6 +55,7 @@ import numpy as np
 from mi_bivariate.common import PathLike, luminance
 from mi_bivariate.errors import InputError
 from mi_bivariate.images import read_image, write_exr
+from mi_bivariate.limits import MAX_RESOLUTION, check_max, whole_number
 
 #: Readable probe file types (extension -> description).
 PROBE_FORMATS: Dict[str, str] = {
@@ -159,7 +160,7 @@ def check_probe(value: Any, source: Any = "probe") -> "Probe":
     check: a file name or an array given where a probe goes)."""
     if not isinstance(value, Probe):
         raise InputError(source, f"expected a mi_bivariate.probes.Probe, got a {type(value).__name__}",
-                         "load one with Probe.load(path) or mi_bivariate.sources.load_probe(name)")
+                         "load one with mi_bivariate.sources.load_probe(path or shared name) or Probe.load(path)")
     return value
 
 
@@ -214,11 +215,26 @@ def rotation_matrix(euler_deg: Sequence[float]) -> np.ndarray:
     """
     from scipy.spatial.transform import Rotation
 
-    return Rotation.from_euler("xyz", np.asarray(euler_deg, dtype=np.float64), degrees=True).as_matrix()
+    return Rotation.from_euler("xyz", euler_angles(euler_deg), degrees=True).as_matrix()
+
+
+def euler_angles(euler_deg: Any, source: str = "euler_deg") -> np.ndarray:
+    """Three finite Euler angles in degrees as ``(3,) float64``, else :class:`InputError` naming ``source``."""
+    try:
+        angles = np.asarray(euler_deg, dtype=np.float64)
+    except (TypeError, ValueError):
+        angles = None
+    if angles is None or angles.shape != (3,) or not np.all(np.isfinite(angles)):
+        raise InputError(source, f"must be three finite angles in degrees (about x, then y, then z), got {euler_deg!r}",
+                         "e.g. (0, 90, 0)")
+    return angles
 
 
 def _as_transform(matrix: Any, source: str, allow_reflection: bool) -> np.ndarray:
-    m = np.asarray(matrix, dtype=np.float64)
+    try:
+        m = np.asarray(matrix, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError(source, f"rotation must be a finite (3, 3) or (4, 4) matrix, got {matrix!r}") from None
     if m.shape == (4, 4):
         if np.abs(m[3] - [0, 0, 0, 1]).max() > 1e-9 or np.abs(m[:3, 3]).max() > 1e-9:
             raise InputError(source, "an environment map transform must be a pure rotation (no translation/projection)")
@@ -242,6 +258,11 @@ def _as_transform(matrix: Any, source: str, allow_reflection: bool) -> np.ndarra
 class Probe:
     """A light probe in Mitsuba's lat-long frame with an explicit rotation.
 
+    ``Probe(data)`` takes any lat-long sampling of ``H >= 3`` rows and ``W >= 2`` columns (Mitsuba's
+    envmap does: e.g. ``2^k + 1`` rows with texels on both poles), while :meth:`load` refuses a file that
+    is not ``2H x H`` (such a file is usually an angular map, a mirror ball or a cube map:
+    :meth:`from_angular_map`, :meth:`from_mirror_ball`).
+
     Attributes:
         data: ``(H, W, 3) float32`` linear radiance (read-only copy), H >= 3, W >= 2.
         to_world: ``(4, 4) float64`` orthogonal transform, the envmap emitter's
@@ -257,12 +278,20 @@ class Probe:
     _digest: List[str] = field(default_factory=list, init=False, repr=False)
 
     def __post_init__(self) -> None:
-        data = np.array(self.data, dtype=np.float32, copy=True)
+        if isinstance(self.data, (str, bytes, os.PathLike)):
+            raise InputError("data", f"got the file name {os.fspath(self.data)!r} where the probe's radiance goes",
+                             "read a file with Probe.load(path) or mi_bivariate.sources.load_probe(path)")
+        try:
+            data = np.array(self.data, dtype=np.float32, copy=True)
+        except (TypeError, ValueError):
+            raise InputError("data", f"expected an (H, W, 3) array of radiance, got a {type(self.data).__name__}",
+                             "read a file with Probe.load(path) or mi_bivariate.sources.load_probe(path)") from None
         if data.ndim != 3 or data.shape[2] != 3 or data.shape[0] < 3 or data.shape[1] < 2:
             raise InputError(self.source, f"probe data has shape {data.shape}; expected (H >= 3, W >= 2, 3)")
         check_radiance(data, self.source)
         data.setflags(write=False)
-        to_world = _as_transform(self.to_world, self.source, allow_reflection=True)
+        to_world = _as_transform(self.to_world, "to_world" if self.source == "<array>" else self.source,
+                                 allow_reflection=True)
         to_world.setflags(write=False)
         object.__setattr__(self, "data", data)
         object.__setattr__(self, "to_world", to_world)
@@ -305,14 +334,36 @@ class Probe:
 
     @classmethod
     def load(cls, path: PathLike, rotation: Any = None) -> "Probe":
-        """Read a lat-long probe (.exr, .hdr/.rgbe, .pfm), ``2H x H`` pixels.
+        """Read a lat-long probe (.exr, .hdr/.rgbe, .pfm), ``2H x H`` pixels, as stored.
+
+        The file is read as it is stored, whatever its name or folder: a shared probe's file
+        (``$MI_BIVARIATE_DATA/probes/grace_latlong_1k.exr``) gets no rotation here, and
+        ``grace_latlong_1k`` is stored upside down. :func:`mi_bivariate.sources.load_probe` (a path or
+        a shared name, as the command line takes them) and :func:`shared_probe` give a shared probe
+        with its rotation (:func:`shared_rotation`).
 
         Args:
             path: the image; a ``to_world`` written by :meth:`save_exr` is restored.
             rotation: optional extra rotation applied after it: a (3, 3) or
                 (4, 4) matrix, or three Euler angles in degrees (see
                 :func:`rotation_matrix`).
+
+        Raises:
+            InputError: an unreadable or invalid file (naming it), a file that is not 2:1, or a
+                ``rotation`` that is none of these (naming ``rotation``).
         """
+        if rotation is not None:  # checked before the file is read
+            given = rotation
+            try:
+                rotation = np.asarray(given, dtype=np.float64)
+            except (TypeError, ValueError):
+                rotation = np.empty(0)
+            if rotation.shape not in ((3,), (3, 3), (4, 4)):
+                raise InputError("rotation", "must be three Euler angles in degrees, or a (3, 3) or (4, 4) rotation "
+                                 f"matrix, got {given!r}", "e.g. rotation=(0, 90, 0)")
+            if rotation.shape == (3,):
+                rotation = rotation_matrix(euler_angles(rotation, "rotation"))
+            rotation = _as_transform(rotation, "rotation", allow_reflection=False)
         data, to_world = read_hdr_image(path)
         if data.ndim == 3 and data.shape[1] != 2 * data.shape[0]:
             raise InputError(path, f"is {data.shape[1]} x {data.shape[0]} pixels, not a 2:1 lat-long (equirectangular) "
@@ -320,9 +371,6 @@ class Probe:
         probe = cls(data, np.eye(4) if to_world is None else to_world, os.fspath(path))
         if rotation is None:
             return probe
-        rotation = np.asarray(rotation, dtype=np.float64)
-        if rotation.shape == (3,):
-            return probe.rotated(euler_deg=rotation)
         return probe.rotated(matrix=rotation)
 
     @classmethod
@@ -331,10 +379,27 @@ class Probe:
 
         Args:
             radiance: scalar or RGB radiance.
-            res: width W (height W // 2), or ``(H, W)``.
+            res: width W (height ``max(3, W // 2)``), or ``(H, W)``; each at most
+                :data:`~mi_bivariate.limits.MAX_RESOLUTION`.
         """
-        h, w = (max(3, res // 2), res) if isinstance(res, int) else res
-        rgb = np.broadcast_to(np.asarray(radiance, dtype=np.float32), (3,))
+        if np.ndim(res) == 0:  # the width
+            w = whole_number("res", res)
+            if w < 2:
+                raise InputError("res", f"must be at least 2 (the width W; the height is max(3, W // 2)), got {w}")
+            check_max("res", w, MAX_RESOLUTION)
+            h = max(3, w // 2)
+        else:
+            if np.ndim(res) != 1 or len(res) != 2:
+                raise InputError("res", f"must be the width W or (H, W), got {res!r}")
+            h, w = whole_number("res H", res[0]), whole_number("res W", res[1])
+            for name, value, least in (("res H", h, 3), ("res W", w, 2)):
+                if value < least:
+                    raise InputError(name, f"must be at least {least}, got {value}")
+                check_max(name, value, MAX_RESOLUTION)
+        try:
+            rgb = np.broadcast_to(np.asarray(radiance, dtype=np.float32), (3,))
+        except (TypeError, ValueError):
+            raise InputError("radiance", f"must be one number or three (RGB), got {radiance!r}") from None
         return cls(np.broadcast_to(rgb, (h, w, 3)), source=f"constant{tuple(float(x) for x in rgb)}")
 
     @classmethod
@@ -392,7 +457,9 @@ class Probe:
                 refused by default so no flip happens by accident.
         """
         if (matrix is None) == (euler_deg is None):
-            raise ValueError("give exactly one of matrix or euler_deg")
+            raise InputError("matrix" if matrix is not None else "euler_deg",
+                             f"give exactly one of matrix or euler_deg, got {'both' if matrix is not None else 'neither'}",
+                             "e.g. probe.rotated(euler_deg=(0, 90, 0))")
         if matrix is None:
             matrix = rotation_matrix(euler_deg)
         m = _as_transform(matrix, self.source, allow_reflection)

@@ -28,7 +28,7 @@ from mi_bivariate import sphere_refine, spherefit
 from mi_bivariate.basis_prior import BasisPrior, default_basis_prior
 from mi_bivariate.bivariate import BivariateBRDF
 from mi_bivariate.errors import InputError, InputWarning
-from mi_bivariate.geometry import Geometry
+from mi_bivariate.geometry import Geometry, SphereGeometry, check_sphere
 from mi_bivariate.noise import estimate_camera_noise
 from mi_bivariate.probes import Probe, check_lit, check_probe
 from mi_bivariate.solve import IMAGE_WEIGHTS, cross_image_factors, solve_stages
@@ -115,12 +115,33 @@ def _check_angle(name: str, value: Any) -> None:
         raise InputError(name, f"must be an angle in (0, 90] degrees, got {value!r}")
 
 
-def _as_list(value, n: int, name: str) -> list:
+def _as_list(value, n: int, name: str, argument: str) -> list:
+    """One ``value`` per image: a list or tuple of ``n`` (else :class:`InputError` naming ``argument``), or one
+    value for all."""
     if isinstance(value, (list, tuple)):
         if len(value) != n:
-            raise InputError(None, f"{len(value)} {name} given for {n} images")
+            raise InputError(argument, f"{len(value)} {name} given for {n} images")
         return list(value)
     return [value] * n
+
+
+def _geometry_list(geometry: Any, n: int) -> List[Geometry]:
+    """One checked :class:`Geometry` per image (an orthographic sphere's numbers by
+    :func:`~mi_bivariate.geometry.check_sphere`), else :class:`InputError` naming ``geometry``."""
+    if isinstance(geometry, (list, tuple)) and geometry and all(
+            isinstance(v, numbers.Real) and not isinstance(v, bool) for v in geometry):
+        raise InputError("geometry", f"expected a Geometry, got the numbers {tuple(geometry)!r}",
+                         "give SphereGeometry(cx, cy, radius) in pixels (or a list of one Geometry per image)")
+    geometries = _as_list(geometry, n, "geometries", "geometry")
+    for k, geo in enumerate(geometries):
+        source = "geometry" if n == 1 else f"geometry {k}"
+        if isinstance(geo, SphereGeometry):
+            check_sphere(geo, source)
+        elif not isinstance(geo, Geometry):
+            raise InputError(source, f"expected a Geometry, got a {type(geo).__name__}",
+                             "use SphereGeometry, PerspectiveSphereGeometry or mesh.MeshView "
+                             "(mi_bivariate.spherefit.fit_sphere(image).geometry fits a sphere)")
+    return geometries
 
 
 def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
@@ -206,9 +227,11 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
     ensure_variant(vectorised=True)  # a front door: the lighting matrix needs a JIT variant
     images = _image_list(images)
     n = len(images)
-    probe_list = _as_list(probe, n, "probes")
-    geometries = _as_list(geometry, n, "geometries")
-    mask_list = _as_list(masks, n, "masks")
+    # shapes and number types before the noise estimate reads the pixels
+    images = [capture.check_image(image, f"image {k}" if n > 1 else "image") for k, image in enumerate(images)]
+    probe_list = _as_list(probe, n, "probes", "probe")
+    geometries = _geometry_list(geometry, n)
+    mask_list = _as_list(masks, n, "masks", "masks")
     n_t, n_s = limits.check_grid(grid)
     limits.check_recovery_sizes(n_normals, n_dirs, (n_t, n_s))
     n_normals, n_dirs, seed = int(n_normals), int(n_dirs), limits.check_seed(seed)
@@ -221,6 +244,8 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
     if saturation is not None and not (isinstance(saturation, numbers.Real) and saturation > 0.0):
         raise InputError("saturation", f"must be a positive number or None, got {saturation!r}")
     solve_mod.check_alpha(alpha)  # fail before the lighting matrix
+    solve_mod.check_pair_rule(pair_rule)
+    basis = _basis_prior(basis_prior, n_t, n_s)  # its type and grid checked before the lighting matrix
     if image_weights not in IMAGE_WEIGHTS:
         raise InputError("image_weights", f"unknown rule {image_weights!r}", f"use one of {', '.join(IMAGE_WEIGHTS)}")
     for k, item in enumerate(probe_list):  # before any work: a wrong object or a black probe
@@ -256,7 +281,6 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
         prior = prior_mod.default_prior()
     if (prior.n_t, prior.n_s) != (n_t, n_s):
         prior = prior.resampled(n_t, n_s)
-    basis = _basis_prior(basis_prior, n_t, n_s)
     with blas_threads():  # no BLAS oversubscription on a shared machine (mi_bivariate.threads)
         sigma = solve_mod.row_sigma(observations.values, observations.image_index, noise=noise_models)
         _check_noise_against_signal(sigma, observations.values)
@@ -569,6 +593,7 @@ def recover_from_photo(image: np.ndarray, probe: Probe, *, intrinsics: Any = Non
     """
     if refine_sphere and intrinsics is not None:
         raise InputError(source, "refine_sphere models an orthographic view only", "leave it out with intrinsics")
+    image = capture.check_image(image, source)  # before the sphere fit and the saturation level read its pixels
     fit = spherefit.fit_sphere(image, mask, sphere=sphere, intrinsics=intrinsics,
                                camera_to_world=camera_to_world, source=source)
     if isinstance(saturation, str):

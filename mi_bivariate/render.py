@@ -38,7 +38,7 @@ import numpy as np
 
 from mi_bivariate.bivariate import BivariateBRDF
 from mi_bivariate.errors import InputError
-from mi_bivariate.geometry import Camera, SphereCamera, SphereGeometry
+from mi_bivariate.geometry import Camera, SphereCamera, SphereGeometry, check_sphere
 from mi_bivariate.limits import check_render_sizes, check_seed
 from mi_bivariate.merl import MERLBRDF
 from mi_bivariate.mesh import MeshShape, MeshView
@@ -216,8 +216,14 @@ def render_like(bsdf: Any, probe: Any, geometry: SphereGeometry, width: int, hei
     camera gets the photo's scale (``geometry.radius`` pixels per unit) and
     pose, and the sphere is moved so its centre lands on ``(cx, cy)``.
     The returned ``mask`` marks pixels whose centre sees the sphere.
+
+    Raises:
+        InputError: naming ``geometry`` if it is not a :class:`SphereGeometry` with a finite centre
+            and a finite positive radius (:func:`~mi_bivariate.geometry.check_sphere`), or the
+            argument that breaks a limit.
     """
     ensure_variant(vectorised=True)
+    check_sphere(geometry, "geometry")
     seed = _check_render_inputs(probe, width, height, spp, seed)
     width, height = int(width), int(height)
     cam = SphereCamera.create("orthographic", (width, height), radius_fraction=geometry.radius / min(width, height),
@@ -252,8 +258,15 @@ def mesh_scene_dict(shape: MeshShape, bsdf: dict, probe: Any, camera: Camera, ma
 def render_mesh(bsdf: Any, probe: Any, view: MeshView, spp: int = 64, seed: int = 0,
                 max_depth: int = 2) -> np.ndarray:
     """Render ``view.shape`` with ``bsdf`` (anything :func:`mi_bivariate.render.bsdf_dict` takes)
-    under ``probe`` from ``view.camera``: ``(H, W, 3) float32`` linear RGB (background 0)."""
+    under ``probe`` from ``view.camera``: ``(H, W, 3) float32`` linear RGB (background 0).
+
+    Raises:
+        InputError: naming ``view`` if it is not a :class:`~mi_bivariate.mesh.MeshView`.
+    """
     ensure_variant(vectorised=True)
+    if not isinstance(view, MeshView):
+        raise InputError("view", f"expected a mi_bivariate.mesh.MeshView (a mesh and its camera), got a "
+                         f"{type(view).__name__}", "render a sphere with render_sphere or render_like")
     seed = _check_render_inputs(probe, view.camera.width, view.camera.height, spp, seed)
     scene = load_scene(mesh_scene_dict(view.shape, bsdf_dict(bsdf), probe, view.camera, max_depth))
     out = np.array(mi.render(scene, spp=int(spp), seed=int(seed)), dtype=np.float32)

@@ -115,6 +115,8 @@ def test_plugins_refuse_a_scalar_variant_in_one_line(tmp_path):
     (dict(max_view_angle_deg=95.0), "max_view_angle_deg", "must be an angle in (0, 90]"),
     (dict(footprint=-1.0), "footprint", "must be an angle in (0, 90]"),
     (dict(saturation=float("nan")), "saturation", "must be a positive number"),
+    (dict(pair_rule="bad"), "pair_rule", "unknown rule 'bad'"),      # before: after the lighting matrix
+    (dict(basis_prior="x"), "basis_prior", "must be 'default', None or a BasisPrior"),  # the same
 ], ids=lambda v: v if isinstance(v, str) else None)
 def test_recover_refuses_bad_arguments_before_any_work(probe, no_work, kwargs, name, problem):
     with pytest.raises(InputError) as info:
@@ -138,6 +140,45 @@ def test_a_grey_two_dimensional_image_is_named_as_one_image(probe):
     with pytest.raises(InputError, match=r"expected an \(H, W, 3\) RGB image, got shape \(48, 48\)") as info:
         recover(IMAGE[..., 0], probe, SPHERE, **SMALL)
     assert info.value.source == "image"
+
+
+@pytest.mark.parametrize("image", [IMAGE[..., 0], IMAGE[..., :2]], ids=["grey", "two-channel"])
+def test_an_image_that_is_not_rgb_is_refused_before_the_noise_estimate(probe, no_work, image):
+    """Before, the default ``noise="auto"`` estimated the noise on the raw array first and crashed in numpy
+    (AxisError, IndexError); ``recover_from_photo`` crashed reading its saturation level."""
+    with pytest.raises(InputError, match=r"expected an \(H, W, 3\) RGB image") as info:
+        recover(image, probe, SPHERE, **{**SMALL, "noise": "auto"})
+    assert info.value.source == "image"
+    with pytest.raises(InputError, match=r"expected an \(H, W, 3\) RGB image") as info:
+        recover_mod.recover_from_photo(image, probe, **{**SMALL, "noise": "auto"})
+    assert info.value.source == "image"
+    with pytest.raises(InputError, match=r"expected an \(H, W, 3\) RGB image") as info:
+        recover([IMAGE, image], probe, SPHERE, **SMALL)
+    assert info.value.source == "image 1"
+
+
+@pytest.mark.parametrize("geometry, problem", [
+    ((24.0, 24.0, 20.0), "expected a Geometry, got the numbers"),    # before: "3 geometries given", no name
+    (None, "expected a Geometry, got a NoneType"),
+    (SphereGeometry("24", 24.0, 20.0), "centre and radius must be numbers"),  # before: numpy UFuncTypeError
+    (SphereGeometry(24.0, 24.0, float("nan")), "invalid sphere"),
+    ([SPHERE, SPHERE], "2 geometries given for 1 images"),
+], ids=["numbers", "None", "string centre", "NaN radius", "two for one image"])
+def test_recover_names_a_bad_geometry_before_any_work(probe, no_work, geometry, problem):
+    with pytest.raises(InputError) as info:
+        recover(IMAGE, probe, geometry, **SMALL)
+    assert info.value.source == "geometry" and problem in info.value.problem, str(info.value)
+
+
+def test_a_basis_prior_on_another_grid_is_refused_before_any_work(probe, no_work):
+    from mi_bivariate.basis_prior import default_basis_prior
+
+    basis = default_basis_prior()
+    if basis is None:
+        pytest.skip("no packaged basis prior")
+    with pytest.raises(InputError, match="is learnt on a 32 x 32 grid") as info:
+        recover(IMAGE, probe, SPHERE, **{**SMALL, "basis_prior": basis})  # SMALL's grid is 8 x 8
+    assert info.value.source == "basis_prior"
 
 
 def test_noise_as_one_number_is_refused_and_as_an_array_pair_accepted(probe, monkeypatch):

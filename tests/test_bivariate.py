@@ -243,3 +243,24 @@ def test_nbrdf_materials(data_dir):
         per_channel = reduction_error_per_channel(merl, biv)
         print(f"MERL-NBRDF {name}: Eq. 1 error 32x32 {reduction_error(merl, biv):.4f} "
               f"(per channel {np.round(per_channel, 4)}), projection alone {reduction_error(merl):.4f}")
+
+
+@pytest.mark.parametrize("brdf", ["some/material.binary", np.ones((4, 4, 4, 3)), None],
+                         ids=["a file name", "an array", "None"])
+def test_reduce_names_a_brdf_it_cannot_evaluate(brdf):
+    """Before, a path, an array or None met ``brdf.eval`` deep inside: AttributeError."""
+    with pytest.raises(InputError, match="expected a MERLBRDF, a BivariateBRDF or a BRDF with eval") as info:
+        BivariateBRDF.reduce(brdf, 8, 8)
+    assert info.value.source == "brdf" and "MERLBRDF.read(path)" in info.value.hint
+
+
+@pytest.mark.parametrize("n_phi, problem", [(0, "must be at least 1"), (-3, "must be at least 1"),
+                                            (2.5, "must be a whole number"), ("180", "must be a whole number"),
+                                            (10**9, "evaluations is over the limit")])
+def test_reduce_checks_n_phi(n_phi, problem):
+    """Before: 0 divided by zero, 2.5 was taken, 10**9 ran on (no size check)."""
+    with pytest.raises(InputError) as info:
+        BivariateBRDF.reduce(Lambertian(0.5), 8, 8, n_phi=n_phi)
+    assert info.value.source == "n_phi" and problem in info.value.problem, str(info.value)
+    whole = BivariateBRDF.reduce(Lambertian(0.5), 8, 8, n_phi=12.0)  # a whole number in a float is one
+    np.testing.assert_array_equal(whole.table, BivariateBRDF.reduce(Lambertian(0.5), 8, 8, n_phi=12).table)

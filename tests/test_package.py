@@ -57,6 +57,27 @@ def test_readme_python_example_runs(tmp_path, monkeypatch):
     assert "table" in namespace["params"]
 
 
+def test_readme_python_loads_a_shared_probe_as_the_command_line_does(data_dir, monkeypatch):
+    """The README's "From Python" loads its probe with ``Probe.load`` no more: given the shared
+    grace_latlong_1k.exr (stored upside down), that read it as stored (to_world = I) and the recovery was
+    silently wrong, while ``--probe`` of the same file turns it (:data:`probes.GRACE_LATLONG_ROTATION`). Every
+    line of the README's Python that loads a probe, run on that file, gives the command line's probe."""
+    from mi_bivariate import probes, sources
+
+    path = probes.shared_probe_path("grace_latlong_1k", data_dir)
+    monkeypatch.setenv("MI_BIVARIATE_DATA", str(data_dir))
+    blocks = re.findall(r"```python\n(.*?)```", (ROOT / "README.md").read_text(), re.S)
+    lines = [line for block in blocks for line in block.splitlines() if re.search(r"probe\w*\s*=.*load", line)]
+    assert lines, "the README's Python loads no probe"
+    command_line = sources.load_probe(str(path))  # what `--probe PATH` loads
+    for line in lines:
+        code = re.sub(r'"[^"]*\.(exr|hdr)"', repr(str(path)), line.split("#")[0])
+        namespace: dict = {"mb": mb}
+        exec(code, namespace)
+        (probe,) = [v for v in namespace.values() if isinstance(v, probes.Probe)]
+        np.testing.assert_array_equal(probe.to_world, command_line.to_world, err_msg=line)
+
+
 def _fresh_python(code: str, cwd: Path) -> subprocess.CompletedProcess:
     env = {k: v for k, v in os.environ.items() if k != "MI_BIVARIATE_VARIANT"}
     return subprocess.run([sys.executable, "-c", code], cwd=cwd, env=env, capture_output=True, text=True, timeout=300)

@@ -386,3 +386,54 @@ def test_downsampled_matches_its_definition():
         overlap = np.where(b > a, np.cos(a) - np.cos(b), 0.0)
         expected = np.einsum("kj,jwc->kwc", overlap, cols) / overlap.sum(axis=1)[:, None, None]
         np.testing.assert_allclose(probe.downsampled(factor).data, expected, rtol=2e-7, atol=0)
+
+
+@pytest.mark.parametrize("call, name, problem", [
+    (lambda: Probe("/some/probe.hdr"), "data", "got the file name"),          # before: float("/some/...") failed
+    (lambda: Probe(np.ones((8, 16, 3)), to_world="x"), "to_world", "must be a finite (3, 3) or (4, 4) matrix"),
+    (lambda: Probe.constant(1.0).rotated(), "euler_deg", "give exactly one of matrix or euler_deg"),
+    (lambda: Probe.constant(1.0).rotated(np.eye(3), (0, 90, 0)), "matrix", "give exactly one"),
+    (lambda: Probe.constant(1.0).rotated(euler_deg=(1, 2)), "euler_deg", "three finite angles"),  # scipy's
+    (lambda: Probe.constant(1.0).rotated(euler_deg=(0, np.nan, 0)), "euler_deg", "three finite angles"),
+    (lambda: Probe.constant(1.0, res=-4), "res", "must be at least 2"),        # numpy's negative dimension
+    (lambda: Probe.constant(1.0, res=(4,)), "res", "must be the width W or (H, W)"),  # unpacking
+    (lambda: Probe.constant(1.0, res=(2, 8)), "res H", "must be at least 3"),
+    (lambda: Probe.constant(1.0, res=8.5), "res", "must be a whole number"),
+    (lambda: Probe.constant(1.0, res=10**6), "res", "over the limit"),
+    (lambda: Probe.constant([1, 2, 3, 4]), "radiance", "one number or three"),  # numpy's broadcast error
+], ids=["path as data", "string to_world", "no rotation", "two rotations", "two angles", "NaN angle",
+        "negative res", "one-element res", "two rows", "fractional res", "huge res", "four channels"])
+def test_probe_mistakes_are_input_errors_naming_the_argument(call, name, problem):
+    with pytest.raises(InputError) as info:
+        call()
+    assert info.value.source == name and problem in info.value.problem, str(info.value)
+
+
+@pytest.mark.parametrize("rotation, problem", [
+    ("0,90,0", "three Euler angles in degrees, or a (3, 3) or (4, 4)"),    # before: ValueError from numpy
+    ((1, 2), "three Euler angles in degrees, or a (3, 3) or (4, 4)"),
+    ((0, np.nan, 0), "three finite angles"),
+    (np.eye(3) * 2, "not orthonormal"),
+])
+def test_probe_load_names_a_bad_rotation_before_reading(tmp_path, rotation, problem):
+    path = tmp_path / "sky.exr"
+    Probe.constant([1.0, 2.0, 3.0], 16).save_exr(path)
+    with pytest.raises(InputError) as info:
+        Probe.load(path, rotation=rotation)
+    assert info.value.source == "rotation" and problem in info.value.problem, str(info.value)
+    with pytest.raises(InputError) as info:  # checked before the file is read: a missing file is not met
+        Probe.load(tmp_path / "absent.exr", rotation=rotation)
+    assert info.value.source == "rotation"
+    turned = Probe.load(path, rotation=(0, 90, 0))  # the forms that were accepted still are, unchanged
+    np.testing.assert_array_equal(turned.to_world, Probe.load(path).rotated(euler_deg=(0, 90, 0)).to_world)
+
+
+def test_a_probe_array_of_any_sampling_is_accepted_a_file_must_be_two_to_one(tmp_path):
+    """``Probe(data)`` takes any lat-long sampling (rows on both poles: 2^k + 1 of them) while ``Probe.load``
+    refuses a file that is not 2:1 (an angular map or a mirror ball, most likely); both documented."""
+    assert Probe(np.ones((9, 16, 3))).height == 9
+    write_exr(tmp_path / "square.exr", np.ones((8, 8, 3), np.float32))
+    with pytest.raises(InputError, match="not a 2:1 lat-long"):
+        Probe.load(tmp_path / "square.exr")
+    assert "any lat-long sampling" in Probe.__doc__ and "2H x H" in Probe.__doc__
+    assert "read as it is stored" in Probe.load.__doc__ and "sources.load_probe" in Probe.load.__doc__

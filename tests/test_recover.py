@@ -228,6 +228,33 @@ def test_write_outputs_and_cli_recover(tmp_path, any_probe):
     np.testing.assert_allclose(cli_table.table, api.brdf.table, rtol=1e-3, atol=1e-4)
 
 
+def test_write_outputs_never_replaces_the_recoverys_inputs(tmp_path):
+    """Before, ``write_outputs(result, "probe")`` replaced the probe file the recovery read (probe.exr) with the
+    table's EXR view, and ``out="photo.npz"`` the photo. Now it refuses, naming ``out``, before anything is
+    written: the probe's file always (the Recovery knows it), a photo given in ``inputs`` or recorded in the
+    table's provenance (the Recovery holds its pixels, not its path)."""
+    probe_file, photo = tmp_path / "probe.exr", tmp_path / "photo.exr"
+    probes.Probe.constant([1.0, 0.9, 0.8], res=16).save_exr(probe_file)
+    probe = probes.Probe.load(probe_file)
+    shot = render.render_sphere({"type": "diffuse"}, probe, resolution=32, spp=2, seed=0)
+    write_exr(photo, shot.image)
+    result = recover(shot.image, probe, shot.geometry, n_normals=200, n_dirs=300, grid=(8, 8), basis_prior=None,
+                     noise=None)
+    before = {p: p.read_bytes() for p in (probe_file, photo)}
+    for out, kwargs in ((tmp_path / "probe", {}), (tmp_path / "probe.npz", {"merl": True}),
+                        (tmp_path / "photo.npz", {"inputs": [photo]})):
+        with pytest.raises(InputError, match="output would overwrite the input") as info:
+            write_outputs(result, out, report=False, **kwargs)
+        assert info.value.source == "out", str(info.value)
+    result.brdf.provenance["photos"] = [str(photo)]  # what `mi-bivariate recover` records
+    with pytest.raises(InputError, match=f"would overwrite the input {photo}"):
+        write_outputs(result, tmp_path / "photo", report=False)
+    assert {p: p.read_bytes() for p in before} == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["photo.exr", "probe.exr"]  # nothing written
+    paths = write_outputs(result, tmp_path / "brdf.npz", report=False, inputs=[photo])
+    assert [p.name for p in paths] == ["brdf.npz", "brdf.exr"] and all(p.is_file() for p in paths)
+
+
 def test_demo_runs_small(tmp_path, capsys):
     """The README's main command, at a small size."""
     code = cli_main(["demo", "--out", str(tmp_path), "--resolution", "64", "--spp", "16"])

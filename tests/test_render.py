@@ -12,10 +12,10 @@ import pytest
 from mi_bivariate.analytic import Lambertian
 from mi_bivariate.bivariate import BivariateBRDF
 from mi_bivariate.errors import InputError
-from mi_bivariate.geometry import SphereCamera
+from mi_bivariate.geometry import SphereCamera, SphereGeometry
 from mi_bivariate.images import write_exr, write_png
 from mi_bivariate.probes import Probe
-from mi_bivariate.render import bsdf_dict, render_sphere
+from mi_bivariate.render import bsdf_dict, render_like, render_mesh, render_sphere
 
 SCENES = Path(__file__).resolve().parents[1] / "scenes"
 DIFFUSE = {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.5}}
@@ -240,3 +240,43 @@ def test_cli_render_probe_rotation_renders_the_turned_probe(tmp_path):
     scale = float(np.abs(expected).max())
     np.testing.assert_allclose(images[True], expected, atol=1e-5 * scale)
     assert float(np.abs(images[False] - expected).mean()) > 0.05 * float(np.abs(expected).mean())
+
+
+@pytest.mark.parametrize("geometry, problem", [
+    (None, "expected a mi_bivariate.geometry.SphereGeometry, got a NoneType"),
+    ((24.0, 24.0, 21.6), "got a tuple"),
+    (SphereGeometry(float("nan"), 24.0, 10.0), "invalid sphere"),            # before: a black image, no error
+    (SphereGeometry(24.0, 24.0, float("inf")), "invalid sphere"),
+    (SphereGeometry(24.0, 24.0, 0.0), "invalid sphere"),                    # before: named "radius_fraction"
+    (SphereGeometry("24", 24.0, 10.0), "must be numbers"),
+    (SphereGeometry(24.0, 24.0, 10.0, camera_to_world=np.eye(3) * 2), "not a (3, 3) rotation"),
+], ids=["None", "tuple", "NaN centre", "infinite radius", "zero radius", "string centre", "scaled rotation"])
+def test_render_like_names_a_bad_geometry(geometry, problem):
+    with pytest.raises(InputError) as info:
+        render_like(DIFFUSE, Probe.constant(1.0, 16), geometry, 48, 48, spp=1)
+    assert info.value.source == "geometry" and problem in info.value.problem, str(info.value)
+
+
+def test_render_mesh_names_a_view_that_is_not_a_mesh_view():
+    """Before: AttributeError ('SphereGeometry' object has no attribute 'camera')."""
+    with pytest.raises(InputError, match="expected a mi_bivariate.mesh.MeshView") as info:
+        render_mesh(DIFFUSE, Probe.constant(1.0, 16), SphereGeometry(24.0, 24.0, 20.0))
+    assert info.value.source == "view"
+
+
+@pytest.mark.parametrize("kwargs, name", [
+    (dict(camera="perspective", distance=float("nan")), "distance"),   # before: a black image, no error
+    (dict(camera="perspective", distance=float("inf")), "distance"),
+    (dict(camera="perspective", distance="5"), "distance"),
+    (dict(camera="perspective", fov="30"), "fov"),                     # before: TypeError
+    (dict(camera="perspective", fov=float("nan")), "fov"),
+    (dict(radius_fraction=float("inf")), "radius_fraction"),           # before: accepted, radius inf
+    (dict(radius_fraction=float("nan")), "radius_fraction"),
+    (dict(radius_fraction="0.4"), "radius_fraction"),                  # before: TypeError
+    (dict(camera_to_world="x"), "camera_to_world"),                    # before: ValueError from numpy
+], ids=["NaN distance", "infinite distance", "string distance", "string fov", "NaN fov", "infinite radius",
+        "NaN radius", "string radius", "string rotation"])
+def test_render_sphere_requires_a_finite_camera(kwargs, name):
+    with pytest.raises(InputError) as info:
+        render_sphere(DIFFUSE, Probe.constant(1.0, 16), resolution=16, spp=1, **kwargs)
+    assert info.value.source == name, str(info.value)

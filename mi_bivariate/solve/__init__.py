@@ -79,7 +79,7 @@ from mi_bivariate.solve.data_term import (
     row_sigma,
 )
 from mi_bivariate.solve.discrepancy import DISCREPANCY_ALPHAS, DISCREPANCY_TARGET, DiscrepancyChoice, discrepancy_alpha
-from mi_bivariate.solve.evidence import DEFAULT_PAIR_RULE, PAIR_RULES, log_evidence, penalty_log_pdet
+from mi_bivariate.solve.evidence import DEFAULT_PAIR_RULE, PAIR_RULES, check_pair_rule, log_evidence, penalty_log_pdet
 from mi_bivariate.solve.gcv import GCV_ALPHAS, GCV_PROBES, GCVCurve, gcv_curve
 from mi_bivariate.solve.image_weights import CROSS_FLOOR, IMAGE_WEIGHTS, cross_image_factors
 from mi_bivariate.solve.nnls import NNLSResult, kkt_violation, nnls_gram
@@ -87,7 +87,8 @@ from mi_bivariate.solve.regularised import PairSolution, SolveResult, SweepPoint
 from mi_bivariate.solve.stages import solve_stages
 
 __all__ = [
-    "ALPHA_RULES", "DEFAULT_ALPHA", "DEFAULT_ALPHA_RULE", "DEFAULT_PAIR_RULE", "PAIR_RULES", "log_evidence",
+    "ALPHA_RULES", "DEFAULT_ALPHA", "DEFAULT_ALPHA_RULE", "DEFAULT_PAIR_RULE", "PAIR_RULES", "check_pair_rule",
+    "log_evidence",
     "penalty_log_pdet", "DISCREPANCY_ALPHAS", "DISCREPANCY_TARGET",
     "DiscrepancyChoice", "check_alpha", "discrepancy_alpha", "KKT_TOLERANCE", "DARK_FRACTION", "MODEL_ERROR",
     "MODEL_ERROR_FORMS", "GCV_ALPHAS",

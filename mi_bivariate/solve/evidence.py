@@ -39,12 +39,20 @@ from typing import Optional, Tuple
 
 import numpy as np
 
+from mi_bivariate.errors import InputError
 from mi_bivariate.solve.common import banded_cholesky, bandwidth, cholesky
 
 #: How the prior variant (weight pair) is chosen per channel: ``"evidence"`` (the default,
 #: :func:`log_evidence`) or ``"residual"`` (the paper's: the lower data residual).
 PAIR_RULES = ("evidence", "residual")
 DEFAULT_PAIR_RULE = "evidence"
+
+
+def check_pair_rule(pair_rule: object) -> str:
+    """``pair_rule`` if it is one of :data:`PAIR_RULES`, else :class:`InputError` naming ``pair_rule``."""
+    if not isinstance(pair_rule, str) or pair_rule not in PAIR_RULES:
+        raise InputError("pair_rule", f"unknown rule {pair_rule!r}", f"use one of {', '.join(PAIR_RULES)}")
+    return pair_rule
 
 
 def log_det_spd(x: np.ndarray) -> float:

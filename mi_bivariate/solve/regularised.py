@@ -34,8 +34,8 @@ from mi_bivariate.solve.data_term import DataTerm, prepare_data_term
 from mi_bivariate.solve.discrepancy import DiscrepancyChoice, discrepancy_alpha
 from mi_bivariate.solve.evidence import (
     DEFAULT_PAIR_RULE,
-    PAIR_RULES,
     channel_log_evidence,
+    check_pair_rule,
     log_det_spd,
     penalty_log_pdet,
 )
@@ -243,8 +243,7 @@ def solve_prepared(data: DataTerm, prior: Optional[Prior] = None, alpha=None, *,
     t0 = time.perf_counter()
     prior = default_prior() if prior is None else prior
     rule = check_alpha(alpha)
-    if pair_rule not in PAIR_RULES:
-        raise InputError("pair_rule", f"unknown rule {pair_rule!r}", f"use one of {', '.join(PAIR_RULES)}")
+    check_pair_rule(pair_rule)
     maps = (maps,) if isinstance(maps, str) else tuple(maps)
     if any(name not in CONFIDENCE_NAMES for name in maps):
         raise InputError("maps", f"unknown confidence maps {tuple(maps)}", f"use some of {', '.join(CONFIDENCE_NAMES)}")
