@@ -44,7 +44,10 @@ LLVM backend a lane per row loops over the row's directions, so every element
 of L is summed by one lane in one order: L is the same bit for bit from run to
 run and for any number of threads. On CUDA a lane per (row, direction) scatters
 with atomics (``ReduceMode.Expand``, which Dr.Jit turns into atomics there), and
-sums agree to float32 rounding.
+sums agree to float32 rounding. Directions below a row's horizon, which add nothing, are
+jumped over where a whole SIMD packet (or warp) has them at once
+(:func:`~mi_bivariate.lighting.kernels.above_horizon`: the environment's pooled
+directions, stored so that neighbouring rows reach them together, and the texels).
 Visibility (``occluder``): the paper assumes every light direction of the
 normal's hemisphere reaches the surface, which holds for a convex object
 only. Given the object as a Mitsuba scene, rows that know their surface
