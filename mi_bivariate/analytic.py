@@ -264,27 +264,29 @@ def analytic_from_spec(spec: str) -> AnalyticBRDF:
             if current not in keys:
                 raise InputError(spec, f"unknown parameter {current!r} for {kind}", f"valid: {', '.join(keys)}")
             if current in values:
-                raise InputError(spec, f"parameter {current!r} given twice")
+                raise InputError(spec, f"parameter {current!r} given twice", "give each parameter once")
             values[current] = []
         elif current is None:
             raise InputError(spec, f"value {token!r} has no parameter name", "write key=value")
         try:
             value = float(token)
         except ValueError:
-            raise InputError(spec, f"{current}: {token!r} is not a number") from None
+            raise InputError(spec, f"{current}: {token!r} is not a number", f"write {current}=NUMBER") from None
         if not (math.isfinite(value) and abs(value) <= MAX_PARAMETER):
-            raise InputError(spec, f"{current}: {token!r} is out of range (finite, at most {MAX_PARAMETER:g} in size)")
+            raise InputError(spec, f"{current}: {token!r} is out of range (finite, at most {MAX_PARAMETER:g} in size)",
+                             f"give {current} a value in that range")
         values[current].append(value)
     kwargs = {}
     for key, vals in values.items():
         arg, is_rgb = keys[key]
         if len(vals) not in ((1, 3) if is_rgb else (1,)):
-            raise InputError(spec, f"{key} takes {'1 or 3 values' if is_rgb else 'one value'}, got {len(vals)}")
+            raise InputError(spec, f"{key} takes {'1 or 3 values' if is_rgb else 'one value'}, got {len(vals)}",
+                             f"write {key}=V" + (f" or {key}=R,G,B" if is_rgb else ""))
         kwargs[arg] = vals if is_rgb else vals[0]
     try:
         return cls(**kwargs)
     except ValueError as e:
-        raise InputError(spec, str(e)) from None
+        raise InputError(spec, str(e), "change the value it names") from None
 
 
 def to_merl(brdf: Union[AnalyticBRDF, Callable], name: str | None = None, dtype=np.float64) -> MERLBRDF:

@@ -169,7 +169,7 @@ def check_outputs(outputs: Iterable[PathLike], inputs: Iterable[Optional[PathLik
         if parent in probed:
             continue
         if not parent.is_dir():
-            raise InputError(out, f"cannot be written: {parent} is not a folder")
+            raise InputError(out, f"cannot be written: {parent} is not a folder", f"choose another {flag}")
         if not os.access(parent, os.W_OK | os.X_OK):
             raise InputError(out, f"cannot be written: the folder {parent} is not writable",
                              f"choose another {flag}")

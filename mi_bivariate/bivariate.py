@@ -333,7 +333,8 @@ def _fill_nearest(values: np.ndarray, source: str) -> np.ndarray:
     if not missing.any():
         return values
     if missing.all():
-        raise InputError(source, "BRDF has no valid sample to reduce")
+        raise InputError(source, "BRDF has no (theta_h, theta_d) cell with a sample valid in every colour "
+                                 "channel to reduce", "check the table: a channel may be missing (NaN) throughout")
     from scipy.ndimage import distance_transform_edt
 
     _, (ii, jj) = distance_transform_edt(missing, return_indices=True)

@@ -130,7 +130,8 @@ def _add_recover_options(p: argparse.ArgumentParser) -> None:
                         "0.3-0.6 px off, which raised four metals' relight error by 25-85%% under grace; a "
                         "refinement that would move the outline more than 1 px, or whose recovery fits the image "
                         "worse, is not taken (a warning says so)")
-    p.add_argument("--mask", default=None, help="optional mask image (non-zero = usable)")
+    p.add_argument("--mask", default=None, help="optional mask image, of the photo's size (pixels with a value > 0 in any channel are usable; "
+                        "0, negative or NaN ones are not)")
     p.add_argument("--fov", type=float, default=None, metavar="DEG",
                    help="the photo's horizontal field of view for a pinhole camera with its principal point at "
                         "the image centre (default: an orthographic view, the paper's model)")
@@ -256,7 +257,13 @@ def build_parser() -> argparse.ArgumentParser:
     _add_data(p)
     
     p = sub.add_parser("evaluate", help="batch evaluation: recover many materials, re-render under novel probes, "
-                                        "compare with the truth and parametric baselines")
+                                        "compare with the truth and parametric baselines",
+                       description="batch evaluation: recover many materials, re-render them under novel probes, "
+                                   "compare with the truth and parametric baselines. A material that fails gets "
+                                   "a warning and the others go on: their results are written, and the command "
+                                   "then ends with one error line naming the failed materials (exit status 2; a "
+                                   "rerun tries only them). A problem shared by every material (an option, a "
+                                   "probe, the prior) stops it before any work.")
     p.add_argument("materials", nargs="*",
                    help="folders of MERL .binary files, .binary files, MERL-NBRDF names, 'nbrdf' (the 23 "
                         "development materials), 'nbrdf-train' (the 50 training ones), 'nbrdf-all' (all 73) or "

@@ -354,12 +354,7 @@ def _load_turned_probe(args: argparse.Namespace, every_channel: bool = False):
     """``--probe``, turned by ``--probe-rotation`` when given; refused when black (or, with
     ``every_channel``, as a recovery needs, black in any colour channel)."""
     probe = load_probe(args.probe, args.data)
-    check_lit(probe, args.probe)
-    if every_channel:
-        dark = [name for name, lit in zip("RGB", np.any(probe.data[..., :3] > 0.0, axis=(0, 1))) if not lit]
-        if dark:
-            raise InputError(args.probe, f"the probe sheds no light in its {'/'.join(dark)} channel: the table "
-                             "cannot be measured there", "give a probe with light in every colour channel")
+    check_lit(probe, args.probe, every_channel=every_channel)
     if args.probe_rotation is not None:
         probe = probe.rotated(euler_deg=args.probe_rotation)
     return probe
@@ -454,11 +449,18 @@ def cmd_demo(args: argparse.Namespace) -> int:
 # --------------------------------------------------------------------------- evaluate
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
+    """The paper's evaluation over the materials given (:func:`mi_bivariate.evaluate.run_evaluation`).
+
+    As in ``recover-batch``, a material that fails (a refused file, a failed recovery) gets its warning
+    and the others go on: their results, summary and figures are written, and the command then ends
+    with one error line naming the failed materials and exit status 2 (a rerun tries only them). A
+    problem shared by every material (an option, a probe, the prior) stops it before any work.
+    """
     def given(value, default):  # 0 is a value to check, not "unset"
         return default if value is None else value
 
     _check_recovery_sizes(given(args.normals, 8000), given(args.dirs, lighting.DEFAULT_DIRS), given(args.grid, (32, 32)))
-    _check_render_sizes(args.resolution or 128, args.spp)
+    _check_render_sizes(given(args.resolution, 128), args.spp)
     _check_render_sizes(given(args.novel_resolution, 64), args.novel_spp, flag="--novel-spp",
                         resolution_flag="--novel-resolution")
     _check_seed(args.seed)
@@ -486,9 +488,11 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     config = (ev.EvalConfig.quick(shared_data=have_shared_data(data), **overrides) if args.quick
               else ev.EvalConfig(**overrides))
     formats = ("png", "pdf") if args.pdf else ("png",)
+    failed: List[str] = []  # the materials as the user named them (a MERL file's path)
     records = ev.run_evaluation(materials, args.out, config=config, jobs=args.jobs, dask=args.dask,
                                 data_dir=data, progress=not args.no_progress, figures=not args.no_figures,
-                                figure_formats=formats, threads=args.threads)
+                                figure_formats=formats, threads=args.threads,
+                                on_failure=lambda material, exc: failed.append(material.spec))
     print(ev.format_summary(records))
     if args.abs:
         out = Path(args.out) / "analysis_by_synthesis.jsonl"
@@ -510,6 +514,11 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
                   f"{reaches}{faster}")
     print(f"results: {Path(args.out) / ev.RESULTS_FILE}, {Path(args.out) / ev.SUMMARY_FILE}"
           + ("" if args.no_figures else f", figures in {Path(args.out) / 'figures'}"))
+    if failed:  # as recover-batch: the others' results are written, the run still says it failed
+        print(f"mi-bivariate: error: {', '.join(failed)}: evaluation failed for {len(failed)} of "
+              f"{len(failed) + len(records)} materials (the warnings above say why; fix or drop "
+              f"{'it' if len(failed) == 1 else 'them'} and rerun: finished materials are kept)", file=sys.stderr)
+        return 2
     return 0
 
 

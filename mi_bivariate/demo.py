@@ -34,7 +34,7 @@ from mi_bivariate.atomic import atomic_paths
 from mi_bivariate.bivariate import BivariateBRDF, floors
 from mi_bivariate.errors import InputError
 from mi_bivariate.images import write_exr
-from mi_bivariate.merl import MERLBRDF
+from mi_bivariate.merl import MERLBRDF, check_reflects
 from mi_bivariate.probes import Probe, check_lit
 from mi_bivariate.recover import recover
 from mi_bivariate.sources import DEFAULT_ANALYTIC, have_shared_data, load_brdf, load_probe
@@ -56,7 +56,7 @@ def _materials_and_probes(material: Optional[str], input_probe: str, novel_probe
         probes = [load_probe(input_probe, data_dir), load_probe(novel_probe, data_dir)]
         for name, probe in zip((input_probe, novel_probe), probes):
             check_lit(probe, name)
-        return (label, spec, load_brdf(spec, data_dir), *probes)
+        return (label, spec, _reflecting(load_brdf(spec, data_dir), spec), *probes)
     if data_dir is not None or (material is not None and material in nbrdf.ALL_NBRDF_MATERIALS):
         nbrdf.data_dir(data_dir)  # raises the helpful "set MI_BIVARIATE_DATA" error
     spec = material or DEFAULT_ANALYTIC
@@ -74,7 +74,13 @@ def _materials_and_probes(material: Optional[str], input_probe: str, novel_probe
     print("shared data not found (set MI_BIVARIATE_DATA): "
           + ("using an analytic material" if material is None else f"material {spec}")
           + (f"; synthetic probes for the shared defaults ({', '.join(replaced)})" if replaced else ""))
-    return spec, spec, load_brdf(spec, data_dir), probes[0], probes[1]
+    return spec, spec, _reflecting(load_brdf(spec, data_dir), spec), probes[0], probes[1]
+
+
+def _reflecting(truth: MERLBRDF, spec: str) -> MERLBRDF:
+    """``truth``, refused (naming ``spec``) if it reflects no light: its input image would be black."""
+    check_reflects(truth.table, spec)
+    return truth
 
 
 #: The files :func:`run_demo` writes into its folder (all or none).

@@ -384,7 +384,8 @@ def check_rgbe(path: PathLike) -> None:
 
 
 def load_mask(path: PathLike, shape: tuple) -> np.ndarray:
-    """Load a mask image as ``(H, W) bool`` (non-zero = usable), checking it matches ``shape``.
+    """Load a mask image as ``(H, W) bool`` (usable: a value > 0 in any channel; 0, negative or NaN: not),
+    checking it matches ``shape`` and selects a pixel.
 
     Any image format will do (8-bit ones without a warning: a mask is not radiometric).
     """
@@ -394,7 +395,11 @@ def load_mask(path: PathLike, shape: tuple) -> np.ndarray:
     if data.shape[:2] != tuple(shape[:2]):
         raise InputError(path, f"mask is {data.shape[1]}x{data.shape[0]} but the image is {shape[1]}x{shape[0]}",
                          "give a mask of the image's size")
-    return np.any(data > 0, axis=2)
+    mask = np.any(data > 0, axis=2)
+    if not mask.any():
+        raise InputError(path, "the mask selects no pixel (no value > 0)",
+                         "mark the sphere's pixels with values > 0; 0, negative and NaN pixels are left out")
+    return mask
 
 
 def provenance_header(units: str, extra: Optional[Dict[str, str]] = None) -> Dict[str, str]:

@@ -21,7 +21,7 @@ import functools
 import math
 import os
 from pathlib import Path
-from typing import Callable, List, Tuple, Union
+from typing import Any, Callable, List, Tuple, Union
 
 import mitsuba as mi
 import numpy as np
@@ -64,6 +64,15 @@ def above_horizon(theta_h, theta_d, phi_d) -> np.ndarray:
     along = np.cos(theta_d) * np.cos(theta_h)
     across = np.sin(theta_d) * np.sin(theta_h) * np.cos(phi_d)
     return (along - across > 0.0) & (along + across > 0.0)
+
+
+def check_reflects(table: np.ndarray, source: Any, hint: str = "give a material that reflects light") -> None:
+    """Raise :class:`InputError` naming ``source`` if a 3D ``table`` holds no positive value (every value 0
+    or missing): such a material reflects no light, its photo is black, and a reduction's relative error
+    is undefined."""
+    if not np.any(np.asarray(table) > 0.0):  # NaN (missing) compares False
+        raise InputError(source, "the BRDF table holds no positive value (every value is 0 or missing): it "
+                                 "reflects no light, and the relative error of a reduction is undefined", hint)
 
 
 @functools.lru_cache(maxsize=1)
@@ -171,11 +180,15 @@ class MERLBRDF:
             table[..., c] = channel
         if np.isinf(table).any():
             raise InputError(path, "MERL file holds infinite values")
+        check_reflects(table, path, "check the file")
         finite = table[np.isfinite(table)]
-        if not np.any(finite > 0.0):  # every value 0 or missing: nothing reflects light
-            raise InputError(path, "MERL table holds no positive value (every value is 0 or missing): it "
-                                   "reflects no light, and the relative error of a reduction is undefined",
-                             "check the file")
+        missing = [name for c, name in enumerate("RGB") if not np.isfinite(table[..., c]).any()]
+        if missing:  # the others hold light, but no sample is valid in every channel
+            raise InputError(path, f"channel {'/'.join(missing)} has no valid sample (every value there is "
+                                   "negative, MERL's mark of a missing sample)", "check the file")
+        if not np.any(np.all(np.isfinite(table), axis=-1) & geometric_mask()):
+            raise InputError(path, "no sample above the horizon is valid in all three colour channels (the "
+                                   "channels' valid samples do not overlap)", "check the file")
         if finite.max() > np.finfo(np.float32).max:  # renders, reductions and the solve run in float32
             raise InputError(path, f"MERL file holds values up to {finite.max():.3g} 1/sr, beyond float32",
                              "check the file")

@@ -127,6 +127,16 @@ def check_grid(n_t: int, n_s: int, what: str = "prior grid") -> None:
         raise InputError(what, f"needs at least 2 x 2 integer nodes, got {n_t} x {n_s}")
 
 
+#: A node of the st grid is in at most four differences (two along s, two along t): its row of the
+#: precision R^T R sums at most four 1/sigma^2.
+_MAX_EDGES_PER_NODE = 4.0
+#: The largest precision entry (1/sigma^2 summed) a prior may hold: float64's largest number over 1e14, the
+#: room the solve needs to weight it (alpha up to 1e6) and sum it over products of up to 4096^2 terms. A
+#: learnt prior's sigmas are ~1 (each pair divided by their geometric mean): this only refuses sigmas
+#: below ~1.5e-147.
+_MAX_PRECISION = float(np.finfo(np.float64).max) / 1e14
+
+
 def _edge_sigmas(sigma_s: np.ndarray, sigma_t: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
     """Per-row sigmas of ``Ds`` and ``Dt`` (the stored maps without their padding)."""
     return sigma_s[:, :-1].ravel(), sigma_t[:-1, :].ravel()
@@ -264,6 +274,19 @@ class Prior:
                     raise InputError("prior", f"pair {name!r} has non-positive or non-finite sigmas")
             checked[name] = maps  # type: ignore[assignment]
         check_grid(*shape)
+        for name, (sigma_s, sigma_t) in checked.items():
+            # The precision R^T R holds 1/sigma^2 summed over each node's differences: a sigma below
+            # ~1e-154 overflows it to infinity, and one a little above (1e-153) still fails the solve's
+            # eigen-decomposition; see _MAX_PRECISION.
+            e_s, e_t = _edge_sigmas(sigma_s, sigma_t)
+            smallest = float(min(e_s.min(initial=np.inf), e_t.min(initial=np.inf)))
+            with np.errstate(over="ignore", divide="ignore", under="ignore"):
+                largest = _MAX_EDGES_PER_NODE / smallest**2
+            if not largest <= _MAX_PRECISION:  # inf or NaN included
+                raise InputError("prior", f"pair {name!r} has a sigma ({smallest:.3g}) so small that the "
+                                 f"prior's precision (1/sigma^2, up to {largest:.3g}) leaves float64's range "
+                                 f"in the solve (at most {_MAX_PRECISION:.3g})",
+                                 "learn the prior again, or raise its smallest sigmas")
         self.pairs = checked
         self.provenance = dict(provenance or {})
 

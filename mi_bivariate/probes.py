@@ -164,10 +164,16 @@ def check_probe(value: Any, source: Any = "probe") -> "Probe":
     return value
 
 
-def check_lit(probe: "Probe", source: Any) -> None:
-    """Raise :class:`InputError` naming ``source`` if ``probe`` emits no light at all (every texel 0)."""
+def check_lit(probe: "Probe", source: Any, every_channel: bool = False) -> None:
+    """Raise :class:`InputError` naming ``source`` if ``probe`` emits no light at all (every texel 0), or,
+    with ``every_channel`` (as a recovery from it needs), no light in one of its colour channels."""
     if not np.any(probe.data > 0.0):
         raise InputError(source, "probe is black: nothing would be lit", "give a probe that emits light")
+    if every_channel:
+        dark = [name for name, lit in zip("RGB", np.any(probe.data[..., :3] > 0.0, axis=(0, 1))) if not lit]
+        if dark:
+            raise InputError(source, f"the probe sheds no light in its {'/'.join(dark)} channel: the table "
+                             "cannot be measured there", "give a probe with light in every colour channel")
 
 
 def _image_argument(image: Union[np.ndarray, PathLike], source: Optional[str]) -> Tuple[np.ndarray, str]:
@@ -287,7 +293,8 @@ class Probe:
             raise InputError("data", f"expected an (H, W, 3) array of radiance, got a {type(self.data).__name__}",
                              "read a file with Probe.load(path) or mi_bivariate.sources.load_probe(path)") from None
         if data.ndim != 3 or data.shape[2] != 3 or data.shape[0] < 3 or data.shape[1] < 2:
-            raise InputError(self.source, f"probe data has shape {data.shape}; expected (H >= 3, W >= 2, 3)")
+            raise InputError(self.source, f"probe data has shape {data.shape}; expected (H >= 3, W >= 2, 3)",
+                             "give a latitude-longitude environment map, twice as wide as it is tall")
         check_radiance(data, self.source)
         data.setflags(write=False)
         to_world = _as_transform(self.to_world, "to_world" if self.source == "<array>" else self.source,
@@ -657,7 +664,8 @@ def shared_probe_path(name: str, data_dir: Optional[PathLike] = None) -> Path:
     if data_dir is None:
         data_dir = os.environ.get("MI_BIVARIATE_DATA")
         if not data_dir:
-            raise InputError("MI_BIVARIATE_DATA", "not set", "point it at the shared data folder or pass data_dir")
+            raise InputError("MI_BIVARIATE_DATA", "not set", "set it to the shared data folder, or give --data; "
+                             "from Python, data_dir=")
     folder = Path(data_dir)
     if (folder / "probes").is_dir():
         folder = folder / "probes"

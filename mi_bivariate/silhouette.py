@@ -60,7 +60,7 @@ def _check_mask(mask: Any, shape: Tuple[int, int], source: str) -> np.ndarray:
                                  f" but the image is {shape[1]}x{shape[0]}", "give a mask of the image's size")
     mask = mask.astype(bool)
     if not mask.any():
-        raise InputError(source, "the mask selects no pixel", "check the mask: the sphere's pixels must be non-zero")
+        raise InputError(source, "the mask selects no pixel", "check the mask: the sphere's pixels must be True (> 0 in an image)")
     return mask
 
 

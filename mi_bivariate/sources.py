@@ -171,7 +171,9 @@ def load_truth(material: MaterialSpec, data_dir: Optional[PathLike] = None) -> "
         return merl.MERLBRDF.read(material.spec)
     if material.kind == "nbrdf":
         return nbrdf.nbrdf_merl(material.spec, data_dir=data_dir)
-    return analytic.to_merl(analytic.analytic_from_spec(material.spec), dtype=np.float32)
+    truth = analytic.to_merl(analytic.analytic_from_spec(material.spec), dtype=np.float32)
+    merl.check_reflects(truth.table, material.spec)  # its input photo would be black: nothing to recover
+    return truth
 
 
 # ------------------------------------------------------------------ probes

@@ -55,6 +55,9 @@ from mi_bivariate.silhouette import (
 CONFIDENT_RMS_PX = 0.75
 CONFIDENT_INLIER_FRACTION = 0.9
 CONFIDENT_ARC_FRACTION = 0.75
+#: An explicit sphere's radius may be at most this many times the image's larger side (a close-up
+#: of a part of a big sphere still fits; a radius beyond is a mistake).
+MAX_RADIUS_FACTOR = 100.0
 
 
 Geometry = Union[SphereGeometry, PerspectiveSphereGeometry]
@@ -329,6 +332,10 @@ def _user_sphere(sphere: Sequence[float], lum: Optional[np.ndarray], mask: Optio
     if not all(math.isfinite(v) for v in (cx, cy, r)) or r <= 0:
         raise InputError(source, f"invalid sphere: centre ({cx:g}, {cy:g}), radius {r:g} px")
     height, width = shape if shape is not None else (math.inf, math.inf)
+    if r > MAX_RADIUS_FACTOR * max(width, height):  # a typo or a unit slip, whose numbers would overflow
+        raise InputError(source, f"the sphere's radius {r:g} px is more than {MAX_RADIUS_FACTOR:g} times the "
+                                 f"{width}x{height} image's larger side",
+                         "give the sphere's centre and radius (--sphere CX,CY,R) in this image's pixels")
     if cx + r <= 0 or cy + r <= 0 or cx - r >= width or cy - r >= height:
         raise InputError(source, f"the sphere (centre ({cx:g}, {cy:g}), radius {r:g} px) lies outside "
                                  f"the {width}x{height} image")

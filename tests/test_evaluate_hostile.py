@@ -11,6 +11,7 @@ import time
 import warnings
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from mi_bivariate import evaluate as ev
@@ -199,3 +200,92 @@ def test_worker_processes_get_their_threads_and_the_parent_keeps_its_own(tmp_pat
         assert dr.thread_count() == 2
     finally:
         dr.set_thread_count(before)
+
+
+def _black_probe(path: Path) -> str:
+    from mi_bivariate.images import write_exr
+
+    write_exr(path, np.zeros((16, 32, 3), np.float32))
+    return str(path)
+
+
+@pytest.mark.parametrize("case", ["black novel probe", "black input probe", "zero resolution", "tiny-sigma prior",
+                                  "figures is a file"])
+def test_shared_problems_are_one_line_before_any_material(tmp_path, capsys, case):
+    """A problem every material shares is refused up front, naming the file: one line, no per-material
+    warnings, no results (a black novel probe once wrote Infinity/NaN and exited 0; a black input probe,
+    ``--resolution 0`` and a prior whose 1/sigma^2 overflows failed once per material; a ``figures`` file
+    was found only after the whole evaluation)."""
+    out = tmp_path / "new" / "eval"
+    args = list(TINY_ARGS)
+    if case == "black novel probe":
+        bad = _black_probe(tmp_path / "black.exr")
+        args[args.index("synthetic:7")] = bad
+    elif case == "black input probe":
+        bad = _black_probe(tmp_path / "black.exr")
+        args[args.index("synthetic:1")] = bad
+    elif case == "zero resolution":
+        bad = "--resolution"
+        args[args.index("--resolution") + 1] = "0"
+    elif case == "tiny-sigma prior":
+        from mi_bivariate.prior import DEFAULT_PRIOR_PATH
+
+        arrays = dict(np.load(DEFAULT_PRIOR_PATH))
+        arrays["gloss_sigma_s"][:] = 1e-160
+        bad = str(tmp_path / "tiny.npz")
+        np.savez(bad, **arrays)
+        args += ["--prior", bad]
+    else:
+        out.mkdir(parents=True)
+        (out / "figures").write_text("a file")
+        bad = str(out / "figures")
+        args.remove("--no-figures")
+    status = main(["evaluate", MATERIAL, "lambertian:albedo=0.2", "--out", str(out), *args])
+    err = capsys.readouterr().err
+    assert status == 2 and err.count("\n") == 1 and err.startswith(f"mi-bivariate: error: {bad}:"), err
+    if case == "figures is a file":
+        assert not (out / ev.RESULTS_FILE).exists() and (out / "figures").read_text() == "a file"
+    else:
+        assert not (tmp_path / "new").exists(), err
+
+
+def test_a_failed_material_still_writes_the_others_then_exits_2(tmp_path, capsys):
+    """As recover-batch: the material that fails is warned about, the others' results are written, and
+    the command ends with one error line naming the failed one (it once exited 0)."""
+    out = tmp_path / "eval"
+    black = "lambertian:albedo=0"                        # reflects no light: nothing to recover
+    with pytest.warns(InputWarning, match=f"{black}: evaluation failed: .*no positive value"):
+        status = main(["evaluate", MATERIAL, black, "--out", str(out), *TINY_ARGS])
+    err = capsys.readouterr().err.splitlines()
+    assert status == 2 and len(err) == 1, err
+    assert err[0].startswith(f"mi-bivariate: error: {black}: evaluation failed for 1 of 2 materials"), err
+    records = ev.read_records(out / ev.RESULTS_FILE)
+    assert [r["material"] for r in records] == [ev.resolve_materials([MATERIAL])[0].label]
+    assert (out / ev.SUMMARY_FILE).read_text().startswith("material,")
+    # A record with non-finite numbers goes to disk as valid JSON and back into the tables as NaN.
+    record = dict(records[0], material="copy")
+    for images in (entry["images"] for entry in record["inputs"].values()):
+        for scores in images.values():
+            scores.update(psnr=float("inf"), ratio=float("nan"))
+    ev.append_record(out / ev.RESULTS_FILE, record)
+    copy = [r for r in ev.read_records(out / ev.RESULTS_FILE) if r["material"] == "copy"]
+    (row,) = [row for row in ev.summary_rows(copy)]
+    assert np.isnan(row["image_psnr_mean"]) and np.isnan(row["relight_ratio_median"])
+    assert ev.format_summary(copy).startswith("1 materials")   # no TypeError on the nulls
+
+
+def test_results_lines_are_valid_json_without_nan_or_infinity(tmp_path):
+    """A non-finite number (a PSNR of identical images, a ratio to a zero floor) is written as null,
+    never as the bare NaN/Infinity that strict JSON readers refuse; the tables read it back as NaN."""
+    path = tmp_path / ev.RESULTS_FILE
+    record = {"material": "m", "config_hash": "h", "a": float("inf"), "b": [np.float64("nan"), 1.5, -np.inf],
+              "c": {"d": np.float32("inf"), "e": 2}, "f": None}
+    ev.append_record(path, record)
+
+    def refuse(name):
+        raise ValueError(f"bare {name} in results.jsonl")
+
+    (line,) = path.read_text().splitlines()
+    assert json.loads(line, parse_constant=refuse) == {"material": "m", "config_hash": "h", "a": None,
+                                                        "b": [None, 1.5, None], "c": {"d": None, "e": 2}, "f": None}
+    assert ev.read_records(path) == [json.loads(line)]

@@ -1066,3 +1066,61 @@ def test_info_json_keys_are_plain_names(capsys):
     info = json.loads(capsys.readouterr().out)
     assert all(re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", key) for key in info), list(info)
     assert isinstance(info["cuda_backend"], bool) and isinstance(info["llvm_backend"], bool)
+
+
+def test_cli_audit_messages_name_the_file_and_say_what_to_do(files, tmp_path, capsys, monkeypatch):
+    """The CLI audit's misleading messages (findings 6-8): each names the user's file or option, states
+    a true problem and says what to do."""
+    # A MERL file with one channel missing throughout: its file named (not its stem), the channel said.
+    table = np.full(MERL_SHAPE + (3,), 0.05)
+    table[..., 0] = np.nan                              # written as -1: MERL's missing sample
+    red = tmp_path / "redmissing.binary"
+    MERLBRDF(table, name="red").write(red)
+    for argv in (["reduce", str(red), "--grid", "4", "4", "--out", str(tmp_path / "r.npz")],
+                 ["render", str(red), "--probe", str(files["probe"]), "--resolution", "8", "--spp", "1",
+                  "--out", str(tmp_path / "r.exr")]):
+        line = _cli(argv, capsys)
+        assert line == (f"mi-bivariate: error: {red}: channel R has no valid sample (every value there is "
+                        "negative, MERL's mark of a missing sample) (check the file)"), line
+    # A mask with no pixel > 0 (here all -1, which --help once called usable): the mask named, the rule said.
+    negative = images.write_exr(tmp_path / "mask_neg.exr", np.full((64, 64, 3), -1.0, np.float32))
+    line = _cli(_recover_args(files, mask=str(negative)), capsys)
+    assert line.startswith(f"mi-bivariate: error: {negative}: the mask selects no pixel (no value > 0)"), line
+    assert "values > 0" in line, line
+    parser = cli.build_parser().command_parsers["recover"]
+    assert "> 0" in parser.format_help() and "non-zero" not in parser.format_help()
+    # An output folder that is a file: what to do.
+    (tmp_path / "afile").write_text("a file")
+    line = _cli(_recover_args(files, out=str(tmp_path / "afile" / "x.npz")), capsys)
+    assert line.endswith("afile is not a folder (choose another --out)"), line
+    # A probe too small to be a lat-long map; a bad analytic parameter: what to do.
+    tiny = images.write_exr(tmp_path / "pr_1x2.exr", np.ones((1, 2, 3), np.float32))
+    line = _cli(["render", "lambertian:albedo=0.5", "--probe", str(tiny), "--resolution", "8", "--spp", "1",
+                 "--out", str(tmp_path / "t.exr")], capsys)
+    assert line.startswith(f"mi-bivariate: error: {tiny}: probe data has shape") and line.endswith(
+        "(give a latitude-longitude environment map, twice as wide as it is tall)"), line
+    line = _cli(["render", "ggx:alpha=0", "--probe", str(files["probe"]), "--out", str(tmp_path / "g.exr")], capsys)
+    assert line == "mi-bivariate: error: ggx:alpha=0: alpha must be positive, got 0.0 (change the value it names)"
+    # A shared probe name without the data folder: the CLI's flag, not the Python keyword.
+    monkeypatch.delenv("MI_BIVARIATE_DATA", raising=False)
+    line = _cli(["render", "lambertian:albedo=0.5", "--probe", "grace_256", "--out", str(tmp_path / "s.exr")], capsys)
+    assert line.startswith("mi-bivariate: error: MI_BIVARIATE_DATA: not set") and "--data" in line, line
+    assert "pass data_dir" not in line, line
+
+
+def test_demo_names_a_black_material(tmp_path, capsys):
+    """``demo --material`` that reflects no light is refused naming the material, not ``image:`` with
+    advice about the exposure and the mask, which the demo's user does not control."""
+    line = _cli(["demo", "--material", "lambertian:albedo=0", "--out", str(tmp_path / "d"), "--resolution", "8",
+                 "--spp", "1"], capsys)
+    assert line.startswith("mi-bivariate: error: lambertian:albedo=0: the BRDF table holds no positive value"), line
+
+
+def test_an_absurd_sphere_radius_is_refused_before_any_overflow(files, tmp_path, capsys):
+    """``--sphere 32,32,1e300`` once printed numpy's overflow warnings and a 300-digit distance."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        line = _cli(_recover_args(files, sphere="32,32,1e300", out=str(tmp_path / "s.npz")), capsys)
+    assert line == (f"mi-bivariate: error: {files['image']}: the sphere's radius 1e+300 px is more than 100 times "
+                    "the 64x64 image's larger side (give the sphere's centre and radius (--sphere CX,CY,R) in "
+                    "this image's pixels)"), line

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from mi_bivariate.errors import InputError
-from mi_bivariate.prior import PAIRS, Prior, default_prior, difference_operators, plot_prior, specular_ratio
+from mi_bivariate.prior import DEFAULT_PRIOR_PATH, PAIRS, Prior, default_prior, difference_operators, plot_prior, specular_ratio
 from mi_bivariate.training_set import learn_prior_from_merl
 
 
@@ -174,3 +174,21 @@ def test_learn_prior_from_merl_names(data_dir):
     assert (prior.n_t, prior.n_s) == (8, 8)
     with pytest.raises(InputError, match="not a MERL"):
         learn_prior_from_merl(["no-such-material"], data_dir=data_dir)
+
+
+@pytest.mark.parametrize("tiny", [1e-160, 1e-153])
+def test_load_refuses_sigmas_whose_precision_leaves_float64(tmp_path, tiny):
+    """Sigmas of 1e-160 overflow 1/sigma^2 to infinity, and 1e-153 (1/sigma^2 ~ 1e306, finite) still
+    failed the solve's eigen-decomposition: both were LinAlgError tracebacks from ``recover --prior``.
+    They are refused when the file is read, naming it; 1e-100 stays usable."""
+    with np.load(DEFAULT_PRIOR_PATH) as z:
+        arrays = {k: z[k] for k in z.files}
+    path = tmp_path / "tiny.npz"
+    arrays["gloss_sigma_s"][:] = tiny
+    np.savez(path, **arrays)
+    with pytest.raises(InputError, match=r"tiny\.npz: pair 'gloss' has a sigma .* so small that the prior's "
+                                         r"precision"):
+        Prior.load(path)
+    arrays["gloss_sigma_s"][:] = 1e-100
+    np.savez(path, **arrays)
+    assert Prior.load(path).pairs["gloss"][0].min() == 1e-100

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 import scipy.optimize as sopt
@@ -557,3 +559,31 @@ def test_nnls_ignores_a_factor_of_another_system():
     for result in (right, wrong):
         np.testing.assert_array_equal(result.x, plain.x)
         assert result.log_det == plain.log_det and result.iterations == plain.iterations
+
+
+def test_gcv_minimum_of_an_exact_fit_takes_no_log_of_zero():
+    """An exact fit scores 0 beside a positive score (``recover --normals 1 --alpha gcv``): the parabola
+    through log GCV is skipped, not fed log(0) (numpy's divide-by-zero warning reached the user)."""
+    from mi_bivariate.solve.gcv import _minimum
+
+    alphas = np.array([1e-3, 1e-2, 1e-1, 1.0])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        assert _minimum(alphas, np.array([1e-14, 0.0, 1e-14, 1.0])) == (1e-2, 0.0)
+        assert _minimum(alphas, np.array([np.inf, 2.0, 1.0, 2.0])) == pytest.approx((0.1, 1.0), rel=1e-12)
+
+
+def test_gcv_skips_alphas_an_ill_conditioned_prior_cannot_factorise():
+    """A prior whose sigmas span 10 decades left G + lambda P numerically indefinite at some alphas: GCV
+    raised LinAlgError (a traceback from ``recover --alpha gcv``); those alphas are now no candidates."""
+    rng = np.random.default_rng(0)
+    L = rng.random((200, N, 3)).astype(np.float32)
+    clean = np.einsum("mnk,nk->mk", L.astype(np.float64), rng.random((N, 3)))
+    I = (clean * (1 + 0.05 * rng.standard_normal(clean.shape))).astype(np.float32)
+    data = prepare_data_term(L, I, 0.05 * np.abs(I) + 1e-6)
+    sigma = np.ones((N_T, N_S))
+    sigma[:, :2] = 1e-10
+    penalty = Prior({"diffuse": (sigma, np.ones((N_T, N_S))), "gloss": (sigma, np.ones((N_T, N_S)))}
+                    ).penalty_matrix("gloss")
+    curve = gcv_curve(data, penalty, 1)
+    assert np.isinf(curve.scores).any() and np.isfinite(curve.alpha) and np.isfinite(curve.score)

@@ -114,6 +114,8 @@ def test_explicit_sphere_wins_and_warns_on_disagreement():
     (dict(), "nothing to fit"),
     (dict(mask=np.ones((8, 8), bool), intrinsics=(0.0, 1.0, 4.0, 4.0)), "intrinsics"),
     (dict(mask=np.ones((8, 8), bool), radius=-1.0), "radius"),
+    # An explicit radius far beyond the image (a typo): once overflowed numpy's arithmetic in warnings.
+    (dict(image=np.ones((64, 64, 3)), sphere=(32.0, 32.0, 1e300)), "more than 100 times the 64x64 image"),
 ])
 def test_fit_sphere_bad_input(kwargs, match):
     with pytest.raises(InputError, match=match):

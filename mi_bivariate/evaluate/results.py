@@ -94,9 +94,34 @@ def repair_results(path: PathLike) -> int:
     return len(bad)
 
 
+def _finite_json(value: Any) -> Any:
+    """``value`` with every non-finite number (NaN, +-Infinity, which JSON has no words for) as ``None``."""
+    if isinstance(value, dict):
+        return {k: _finite_json(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_finite_json(v) for v in value]
+    if isinstance(value, (float, np.floating)) and not math.isfinite(value):
+        return None
+    return value
+
+
+def _nulls_as_nan(value: Any) -> Any:
+    """A record read back with its ``null`` numbers (written for NaN or Infinity) as NaN, for the tables and
+    figures (which only read numbers from it)."""
+    if isinstance(value, dict):
+        return {k: _nulls_as_nan(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_nulls_as_nan(v) for v in value]
+    return float("nan") if value is None else value
+
+
 def append_record(path: PathLike, record: dict) -> None:
-    """Append one JSON line, flushed and fsynced (the only writer is the parent process)."""
-    line = json.dumps(record, sort_keys=True)
+    """Append one JSON line, flushed and fsynced (the only writer is the parent process).
+
+    The line is valid JSON: a non-finite number (a PSNR of identical images, a ratio to a zero
+    floor) is written as ``null``, not as the bare ``NaN``/``Infinity`` other readers refuse.
+    """
+    line = json.dumps(_finite_json(record), sort_keys=True, allow_nan=False)
     with open(path, "a", encoding="utf-8") as f:
         f.write(line + "\n")
         f.flush()
@@ -129,7 +154,7 @@ def load_artifacts(path: PathLike) -> Dict[str, np.ndarray]:
 def summary_rows(records: Sequence[dict]) -> List[dict]:
     """One flat row per (material, input probe): the numbers of ``summary.csv``."""
     rows = []
-    for r in records:
+    for r in map(_nulls_as_nan, records):
         for probe, e in r["inputs"].items():
             row = {"material": r["material"], "input_probe": probe}
             for key in ("eq1", "eq1_min", "cosine", "log"):
@@ -212,7 +237,7 @@ def make_figures(out_dir: PathLike, records: Optional[Sequence[dict]] = None,
         return []
     fig_dir = Path(fig_dir) if fig_dir is not None else out / "figures"
     arts = {r["material"]: load_artifacts(artifact_path(out, r)) for r in records}
-    return evaluation_figures(records, arts, fig_dir, formats=formats, dpi=dpi)
+    return evaluation_figures([_nulls_as_nan(r) for r in records], arts, fig_dir, formats=formats, dpi=dpi)
 
 
 def _fmt(v: Any, digits: int = 3) -> str:

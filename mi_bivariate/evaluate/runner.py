@@ -49,6 +49,8 @@ from mi_bivariate.evaluate.results import (
     write_summary_csv,
 )
 from mi_bivariate.merl import MERLBRDF
+from mi_bivariate.prior import Prior
+from mi_bivariate.probes import check_lit
 from mi_bivariate.sources import MaterialSpec, load_probe, resolve_materials
 from mi_bivariate.threads import pin_process_threads
 from mi_bivariate.variants import ensure_variant
@@ -191,7 +193,8 @@ def run_evaluation(materials: Sequence[Union[str, MaterialSpec]], out_dir: PathL
                    data_dir: Optional[PathLike] = None, progress: bool = True,
                    figures: bool = True, figure_formats: Sequence[str] = ("png",),
                    on_record: Optional[Callable[[dict], None]] = None,
-                   threads: Optional[int] = None) -> List[dict]:
+                   threads: Optional[int] = None,
+                   on_failure: Optional[Callable[[MaterialSpec, BaseException], None]] = None) -> List[dict]:
     """Evaluate materials, resuming from ``out_dir/results.jsonl``.
 
     Args:
@@ -204,13 +207,19 @@ def run_evaluation(materials: Sequence[Union[str, MaterialSpec]], out_dir: PathL
         progress: show a tqdm progress bar.
         figures: draw the figures at the end (:func:`make_figures`).
         on_record: called with each new record after it is safely on disk.
+        on_failure: called with the material and its exception for each material that failed (it
+            is also warned about, and the others go on; a rerun tries it again).
         threads: Dr.Jit threads per job (default: cores // jobs in worker
             processes; unchanged in-process and on Dask). On the CPU the numbers
             are bitwise reproducible for any number (the lighting matrix sums each
             entry in one order).
 
     Returns:
-        All records of this configuration, in material order.
+        All records of this configuration, in material order (a material that failed has none).
+
+    Raises:
+        InputError: bad settings, probes, prior or files (before any material runs), or every
+            material failed with one (the first's).
     """
     ensure_variant()
     config = config or EvalConfig()
@@ -223,17 +232,28 @@ def run_evaluation(materials: Sequence[Union[str, MaterialSpec]], out_dir: PathL
             [m for m in materials if isinstance(m, MaterialSpec)]
     if not specs:
         raise InputError("materials", "no materials given")
-    # Fail early (in the parent, with a one-line error) on a missing probe or data folder,
-    # a damaged MERL file or an unreachable scheduler: before the output folder exists.
-    for p in tuple(config.input_probes) + tuple(config.novel_probes):
-        for part in p.split("+"):
-            load_probe(part, data_dir, cache=True)
+    # Fail early (in the parent, with a one-line error naming the file) on a missing, black or (an
+    # input probe) partly dark probe, a missing data folder, an unusable prior, a damaged MERL file or
+    # an unreachable scheduler: before the output folder exists, not once per material.
+    for name in config.input_probes:
+        parts = name.split("+")
+        for part in parts:
+            # One input probe is all its recovery's light: every channel must be lit (as `recover` asks);
+            # the views of a multi-view input ("a+b") only need light between them.
+            check_lit(load_probe(part, data_dir, cache=True), part, every_channel=len(parts) == 1)
+    for name in config.novel_probes:
+        check_lit(load_probe(name, data_dir, cache=True), name)
+    if config.prior is not None:
+        Prior.load(config.prior)
     for m in specs:
         if m.kind == "merl":
             MERLBRDF.check_file(m.spec)
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise InputError(out, "the output folder is a file", "choose another --out")
+    if figures and (out / "figures").exists() and not (out / "figures").is_dir():
+        raise InputError(out / "figures", "is a file, where the figures go",
+                         "move it away, choose another --out, or pass --no-figures")
     client = _connect_dask(dask) if dask is not None else None
     created = not out.exists()
     try:
@@ -243,7 +263,7 @@ def run_evaluation(materials: Sequence[Union[str, MaterialSpec]], out_dir: PathL
     try:
         with _folder_lock(out):
             records = _run_locked(specs, out, config, jobs, client, data_dir, progress, figures,
-                                  figure_formats, on_record, threads, created)
+                                  figure_formats, on_record, threads, created, on_failure)
     finally:
         if client is not None and client is not dask:
             client.close()
@@ -252,7 +272,8 @@ def run_evaluation(materials: Sequence[Union[str, MaterialSpec]], out_dir: PathL
 
 def _run_locked(specs: List[MaterialSpec], out: Path, config: EvalConfig, jobs: int, dask: Any,
                 data_dir: Optional[PathLike], progress: bool, figures: bool, figure_formats: Sequence[str],
-                on_record: Optional[Callable[[dict], None]], threads: Optional[int], created: bool) -> List[dict]:
+                on_record: Optional[Callable[[dict], None]], threads: Optional[int], created: bool,
+                on_failure: Optional[Callable[[MaterialSpec, BaseException], None]] = None) -> List[dict]:
     """:func:`run_evaluation`'s work, in a folder it holds the lock of."""
     (out / "materials" / config.hash()).mkdir(parents=True, exist_ok=True)
     results = out / RESULTS_FILE
@@ -281,6 +302,8 @@ def _run_locked(specs: List[MaterialSpec], out: Path, config: EvalConfig, jobs: 
                     failures.append((task.material.label, result))
                     warnings.warn(f"{task.material.label}: evaluation failed: {type(result).__name__}: {result}",
                                   InputWarning, stacklevel=2)
+                    if on_failure is not None:
+                        on_failure(task.material, result)
                     continue
                 record, arrays = result
                 # Artifacts before the record: a record on disk always has its artifacts.

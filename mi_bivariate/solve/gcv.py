@@ -13,6 +13,7 @@ from typing import Optional, Sequence, Tuple
 
 import numpy as np
 
+from mi_bivariate.errors import InputError
 from mi_bivariate.solve.common import penalty_weight
 from mi_bivariate.solve.data_term import DataTerm
 from mi_bivariate.solve.lapack import cho_factor, cho_solve
@@ -58,7 +59,12 @@ def gcv_curve(data: DataTerm, penalty: np.ndarray, k: int, alphas: Sequence[floa
         lam = penalty_weight(alpha, data.n_nodes, data.level[k])
         x = g + lam * penalty
         x[np.diag_indices(n)] += fixed
-        factor = cho_factor(x)
+        try:
+            factor = cho_factor(x)
+        except np.linalg.LinAlgError:  # X not numerically positive definite at this alpha: not a candidate
+            dofs.append(np.nan)
+            scores.append(np.inf)
+            continue
         f = cho_solve(factor, b + shift)
         rho = max(data.yy[k] - 2.0 * f @ b + f @ g @ f, 0.0)
         # tr(X^-1 gram) = N - tr(X^-1 (lam P + diag(fixed)))
@@ -69,14 +75,24 @@ def gcv_curve(data: DataTerm, penalty: np.ndarray, k: int, alphas: Sequence[floa
         scores.append(rho / (1.0 - dof / m) ** 2)
     alphas = np.asarray(alphas, dtype=np.float64)
     scores = np.asarray(scores)
+    if not np.any(np.isfinite(scores)):
+        raise InputError("prior", "the system cannot be factorised at any alpha GCV scans (the smoothness "
+                         "prior is too ill-conditioned)", "give alpha as a number or 'discrepancy'")
+    best, score = _minimum(alphas, scores)
+    return GCVCurve(alphas, scores, np.asarray(dofs), best, score)
+
+
+def _minimum(alphas: np.ndarray, scores: np.ndarray) -> Tuple[float, float]:
+    """``(alpha, score)`` at the smallest score, refined by a parabola through log GCV at the best three
+    when they are finite and positive (an exact fit scores 0, a failed factorisation infinity)."""
     i = int(np.argmin(scores))
     best, score = float(alphas[i]), float(scores[i])
-    if 0 < i < len(alphas) - 1:
+    near = scores[i - 1:i + 2]
+    if 0 < i < len(alphas) - 1 and np.all(np.isfinite(near)) and np.all(near > 0):
         x = np.log10(alphas[i - 1:i + 2])
-        y = np.log(scores[i - 1:i + 2])
-        c2, c1, c0 = np.polyfit(x, y, 2)
+        c2, c1, c0 = np.polyfit(x, np.log(near), 2)
         if c2 > 0:
             x_min = float(np.clip(-c1 / (2 * c2), x[0], x[2]))
             best, score = 10.0 ** x_min, float(np.exp(np.polyval([c2, c1, c0], x_min)))
-    return GCVCurve(alphas, scores, np.asarray(dofs), best, score)
+    return best, score
 
