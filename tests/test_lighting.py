@@ -736,24 +736,26 @@ def test_kernel_lane_limit_follows_the_layout(monkeypatch):
     lighting.check_kernel_lanes(8000, too_many, 32 * 32, "--dirs")
 
 
-def test_lighting_loops_stay_symbolic_whatever_the_jit_flag():
-    """A lane per row loops over its directions symbolically (one kernel per chunk) even where a user
-    turned Dr.Jit's symbolic loops off: an evaluated loop would launch a kernel per direction."""
+@pytest.mark.parametrize("flag", ["SymbolicLoops", "SymbolicConditionals"])
+def test_lighting_loops_stay_symbolic_whatever_the_jit_flag(flag):
+    """A lane per row loops over its directions symbolically (one kernel per chunk), and skips the
+    directions below its horizon with a symbolic conditional, even where a user turned Dr.Jit's
+    symbolic loops or conditionals off: an evaluated loop would launch a kernel per direction."""
     if not sums_in_fixed_order():
         pytest.skip("CUDA runs a lane per (row, direction): no loop")
     obs = random_observations(50, seed=3)
     probe = synthetic_probe()
     expected = lighting.lighting_matrix(obs, probe, n_t=8, n_s=8, n_dirs=600, seed=7)
     history = dr.flag(dr.JitFlag.KernelHistory)
-    symbolic = dr.flag(dr.JitFlag.SymbolicLoops)
+    symbolic = dr.flag(getattr(dr.JitFlag, flag))
     try:
-        dr.set_flag(dr.JitFlag.SymbolicLoops, False)
+        dr.set_flag(getattr(dr.JitFlag, flag), False)
         dr.set_flag(dr.JitFlag.KernelHistory, True)
         dr.kernel_history()
         got = lighting.lighting_matrix(obs, probe, n_t=8, n_s=8, n_dirs=600, seed=7)
         launched = len(dr.kernel_history())
     finally:
-        dr.set_flag(dr.JitFlag.SymbolicLoops, symbolic)
+        dr.set_flag(getattr(dr.JitFlag, flag), symbolic)
         dr.set_flag(dr.JitFlag.KernelHistory, history)
     assert np.array_equal(got, expected)
     assert launched < 20, launched

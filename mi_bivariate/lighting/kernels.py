@@ -216,9 +216,11 @@ def above_horizon(lz: Any, work: Callable[..., None], args: Tuple[Any, ...]) -> 
 
     A symbolic ``dr.if_stmt``: a SIMD packet of rows (LLVM, :func:`lattice_points`) or a GPU warp
     whose lanes are all below the horizon jumps over it. What it computes is unchanged (such lanes
-    add 0); it saves time where neighbouring lanes look at near directions at once.
+    add 0); it saves time where neighbouring lanes look at near directions at once. Symbolic
+    whatever ``dr.JitFlag.SymbolicConditionals`` says (as :func:`lattice_points`' loop): evaluated,
+    it would split the kernel.
     """
-    dr.if_stmt(args=args, cond=lz > 0.0, true_fn=work, false_fn=_nothing, label="above_horizon")
+    dr.if_stmt(args=args, cond=lz > 0.0, true_fn=work, false_fn=_nothing, mode="symbolic", label="above_horizon")
 
 
 def _launched(target: Any) -> Any:
