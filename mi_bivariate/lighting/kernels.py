@@ -206,13 +206,14 @@ def _occluded(data: Any, row: Any, d: Any, active: Any, occluder: Any) -> Any:
     return shadow & occluder.ray_test(si.spawn_ray(d), active=shadow & active)
 
 
-def _nothing(*args: Any) -> None:
+def _nothing() -> None:
     return None
 
 
-def above_horizon(lz: Any, work: Callable[..., None], args: Tuple[Any, ...]) -> None:
-    """``work(*args)``, a lane's work that adds nothing where its light direction is below the horizon
-    (``lz <= 0``, the direction's cosine to the normal), run only where ``lz > 0``.
+def above_horizon(lz: Any, work: Callable[[], None]) -> None:
+    """``work()``, a lane's work that adds nothing where its light direction is below the horizon
+    (``lz <= 0``, the direction's cosine to the normal), run only where ``lz > 0``. ``work`` reads
+    the lane's variables from its enclosing scope and writes only by scattering.
 
     A symbolic ``dr.if_stmt``: a SIMD packet of rows (LLVM, :func:`lattice_points`) or a GPU warp
     whose lanes are all below the horizon jumps over it. What it computes is unchanged (such lanes
@@ -220,7 +221,7 @@ def above_horizon(lz: Any, work: Callable[..., None], args: Tuple[Any, ...]) -> 
     whatever ``dr.JitFlag.SymbolicConditionals`` says (as :func:`lattice_points`' loop): evaluated,
     it would split the kernel.
     """
-    dr.if_stmt(args=args, cond=lz > 0.0, true_fn=work, false_fn=_nothing, mode="symbolic", label="above_horizon")
+    dr.if_stmt(args=(), cond=lz > 0.0, true_fn=work, false_fn=_nothing, mode="symbolic", label="above_horizon")
 
 
 def _launched(target: Any) -> Any:
@@ -339,7 +340,8 @@ def _texel_target(packets: np.ndarray, texels: Tuple[Any, Any, int], n_t: int, n
     def body(row: Any, texel: Any, r: RowInputs, u1: Any, u2: Any) -> None:
         d = dr.gather(mi.Vector3f, directions, texel)
         lz = r.normal.x * d.x + r.normal.y * d.y + r.normal.z * d.z
-        above_horizon(lz, lit, (row, texel, r, d, lz))  # every row reads texel k at step k: packets skip together
+        # every row reads texel k at step k: a packet skips together
+        above_horizon(lz, lambda: lit(row, texel, r, d, lz))
 
     lattice_points(data, m, n_texels, body)
     return _launched(target)

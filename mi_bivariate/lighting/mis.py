@@ -398,7 +398,7 @@ def _mis_target(packets: np.ndarray, probe: Any, n_t: int, n_s: int, n_dirs: int
             # sorted (environment_pool), a packet of neighbouring rows skips them together.
             def body(row: Any, k: Any, r: RowInputs, u1: Any, u2: Any, lane: Any = lane) -> None:
                 d, _, _ = _pooled_sample(pool, r, k, counts["environment"])
-                above_horizon(dr.dot(d, r.normal), lambda: lane(row, k, r, u1, u2), ())
+                above_horizon(dr.dot(d, r.normal), lambda: lane(row, k, r, u1, u2))
 
         lattice_points(data, m, counts[strategy], body)
     return _launched(target)
