@@ -57,8 +57,8 @@ def full_table(name: str) -> np.ndarray:
     th, td, pd = merl_mod.node_angles()
     TH, TD, PD = np.meshgrid(th, td, pd, indexing="ij")
     x = np.stack([np.sin(TH), np.zeros_like(TH), np.cos(TH), np.sin(TD) * np.cos(PD), np.sin(TD) * np.sin(PD),
-                  np.cos(TD)], -1).reshape(-1, 6).astype(np.float32)
-    return np.maximum(model.eval_inputs(x).reshape(90, 90, 180, 3), 0).astype(np.float32)
+                  np.cos(TD)], -1).reshape(-1, 6)
+    return model.eval_inputs(x, np.float32).reshape(90, 90, 180, 3)
 
 
 def sphere_rows(n_normals: int):

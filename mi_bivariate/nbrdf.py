@@ -7,6 +7,14 @@ vector and the difference vector) and the BRDF, in 1/sr, is
 ``exp(relu(relu(x W1 + b1) W2 + b2) W3 + b3) - 1`` clamped at 0.
 
 These tables approximate the measurements; name results "MERL-NBRDF <material>".
+
+The network is evaluated in float64, whatever the precision of its weights (float32) and of
+the table it fills: it is the truth every recovery is scored against, so it must not depend on
+the machine. A float32 evaluation rounds its matrix products as the CPU's BLAS kernels and thread
+count sum them. Near-zero values (1e-9 to 1e-6 1/sr, where ``exp(z) - 1`` cancels) then move by
+their own size, and Eq. 1 over all cells, which divides by them, moved with the machine: brass's
+exact floor was 40.8 in float32 (either machine) and is 80.3 in float64; color-changing-paint1's
+grid floor was 2.33, 1.95 or 2.22 depending on the machine and the BLAS threads.
 """
 
 from __future__ import annotations
@@ -98,21 +106,24 @@ def weights_path(name: str, data_dir: Optional[PathLike] = None) -> Path:
 
 
 class NBRDF:
-    """One MERL-NBRDF material: the MLP weights (float32) and their evaluation."""
+    """One MERL-NBRDF material: the MLP weights (stored float32, held float64) and their evaluation."""
 
     def __init__(self, name: str, weights: Dict[str, np.ndarray]):
         self.name = name
-        self.weights = {k: np.asarray(weights[k], np.float32) for k in _LAYERS}
+        self.weights = {k: np.asarray(weights[k], np.float64) for k in _LAYERS}
 
     def __repr__(self) -> str:
         return f"NBRDF({self.name!r})"
 
-    def eval_inputs(self, x: np.ndarray) -> np.ndarray:
-        """Evaluate the MLP on input rows ``(N, 6)`` -> ``(N, 3)`` float32, 1/sr, >= 0."""
+    def eval_inputs(self, x: np.ndarray, dtype=np.float64) -> np.ndarray:
+        """Evaluate the MLP on input rows ``(N, 6)`` -> ``(N, 3)`` ``dtype``, 1/sr, >= 0.
+
+        Computed in float64 (the module's docstring says why) and rounded to ``dtype`` once.
+        """
         w = self.weights
-        out = np.empty((x.shape[0], 3), np.float32)
+        out = np.empty((x.shape[0], 3), dtype)
         for start in range(0, x.shape[0], _CHUNK):
-            rows = x[start:start + _CHUNK]
+            rows = np.asarray(x[start:start + _CHUNK], np.float64)
             hidden = np.maximum(rows @ w["W1"] + w["b1"], 0.0)
             hidden = np.maximum(hidden @ w["W2"] + w["b2"], 0.0)
             out[start:start + _CHUNK] = np.maximum(np.expm1(hidden @ w["W3"] + w["b3"]), 0.0)
@@ -125,13 +136,13 @@ class NBRDF:
         """
         theta_h, theta_d, phi_d = np.broadcast_arrays(*(np.asarray(a, np.float64) for a in (theta_h, theta_d, phi_d)))
         x = _inputs(theta_h.reshape(-1), theta_d.reshape(-1), phi_d.reshape(-1))
-        return self.eval_inputs(x).astype(np.float64).reshape(theta_h.shape + (3,))
+        return self.eval_inputs(x).reshape(theta_h.shape + (3,))
 
 
 def _inputs(theta_h: np.ndarray, theta_d: np.ndarray, phi_d: np.ndarray) -> np.ndarray:
-    """Network input rows ``(N, 6)`` float32 from flat angle arrays."""
+    """Network input rows ``(N, 6)`` float64 from flat angle arrays."""
     sin_d = np.sin(theta_d)
-    x = np.empty((theta_h.shape[0], 6), np.float32)
+    x = np.empty((theta_h.shape[0], 6), np.float64)
     x[:, 0] = np.sin(theta_h)
     x[:, 1] = 0.0
     x[:, 2] = np.cos(theta_h)
@@ -173,13 +184,14 @@ def load_nbrdf(name: str, data_dir: Optional[PathLike] = None) -> NBRDF:
 
 
 def tabulate(nbrdf: NBRDF, dtype=np.float32) -> MERLBRDF:
-    """Evaluate an NBRDF on the MERL nodes; below-horizon nodes are missing (NaN), as in MERL."""
+    """Evaluate an NBRDF on the MERL nodes (in float64, stored as ``dtype``); below-horizon nodes are
+    missing (NaN), as in MERL."""
     theta_h, theta_d, phi_d = node_angles()
     mask = geometric_mask()
     i_h, i_d, i_p = np.nonzero(mask)
     # Sines and cosines per axis, gathered: ~10x cheaper than per sample.
     sin_d = np.sin(theta_d)
-    x = np.empty((i_h.shape[0], 6), np.float32)
+    x = np.empty((i_h.shape[0], 6), np.float64)
     x[:, 0] = np.sin(theta_h)[i_h]
     x[:, 1] = 0.0
     x[:, 2] = np.cos(theta_h)[i_h]
@@ -187,7 +199,7 @@ def tabulate(nbrdf: NBRDF, dtype=np.float32) -> MERLBRDF:
     x[:, 4] = sin_d[i_d] * np.sin(phi_d)[i_p]
     x[:, 5] = np.cos(theta_d)[i_d]
     table = np.full(MERL_SHAPE + (3,), np.nan, dtype)
-    table[i_h, i_d, i_p] = nbrdf.eval_inputs(x)
+    table[i_h, i_d, i_p] = nbrdf.eval_inputs(x, dtype)
     return MERLBRDF(table, name=f"MERL-NBRDF {nbrdf.name}")
 
 

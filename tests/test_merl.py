@@ -207,3 +207,47 @@ def test_nbrdf_matches_direct_formula(data_dir):
     np.testing.assert_allclose(merl.table[node], nbrdf.load_nbrdf("brass", data_dir).eval(
         theta_h[node[0]], theta_d[node[1]], phi_d[node[2]]), rtol=1e-6)
 
+
+def _fixed_order_decode(weights: dict, x: np.ndarray) -> np.ndarray:
+    """The MLP in float64 with every sum in a fixed order (elementwise numpy, no BLAS)."""
+    h = x
+    for layer in ("1", "2", "3"):
+        w, b = weights[f"W{layer}"].astype(np.float64), weights[f"b{layer}"].astype(np.float64)
+        z = np.broadcast_to(b, (len(h), len(b))).copy()
+        for k in range(w.shape[0]):
+            z += h[:, k:k + 1] * w[k]
+        h = np.maximum(z, 0.0) if layer != "3" else z
+    return np.maximum(np.expm1(h), 0.0)
+
+
+def test_nbrdf_truth_does_not_depend_on_the_blas(data_dir):
+    """The truth tables are the float64 network rounded once: equal, to one float32 rounding, to a
+    decoder that sums in a fixed order without BLAS, also at the near-zero values where a float32
+    decoder (whose sums follow the CPU's BLAS kernels) is off by far more."""
+    from mi_bivariate import nbrdf
+
+    npz = np.load(data_dir / "merl_nbrdf" / "merl_nbrdf_dev.npz")
+    for name in ("brass", "color-changing-paint1"):
+        weights = {k: npz[f"{name}/{k}"] for k in ("W1", "b1", "W2", "b2", "W3", "b3")}
+        table = nbrdf.nbrdf_merl(name, data_dir).table
+        assert table.dtype == np.float32
+        rng = np.random.default_rng(5)
+        valid = np.argwhere(geometric_mask())
+        tiny = np.argwhere(np.nanmin(table, axis=-1) < 1e-6)  # where exp(z) - 1 cancels
+        nodes = np.concatenate([tiny, valid[rng.choice(len(valid), 3000, replace=False)]])
+        assert len(tiny) > 50, name
+        th, td, pd = (a[i] for a, i in zip(node_angles(), nodes.T))
+        x = np.stack([np.sin(th), 0 * th, np.cos(th), np.sin(td) * np.cos(pd), np.sin(td) * np.sin(pd), np.cos(td)], 1)
+        expected = _fixed_order_decode(weights, x)
+        got = table[tuple(nodes.T)]
+        np.testing.assert_allclose(got, expected.astype(np.float32), rtol=2.4e-7, atol=0, err_msg=name)
+
+        # The float32 decoder this replaced misses the near-zero values by more than 1e-3 of their size.
+        relu = lambda v: np.maximum(v, np.float32(0))  # noqa: E731
+        w32 = {k: v.astype(np.float32) for k, v in weights.items()}
+        x32 = x.astype(np.float32)
+        f32 = np.maximum(np.expm1(relu(relu(x32 @ w32["W1"] + w32["b1"]) @ w32["W2"] + w32["b2"]) @ w32["W3"]
+                                  + w32["b3"]), 0)
+        small = (expected > 0) & (expected < 1e-6)
+        assert np.max(np.abs(f32[small] - expected[small]) / expected[small]) > 1e-3, name
+
