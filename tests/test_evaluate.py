@@ -304,3 +304,28 @@ def test_evaluate_abs_records_both_routes_scored_by_the_converged_renderer(tmp_p
     assert (got is None) == (fastest is None) and r["ladder_speedup"] == speedup
     if fastest is not None:
         assert {k: got[k] for k in key} == {k: fastest[k] for k in key}
+
+
+def test_cached_renders_are_keyed_by_the_truths_values(tmp_path):
+    """A render cached for one truth table is not reused for another under the same material name
+    (as when the decoder of the neural truths changed), and is reused for the same values."""
+    from mi_bivariate.evaluate.renders import Renderer
+    from mi_bivariate.merl import MERLBRDF
+    from mi_bivariate.probes import Probe
+    from mi_bivariate.sources import MaterialSpec
+    from mi_bivariate.variants import ensure_variant
+
+    ensure_variant()
+    config = ev.EvalConfig.quick(shared_data=False)
+    spec, probe = MaterialSpec("grey", "analytic", "lambert"), Probe.constant(1.0, 16)
+    table = np.full((90, 90, 180, 3), 0.1, np.float32)
+    runs = []
+    for values in (table, np.nextafter(table, np.float32(1)), table.copy()):  # the second: one float32 ulp more
+        truth = MERLBRDF(values, name="grey")
+        renderer = Renderer(config, spec, str(tmp_path), truth=truth)
+        shot = renderer.render(BivariateBRDF(np.full((6, 6, 3), 0.1, np.float32)), probe, "constant", 16, 1,
+                               config.novel_spp, cache_key="truth")
+        runs.append((renderer.renders, renderer.cached, shot.image))
+    assert [r[:2] for r in runs] == [(1, 0), (1, 0), (0, 1)]
+    np.testing.assert_array_equal(runs[2][2], runs[0][2])
+    assert len(list(tmp_path.glob("*.npz"))) == 2

@@ -311,7 +311,7 @@ def _evaluate_material(task: MaterialTask, inputs: List[List[Probe]], novels: Li
     truth = load_truth_and_floor(task, timings)
     arrays: Arrays = {"floor": truth.floor.table}
     arrays.update(_incident_curves(truth.brdf))
-    renderer = Renderer(cfg, task.material, task.cache_dir)
+    renderer = Renderer(cfg, task.material, task.cache_dir, truth=truth.brdf)
     truth_bsdf = plugin(truth.brdf, cfg.renderer)
     floor_bsdf = plugin(truth.floor, cfg.renderer)
 

@@ -41,10 +41,13 @@ class Renderer:
     """The protocol's renders: one renderer for every image that is scored, with a cache.
 
     Renders of the truth and of the exact reduction (``cache_key`` given)
-    are cached as ``<cache_dir>/<key hash>.npz`` (image, mask, geometry).
+    are cached as ``<cache_dir>/<key hash>.npz`` (image, mask, geometry). The key holds the
+    material's name and, given ``truth`` (its 3D table, ``MERLBRDF``), a digest of the table's
+    values: a cached render is never reused for another truth, whether its file or the code
+    that decodes it changed (as when the neural truths moved from float32 to float64 decoding).
     """
 
-    def __init__(self, cfg: EvalConfig, material: MaterialSpec, cache_dir: Optional[str]):
+    def __init__(self, cfg: EvalConfig, material: MaterialSpec, cache_dir: Optional[str], truth: Any = None):
         self.cfg = cfg
         self.cache_dir = Path(cache_dir) if cache_dir else None
         identity = {"label": material.label, "kind": material.kind, "spec": material.spec}
@@ -54,6 +57,9 @@ class Renderer:
                 identity["file"] = [st.st_size, st.st_mtime_ns]
             except OSError:
                 pass
+        if truth is not None:
+            table = np.ascontiguousarray(truth.table)
+            identity["truth_sha256"] = hashlib.sha256(table.view(np.uint8).reshape(-1)).hexdigest()[:16]
         self.identity = identity
         self.seconds = 0.0
         self.renders = 0
