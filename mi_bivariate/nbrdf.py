@@ -11,7 +11,7 @@ These tables approximate the measurements; name results "MERL-NBRDF <material>".
 The network is evaluated in float64, whatever the precision of its weights (float32) and of
 the table it fills: it is the truth every recovery is scored against, so it must not depend on
 the machine. A float32 evaluation rounds its matrix products as the CPU's BLAS kernels and thread
-count sum them. Near-zero values (1e-9 to 1e-6 1/sr, where ``exp(z) - 1`` cancels) then move by
+count sum them. Near-zero values (1e-9 to 1e-6 1/sr, where ``exp(z) - 1`` cancels) then move by up to
 their own size, and Eq. 1 over all cells, which divides by them, moved with the machine: brass's
 exact floor was 40.8 in float32 (either machine) and is 80.3 in float64; color-changing-paint1's
 grid floor was 2.33, 1.95 or 2.22 depending on the machine and the BLAS threads.
