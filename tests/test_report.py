@@ -120,6 +120,22 @@ def _layout_problems(fig):
     return problems
 
 
+def test_fixed_title_height_draws_the_same_pixels(tmp_path, recovery, monkeypatch):
+    """The report's titles at a fixed height (``axes.titley``) land where matplotlib's automatic
+    placement puts them: the same PNG pixels with the automatic placement restored."""
+    import contextlib
+
+    import matplotlib.pyplot as plt
+    from PIL import Image
+
+    fixed = report.write_recovery_report(recovery[0], tmp_path / "fixed.png")
+    assert plt.rcParams["axes.titley"] is None        # the context did not leak
+    monkeypatch.setattr(plt, "rc_context", lambda *a, **k: contextlib.nullcontext())
+    automatic = report.write_recovery_report(recovery[0], tmp_path / "automatic.png")
+    with Image.open(fixed) as a, Image.open(automatic) as b:
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
 def test_report_layout_keeps_every_text_inside_and_apart(tmp_path, recovery, monkeypatch):
     """The fixed subplot parameters leave every panel's texts inside the figure and clear of the
     others; the same check finds the overlaps of a cramped layout (it can fail)."""
