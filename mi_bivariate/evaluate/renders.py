@@ -25,6 +25,7 @@ from mi_bivariate import reference, render
 from mi_bivariate.evaluate.config import EvalConfig
 from mi_bivariate.evaluate.results import save_artifacts
 from mi_bivariate.geometry import SphereGeometry
+from mi_bivariate.probes import Probe
 from mi_bivariate.sources import MaterialSpec
 
 
@@ -58,8 +59,7 @@ class Renderer:
             except OSError:
                 pass
         if truth is not None:
-            table = np.ascontiguousarray(truth.table)
-            identity["truth_sha256"] = hashlib.sha256(table.view(np.uint8).reshape(-1)).hexdigest()[:16]
+            identity["truth_sha256"] = truth.content_digest()[:16]
         self.identity = identity
         self.seconds = 0.0
         self.renders = 0
@@ -71,14 +71,14 @@ class Renderer:
                     "seed": int(seed), "directions": list(self.cfg.reference_directions)}
         return {"renderer": "path", "resolution": int(resolution), "seed": int(seed), "spp": int(spp)}
 
-    def render(self, bsdf: Any, probe: Any, probe_spec: str, resolution: int, seed: int, spp: int,
+    def render(self, bsdf: Any, probe: Probe, probe_spec: str, resolution: int, seed: int, spp: int,
                cache_key: Optional[str] = None) -> Shot:
         """Render ``bsdf`` (a plugin object or anything render.bsdf_dict takes) under ``probe``."""
         settings = self._settings(resolution, seed, spp)
         path = None
         if cache_key is not None and self.cache_dir is not None:
             key = json.dumps({"material": self.identity, "what": cache_key, "probe": probe_spec,
-                              "probe_sha": probe_digest(probe), **settings}, sort_keys=True)
+                              "probe_sha": probe.content_digest()[:16], **settings}, sort_keys=True)
             path = self.cache_dir / f"{hashlib.sha256(key.encode()).hexdigest()[:24]}.npz"
             if path.is_file():
                 try:
@@ -109,18 +109,6 @@ class Renderer:
                                       "geometry": np.array([g.cx, g.cy, g.radius]),
                                       "camera_to_world": np.asarray(g.camera_to_world, np.float64)})
         return shot
-
-
-def probe_digest(probe: Any) -> str:
-    """Identity of a probe's pixels and orientation (cache keys)."""
-    digest = getattr(probe, "_mi_bivariate_digest", None)
-    if digest is None:
-        h = hashlib.sha256(np.ascontiguousarray(probe.data).tobytes())
-        h.update(np.ascontiguousarray(probe.to_world, np.float64).tobytes())
-        digest = h.hexdigest()[:16]
-        with contextlib.suppress(AttributeError, TypeError):
-            object.__setattr__(probe, "_mi_bivariate_digest", digest)
-    return digest
 
 
 def plugin(source: Any, renderer: str) -> Any:
