@@ -253,6 +253,43 @@ def test_mis_is_unbiased_and_far_less_noisy_on_sharp_light_and_lobes():
     assert rel(mis[0], reference) < rel(uni[0], reference)
 
 
+def test_peak_lanes_weigh_at_most_their_own_strategy_allows():
+    """A peak lane's balance weight is ``cos / sum_j K_j p_j``, so at most ``cos / (K_p p_peak)`` with
+    ``p_peak`` the closed form at the lane's own sampled ``t = T u1`` (float64 here). A lattice point
+    that wraps to ``u1 = 0`` in float32 (here made exact: 1024 peak points, shift 0.5 / 1024) is the
+    mirror direction itself, where ``p_peak`` is infinite: its weight must be 0. Rebuilding the half
+    vector from ``l + v`` found no component off the normal there and read ``p_peak = 0``: the lane
+    got a uniform direction's weight at a sharp table's peak (spikes of up to 9.6% RMS in a
+    tungsten-carbide prediction under uffizi_256, ``benchmarks/dirs_noise.py``)."""
+    from mi_bivariate.lighting import kernels, mis
+
+    obs = random_observations(6, seed=4)
+    offsets = lighting.hemisphere_offsets(len(obs), seed=2)
+    offsets[:3, 0] = 0.5 / 1024  # rows 0-2: lattice point 1023 lands on u1 = 1.0, which wraps to 0
+    data = kernels._row_data(kernels._row_packets(obs.normals, obs.views, offsets))
+    counts = mis.strategy_counts(4096)
+    assert counts["peak"] == 1024
+    probe = synthetic_probe()
+    row, k, r, u1, u2 = kernels._lattice_lanes(data, len(obs), counts["peak"])
+    lanes = mis._mis_lanes(data, len(obs), probe, "peak", counts)
+    lz, weight = lanes[3].numpy().astype(np.float64), lanes[5].numpy().astype(np.float64)
+    u1, sin_v, cos_v = (np.asarray(a.numpy(), np.float64) for a in (u1, r.sin_v, r.cos_v))
+    assert np.count_nonzero(u1 == 0.0) == 3
+    t = mis.PEAK_T_MAX * u1
+    theta_h = 0.5 * np.pi * t**2
+    v_dot_h = sin_v * np.sin(theta_h) * np.cos(2 * np.pi * u2.numpy()) + cos_v * np.cos(theta_h)
+    with np.errstate(divide="ignore"):
+        p_peak = 1.0 / (mis.PEAK_T_MAX * np.pi * t * 2 * np.pi * np.sin(theta_h) * 4 * v_dot_h)
+    lit = (lz > 0) & (v_dot_h > 0)
+    assert np.all(weight[~lit] == 0.0)
+    bound = lz[lit] / (counts["peak"] * p_peak[lit])  # 0 where p_peak is infinite
+    assert np.all(weight[lit] <= bound * (1 + 1e-4))
+    assert np.all(weight[u1 == 0.0] == 0.0)
+    # Not vacuous: away from the mirror direction the other strategies share the weight.
+    far = lit & (u1 > 0.5)
+    assert np.median(weight[far] * counts["peak"] * p_peak[far] / lz[far]) < 0.9
+
+
 def test_pooled_environment_directions_are_the_per_row_estimator():
     """lighting_matrix reads the environment strategy's directions from a pool sampled once per
     lattice shift (lighting.mis.environment_pool). Per row it is the estimator of sampling the
