@@ -235,7 +235,7 @@ def _local_direction(strategy: str, u1: Any, u2: Any, sin_v: Any, cos_v: Any) ->
     itself, where the density is infinite and the lane weighs 0. Rebuilt from ``l + v``, its half
     vector had no component off the normal and :func:`_peak_pdf` read 0: the lane took a uniform
     direction's weight at a sharp table's peak (``benchmarks/dirs_noise.py``: tungsten-carbide under
-    uffizi_256 predicted with 1.3-9.6% RMS error at 2 of 4 seeds of K = 10000, 0.12-0.14% after). Near
+    uffizi_256 predicted with 0.94-9.6% RMS error at 3 of 4 seeds of K = 10000, 0.12-0.14% after). Near
     the mirror direction the rebuilt ``theta_h`` is also round-off (~1e-7 rad), so :func:`_peak_pdf`
     was up to 1e4 times the true density there (weights of ~1e-12: harmless, and gone with it).
     """
