@@ -16,6 +16,11 @@ rows and channels:
 - ``vs converged``: ``rel(L_1 f, L_131072 f)``, that error plus any bias against the converged
   prediction (the converged one's own noise, ~K / 131072 of the noise at K, is included).
 
+``--seeds N``: instead, the error against the converged prediction at each K for seeds 1 to N,
+one column per seed (a spike shows as one seed far above the others; recovery.md section 11's
+table is ``--probes uffizi_256 --materials blue-acrylic,tungsten-carbide
+--dirs 4000,5000,6000,8000,10000,16000 --seeds 4``).
+
 Both are to be read beside the solve's model error, the relative residual of a clean recovery
 (~1-12%, ``recover``'s summary line): a quadrature error well below it is not what the solve fits.
 Development materials only; it chooses nothing by itself (the evaluation's accuracy table decides
@@ -46,6 +51,7 @@ def main() -> None:
     parser.add_argument("--dirs", default="2000,4000,8000,32768")
     parser.add_argument("--probes", default="grace_latlong_1k,uffizi_256")
     parser.add_argument("--normals", type=int, default=3000)
+    parser.add_argument("--seeds", type=int, default=0, help="per-seed errors for seeds 1..N instead")
     args = parser.parse_args()
     ensure_variant()
     t0 = time.perf_counter()
@@ -56,9 +62,13 @@ def main() -> None:
     tables.update({name: reduced[name].reshape(-1, 3) for name in args.materials.split(",")})
     dirs = [int(k) for k in args.dirs.split(",")]
     print(f"{len(obs)} rows of a 128 px sphere; seeds 1 and 2 at each K; converged: K = {CONVERGED_DIRS} (seed 9)\n")
-    header = " | ".join(f"K = {k}: noise | vs converged" for k in dirs)
-    print(f"| probe | table | {header} |")
-    print("|---|---|" + "---:|---:|" * len(dirs))
+    if args.seeds:
+        print("| probe | table | K | " + " | ".join(f"seed {s}" for s in range(1, args.seeds + 1)) + " |")
+        print("|---|---|---:|" + "---:|" * args.seeds)
+    else:
+        header = " | ".join(f"K = {k}: noise | vs converged" for k in dirs)
+        print(f"| probe | table | {header} |")
+        print("|---|---|" + "---:|---:|" * len(dirs))
     for name in args.probes.split(","):
         probe = probes.shared_probe(name)
         converged = lighting.lighting_matrix(obs, probe, n_dirs=CONVERGED_DIRS, seed=9)
@@ -66,12 +76,21 @@ def main() -> None:
         del converged
         cells = {t: [] for t in tables}
         for k in dirs:
+            if args.seeds:
+                errors = {t: [] for t in tables}
+                for seed in range(1, args.seeds + 1):
+                    L = lighting.lighting_matrix(obs, probe, n_dirs=k, seed=seed)
+                    for t, f in tables.items():
+                        errors[t].append(f"{100 * rel(np.einsum('mnc,nc->mc', L, f), truth[t]):.3f}%")
+                for t in tables:
+                    print(f"| {name} | {t} | {k} | " + " | ".join(errors[t]) + " |", flush=True)
+                continue
             L1 = lighting.lighting_matrix(obs, probe, n_dirs=k, seed=1)
             L2 = lighting.lighting_matrix(obs, probe, n_dirs=k, seed=2)
             for t, f in tables.items():
                 p1, p2 = np.einsum("mnc,nc->mc", L1, f), np.einsum("mnc,nc->mc", L2, f)
                 cells[t].append(f"{100 * rel(p1, p2) / math.sqrt(2):.3f}% | {100 * rel(p1, truth[t]):.3f}%")
-        for t in tables:
+        for t in tables if not args.seeds else ():
             print(f"| {name} | {t} | " + " | ".join(cells[t]) + " |", flush=True)
     print(f"\n{time.perf_counter() - t0:.0f} s")
 
