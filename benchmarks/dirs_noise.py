@@ -61,13 +61,14 @@ def main() -> None:
     tables = {"constant 0.1": np.full((1024, 3), 0.1, np.float32)}
     tables.update({name: reduced[name].reshape(-1, 3) for name in args.materials.split(",")})
     dirs = [int(k) for k in args.dirs.split(",")]
-    print(f"{len(obs)} rows of a 128 px sphere; seeds 1 and 2 at each K; converged: K = {CONVERGED_DIRS} (seed 9)\n")
+    seeds = range(1, max(2, args.seeds) + 1)
+    print(f"{len(obs)} rows of a 128 px sphere; seeds {seeds[0]}-{seeds[-1]} at each K; converged: "
+          f"K = {CONVERGED_DIRS} (seed 9)\n")
     if args.seeds:
-        print("| probe | table | K | " + " | ".join(f"seed {s}" for s in range(1, args.seeds + 1)) + " |")
-        print("|---|---|---:|" + "---:|" * args.seeds)
+        print("| probe | table | K | " + " | ".join(f"seed {s}" for s in seeds) + " |")
+        print("|---|---|---:|" + "---:|" * len(seeds))
     else:
-        header = " | ".join(f"K = {k}: noise | vs converged" for k in dirs)
-        print(f"| probe | table | {header} |")
+        print("| probe | table | " + " | ".join(f"K = {k}: noise | vs converged" for k in dirs) + " |")
         print("|---|---|" + "---:|---:|" * len(dirs))
     for name in args.probes.split(","):
         probe = probes.shared_probe(name)
@@ -76,22 +77,20 @@ def main() -> None:
         del converged
         cells = {t: [] for t in tables}
         for k in dirs:
-            if args.seeds:
-                errors = {t: [] for t in tables}
-                for seed in range(1, args.seeds + 1):
-                    L = lighting.lighting_matrix(obs, probe, n_dirs=k, seed=seed)
-                    for t, f in tables.items():
-                        errors[t].append(f"{100 * rel(np.einsum('mnc,nc->mc', L, f), truth[t]):.3f}%")
-                for t in tables:
-                    print(f"| {name} | {t} | {k} | " + " | ".join(errors[t]) + " |", flush=True)
-                continue
-            L1 = lighting.lighting_matrix(obs, probe, n_dirs=k, seed=1)
-            L2 = lighting.lighting_matrix(obs, probe, n_dirs=k, seed=2)
-            for t, f in tables.items():
-                p1, p2 = np.einsum("mnc,nc->mc", L1, f), np.einsum("mnc,nc->mc", L2, f)
-                cells[t].append(f"{100 * rel(p1, p2) / math.sqrt(2):.3f}% | {100 * rel(p1, truth[t]):.3f}%")
-        for t in tables if not args.seeds else ():
-            print(f"| {name} | {t} | " + " | ".join(cells[t]) + " |", flush=True)
+            predicted = {t: [] for t in tables}
+            for seed in seeds:
+                L = lighting.lighting_matrix(obs, probe, n_dirs=k, seed=seed)
+                for t, f in tables.items():
+                    predicted[t].append(np.einsum("mnc,nc->mc", L, f))
+            for t, (p1, p2, *_) in predicted.items():
+                if args.seeds:
+                    print(f"| {name} | {t} | {k} | " + " | ".join(f"{100 * rel(p, truth[t]):.3f}%" for p in predicted[t])
+                          + " |", flush=True)
+                else:
+                    cells[t].append(f"{100 * rel(p1, p2) / math.sqrt(2):.3f}% | {100 * rel(p1, truth[t]):.3f}%")
+        if not args.seeds:
+            for t in tables:
+                print(f"| {name} | {t} | " + " | ".join(cells[t]) + " |", flush=True)
     print(f"\n{time.perf_counter() - t0:.0f} s")
 
 

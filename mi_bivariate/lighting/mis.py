@@ -226,7 +226,8 @@ def environment_proxy(probe: Any) -> EnvironmentProxy:
 
 def _local_direction(strategy: str, u1: Any, u2: Any, sin_v: Any, cos_v: Any) -> Tuple[Any, Any, Any, Any]:
     """The row-frame light direction ``(lx, ly, lz)`` of the uniform or peak strategy at lattice point
-    ``(u1, u2)``, and the strategy's own solid-angle density there.
+    ``(u1, u2)``, and the peak strategy's own solid-angle density there (``None`` for the uniform
+    strategy, whose constant density :func:`_row_frame_density` adds).
 
     The peak strategy's density is the closed form at the sampled ``t = T u1`` and ``theta_h``, not
     :func:`_peak_pdf` at ``l`` (what the other strategies' lanes read). A lattice point within a
@@ -243,7 +244,7 @@ def _local_direction(strategy: str, u1: Any, u2: Any, sin_v: Any, cos_v: Any) ->
     if strategy == "uniform":
         r = dr.safe_sqrt(1.0 - u1 * u1)
         sin_phi, cos_phi = dr.sincos(azimuth)
-        return r * cos_phi, r * sin_phi, u1, mi.Float(1.0 / _TWO_PI)
+        return r * cos_phi, r * sin_phi, u1, None
     if strategy == "peak":
         t = PEAK_T_MAX * u1
         theta_h = (0.5 * math.pi) * dr.square(t)
@@ -339,7 +340,7 @@ def _mis_lane(k: Any, r: RowInputs, u1: Any, u2: Any, probe: Any, strategy: str,
     """
     x_axis, y_axis, normal, sin_v, cos_v = r.x_axis, r.y_axis, r.normal, r.sin_v, r.cos_v
     own = None  # the environment lanes' true density p_env
-    own_density = None  # the uniform and peak lanes' own density
+    own_peak = None  # the peak lanes' own density
     if strategy == "environment" and pool is not None:
         d, own, radiance = _pooled_sample(pool, r, k, counts[strategy])
         lx, ly, lz = dr.dot(d, x_axis), dr.dot(d, y_axis), dr.dot(d, normal)
@@ -348,15 +349,14 @@ def _mis_lane(k: Any, r: RowInputs, u1: Any, u2: Any, probe: Any, strategy: str,
         d, own = ds.d, ds.pdf
         lx, ly, lz = dr.dot(d, x_axis), dr.dot(d, y_axis), dr.dot(d, normal)
     else:
-        lx, ly, lz, own_density = _local_direction(strategy, u1, u2, sin_v, cos_v)
+        lx, ly, lz, own_peak = _local_direction(strategy, u1, u2, sin_v, cos_v)
         d = x_axis * lx + y_axis * ly + normal * lz
     horizon = lz > 0.0
     if strategy != "environment" or pool is None:
         radiance = probe.eval_dr(d, horizon)  # below the horizon: 0, no texels read
     else:
         radiance = dr.select(horizon, radiance, 0.0)
-    density = _row_frame_density(counts, lx, ly, lz, sin_v, cos_v,
-                                 own_peak=own_density if strategy == "peak" else None)
+    density = _row_frame_density(counts, lx, ly, lz, sin_v, cos_v, own_peak=own_peak)
     proxy = _environment_density(counts, probe, d, radiance, horizon, own, env_density)
     if proxy is not None:
         density += counts["environment"] * proxy
