@@ -329,3 +329,16 @@ def test_cached_renders_are_keyed_by_the_truths_values(tmp_path):
     assert [r[:2] for r in runs] == [(1, 0), (1, 0), (0, 1)]
     np.testing.assert_array_equal(runs[2][2], runs[0][2])
     assert len(list(tmp_path.glob("*.npz"))) == 2
+    # A MERL file's truth is keyed by its values alone: the same file touched (a new time stamp) hits
+    # the cache; without the truth, its size and time stand in for the values.
+    merl = tmp_path / "grey.binary"
+    merl.write_bytes(b"stand-in")
+    counts = []
+    for stamp in (1_000_000_000, 2_000_000_000, 2_000_000_000):
+        os.utime(merl, ns=(stamp, stamp))
+        for truth in (MERLBRDF(table, name="grey"), None):
+            renderer = Renderer(config, MaterialSpec("grey", "merl", str(merl)), str(tmp_path / "merl"), truth=truth)
+            renderer.render(BivariateBRDF(np.full((6, 6, 3), 0.1, np.float32)), probe, "constant", 16, 1,
+                            config.novel_spp, cache_key="truth")
+            counts.append((renderer.renders, renderer.cached))
+    assert counts == [(1, 0), (1, 0), (0, 1), (1, 0), (0, 1), (0, 1)]

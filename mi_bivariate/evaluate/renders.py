@@ -45,21 +45,23 @@ class Renderer:
     are cached as ``<cache_dir>/<key hash>.npz`` (image, mask, geometry). The key holds the
     material's name and, given ``truth`` (its 3D table, ``MERLBRDF``), a digest of the table's
     values: a cached render is never reused for another truth, whether its file or the code
-    that decodes it changed (as when the neural truths moved from float32 to float64 decoding).
+    that decodes it changed (as when the neural truths moved from float32 to float64 decoding), and a
+    touched file with the same values still hits the cache. Without ``truth``, a MERL file's size and
+    modification time stand in for its values.
     """
 
     def __init__(self, cfg: EvalConfig, material: MaterialSpec, cache_dir: Optional[str], truth: Any = None):
         self.cfg = cfg
         self.cache_dir = Path(cache_dir) if cache_dir else None
         identity = {"label": material.label, "kind": material.kind, "spec": material.spec}
-        if material.kind == "merl":
+        if truth is not None:
+            identity["truth_sha256"] = truth.content_digest()[:16]
+        elif material.kind == "merl":  # no values to hash: the file's size and time stand in for them
             try:
                 st = os.stat(material.spec)
                 identity["file"] = [st.st_size, st.st_mtime_ns]
             except OSError:
                 pass
-        if truth is not None:
-            identity["truth_sha256"] = truth.content_digest()[:16]
         self.identity = identity
         self.seconds = 0.0
         self.renders = 0
