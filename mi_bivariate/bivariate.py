@@ -31,7 +31,7 @@ from mi_bivariate.images import write_exr
 from mi_bivariate.limits import MAX_REDUCE_SAMPLES, check_grid, whole_number
 from mi_bivariate.merl import MERL_SHAPE, MERLBRDF, above_horizon, node_angles
 from mi_bivariate.npzio import read_npz
-from mi_bivariate.probes import Probe
+from mi_bivariate.probes import refuse_probe
 
 FORMAT = "mi_bivariate.BivariateBRDF"
 FORMAT_VERSION = 1
@@ -178,9 +178,7 @@ class BivariateBRDF:
                 :data:`~mi_bivariate.limits.MAX_REDUCE_SAMPLES`.
         """
         n_t, n_s = check_grid((n_t, n_s), max_nodes=None)
-        if isinstance(brdf, Probe):
-            raise InputError("brdf", "got a Probe where a BRDF goes",
-                             "reduce a MERLBRDF, a BRDF with eval() or a table")
+        refuse_probe(brdf, "brdf", "reduce a MERLBRDF, a BRDF with eval() or a table")
         if not isinstance(brdf, (BivariateBRDF, MERLBRDF)) and not callable(getattr(brdf, "eval", None)):
             raise InputError("brdf", f"expected a MERLBRDF, a BivariateBRDF or a BRDF with eval(theta_h, theta_d, "
                              f"phi_d), got a {type(brdf).__name__}",

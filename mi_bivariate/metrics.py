@@ -21,7 +21,7 @@ import numpy as np
 from mi_bivariate.bivariate import BivariateBRDF
 from mi_bivariate.coordinates import ST_REGIONS, st_from_half_diff
 from mi_bivariate.merl import MERL_SHAPE, MERLBRDF, geometric_mask, node_angles
-from mi_bivariate.probes import Probe
+from mi_bivariate.probes import refuse_probe
 
 #: Regions of the (theta_h, theta_d) domain for the error breakdown (:data:`coordinates.ST_REGIONS`),
 #: in order of precedence: a cell belongs to the first region whose bound it meets; "rest" is every other cell.
@@ -189,6 +189,7 @@ def estimate_on_merl_grid(estimate) -> np.ndarray:
         if estimate.shape == MERL_SHAPE + (3,):
             return np.asarray(estimate, np.float64)
         raise ValueError(f"estimate array must be (90, 90, 3) or (90, 90, 180, 3), got {estimate.shape}")
+    refuse_probe(estimate, "estimate", "score a BRDF, not the probe")
     if callable(getattr(estimate, "eval", None)):
         th, td, pd = np.meshgrid(theta_h, theta_d, phi_d, indexing="ij")
         with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
@@ -287,7 +288,8 @@ class BRDFErrors:
         if isinstance(estimate, (MERLBRDF, np.ndarray)):
             grid = estimate_on_merl_grid(estimate)
             return grid[i_h, i_d, 0] if grid.shape[2] == 1 else grid[i_h, i_d, i_p]
-        if callable(getattr(estimate, "eval", None)) and not isinstance(estimate, Probe):
+        refuse_probe(estimate, "estimate", "score a BRDF, not the probe")
+        if callable(getattr(estimate, "eval", None)):
             with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
                 return np.asarray(estimate.eval(*self.angles), np.float64)
         raise TypeError(f"cannot evaluate a {type(estimate).__name__} on the MERL grid")

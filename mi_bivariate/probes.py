@@ -164,6 +164,16 @@ def check_probe(value: Any, source: Any = "probe") -> "Probe":
     return value
 
 
+def refuse_probe(value: Any, source: Any = "brdf", hint: str = "pass the BRDF first and the probe second") -> None:
+    """Raise :class:`InputError` naming ``source`` if ``value`` is a :class:`Probe` where a BRDF goes.
+
+    A probe has an ``eval`` (its radiance in a direction), so the duck typing that takes any object with
+    ``eval(theta_h, theta_d, phi_d)`` as a BRDF would read radiance as reflectance: every front door that
+    accepts such objects asks this first."""
+    if isinstance(value, Probe):
+        raise InputError(source, "got a Probe where a BRDF goes", hint)
+
+
 def check_lit(probe: "Probe", source: Any, every_channel: bool = False) -> None:
     """Raise :class:`InputError` naming ``source`` if ``probe`` emits no light at all (every texel 0), or,
     with ``every_channel`` (as a recovery from it needs), no light in one of its colour channels."""

@@ -42,7 +42,7 @@ from mi_bivariate.geometry import Camera, SphereCamera, SphereGeometry, check_sp
 from mi_bivariate.limits import check_render_sizes, check_seed
 from mi_bivariate.merl import MERLBRDF
 from mi_bivariate.mesh import MeshShape, MeshView
-from mi_bivariate.probes import Probe, check_probe
+from mi_bivariate.probes import Probe, check_probe, refuse_probe
 from mi_bivariate.variants import ensure_variant
 
 
@@ -114,8 +114,7 @@ def bsdf_dict(source: Any, interpolation: str = "linear", sampling: str = "table
     if isinstance(source, MERLBRDF):
         return {"type": "merl", "table": _merl_bitmap(source.table), "interpolation": interpolation,
                 "sampling": sampling}
-    if isinstance(source, Probe):
-        raise InputError("bsdf", "got a Probe where a BRDF goes", "pass the BRDF first and the probe second")
+    refuse_probe(source, "bsdf")
     if callable(getattr(source, "eval", None)):
         name = str(getattr(source, "name", type(source).__name__))
         merl = MERLBRDF.from_function(source.eval, name=name, dtype=np.float32)

@@ -301,3 +301,14 @@ def test_brdf_errors_say_which_argument_is_the_truth(probe):
     table = BivariateBRDF(np.ones((8, 8, 3)))
     with pytest.raises(TypeError, match="the truth must be a 3D MERLBRDF"):
         metrics.brdf_errors(table, table)
+
+
+def test_the_scores_refuse_a_probe_as_the_estimate(probe):
+    """A probe has an ``eval`` (radiance), which the scores' duck typing would take for a BRDF's."""
+    from mi_bivariate.merl import MERLBRDF
+
+    truth = MERLBRDF.from_function(lambda th, td, pd: np.full(np.shape(th) + (3,), 0.2), name="flat")
+    with pytest.raises(InputError, match="estimate: got a Probe where a BRDF goes"):
+        metrics.brdf_errors(truth, probe)
+    with pytest.raises(InputError, match="estimate: got a Probe where a BRDF goes"):
+        metrics.estimate_on_merl_grid(probe)
