@@ -1,12 +1,13 @@
-"""Small definitions every stage shares: the path type and luminance.
+"""Small definitions every stage shares: the path type, luminance and JSON without NaN.
 
 This module imports nothing of the package, so any module may use it.
 """
 
 from __future__ import annotations
 
+import math
 import os
-from typing import Union
+from typing import Any, Union
 
 import numpy as np
 
@@ -20,3 +21,16 @@ LUMINANCE_WEIGHTS = np.array([0.212671, 0.715160, 0.072169])
 def luminance(rgb: np.ndarray) -> np.ndarray:
     """Rec. 709 luminance ``(...) float64`` of linear RGB ``(..., 3)``."""
     return np.asarray(rgb, dtype=np.float64) @ LUMINANCE_WEIGHTS
+
+
+def finite_json(value: Any) -> Any:
+    """``value`` (dicts, lists and numbers) with every non-finite number as ``None``: JSON has no words for
+    NaN and +-Infinity (Python writes ``NaN``, which strict readers refuse), so an output file says
+    ``null`` where a figure is undefined (e.g. Eq. 1 on observed cells when no cell is observed)."""
+    if isinstance(value, dict):
+        return {k: finite_json(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [finite_json(v) for v in value]
+    if isinstance(value, (float, np.floating)) and not math.isfinite(value):
+        return None
+    return value

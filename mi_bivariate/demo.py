@@ -32,6 +32,7 @@ from typing import Optional, Tuple
 from mi_bivariate import adequacy, metrics, nbrdf, reference, render, report, training_set
 from mi_bivariate.atomic import atomic_paths
 from mi_bivariate.bivariate import BivariateBRDF, floors
+from mi_bivariate.common import finite_json
 from mi_bivariate.errors import InputError
 from mi_bivariate.images import write_exr
 from mi_bivariate.merl import MERLBRDF, check_reflects
@@ -155,7 +156,7 @@ def run_demo(out_dir: Path = Path("out/demo"), material: Optional[str] = None,
         write_exr(tmp[3], novel_rec.image)
         write_exr(tmp[4], novel_truth.image)
         report.write_demo_figure(tmp[5], shot, novel_rec, novel_truth, rec, truth, floor, numbers)
-        tmp[6].write_text(json.dumps(numbers, indent=2))
+        tmp[6].write_text(json.dumps(finite_json(numbers), indent=2, allow_nan=False))
     figure = out_dir / "demo.png"
     numbers["total_s"] = time.perf_counter() - t_start
 
@@ -166,8 +167,9 @@ def run_demo(out_dir: Path = Path("out/demo"), material: Optional[str] = None,
     print(f"  relight floor (exact reduction's table) {numbers['relight_floor']:.4f}"
           f"   ratio {numbers['relight_ratio']:.2f}")
     print(f"  reference noise (truth, two seeds)      {noise:.4f}")
-    print(f"  BRDF error, Eq. 1 on observed cells     {numbers['brdf_error_recovered_eq1_observed']:.4f}"
-          f"   ({numbers['observed_cell_fraction']:.0%} of the cells)")
+    observed = numbers["brdf_error_recovered_eq1_observed"]
+    print("  BRDF error, Eq. 1 on observed cells     " + (f"{observed:.4f}" if math.isfinite(observed) else "n/a")
+          + f"   ({numbers['observed_cell_fraction']:.0%} of the cells)")
     print(f"  exact floor (Eq. 1, phi_d average)      {numbers['exact_floor']:.4f}")
     print(f"  {f'grid floor (Eq. 1, {n_t}x{n_s} table)':<40}{numbers['grid_floor']:.4f}")
     print(f"  BRDF error, Eq. 1 on all cells          {numbers['brdf_error_recovered_eq1']:.4f}")

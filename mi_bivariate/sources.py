@@ -126,6 +126,19 @@ class MaterialSpec:
             slug = slug[:48] + "-" + hashlib.sha1(self.label.encode()).hexdigest()[:8]
         return slug
 
+    def source_digest(self) -> Optional[str]:
+        """16 hex digits of SHA-256 over a ``"merl"`` material's file (``None`` for the other kinds, which
+        their name or spec determines): a result kept for a file's label is not reused once the file's
+        content changes, or the label is given by another file. ``"unreadable"`` if it cannot be read
+        (its evaluation then says why)."""
+        if self.kind != "merl":
+            return None
+        try:
+            with open(self.spec, "rb") as f:
+                return hashlib.file_digest(f, "sha256").hexdigest()[:16]
+        except OSError:
+            return "unreadable"
+
 
 def resolve_materials(items: Sequence[str], data_dir: Optional[PathLike] = None) -> List[MaterialSpec]:
     """Expand material arguments into :class:`MaterialSpec` s (duplicates dropped, order kept).

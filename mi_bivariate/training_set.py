@@ -194,3 +194,12 @@ def basis_path_for(prior_path: PathLike) -> Path:
     """Where ``learn-prior`` writes the basis prior beside a smoothness prior file: ``<stem>_basis.npz``."""
     path = Path(prior_path)
     return path.with_name(path.stem + "_basis.npz")
+
+
+def load_prior_files(prior_path: PathLike) -> Tuple[Prior, Optional[BasisPrior]]:
+    """The priors ``learn-prior`` wrote to ``prior_path``: the smoothness prior there and the basis prior
+    beside it (:func:`basis_path_for`), or ``None`` where there is none (a recovery then uses no basis
+    prior: never the packaged one, which saw every shared material). What ``recover --prior`` and
+    ``evaluate --prior`` load alike. Raises :class:`InputError` naming the file that cannot be used."""
+    basis_file = basis_path_for(prior_path)
+    return Prior.load(prior_path), BasisPrior.load(basis_file) if basis_file.is_file() else None

@@ -342,3 +342,53 @@ def test_cached_renders_are_keyed_by_the_truths_values(tmp_path):
                             config.novel_spp, cache_key="truth")
             counts.append((renderer.renders, renderer.cached))
     assert counts == [(1, 0), (1, 0), (0, 1), (1, 0), (0, 1), (0, 1)]
+
+
+def test_a_prior_file_brings_its_own_basis_prior_or_none(tmp_path):
+    """``evaluate --prior FILE`` loads the priors as ``recover --prior FILE`` does: the basis prior
+    ``learn-prior`` wrote beside it, or none; never the packaged basis, which saw every shared material."""
+    import shutil
+
+    from mi_bivariate import basis_prior as bp
+    from mi_bivariate import prior as pr
+    from mi_bivariate.evaluate.protocol import MaterialTask, choose_priors
+    from mi_bivariate.sources import MaterialSpec
+
+    prior_file, basis_file = tmp_path / "mine.npz", tmp_path / "mine_basis.npz"
+    shutil.copyfile(pr.DEFAULT_PRIOR_PATH, prior_file)
+    cfg = ev.EvalConfig(prior=str(prior_file))
+    task = MaterialTask(MaterialSpec("brass", "nbrdf", "brass"), cfg)
+    smooth, basis, said = choose_priors(task)
+    assert isinstance(smooth, pr.Prior) and basis is None and "no basis prior" in said
+    without = cfg.hash()
+
+    shutil.copyfile(bp.DEFAULT_BASIS_PRIOR_PATH, basis_file)
+    smooth, basis, said = choose_priors(task)
+    assert isinstance(basis, bp.BasisPrior) and str(basis_file) in said
+    assert cfg.hash() != without  # results with and without the basis file never mix
+
+
+def test_a_merl_file_changed_or_another_file_of_its_name_is_evaluated_again(tmp_path):
+    """Resuming keeps a MERL file's record only for the same file with the same bytes: the label (the
+    file's stem) alone would report the old material's numbers for a new one."""
+    first, other = tmp_path / "a" / "x.binary", tmp_path / "b" / "x.binary"
+    first.parent.mkdir()
+    other.parent.mkdir()
+    analytic.to_merl(analytic.Lambertian(0.5)).write(first)
+    analytic.to_merl(analytic.Lambertian(0.1)).write(other)
+    out = tmp_path / "eval"
+
+    def albedo_error(spec):
+        seen = []
+        ev.run_evaluation([str(spec)], out, config=TINY, progress=False, figures=False, on_record=seen.append)
+        records = ev.read_records(out / ev.RESULTS_FILE, TINY.hash())
+        assert [r["material"] for r in records] == ["x"]  # one record per material, the latest
+        return len(seen), records[0]["floor"]["eq1"], records[0]["spec"]
+
+    runs, floor_a, spec = albedo_error(first)
+    assert (runs, spec) == (1, str(first))
+    assert albedo_error(first) == (0, floor_a, str(first))      # the same file: resumed, nothing evaluated
+    runs, floor_b, spec = albedo_error(other)                   # another file of the same name
+    assert (runs, spec) == (1, str(other))
+    analytic.to_merl(analytic.Lambertian(0.9)).write(other)     # the same file, new bytes
+    assert albedo_error(other)[0] == 1

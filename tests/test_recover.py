@@ -275,6 +275,19 @@ def test_demo_runs_small(tmp_path, capsys):
     assert "brdf_error_bivariate_floor_eq1" not in numbers and {"exact_floor", "grid_floor"} <= set(numbers)
 
 
+def test_demo_writes_strict_json_when_a_figure_is_undefined(tmp_path, capsys):
+    """A sphere too small for any cell to count as observed: Eq. 1 on observed cells is undefined, and
+    metrics.json says null (strict JSON), not NaN."""
+    assert cli_main(["demo", "--out", str(tmp_path), "--resolution", "8", "--spp", "4"]) == 0
+
+    def refuse(constant):
+        raise ValueError(f"metrics.json holds {constant}")
+
+    numbers = json.loads((tmp_path / "metrics.json").read_text(), parse_constant=refuse)
+    assert numbers["observed_cell_fraction"] == 0.0 and numbers["brdf_error_recovered_eq1_observed"] is None
+    assert "Eq. 1 on observed cells     n/a   (0% of the cells)" in capsys.readouterr().out
+
+
 def test_demo_without_shared_data_uses_the_probes_it_is_given(tmp_path, monkeypatch, capsys):
     """Without the shared data only the default (shared) probes get synthetic stand-ins: a probe file the
     user names is used, a black one is refused, and a data folder given explicitly must exist."""

@@ -16,7 +16,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import List, Optional, Tuple, Union
 
-from mi_bivariate import basis_prior, prior, solve
+from mi_bivariate import basis_prior, prior, solve, training_set
 from mi_bivariate.baselines import FAMILIES
 from mi_bivariate.common import PathLike
 from mi_bivariate.errors import InputError
@@ -58,8 +58,10 @@ class EvalConfig:
             environment; :data:`mi_bivariate.reference.DEFAULT_DIRECTIONS`).
         noise: camera noise level of the input images (:func:`mi_bivariate.noise.add_camera_noise`:
             relative standard deviation at the mean signal; 0 = clean).
-        prior: a prior file (:meth:`mi_bivariate.prior.Prior.load`) passed to ``recover``
-            (``None``: the packaged default, or leave-one-out priors, see below).
+        prior: a prior file (:meth:`mi_bivariate.prior.Prior.load`) passed to ``recover``, with the
+            basis prior ``learn-prior`` wrote beside it (``<stem>_basis.npz``), or no basis prior
+            where there is none, as ``recover --prior`` does (``None``: the packaged default, or
+            leave-one-out priors, see below).
         leave_one_out: for a shared MERL-NBRDF material and ``prior=None``, learn both
             priors (smoothness and basis) from the other 72 shared materials, so that no
             number comes from a prior that saw the material
@@ -137,7 +139,9 @@ class EvalConfig:
 
     def hash(self) -> str:
         """16 hex digits of SHA-256 over the canonical JSON of the config and protocol version."""
-        extra = {} if self.prior is None else {"prior_sha256": _file_digest(self.prior)}   # bytes, not name
+        extra = {} if self.prior is None else {  # bytes, not names; "missing" for no basis prior beside it
+            "prior_sha256": _file_digest(self.prior),
+            "basis_prior_sha256": _file_digest(training_set.basis_path_for(self.prior))}
         text = json.dumps({"protocol": PROTOCOL_VERSION, "solver": _solver_identity(), **self.to_dict(), **extra},
                           sort_keys=True)
         return hashlib.sha256(text.encode()).hexdigest()[:16]

@@ -122,12 +122,16 @@ def load_probes(cfg: EvalConfig, data_dir: Optional[str]) -> Tuple[List[List[Pro
 def choose_priors(task: MaterialTask) -> Tuple[Optional[Prior], Any, str]:
     """``(smoothness prior, basis prior, where they came from)`` for the recovery.
 
-    A prior file when the config names one; else, for a shared MERL-NBRDF
-    material with ``leave_one_out``, priors learnt without it; else the packaged ones.
+    A prior file when the config names one (with the basis prior ``learn-prior`` wrote beside it, or
+    none: as ``recover --prior`` loads them, :func:`~mi_bivariate.training_set.load_prior_files`); else,
+    for a shared MERL-NBRDF material with ``leave_one_out``, priors learnt without it; else the packaged ones.
     """
     cfg = task.config
     if cfg.prior is not None:
-        return Prior.load(cfg.prior), "default", f"file {cfg.prior}"
+        prior, basis_prior = training_set.load_prior_files(cfg.prior)
+        beside = training_set.basis_path_for(cfg.prior)
+        return prior, basis_prior, (f"files {cfg.prior} and {beside}" if basis_prior is not None
+                                    else f"file {cfg.prior} (no basis prior: no {beside.name} beside it)")
     if cfg.leave_one_out and task.material.kind == "nbrdf":
         prior, basis_prior = training_set.leave_one_out_priors(task.material.spec, *cfg.grid, data_dir=task.data_dir)
         return prior, basis_prior, f"leave-one-out: the other {len(basis_prior.materials)} shared MERL-NBRDF materials"
@@ -336,6 +340,7 @@ def _evaluate_material(task: MaterialTask, inputs: List[List[Probe]], novels: Li
         "material": task.material.label,
         "kind": task.material.kind,
         "spec": task.material.spec,
+        "source_sha256": task.material.source_digest(),
         "slug": task.material.slug,
         "config_hash": cfg.hash(),
         "floor": truth.floor_errors,

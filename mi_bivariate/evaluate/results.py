@@ -25,7 +25,7 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
 import numpy as np
 
 from mi_bivariate.atomic import atomic_path
-from mi_bivariate.common import PathLike
+from mi_bivariate.common import PathLike, finite_json
 from mi_bivariate.errors import InputWarning
 from mi_bivariate.figures import evaluation_figures
 
@@ -51,7 +51,9 @@ def read_records(path: PathLike, config_hash: Optional[str] = None) -> List[dict
 
     Damaged lines (a last line cut by an interruption, bytes that are not
     UTF-8, invalid JSON, a record without ``material`` or ``config_hash``) are
-    skipped; :func:`repair_results` sets them aside.
+    skipped; :func:`repair_results` sets them aside. With ``config_hash``, only
+    the last record of each material (a MERL file evaluated again once its content
+    changed appends a new one), in the order of those last records.
     """
     path = Path(path)
     if not path.is_file():
@@ -61,7 +63,13 @@ def read_records(path: PathLike, config_hash: Optional[str] = None) -> List[dict
         rec = _parse_record(line)
         if rec is not None and (config_hash is None or rec.get("config_hash") == config_hash):
             records.append(rec)
-    return records
+    if config_hash is None:
+        return records
+    latest: Dict[str, dict] = {}
+    for rec in records:
+        latest.pop(rec["material"], None)
+        latest[rec["material"]] = rec
+    return list(latest.values())
 
 
 def repair_results(path: PathLike) -> int:
@@ -94,17 +102,6 @@ def repair_results(path: PathLike) -> int:
     return len(bad)
 
 
-def _finite_json(value: Any) -> Any:
-    """``value`` with every non-finite number (NaN, +-Infinity, which JSON has no words for) as ``None``."""
-    if isinstance(value, dict):
-        return {k: _finite_json(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_finite_json(v) for v in value]
-    if isinstance(value, (float, np.floating)) and not math.isfinite(value):
-        return None
-    return value
-
-
 def _nulls_as_nan(value: Any) -> Any:
     """A record read back with its ``null`` numbers (written for NaN or Infinity) as NaN, for the tables and
     figures (which only read numbers from it)."""
@@ -121,7 +118,7 @@ def append_record(path: PathLike, record: dict) -> None:
     The line is valid JSON: a non-finite number (a PSNR of identical images, a ratio to a zero
     floor) is written as ``null``, not as the bare ``NaN``/``Infinity`` other readers refuse.
     """
-    line = json.dumps(_finite_json(record), sort_keys=True, allow_nan=False)
+    line = json.dumps(finite_json(record), sort_keys=True, allow_nan=False)
     with open(path, "a", encoding="utf-8") as f:
         f.write(line + "\n")
         f.flush()

@@ -279,7 +279,11 @@ def _run_locked(specs: List[MaterialSpec], out: Path, config: EvalConfig, jobs: 
     results = out / RESULTS_FILE
     repair_results(results)
     h = config.hash()
-    done = {r["material"] for r in read_records(results, h)}
+    # A record counts as done only for the same source: a MERL file's label (its stem) given by another
+    # file, or by the same file since changed, is evaluated again (its new record, appended, is the one read).
+    source = {m.label: (m.spec, m.source_digest()) for m in specs}
+    done = {r["material"] for r in read_records(results, h)
+            if source.get(r["material"]) == (r.get("spec"), r.get("source_sha256"))}
     if threads is None and dask is None and jobs > 1:
         threads = threads_per_job(jobs)
     tasks = [MaterialTask(m, config, None if data_dir is None else str(data_dir), threads,
@@ -315,7 +319,8 @@ def _run_locked(specs: List[MaterialSpec], out: Path, config: EvalConfig, jobs: 
         finally:
             bar.close()
 
-    by_label = {r["material"]: r for r in read_records(results, h)}
+    by_label = {r["material"]: r for r in read_records(results, h)
+                if source.get(r["material"]) == (r.get("spec"), r.get("source_sha256"))}
     records = [by_label[m.label] for m in specs if m.label in by_label]
     write_summary_csv(records, out / SUMMARY_FILE)
     if figures and records:
