@@ -16,10 +16,10 @@ import contextlib
 import os
 import tempfile
 from pathlib import Path
-from typing import Iterable, Iterator, List, Optional, Sequence
+from typing import Any, Iterable, Iterator, List, Optional, Sequence, Type
 
 from mi_bivariate.common import PathLike
-from mi_bivariate.errors import InputError
+from mi_bivariate.errors import InputError, Terminated
 
 
 def _write_error(path: Path, exc: OSError) -> InputError:
@@ -27,14 +27,51 @@ def _write_error(path: Path, exc: OSError) -> InputError:
                       "check the folder exists and is writable, and that the disk has space")
 
 
-def _make_temp(path: Path, suffix: str) -> Path:
+#: Open :func:`_signals_deferred` blocks, and the stop a signal asked for meanwhile (raised when they end).
+_held = 0
+_pending: Optional[Type[BaseException]] = None
+
+
+def stop_on_signal(stop: Type[BaseException] = Terminated):
+    """A signal handler (``signal.signal(signal.SIGTERM, stop_on_signal())``) that raises ``stop`` where the
+    program is, but not inside the few steps of :func:`atomic_paths` that must not be cut (a temporary
+    file between its creation and its being recorded for removal, the renames of a set of files): there
+    ``stop`` is raised as soon as they end. Python runs handlers in the main thread whichever thread the
+    signal reached, so the hold is kept here rather than by the operating system's signal mask."""
+    def handler(signum: int, frame: Any) -> None:
+        global _pending
+        if _held:
+            _pending = stop
+            return
+        raise stop()
+
+    return handler
+
+
+@contextlib.contextmanager
+def _signals_deferred() -> Iterator[None]:
+    """Hold the stops of :func:`stop_on_signal` handlers until the block ends."""
+    global _held, _pending
+    _held += 1
+    try:
+        yield
+    finally:
+        _held -= 1
+        if not _held and _pending is not None:
+            stop, _pending = _pending, None
+            raise stop()
+
+
+def _make_temp(path: Path, suffix: str, temps: List[Path]) -> None:
+    """Create a temporary for ``path`` and append it to ``temps`` (with signals held in between)."""
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix or path.suffix, dir=path.parent)
+        with _signals_deferred():
+            fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix or path.suffix, dir=path.parent)
+            temps.append(Path(tmp))
     except OSError as exc:
         raise _write_error(path, exc) from None
     os.close(fd)
-    return Path(tmp)
 
 
 def _publish(tmp: Path, path: Path) -> None:
@@ -83,7 +120,7 @@ def atomic_paths(paths: Sequence[PathLike], suffixes: Optional[Sequence[str]] = 
     temps: List[Path] = []
     try:
         for path, suffix in zip(paths, suffixes):
-            temps.append(_make_temp(path, suffix))
+            _make_temp(path, suffix, temps)
         def destination(name: object) -> Optional[Path]:
             """The destination whose temporary ``name`` is (or was written through)."""
             if not isinstance(name, str):
@@ -96,8 +133,9 @@ def atomic_paths(paths: Sequence[PathLike], suffixes: Optional[Sequence[str]] = 
 
         try:
             yield list(temps)
-            for tmp, path in zip(temps, paths):
-                _publish(tmp, path)
+            with _signals_deferred():  # all or none: no signal between two renames
+                for tmp, path in zip(temps, paths):
+                    _publish(tmp, path)
         except OSError as exc:
             raise _write_error(destination(exc.filename) or paths[0], exc) from None
         except InputError as exc:

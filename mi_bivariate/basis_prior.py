@@ -43,7 +43,7 @@ from mi_bivariate.common import PathLike
 
 from .atomic import atomic_path
 from .errors import InputError
-from .npzio import read_npz
+from .npzio import provenance_dict, read_npz
 from .prior import check_grid, interpolation_matrix
 
 FORMAT = "mi_bivariate.basis_prior"
@@ -105,6 +105,9 @@ class BasisPrior:
     n_t: int
     n_s: int
     provenance: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.provenance = provenance_dict(self.provenance, "provenance")
 
     @property
     def materials(self) -> Tuple[str, ...]:
@@ -243,14 +246,18 @@ class BasisPrior:
             raise InputError(path, "not a mi_bivariate basis prior (no grid in its metadata)")
         if meta.get("format") != FORMAT:
             raise InputError(path, f"not a mi_bivariate basis prior (format {meta.get('format')!r})")
-        n_t, n_s = (int(v) for v in meta["grid"])
+        grid = meta["grid"]
+        if (not isinstance(grid, list) or len(grid) != 2 or not all(isinstance(v, int) and not isinstance(v, bool)
+                                                                    and v >= 2 for v in grid)):
+            raise InputError(path, f"not a mi_bivariate basis prior (its grid is {grid!r}, not two node counts)")
+        n_t, n_s = grid
         n = n_t * n_s
         if (arrays["mean"].shape != (n,) or arrays["basis"].ndim != 2 or arrays["basis"].shape[0] != n
                 or arrays["variances"].shape != (arrays["basis"].shape[1],) or arrays["residual"].shape != (n,)
                 or not all(np.all(np.isfinite(a)) for a in arrays.values()) or np.any(arrays["variances"] <= 0)):
             raise InputError(path, "basis prior arrays are inconsistent or non-finite")
         return cls(arrays["mean"], arrays["basis"], arrays["variances"], arrays["residual"], n_t, n_s,
-                   meta.get("provenance", {}))
+                   provenance_dict(meta.get("provenance"), path))
 
 
 DEFAULT_BASIS_PRIOR_PATH = Path(__file__).resolve().parent / "data" / "basis_prior.npz"

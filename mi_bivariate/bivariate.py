@@ -30,7 +30,7 @@ from mi_bivariate.errors import InputError
 from mi_bivariate.images import write_exr
 from mi_bivariate.limits import MAX_REDUCE_SAMPLES, check_grid, whole_number
 from mi_bivariate.merl import MERL_SHAPE, MERLBRDF, above_horizon, node_angles
-from mi_bivariate.npzio import read_npz
+from mi_bivariate.npzio import provenance_dict, read_npz
 from mi_bivariate.probes import refuse_probe
 
 FORMAT = "mi_bivariate.BivariateBRDF"
@@ -93,7 +93,7 @@ class BivariateBRDF:
     def __init__(self, table: Any, provenance: Optional[dict] = None, source: str = "bivariate table",
                  confidence: Optional[dict] = None):
         self.table = validate_table(table, source)
-        self.provenance = dict(provenance or {})
+        self.provenance = provenance_dict(provenance, source)
         self.confidence = {}
         for name, value in (confidence or {}).items():
             self.confidence[str(name)] = _checked_confidence(value, name, self.table.shape, source)

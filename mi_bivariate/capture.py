@@ -50,6 +50,10 @@ DROP_REASONS: Tuple[str, ...] = ("view_angle", "outside_image", "silhouette", "o
 #: with the image) and the solve's sums stay finite (measured: a recovery at 1e34 is right, at 1e37 it
 #: overflowed inside the priors).
 MAX_PIXEL = float(np.finfo(np.float32).max) / 1e3
+#: The smallest largest pixel value accepted: a recovery is the same, scaled, down to images whose
+#: brightest pixel is 1e-25 (measured on the bench sphere); at 1e-27 to 1e-30 float32's squares underflow and
+#: the sphere fit and the table moved by up to 80% of its largest value. Five decades of margin.
+MIN_PIXEL = 1e-20
 #: Fewer usable observations than this gives an :class:`InputWarning`.
 MIN_OBSERVATIONS = 256
 
@@ -186,7 +190,7 @@ def _frame_about(axis: np.ndarray) -> np.ndarray:
 def check_image(image: np.ndarray, source: str = "image") -> np.ndarray:
     """``image`` as ``(H, W, 3) float32`` linear RGB (no copy when it is one), else :class:`InputError`
     naming ``source``: another shape (a grey or RGBA image), no pixels, a type other than real numbers,
-    values beyond :data:`MAX_PIXEL`. Integers are read as they are, with an :class:`InputWarning`."""
+    values beyond :data:`MAX_PIXEL`, or all (but zeros) below :data:`MIN_PIXEL`. Integers are read as they are, with an :class:`InputWarning`."""
     image = np.asarray(image)
     if image.ndim != 3 or image.shape[2] != 3:
         hint = None
@@ -208,6 +212,10 @@ def check_image(image: np.ndarray, source: str = "image") -> np.ndarray:
         if top > MAX_PIXEL:
             raise InputError(source, f"image values up to {top:.3g} are too large for float32 and the solve's sums "
                              f"(at most {MAX_PIXEL:.3g})", "scale the image (and its probe) down: the table scales "
+                             "with the image over the probe")
+        if 0.0 < top < MIN_PIXEL:  # an all-zero image is refused as black, with its own reasons
+            raise InputError(source, f"image values up to {top:.3g} are too small for float32 and the solve's sums "
+                             f"(the largest must be at least {MIN_PIXEL:g})", "scale the image up: the table scales "
                              "with the image over the probe")
     return image.astype(np.float32, copy=False)
 

@@ -33,12 +33,10 @@ from mi_bivariate import export, lighting, limits, merl
 from mi_bivariate import recover as rec
 from mi_bivariate import render, spherefit, synthesis, training_set
 from mi_bivariate.atomic import atomic_paths, check_outputs, same_file
-from mi_bivariate.basis_prior import BasisPrior
 from mi_bivariate.errors import InputError, InputWarning
 from mi_bivariate.geometry import Intrinsics
 from mi_bivariate.images import load_image, load_mask, write_exr, write_png
 from mi_bivariate.nbrdf import ALL_NBRDF_MATERIALS
-from mi_bivariate.prior import Prior
 from mi_bivariate.probes import check_lit
 from mi_bivariate.solve import check_alpha
 from mi_bivariate.sources import have_shared_data, input_files, load_brdf, load_probe
@@ -98,12 +96,11 @@ def _input_files(args: argparse.Namespace, *specs: Optional[str]) -> List[Path]:
 
 
 def _check_out_file(out: Optional[str]) -> None:
-    """``--out`` naming an existing folder is refused (the command writes files, not into a folder)."""
-    if out and Path(out).is_dir():
-        raise InputError(out, "--out is a folder", "give a file name")
-
-
-#: Library names of inputs (``"image"``) -> the user's file names, for warnings (see :func:`_format_warning`).
+    """``--out`` naming a folder, an existing one or one written with a trailing separator (``o/new/``,
+    which the path would otherwise read as the file ``o/new.npz``), is refused: the command writes files,
+    not into a folder."""
+    if out and (Path(out).is_dir() or out.endswith(("/", os.sep))):
+        raise InputError(out, "--out is a folder", "give a file name, e.g. " + os.path.join(out, "brdf.npz"))
 
 
 def _check_out_folder(out: Path, flag: str = "--out") -> None:
@@ -285,10 +282,8 @@ def _recover_priors(args: argparse.Namespace) -> tuple:
     smooth_prior, basis_prior = None, "default"
     args.source_names.update({"alpha": "--alpha", "noise": "--noise"})
     if args.prior is not None:
-        smooth_prior = Prior.load(args.prior)
-        basis_file = basis_path_for(args.prior)
-        args.source_names["basis_prior"] = str(basis_file)
-        basis_prior = BasisPrior.load(basis_file) if basis_file.is_file() else None
+        args.source_names["basis_prior"] = str(basis_path_for(args.prior))
+        smooth_prior, basis_prior = training_set.load_prior_files(args.prior)
     return smooth_prior, None if args.no_basis_prior else basis_prior
 
 

@@ -29,3 +29,9 @@ class InputError(ValueError):
 
 class InputWarning(UserWarning):
     """Input that is usable but suspicious (LDR images, dropped pixels, weak lighting)."""
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (``timeout``, a job scheduler, ``kill``) in a ``mi-bivariate`` process
+    (:func:`mi_bivariate.atomic.stop_on_signal`): raised where the command is, so that it stops as after
+    Ctrl-C, its outputs' temporary files removed and the earlier outputs as they were."""

@@ -29,6 +29,7 @@ import numpy as np
 from mi_bivariate.common import PathLike
 from mi_bivariate.errors import InputError
 from mi_bivariate.merl import MERL_SHAPE, MERLBRDF, geometric_mask, node_angles
+from mi_bivariate.npzio import read_npz
 
 NBRDF_MATERIALS: Tuple[str, ...] = (
     "alum-bronze", "black-fabric", "blue-acrylic", "brass", "colonial-maple-223",
@@ -76,8 +77,9 @@ def data_dir(explicit: Optional[PathLike] = None) -> Path:
                          "or pass --data")
     path = Path(value)
     if not path.is_dir():
-        raise InputError(path, "shared data folder does not exist",
-                         "set MI_BIVARIATE_DATA to the folder holding merl_nbrdf/ and probes/")
+        where = "--data (data_dir=)" if explicit is not None else "MI_BIVARIATE_DATA"
+        raise InputError(path, "the shared data folder is a file, not a folder" if path.exists() else
+                         "shared data folder does not exist", f"set {where} to the folder holding merl_nbrdf/ and probes/")
     return path
 
 
@@ -126,7 +128,8 @@ class NBRDF:
             rows = np.asarray(x[start:start + _CHUNK], np.float64)
             hidden = np.maximum(rows @ w["W1"] + w["b1"], 0.0)
             hidden = np.maximum(hidden @ w["W2"] + w["b2"], 0.0)
-            out[start:start + _CHUNK] = np.maximum(np.expm1(hidden @ w["W3"] + w["b3"]), 0.0)
+            with np.errstate(over="ignore"):  # an overflow is an infinite value, which the tables refuse by name
+                out[start:start + _CHUNK] = np.maximum(np.expm1(hidden @ w["W3"] + w["b3"]), 0.0)
         return out
 
     def eval(self, theta_h, theta_d, phi_d) -> np.ndarray:
@@ -154,14 +157,9 @@ def _inputs(theta_h: np.ndarray, theta_d: np.ndarray, phi_d: np.ndarray) -> np.n
 
 @functools.lru_cache(maxsize=4)
 def _load_npz(path: Path) -> Dict[str, np.ndarray]:
-    try:
-        with np.load(path, allow_pickle=False) as npz:
-            return {k: npz[k] for k in npz.files}
-    except FileNotFoundError:
-        raise InputError(path, "MERL-NBRDF weights not found",
-                         "MI_BIVARIATE_DATA must point at the shared data folder") from None
-    except Exception as e:  # zipfile/pickle/format errors of a foreign file
-        raise InputError(path, f"not a MERL-NBRDF weights file ({type(e).__name__}: {e})") from None
+    if not path.is_file():
+        raise InputError(path, "MERL-NBRDF weights not found", "MI_BIVARIATE_DATA must point at the shared data folder")
+    return read_npz(path, what="MERL-NBRDF weights file", text=())
 
 
 def load_nbrdf(name: str, data_dir: Optional[PathLike] = None) -> NBRDF:
@@ -179,6 +177,8 @@ def load_nbrdf(name: str, data_dir: Optional[PathLike] = None) -> NBRDF:
             raise InputError(path, f"missing array {key!r}")
         if arrays[key].shape != _SHAPES[layer]:
             raise InputError(path, f"{key} has shape {arrays[key].shape}, expected {_SHAPES[layer]}")
+        if not np.all(np.isfinite(arrays[key])):
+            raise InputError(path, f"{key} holds non-finite values", "the file is corrupt")
         weights[layer] = arrays[key]
     return NBRDF(name, weights)
 
@@ -206,6 +206,9 @@ def tabulate(nbrdf: NBRDF, dtype=np.float32) -> MERLBRDF:
 @functools.lru_cache(maxsize=8)
 def _nbrdf_merl_cached(name: str, path: Path) -> MERLBRDF:
     merl = tabulate(load_nbrdf(name, path))
+    if np.isinf(merl.table).any():  # finite weights whose network overflows float (below-horizon cells are NaN)
+        raise InputError(weights_path(name, path), f"{name}: the network's values overflow (its weights are far "
+                         "out of range)", "the file is corrupt")
     merl.table.setflags(write=False)  # shared by every caller of the cache
     return merl
 

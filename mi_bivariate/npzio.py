@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 import zipfile
 from pathlib import Path
-from typing import Dict, Optional, Sequence
+from typing import Any, Dict, Mapping, Optional, Sequence
 
 import numpy as np
 
@@ -32,7 +32,7 @@ _KIND_NAMES = {"c": "complex", "M": "datetime", "m": "timedelta", "O": "object",
 
 def read_npz(path: PathLike, what: str = "file", required: Sequence[str] = (),
              max_member_bytes: int = MAX_MEMBER_BYTES, max_total_bytes: int = MAX_TOTAL_BYTES,
-             hint: Optional[str] = None) -> Dict[str, np.ndarray]:
+             hint: Optional[str] = None, text: Sequence[str] = ("meta",)) -> Dict[str, np.ndarray]:
     """All arrays of a ``.npz`` archive, after checking sizes and dtypes.
 
     Args:
@@ -41,6 +41,8 @@ def read_npz(path: PathLike, what: str = "file", required: Sequence[str] = (),
         required: member names that must be present.
         max_member_bytes, max_total_bytes: limits on the uncompressed sizes.
         hint: what to do, appended to a missing-member message.
+        text: the members that may hold strings (the JSON metadata); every other member must hold
+            numbers or booleans, which the readers convert to float without a second check.
 
     Returns:
         ``{name: array}`` (names without ``.npy``).
@@ -49,7 +51,7 @@ def read_npz(path: PathLike, what: str = "file", required: Sequence[str] = (),
         InputError: missing file, not a zip archive (e.g. a bare ``.npy``),
             corrupt or truncated archive, a member over the size limits, a
             ``.npy`` header inconsistent with the member, a disallowed dtype,
-            a missing required member.
+            a missing required member, text in a member other than ``text``.
     """
     path = Path(path)
     if not path.exists():
@@ -93,6 +95,10 @@ def read_npz(path: PathLike, what: str = "file", required: Sequence[str] = (),
     missing = [k for k in required if k not in arrays]
     if missing:
         raise InputError(path, f"not a {what}: missing {', '.join(missing)}", hint)
+    for name, array in arrays.items():
+        if array.dtype.kind in "US" and name not in text:
+            raise InputError(path, f"member {name!r} holds text ({array.dtype}), not numbers",
+                             f"the file is corrupt or not a {what}")
     return arrays
 
 
@@ -117,3 +123,21 @@ def _check_member(path: Path, zf: zipfile.ZipFile, info: zipfile.ZipInfo, max_me
     if header_bytes + n_bytes != info.file_size:
         raise InputError(path, f"member {name!r} is {info.file_size - header_bytes} bytes where its header "
                                f"declares {n_bytes}", "the file is truncated or corrupt")
+
+
+def provenance_dict(value: Any, source: Any) -> dict:
+    """``value`` as a table's or a prior's provenance (``None``: empty): a JSON object (``dict``) whose
+    ``"materials"``, where given, list names. :class:`InputError` naming ``source`` (the file, or the
+    argument) for anything else: the provenance is read back (which materials a prior saw, where a table
+    came from), so a list or a number there would fail later, inside the solve."""
+    if value is None:
+        return {}
+    if not isinstance(value, Mapping):
+        raise InputError(source, f"provenance must be a JSON object, got a {type(value).__name__}",
+                         "the file is corrupt or was not written by mi_bivariate")
+    materials = value.get("materials", [])
+    if isinstance(materials, (str, bytes)) or not isinstance(materials, (list, tuple)) or not all(
+            isinstance(m, str) for m in materials):
+        raise InputError(source, "provenance 'materials' must be a list of names",
+                         "the file is corrupt or was not written by mi_bivariate")
+    return dict(value)

@@ -69,7 +69,7 @@ from mi_bivariate.common import PathLike
 
 from .atomic import atomic_path
 from .errors import InputError
-from .npzio import read_npz
+from .npzio import provenance_dict, read_npz
 
 PAIRS: Tuple[str, str] = ("diffuse", "gloss")
 FORMAT = "mi_bivariate.prior"
@@ -288,7 +288,7 @@ class Prior:
                                  f"in the solve (at most {_MAX_PRECISION:.3g})",
                                  "learn the prior again, or raise its smallest sigmas")
         self.pairs = checked
-        self.provenance = dict(provenance or {})
+        self.provenance = provenance_dict(provenance, "provenance")
 
     @property
     def n_t(self) -> int:

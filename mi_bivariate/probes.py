@@ -681,7 +681,9 @@ def shared_probe_path(name: str, data_dir: Optional[PathLike] = None) -> Path:
         folder = folder / "probes"
     matches = sorted(p for p in folder.glob(f"{name}.*") if p.suffix.lower() in PROBE_FORMATS)
     if not matches:
-        raise InputError(folder, f"shared probe {name!r} not found" if Path(folder).is_dir() else
-                         f"the shared data folder does not exist (looking for the probe {name!r})",
-                         "set MI_BIVARIATE_DATA or --data to the folder with probes/, or give a probe file")
+        problem = (f"shared probe {name!r} not found" if folder.is_dir() else
+                   f"the shared data folder is a file, not a folder (looking for the probe {name!r})" if folder.exists()
+                   else f"the shared data folder does not exist (looking for the probe {name!r})")
+        raise InputError(folder, problem, "set MI_BIVARIATE_DATA or --data to the folder with probes/, or give a "
+                         "probe file")
     return matches[0]

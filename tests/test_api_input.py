@@ -203,6 +203,12 @@ def test_images_are_checked_for_their_number_type(probe):
     for scale in (np.float64(1e300), np.float32(1e37)):  # beyond float32; within it, but the sums overflow
         with pytest.raises(InputError, match="too large for float32 and the solve's sums"):
             recover(IMAGE * scale, probe, SPHERE, **SMALL)
+    with pytest.raises(InputError, match="too small for float32 and the solve's sums"):
+        recover(IMAGE * np.float32(1e-30), probe, SPHERE, **SMALL)
+    with warnings.catch_warnings():  # within the limits, the recovery is linear in the image
+        warnings.simplefilter("ignore", InputWarning)
+        tables = [recover(IMAGE * np.float32(s), probe, SPHERE, **SMALL).brdf.table / s for s in (1.0, 1e-18)]
+    np.testing.assert_allclose(tables[1], tables[0], rtol=0, atol=1e-5 * tables[0].max())
     with pytest.warns(InputWarning, match=r"the image holds integers \(uint8\)"):
         recover(np.full((48, 48, 3), 128, np.uint8), probe, SPHERE, **SMALL)
 

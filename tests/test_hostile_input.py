@@ -27,6 +27,7 @@ from mi_bivariate.errors import InputError, InputWarning
 from mi_bivariate.geometry import SphereGeometry
 from mi_bivariate.merl import MERL_SHAPE, MERLBRDF
 from mi_bivariate.probes import Probe
+from mi_bivariate.sources import have_shared_data
 
 GEO = SphereGeometry(32.0, 32.0, 28.0)
 
@@ -559,6 +560,85 @@ def test_npz_checks_before_inflating(tmp_path):
         _raises(lambda: Prior.load(tmp_path / "cut.npz"), "cut.npz")
 
 
+def _altered(source: Path, out: Path, **changes) -> Path:
+    """A copy of the ``.npz`` ``source`` with members replaced (``None``: removed), the rest as they were."""
+    with np.load(source, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays.update(changes)
+    return _npz(out, **{k: v for k, v in arrays.items() if v is not None})
+
+
+def _with_meta(source: Path, **fields) -> np.ndarray:
+    import json
+
+    with np.load(source, allow_pickle=False) as z:
+        meta = json.loads(str(z["meta"]))
+    meta.update(fields)
+    return np.array(json.dumps(meta))
+
+
+def test_npz_files_with_text_numbers_or_a_foreign_provenance_are_refused_by_name(tmp_path):
+    """Every reader of the toolkit's .npz files: text where numbers go, or metadata of the wrong shape
+    (a provenance that is not an object, a basis prior's grid that is not two node counts), is a one-line
+    InputError naming the file, not a ValueError or TypeError from inside the loader or the solve."""
+    from mi_bivariate.basis_prior import DEFAULT_BASIS_PRIOR_PATH, BasisPrior
+    from mi_bivariate.prior import DEFAULT_PRIOR_PATH, Prior
+
+    brdf = tmp_path / "brdf.npz"
+    BivariateBRDF(np.full((4, 4, 3), 0.1, np.float32), confidence={"measured": np.ones((4, 4, 3))}).save(brdf)
+    cases = [
+        (Prior.load, DEFAULT_PRIOR_PATH, {"gloss_sigma_s": np.array(["a"] * 4)}, "'gloss_sigma_s' holds text"),
+        (Prior.load, DEFAULT_PRIOR_PATH, {"meta": _with_meta(DEFAULT_PRIOR_PATH, provenance=[1, 2])},
+         "provenance must be a JSON object"),
+        (Prior.load, DEFAULT_PRIOR_PATH, {"meta": _with_meta(DEFAULT_PRIOR_PATH, provenance={"materials": 5})},
+         "'materials' must be a list of names"),
+        (BasisPrior.load, DEFAULT_BASIS_PRIOR_PATH, {"mean": np.array(["x"] * 1024)}, "'mean' holds text"),
+        (BasisPrior.load, DEFAULT_BASIS_PRIOR_PATH, {"meta": _with_meta(DEFAULT_BASIS_PRIOR_PATH, provenance=[1])},
+         "provenance must be a JSON object"),
+    ]
+    for grid in ("ab", 5, [32], None, [32.5, 32], [True, 32]):
+        cases.append((BasisPrior.load, DEFAULT_BASIS_PRIOR_PATH,
+                      {"meta": _with_meta(DEFAULT_BASIS_PRIOR_PATH, grid=grid)}, "not two node counts"))
+    cases += [
+        (BivariateBRDF.load, brdf, {"confidence_measured": np.array("high")}, "'confidence_measured' holds text"),
+        (BivariateBRDF.load, brdf, {"s_nodes": np.array(["0", "1", "2", "3"])}, "'s_nodes' holds text"),
+        (BivariateBRDF.load, brdf, {"meta": _with_meta(brdf, provenance="abc")}, "provenance must be a JSON object"),
+    ]
+    for k, (load, source, change, match) in enumerate(cases):
+        bad = _altered(Path(source), tmp_path / f"bad{k}.npz", **change)
+        with pytest.raises(InputError, match=match) as info:
+            load(bad)
+        assert info.value.source == str(bad), (k, str(info.value))
+
+
+@pytest.mark.skipif(not have_shared_data(), reason="needs the shared MERL-NBRDF weights")
+def test_nbrdf_weights_with_text_or_out_of_range_values_are_refused_by_name(tmp_path):
+    """A MERL-NBRDF weights file holding text, non-finite weights, or finite weights whose network
+    overflows: one InputError naming the file (and no numpy warning on the way), not a ValueError or a
+    table of infinities."""
+    from mi_bivariate import nbrdf
+
+    data = tmp_path / "data"
+    (data / "merl_nbrdf").mkdir(parents=True)
+    shared = nbrdf.weights_path("brass")
+    cases = (({"brass/b3": np.array(["1", "2", "3"])}, "'brass/b3' holds text"),
+             ({"brass/b3": np.full(3, np.inf, np.float32)}, "non-finite"),
+             ({"brass/b3": np.full(3, 1e30, np.float32)}, "the network's values overflow"))
+    try:
+        for change, match in cases:
+            weights = _altered(shared, data / "merl_nbrdf" / shared.name, **change)
+            nbrdf._load_npz.cache_clear()
+            nbrdf._nbrdf_merl_cached.cache_clear()
+            with warnings.catch_warnings():
+                warnings.simplefilter("error")
+                with pytest.raises(InputError, match=match) as info:
+                    nbrdf.nbrdf_merl("brass", data)
+            assert info.value.source == str(weights)
+    finally:
+        nbrdf._load_npz.cache_clear()
+        nbrdf._nbrdf_merl_cached.cache_clear()
+
+
 # ---------------------------------------------------- CLI: outputs and limits
 
 def _cli(argv, capsys) -> str:
@@ -646,6 +726,7 @@ LIMIT_CASES = [
     ("max view angle", ["--max-view-angle", "-10"], "--max-view-angle"),
     ("bad variant", ["--variant", "cuda_nope"], "--variant"),
     ("out is a folder", ["--out", "."], "--out is a folder"),
+    ("out names a new folder", ["--out", "new/"], "--out is a folder (give a file name, e.g. new/brdf.npz)"),
     ("threads", ["--threads", "0"], "--threads"),
 ]
 
@@ -853,6 +934,54 @@ def test_recover_is_bit_identical_for_any_thread_count(files, tmp_path):
             assert_same_sums(tables[1][key], value, rel=1e-4, err_msg=key)
 
 
+def test_sigterm_stops_a_command_and_leaves_no_temporary_files(files, tmp_path):
+    """SIGTERM (``timeout``, a job scheduler) while ``recover --merl`` writes its outputs: the command stops
+    as after Ctrl-C (exit 143, one line), its temporary files are removed and no output is published."""
+    import signal
+    import time
+
+    out = tmp_path / "out"
+    out.mkdir()
+    argv = _recover_args(files) + ["--merl", "--out", str(out / "k.npz")]
+    proc = subprocess.Popen([sys.executable, "-m", "mi_bivariate.cli", *argv], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 240
+        while proc.poll() is None and time.monotonic() < deadline:
+            if any(p.name.startswith(".") for p in out.iterdir()):  # a temporary: it is writing
+                proc.send_signal(signal.SIGTERM)
+                break
+            time.sleep(0.005)
+        err = proc.communicate(timeout=120)[1]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 128 + signal.SIGTERM, (proc.returncode, err[-2000:])  # not ended before the writes
+    assert err.strip().splitlines()[-1] == "mi-bivariate: terminated" and "Traceback" not in err, err
+    assert list(out.iterdir()) == []
+
+
+def test_a_stop_asked_while_an_output_is_being_created_waits_for_it(tmp_path):
+    """The handler the CLI installs for SIGTERM and SIGINT raises at once, except inside the steps of an
+    atomic write that must not be cut, where it raises when they end (and only once)."""
+    from mi_bivariate import atomic
+    from mi_bivariate.errors import Terminated
+
+    handler = atomic.stop_on_signal(Terminated)
+    with pytest.raises(Terminated):
+        handler(15, None)
+    reached = []
+    with pytest.raises(Terminated):
+        with atomic._signals_deferred():
+            with atomic._signals_deferred():  # nested: the stop waits for the outermost
+                handler(15, None)
+                reached.append("inner")
+            reached.append("outer")
+    assert reached == ["inner", "outer"] and atomic._held == 0 and atomic._pending is None
+    with atomic._signals_deferred():  # nothing asked: nothing raised
+        pass
+
+
 def test_unavailable_variant_is_one_line(tmp_path):
     """``--variant cuda_ad_rgb`` where CUDA cannot start (no GPU or driver) is bad input, not a
     traceback; where it can, ``info`` runs. In a child process: a failed variant switch is not undone."""
@@ -1029,6 +1158,12 @@ def test_review_messages_say_what_to_do(files, tmp_path, capsys):
     line = _cli(["render", str(files["npz"]), "--probe", "grace_256", "--data", str(tmp_path / "none"),
                  "--out", str(tmp_path / "r.exr")], capsys)
     assert "the shared data folder does not exist" in line and "MI_BIVARIATE_DATA or --data" in line, line
+    line = _cli(["render", str(files["npz"]), "--probe", "grace_256", "--data", str(files["image"]),
+                 "--out", str(tmp_path / "r.exr")], capsys)
+    assert "the shared data folder is a file, not a folder" in line, line
+    line = _cli(["render", "brass", "--probe", str(files["probe"]), "--data", str(files["image"]),
+                 "--out", str(tmp_path / "r.exr")], capsys)
+    assert "the shared data folder is a file, not a folder (set --data (data_dir=) to" in line, line
     line = _cli(["recover-batch", str(files["image"]), str(files["image"]), "--probe", str(files["probe"]),
                  "--out-dir", str(tmp_path / "b")], capsys)
     assert line == f"mi-bivariate: error: {files['image']}: is given twice (give each photo once)", line
