@@ -50,9 +50,10 @@ DROP_REASONS: Tuple[str, ...] = ("view_angle", "outside_image", "silhouette", "o
 #: with the image) and the solve's sums stay finite (measured: a recovery at 1e34 is right, at 1e37 it
 #: overflowed inside the priors).
 MAX_PIXEL = float(np.finfo(np.float32).max) / 1e3
-#: The smallest largest pixel value accepted: a recovery is the same, scaled, down to images whose
-#: brightest pixel is 1e-25 (measured on the bench sphere); at 1e-27 to 1e-30 float32's squares underflow and
-#: the sphere fit and the table moved by up to 80% of its largest value. Five decades of margin.
+#: The least value the brightest pixel may have: a recovery scales with the image down to a brightest pixel
+#: of 1e-25 (measured on the bench sphere, the table the same to 7e-7 of its largest value); below it
+#: float32's squares underflow (a review measured the table 3% off at 1e-27 and 80% off, the sphere fit
+#: moved, at 1e-30). Five decades of margin.
 MIN_PIXEL = 1e-20
 #: Fewer usable observations than this gives an :class:`InputWarning`.
 MIN_OBSERVATIONS = 256
@@ -190,7 +191,8 @@ def _frame_about(axis: np.ndarray) -> np.ndarray:
 def check_image(image: np.ndarray, source: str = "image") -> np.ndarray:
     """``image`` as ``(H, W, 3) float32`` linear RGB (no copy when it is one), else :class:`InputError`
     naming ``source``: another shape (a grey or RGBA image), no pixels, a type other than real numbers,
-    values beyond :data:`MAX_PIXEL`, or all (but zeros) below :data:`MIN_PIXEL`. Integers are read as they are, with an :class:`InputWarning`."""
+    values beyond :data:`MAX_PIXEL`, or all (zeros aside) below :data:`MIN_PIXEL`. Integers are read as they
+    are, with an :class:`InputWarning`."""
     image = np.asarray(image)
     if image.ndim != 3 or image.shape[2] != 3:
         hint = None

@@ -79,7 +79,8 @@ def data_dir(explicit: Optional[PathLike] = None) -> Path:
     if not path.is_dir():
         where = "--data (data_dir=)" if explicit is not None else "MI_BIVARIATE_DATA"
         raise InputError(path, "the shared data folder is a file, not a folder" if path.exists() else
-                         "shared data folder does not exist", f"set {where} to the folder holding merl_nbrdf/ and probes/")
+                         "shared data folder does not exist",
+                         f"set {where} to the folder holding merl_nbrdf/ and probes/")
     return path
 
 

@@ -133,11 +133,14 @@ class MaterialSpec:
         (its evaluation then says why)."""
         if self.kind != "merl":
             return None
+        digest = hashlib.sha256()  # read in blocks (hashlib.file_digest needs Python 3.11)
         try:
             with open(self.spec, "rb") as f:
-                return hashlib.file_digest(f, "sha256").hexdigest()[:16]
+                for block in iter(lambda: f.read(1 << 20), b""):
+                    digest.update(block)
         except OSError:
             return "unreadable"
+        return digest.hexdigest()[:16]
 
 
 def resolve_materials(items: Sequence[str], data_dir: Optional[PathLike] = None) -> List[MaterialSpec]:
