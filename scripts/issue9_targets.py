@@ -9,7 +9,10 @@ all cells (the paper's Fig. 3 figure) and, like for like, by the exact floor ove
 (the exact phi_d average scored there; records written before stop 25 lack it); the confident
 cells also by the grid floor (the exact reduction on the recovery's grid) over the same cells.
 
-    python scripts/issue9_targets.py out/evaluate [--noisy out/evaluate_noise] [--by-input]
+    python scripts/issue9_targets.py out/evaluate [more folders] [--noisy out/evaluate_noise] [--by-input]
+
+Several folders (e.g. the 23 development materials' evaluation and the 50 training ones') are scored
+as one set of materials (results.md's "all 73" column).
 
 ``--by-input`` prints instead results.md's table of the training materials: relight / floor for each
 input (grace, uffizi, both), both against the better single one (median relight errors), and the
@@ -63,13 +66,15 @@ def by_input(records: dict, single: str, other: str) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("folder")
+    parser.add_argument("folders", nargs="+", help="evaluation folders, their materials scored together")
     parser.add_argument("--noisy", default=None, help="an evaluation of the same materials with --noise")
     parser.add_argument("--single", default="grace_latlong_1k")
     parser.add_argument("--other", default="uffizi_256")
     parser.add_argument("--by-input", action="store_true", help="the per-input table of results.md's training section")
     args = parser.parse_args()
-    records = load(args.folder)
+    records = {}
+    for folder in args.folders:
+        records.update(load(folder))
     both = f"{args.single}+{args.other}"
     if args.by_input:
         by_input(records, args.single, args.other)
