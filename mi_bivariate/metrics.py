@@ -329,6 +329,13 @@ def brdf_errors(truth, estimate, min_value: float = 0.0, observed_nodes: Optiona
     return BRDFErrors(truth, min_value)(estimate, observed_nodes)
 
 
+#: A relight floor below this (relative RMSE) gives no ratio: the references' own noise is 2e-4 to 1.1e-3
+#: (``scripts/reference_noise.py`` on the sharpest shared materials), so such a floor, a material whose
+#: bivariate table is exact (a Lambertian one), measures that noise and the ratio would not mean anything
+#: (a review saw "relight/floor 429734").
+MIN_RELIGHT_FLOOR = 1e-4
+
+
 def relight_errors(image: np.ndarray, floor_image: np.ndarray, truth_image: np.ndarray,
                    mask: np.ndarray) -> Dict[str, float]:
     """Relighting under one novel probe: the recovery's error, its floor and their ratio.
@@ -338,10 +345,11 @@ def relight_errors(image: np.ndarray, floor_image: np.ndarray, truth_image: np.n
     table (the paper's phi_d mean on the grid; not a strict lower bound: a
     table fitted to one view can relight that view better, ratios below 1
     are measured); ``ratio``: ``rel_rmse / floor`` (1 = as good as the exact
-    reduction). All three images must come from the same renderer.
+    reduction; NaN, written as ``null``, where the floor is below :data:`MIN_RELIGHT_FLOOR`). All three
+    images must come from the same renderer.
     """
     err = image_relative_rmse(image, truth_image, mask)
     floor = image_relative_rmse(floor_image, truth_image, mask)
     return {"rel_rmse": err, "floor": floor,
-            "ratio": err / floor if floor > 0 else (math.inf if err > 0 else 1.0),
+            "ratio": err / floor if floor >= MIN_RELIGHT_FLOOR else math.nan,
             "psnr": image_psnr(image, truth_image, mask)}

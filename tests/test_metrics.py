@@ -182,3 +182,6 @@ def test_relight_errors_by_hand():
     r = metrics.relight_errors(1.1 * truth, 1.05 * truth, truth, mask)
     assert r["rel_rmse"] == pytest.approx(0.1) and r["floor"] == pytest.approx(0.05)
     assert r["ratio"] == pytest.approx(2.0)
+    # a floor below the references' noise gives no ratio (it would divide by that noise)
+    tiny = metrics.relight_errors(1.1 * truth, (1 + 0.5 * metrics.MIN_RELIGHT_FLOOR) * truth, truth, mask)
+    assert math.isnan(tiny["ratio"]) and tiny["rel_rmse"] == pytest.approx(0.1)
