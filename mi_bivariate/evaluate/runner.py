@@ -185,6 +185,10 @@ def _run_tasks(tasks: List[MaterialTask], jobs: int, dask: Any) -> Iterator[Tupl
         except BaseException:
             for fut in futures:
                 fut.cancel()
+            # Ctrl-C reaches the workers too; SIGTERM to this process alone (``timeout``) would leave the
+            # pool's shutdown waiting for their materials to finish: end them now, as their death signal does.
+            for worker in multiprocessing.active_children():
+                worker.terminate()
             raise
 
 
