@@ -158,8 +158,8 @@ def cmd_render(args: argparse.Namespace) -> int:
                                   camera=args.camera, seed=args.seed)
     bad = int(np.count_nonzero(~np.isfinite(result.image)))
     if bad:  # float32 radiance overflowed: a table or probe far beyond any physical scale
-        raise InputError(args.brdf, f"the render overflowed float32 in {bad} pixel values (NaN or infinite)",
-                         "scale the BRDF or the probe down; nothing was written")
+        raise InputError(f"{args.brdf} under {args.probe}", f"the render overflowed float32 in {bad} pixel values "
+                         "(NaN or infinite)", "scale the BRDF or the probe down; nothing was written")
     with atomic_paths([out, out.with_suffix(".png")]) as (exr, png):
         write_exr(exr, result.image)
         write_png(png, result.image)

@@ -811,7 +811,7 @@ def test_render_refuses_an_image_that_overflowed(tmp_path, capsys):
     BivariateBRDF(np.full((8, 8, 3), 1e38, np.float32)).save(table)
     line = _cli(["render", str(table), "--probe", "synthetic:1", "--out", str(tmp_path / "r.exr"),
                  "--resolution", "16", "--spp", "2"], capsys)
-    assert line.startswith(f"mi-bivariate: error: {table}: the render overflowed float32")
+    assert line.startswith(f"mi-bivariate: error: {table} under synthetic:1: the render overflowed float32")
     assert "nothing was written" in line
     assert sorted(p.name for p in tmp_path.iterdir()) == ["huge.npz"]
 
