@@ -436,6 +436,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     check_outputs([Path(args.out) / name for name in demo.OUTPUTS],
                   _input_files(args, args.material, args.input_probe, args.novel_probe))
     ensure_variant(args.variant, vectorised=True)  # the plugins and the lighting matrix are JIT code
+    args.source_names["image"] = "the demo's input render"  # what the recovery's warnings call "image"
     return demo.run_demo(out_dir=Path(args.out), material=args.material, input_probe=args.input_probe,
                          novel_probe=args.novel_probe, data_dir=args.data, spp=args.spp, seed=args.seed,
                          resolution=args.resolution)

@@ -395,3 +395,22 @@ def test_a_merl_file_changed_or_another_file_of_its_name_is_evaluated_again(tmp_
     assert (runs, spec) == (1, str(other))
     analytic.to_merl(analytic.Lambertian(0.9)).write(other)     # the same file, new bytes
     assert albedo_error(other)[0] == 1
+
+
+def test_warnings_are_named_recorded_and_said_by_the_process_writing_the_records(tmp_path):
+    """A recovery's warnings ("image: ...") name the material and the input probe, go into the record once,
+    and are said by run_evaluation's process (from a worker they printed in Python's two-line form)."""
+    from mi_bivariate.errors import InputWarning
+    from mi_bivariate.evaluate.protocol import _named
+
+    assert _named("image: only 9 usable observations", "brass", ["grace_latlong_1k"]) == \
+        "brass under grace_latlong_1k: only 9 usable observations"
+    assert _named("image 1: dark", "brass", ["grace_latlong_1k", "uffizi_256"]) == "brass under uffizi_256: dark"
+    assert _named("inadequate illumination", "brass", ["a", "b"]) == "brass under a+b: inadequate illumination"
+    with pytest.warns(InputWarning) as said:
+        (record,) = ev.run_evaluation([MATERIALS[0]], tmp_path / "e", config=TINY, progress=False, figures=False)
+    label = record["material"]
+    assert record["warnings"] and all(m.startswith(f"{label} under synthetic:1: ") for m in record["warnings"])
+    assert len(set(record["warnings"])) == len(record["warnings"])
+    assert [str(w.message) for w in said if str(w.message) in record["warnings"]] == record["warnings"]
+

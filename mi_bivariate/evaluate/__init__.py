@@ -30,11 +30,13 @@ material and the probe only, not on the solver: they are cached in
 ``references/`` (one ``.npz`` per material, probe and render settings), so a
 rerun after a solver change renders only the recoveries.
 
-Results are one JSON line per finished material in ``results.jsonl``; a
-rerun skips the materials already there with the same configuration hash
-(:meth:`EvalConfig.hash`). Materials run in parallel in worker processes or on
-a Dask cluster. Every random choice is seeded, so the same command reproduces
-the same numbers.
+Results are one JSON line per finished material in ``results.jsonl``, with the
+recovery's warnings named after the material and the input probe (``"warnings"``,
+also said by the process that writes the file); a rerun skips the materials
+already there with the same configuration hash (:meth:`EvalConfig.hash`) and, for
+a MERL file, the same file and bytes (``"spec"``, ``"source_sha256"``). Materials
+run in parallel in worker processes or on a Dask cluster. Every random choice is
+seeded, so the same command reproduces the same numbers.
 
 The package, one concept per module:
 

@@ -13,14 +13,17 @@ The caller has selected the Mitsuba variant (the runner's front doors, see
 
 from __future__ import annotations
 
+import re
 import time
+import warnings
 from dataclasses import dataclass
-from typing import Any, Dict, List, Optional, Tuple
+from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
 from mi_bivariate import adequacy, baselines, bivariate, metrics, training_set
 from mi_bivariate.bivariate import BivariateBRDF
+from mi_bivariate.errors import InputWarning
 from mi_bivariate.evaluate.config import EvalConfig
 from mi_bivariate.evaluate.renders import Renderer, Shot, plugin
 from mi_bivariate.noise import add_camera_noise
@@ -270,9 +273,14 @@ def evaluate_input(task: MaterialTask, name: str, probe_list: List[Probe], novel
     t0 = time.perf_counter()
     images, geometries = render_inputs(renderer, cfg, name, probe_list, truth_bsdf)
     t_render = time.perf_counter() - t0
-    rec = recover(images, probe_list, geometries, n_normals=cfg.n_normals, n_dirs=cfg.n_dirs,
-                  grid=cfg.grid, alpha=cfg.alpha, prior=prior, basis_prior=basis_prior, seed=cfg.seed,
-                  keep_inputs=False)
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        rec = recover(images, probe_list, geometries, n_normals=cfg.n_normals, n_dirs=cfg.n_dirs,
+                      grid=cfg.grid, alpha=cfg.alpha, prior=prior, basis_prior=basis_prior, seed=cfg.seed,
+                      keep_inputs=False)
+    for w in said:  # "image: ..." is this material's render under this input's probe
+        warnings.warn(_named(str(w.message), task.material.label, name.split("+"))
+                      if issubclass(w.category, InputWarning) else w.message, w.category, stacklevel=2)
     entry: Dict[str, Any] = {"prior": prior_source, "timings": {"render_input": t_render, **rec.timings}}
     t0 = time.perf_counter()
     scores, observed = score_recovery(rec, truth, cfg.grid)
@@ -305,8 +313,31 @@ def evaluate_material(task: MaterialTask) -> Tuple[dict, Arrays]:
     timings: Dict[str, float] = {}
     inputs, novels = load_probes(cfg, task.data_dir)
     priors = choose_priors(task)
-    with jit_threads(task.threads):
-        return _evaluate_material(task, inputs, novels, priors, timings, t_start, cpu_start)
+    # The toolkit's warnings go into the record, each once, named after the material, and the process that
+    # writes the records says them (run_evaluation): a worker process would print them in Python's own
+    # two-line form, under no material's name.
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        with jit_threads(task.threads):
+            record, arrays = _evaluate_material(task, inputs, novels, priors, timings, t_start, cpu_start)
+    label = task.material.label
+    record["warnings"] = list(dict.fromkeys(
+        str(w.message) if str(w.message).startswith(label) else f"{label}: {w.message}"
+        for w in said if issubclass(w.category, InputWarning)))
+    for w in said:
+        if not issubclass(w.category, InputWarning):
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    return record, arrays
+
+
+def _named(message: str, material: str, probes: Sequence[str]) -> str:
+    """A recovery's warning about ``"image"`` (``"image k"`` of several) as about ``material`` under the
+    probe (``probes[k]``) that lit that image."""
+    found = re.match(r"image(?: (\d+))?: ", message)
+    if found is None:
+        return f"{material} under {'+'.join(probes)}: {message}"
+    k = int(found.group(1) or 0)
+    return f"{material} under {probes[k] if k < len(probes) else f'image {k}'}: {message[found.end():]}"
 
 
 def _evaluate_material(task: MaterialTask, inputs: List[List[Probe]], novels: List[Probe], priors: Any,

@@ -314,6 +314,8 @@ def _run_locked(specs: List[MaterialSpec], out: Path, config: EvalConfig, jobs: 
                         on_failure(task.material, result)
                     continue
                 record, arrays = result
+                for message in record.get("warnings", ()):  # said here, whichever process evaluated it
+                    warnings.warn(message, InputWarning, stacklevel=2)
                 # Artifacts before the record: a record on disk always has its artifacts.
                 save_artifacts(artifact_path(out, record), arrays)
                 append_record(results, record)
