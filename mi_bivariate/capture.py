@@ -339,7 +339,8 @@ def observations_from_sphere(image: np.ndarray, geometry: SphereGeometry, n_norm
     cx, cy, radius = float(geometry.cx), float(geometry.cy), float(geometry.radius)
     if cx + radius <= 0 or cy + radius <= 0 or cx - radius >= width or cy - radius >= height:
         raise InputError(source, f"the sphere (centre ({cx:g}, {cy:g}), radius {radius:g} px) "
-                                 f"lies outside the {width}x{height} image")
+                                 f"lies outside the {width}x{height} image",
+                         "give the sphere's centre and radius in this image's pixels")
     if cx - radius < 0 or cy - radius < 0 or cx + radius > width or cy + radius > height:
         warnings.warn(f"{source}: the sphere extends beyond the {width}x{height} image; "
                       "its cut-off part is not observed", InputWarning, stacklevel=2)

@@ -107,11 +107,11 @@ def read_image(path: PathLike, allow_ldr: bool = True) -> Tuple[np.ndarray, Dict
     if not path.exists():
         raise InputError(path, "no such file", "check the path")
     if not path.is_file():
-        raise InputError(path, "not a file")
+        raise InputError(path, "not a file", "give the path of an image file, not of a folder")
     try:
         fmt = sniff_format(path)
     except OSError as e:
-        raise InputError(path, f"cannot be read ({e.strerror or e})") from None
+        raise InputError(path, f"cannot be read ({e.strerror or e})", "check the file's permissions") from None
     if fmt is None:
         raise InputError(path, "cannot be read as an image: not an OpenEXR, Radiance HDR, PFM, PNG or JPEG file",
                          "the file is corrupt or of another type")
@@ -334,7 +334,8 @@ def check_rgbe(path: PathLike) -> None:
     n = len(data)
 
     def bad(problem: str) -> InputError:
-        return InputError(path, f"cannot be read as an image: corrupt Radiance HDR file, {problem}")
+        return InputError(path, f"cannot be read as an image: corrupt Radiance HDR file, {problem}",
+                          "write it again, or convert it to OpenEXR")
 
     if not data.startswith(b"#?"):
         raise bad("no '#?' signature")

@@ -153,19 +153,24 @@ class MERLBRDF:
         """
         path = Path(path)
         if not path.is_file():
-            raise InputError(path, "MERL file not found" if not path.exists() else "not a file")
+            raise InputError(path, "MERL file not found" if not path.exists() else "not a file",
+                             "give the path of a MERL .binary file")
         try:
             size = path.stat().st_size
             if size < _HEADER_BYTES:
-                raise InputError(path, f"not a MERL .binary file: {size} bytes, too short for its header")
+                raise InputError(path, f"not a MERL .binary file: {size} bytes, too short for its header",
+                                 "the file is truncated or not a MERL table")
             header = tuple(int(v) for v in np.fromfile(path, dtype="<i4", count=3))
         except OSError as e:
-            raise InputError(path, f"cannot read MERL file ({e.strerror or e})") from None
+            raise InputError(path, f"cannot read MERL file ({e.strerror or e})",
+                             "check the file's permissions") from None
         if header != MERL_SHAPE:
-            raise InputError(path, f"not a MERL .binary file: header {header}, expected {MERL_SHAPE}")
+            raise InputError(path, f"not a MERL .binary file: header {header}, expected {MERL_SHAPE}",
+                             "give a MERL isotropic BRDF table (90 x 90 x 180)")
         if size != MERL_FILE_BYTES:
             what = "truncated" if size < MERL_FILE_BYTES else "has trailing data"
-            raise InputError(path, f"MERL file {what}: {size} bytes, expected {MERL_FILE_BYTES}")
+            raise InputError(path, f"MERL file {what}: {size} bytes, expected {MERL_FILE_BYTES}",
+                             "download or write it again")
 
     @classmethod
     def read(cls, path: PathLike, name: str | None = None) -> "MERLBRDF":
@@ -180,7 +185,8 @@ class MERLBRDF:
         try:
             raw = np.fromfile(path, dtype="<f8", offset=_HEADER_BYTES, count=_N_VALUES)
         except OSError as e:
-            raise InputError(path, f"cannot read MERL file ({e.strerror or e})") from None
+            raise InputError(path, f"cannot read MERL file ({e.strerror or e})",
+                             "check the file's permissions") from None
         raw = raw.reshape((3,) + MERL_SHAPE)
         table = np.empty(MERL_SHAPE + (3,), np.float64)
         for c in range(3):
@@ -188,7 +194,7 @@ class MERLBRDF:
             channel[raw[c] < 0.0] = np.nan
             table[..., c] = channel
         if np.isinf(table).any():
-            raise InputError(path, "MERL file holds infinite values")
+            raise InputError(path, "MERL file holds infinite values", "the file is corrupt")
         check_reflects(table, path, "check the file")
         finite = table[np.isfinite(table)]
         missing = [name for c, name in enumerate("RGB") if not np.isfinite(table[..., c]).any()]

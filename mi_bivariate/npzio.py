@@ -57,12 +57,12 @@ def read_npz(path: PathLike, what: str = "file", required: Sequence[str] = (),
     if not path.exists():
         raise InputError(path, f"{what} not found")
     if not path.is_file():
-        raise InputError(path, "not a file")
+        raise InputError(path, "not a file", "give the path of a .npz file, not of a folder")
     try:
         with open(path, "rb") as f:
             head = f.read(6)
     except OSError as e:
-        raise InputError(path, f"cannot be read ({e.strerror or e})") from None
+        raise InputError(path, f"cannot be read ({e.strerror or e})", "check the file's permissions") from None
     if head.startswith(b"\x93NUMPY"):
         raise InputError(path, f"is a single .npy array, not an .npz archive: not a {what}")
     if not head.startswith(b"PK"):

@@ -338,7 +338,8 @@ def _user_sphere(sphere: Sequence[float], lum: Optional[np.ndarray], mask: Optio
                          "give the sphere's centre and radius (--sphere CX,CY,R) in this image's pixels")
     if cx + r <= 0 or cy + r <= 0 or cx - r >= width or cy - r >= height:
         raise InputError(source, f"the sphere (centre ({cx:g}, {cy:g}), radius {r:g} px) lies outside "
-                                 f"the {width}x{height} image")
+                                 f"the {width}x{height} image",
+                         "give the sphere's centre and radius (--sphere CX,CY,R) in this image's pixels")
     geometry = _make_geometry(cx, cy, r, k, None if k is None else _cone_from_circle(k, cx, cy, r), radius, rot)
     fit = None
     if lum is not None or mask is not None:

@@ -169,7 +169,7 @@ def tables_from_sources(sources: Union[PathLike, Iterable[PathLike]], n_t: int =
             raise InputError(src, "not a MERL .binary file, a directory of them, or a MERL-NBRDF name",
                              "see mi_bivariate.nbrdf.ALL_NBRDF_MATERIALS for the names")
         if name in tables:
-            raise InputError(src, f"material {name!r} given twice")
+            raise InputError(src, f"material {name!r} given twice", "give each material once")
         tables[name], origin[name] = table, where
     if not tables:
         raise InputError("prior training set", "is empty")
