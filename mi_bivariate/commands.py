@@ -160,6 +160,9 @@ def cmd_render(args: argparse.Namespace) -> int:
     if bad:  # float32 radiance overflowed: a table or probe far beyond any physical scale
         raise InputError(f"{args.brdf} under {args.probe}", f"the render overflowed float32 in {bad} pixel values "
                          "(NaN or infinite)", "scale the BRDF or the probe down; nothing was written")
+    if not np.any(result.image > 0.0):
+        warnings.warn(f"{args.brdf}: the render is black: the BRDF reflects no light under {args.probe} (no pixel "
+                      "is above 0)", InputWarning, stacklevel=2)
     with atomic_paths([out, out.with_suffix(".png")]) as (exr, png):
         write_exr(exr, result.image)
         write_png(png, result.image)

@@ -805,6 +805,15 @@ def test_an_empty_output_name_is_a_usage_error(tmp_path, monkeypatch, capsys, ar
     assert "expected a file or folder name, got an empty one" in err
 
 
+def test_render_of_a_black_brdf_warns(tmp_path):
+    """A table of zeros renders, but black: said, not left for the user to find in the EXR."""
+    table = tmp_path / "black.npz"
+    BivariateBRDF(np.zeros((8, 8, 3), np.float32)).save(table)
+    with pytest.warns(InputWarning, match="the render is black: the BRDF reflects no light under synthetic:1"):
+        assert cli.main(["render", str(table), "--probe", "synthetic:1", "--out", str(tmp_path / "r.exr"),
+                         "--resolution", "16", "--spp", "2"]) == 0
+
+
 def test_render_refuses_an_image_that_overflowed(tmp_path, capsys):
     """A table far beyond any physical scale renders to inf in float32: refused, nothing written."""
     table = tmp_path / "huge.npz"
