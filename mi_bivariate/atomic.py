@@ -50,7 +50,9 @@ def stop_on_signal(stop: Type[BaseException] = Terminated):
 
 @contextlib.contextmanager
 def _signals_deferred() -> Iterator[None]:
-    """Hold the stops of :func:`stop_on_signal` handlers until the block ends."""
+    """Hold the stops of :func:`stop_on_signal` handlers until the block ends. The count is the process's,
+    not a thread's: a stop held while another thread writes would be raised in that thread (no thread
+    writes outputs today)."""
     global _held, _pending
     _held += 1
     try:
@@ -69,9 +71,9 @@ def _make_temp(path: Path, suffix: str, temps: List[Path]) -> None:
         with _signals_deferred():
             fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix or path.suffix, dir=path.parent)
             temps.append(Path(tmp))
+            os.close(fd)
     except OSError as exc:
         raise _write_error(path, exc) from None
-    os.close(fd)
 
 
 def _publish(tmp: Path, path: Path) -> None:
@@ -145,9 +147,10 @@ def atomic_paths(paths: Sequence[PathLike], suffixes: Optional[Sequence[str]] = 
                 raise
             raise InputError(target, exc.problem, exc.hint) from None
     except BaseException:
-        for tmp in temps:
-            with contextlib.suppress(OSError):
-                tmp.unlink()
+        with _signals_deferred():  # a second stop does not cut the clean-up short
+            for tmp in temps:
+                with contextlib.suppress(OSError):
+                    tmp.unlink()
         raise
 
 

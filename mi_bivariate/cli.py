@@ -357,7 +357,10 @@ def main(argv: Optional[Sequence[str]] = None, *, own_process: bool = False) -> 
     args.source_names = {}  # filled by commands that know which user file an internal name stands for
     formatwarning = warnings.formatwarning  # restored on return: a notebook calling main keeps its own
     warnings.formatwarning = _warning_formatter(args.source_names)
+    replaced: Dict[int, object] = {}
     try:
+        if own_process:
+            replaced = _stop_on_signals()
         commands = importlib.import_module("mi_bivariate.commands")  # the pipeline, loaded only to run
         if own_process:
             gc.freeze()
@@ -390,23 +393,36 @@ def main(argv: Optional[Sequence[str]] = None, *, own_process: bool = False) -> 
         return 130
     finally:
         warnings.formatwarning = formatwarning
+        for signum, handler in replaced.items():
+            signal.signal(signum, handler)
+
+
+def _stop_on_signals() -> Dict[int, object]:
+    """SIGTERM and SIGINT stop the command as exceptions (:class:`~mi_bivariate.errors.Terminated`,
+    ``KeyboardInterrupt``) that wait for the few steps of an output's writing that must not be cut
+    (:func:`mi_bivariate.atomic.stop_on_signal`); where this process was started with a signal ignored
+    or handled otherwise, that is left as it is. Returns the handlers replaced, to put back."""
+    replaced = {}
+    for signum, stop, default in ((signal.SIGTERM, Terminated, signal.SIG_DFL),
+                                  (signal.SIGINT, KeyboardInterrupt, signal.default_int_handler)):
+        if signal.getsignal(signum) is default:
+            replaced[signum] = default
+            signal.signal(signum, stop_on_signal(stop))
+    return replaced
 
 
 def run() -> int:
     """The console script ``mi-bivariate`` (and ``python -m mi_bivariate.cli``): :func:`main` with
     ``sys.argv`` in a process of its own.
 
-    SIGTERM stops the command as Ctrl-C does (:class:`~mi_bivariate.errors.Terminated`; exit status 143)
-    instead of ending the process where it stands, which left an output's temporary file (``recover
-    --merl``'s 35 MB ``.NAME.XXXX.binary``) behind; both wait for the few steps of an output's writing
-    that must not be cut (:func:`mi_bivariate.atomic.stop_on_signal`).
+    While the command runs, SIGTERM stops it as Ctrl-C does (:class:`~mi_bivariate.errors.Terminated`; exit
+    status 143) instead of ending the process where it stands, which left an output's temporary file
+    (``recover --merl``'s 35 MB ``.NAME.XXXX.binary``) behind (:func:`_stop_on_signals`).
 
     What the command left alive (for ``recover``, the report's matplotlib) is frozen too before the
     interpreter shuts down, whose collections would walk it once more (measured: shutdown 0.15-0.23 ->
     0.05 s after ``recover`` with its report).
     """
-    signal.signal(signal.SIGTERM, stop_on_signal(Terminated))
-    signal.signal(signal.SIGINT, stop_on_signal(KeyboardInterrupt))
     status = main(own_process=True)
     gc.freeze()
     return status

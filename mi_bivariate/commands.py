@@ -95,12 +95,12 @@ def _input_files(args: argparse.Namespace, *specs: Optional[str]) -> List[Path]:
     return files
 
 
-def _check_out_file(out: Optional[str]) -> None:
+def _check_out_file(out: Optional[str], example: str = "brdf.npz") -> None:
     """``--out`` naming a folder, an existing one or one written with a trailing separator (``o/new/``,
     which the path would otherwise read as the file ``o/new.npz``), is refused: the command writes files,
-    not into a folder."""
+    not into a folder (``example``: a file name the command writes, for the hint)."""
     if out and (Path(out).is_dir() or out.endswith(("/", os.sep))):
-        raise InputError(out, "--out is a folder", "give a file name, e.g. " + os.path.join(out, "brdf.npz"))
+        raise InputError(out, "--out is a folder", "give a file name, e.g. " + os.path.join(out, example))
 
 
 def _check_out_folder(out: Path, flag: str = "--out") -> None:
@@ -146,7 +146,7 @@ def cmd_info(args: argparse.Namespace) -> int:
 def cmd_render(args: argparse.Namespace) -> int:
     _check_render_sizes(args.resolution, args.spp)
     _check_seed(args.seed)
-    _check_out_file(args.out)
+    _check_out_file(args.out, "render.exr")
     out = Path(args.out)
     args.source_names["merl table"] = str(args.brdf)  # an analytic spec's tabulated values
     _check_outputs_of(out, (".exr",), "render writes OpenEXR (and a PNG preview beside it)",
@@ -213,7 +213,7 @@ def cmd_reduce(args: argparse.Namespace) -> int:
 
 def cmd_learn_prior(args: argparse.Namespace) -> int:
     _check_grid(args.grid)
-    _check_out_file(args.out)
+    _check_out_file(args.out, "prior.npz")
     for source in args.sources:
         if not Path(source).exists() and source not in ALL_NBRDF_MATERIALS:
             raise InputError(source, "no such file or folder, and not a MERL-NBRDF name",

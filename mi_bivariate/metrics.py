@@ -329,11 +329,12 @@ def brdf_errors(truth, estimate, min_value: float = 0.0, observed_nodes: Optiona
     return BRDFErrors(truth, min_value)(estimate, observed_nodes)
 
 
-#: A relight floor below this (relative RMSE) gives no ratio: the references' own noise is 2e-4 to 1.1e-3
-#: (``scripts/reference_noise.py`` on the sharpest shared materials), so such a floor, a material whose
-#: bivariate table is exact (a Lambertian one), measures that noise and the ratio would not mean anything
-#: (a review saw "relight/floor 429734").
-MIN_RELIGHT_FLOOR = 1e-4
+#: A relight floor below this (relative RMSE) gives no ratio: about twice the largest of the references'
+#: own noise measured, 2e-4 to 1.1e-3 (``scripts/reference_noise.py`` on the sharpest shared materials). Such
+#: a floor (a material whose bivariate table is exact, a Lambertian one) is mostly that noise, and the ratio
+#: would not mean anything (a review saw "relight/floor 429734"). The least floor of the 73 shared materials
+#: under the five novel probes is 2.8e-3 (pearl-paint under venice_sunset_1k).
+MIN_RELIGHT_FLOOR = 2e-3
 
 
 def relight_errors(image: np.ndarray, floor_image: np.ndarray, truth_image: np.ndarray,

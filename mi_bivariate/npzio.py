@@ -134,10 +134,10 @@ def provenance_dict(value: Any, source: Any) -> dict:
         return {}
     if not isinstance(value, Mapping):
         raise InputError(source, f"provenance must be a JSON object, got a {type(value).__name__}",
-                         "the file is corrupt or was not written by mi_bivariate")
+                         "give a dict; a file holding another is corrupt or not mi_bivariate's")
     materials = value.get("materials", [])
     if isinstance(materials, (str, bytes)) or not isinstance(materials, (list, tuple)) or not all(
             isinstance(m, str) for m in materials):
         raise InputError(source, "provenance 'materials' must be a list of names",
-                         "the file is corrupt or was not written by mi_bivariate")
+                         "give a list of strings; a file holding another is corrupt or not mi_bivariate's")
     return dict(value)

@@ -23,18 +23,18 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
 
+from mi_bivariate import evaluate as ev
+
 
 def load(folder: str) -> dict:
-    records = {}
-    for line in (Path(folder) / "results.jsonl").read_text().splitlines():
-        if line.strip():
-            r = json.loads(line)
-            records[r["material"]] = r
-    return records
+    """``{material: record}`` of a folder's configuration (config.json), the latest record of each."""
+    config = json.loads((Path(folder) / "config.json").read_text())
+    return {r["material"]: r for r in ev.read_records(Path(folder) / ev.RESULTS_FILE, config["config_hash"])}
 
 
 def relight(entry: dict) -> float:
@@ -42,7 +42,10 @@ def relight(entry: dict) -> float:
 
 
 def ratio(entry: dict) -> float:
-    return float(np.median([v["ratio"] for v in entry["images"].values() if "ratio" in v]))
+    """The median relight / floor over the novel probes; NaN where no floor is above the references' noise
+    (the record's ratio is then null: ``metrics.MIN_RELIGHT_FLOOR``)."""
+    values = [v["ratio"] for v in entry["images"].values() if v.get("ratio") is not None]
+    return float(np.median(values)) if values else float("nan")
 
 
 def by_input(records: dict, single: str, other: str) -> None:
@@ -59,7 +62,7 @@ def by_input(records: dict, single: str, other: str) -> None:
                e[single]["recovered"]["eq1_min"] / floors["exact_floor_min"]]
         rows.append(row)
         print(f"| {name} | " + " | ".join(f"{v:.2f}" for v in row) + " |")
-    print("| **median** | " + " | ".join(f"**{v:.2f}**" for v in np.median(np.array(rows), axis=0)) + " |")
+    print("| **median** | " + " | ".join(f"**{v:.2f}**" for v in np.nanmedian(np.array(rows), axis=0)) + " |")
     beat = sum(row[3] < 1.0 for row in rows)
     print(f"\n{len(rows)} materials; two images better than the better single one on {beat}/{len(rows)}")
 
@@ -74,7 +77,10 @@ def main() -> None:
     args = parser.parse_args()
     records = {}
     for folder in args.folders:
-        records.update(load(folder))
+        found = load(folder)
+        for name in sorted(set(found) & set(records)):
+            print(f"note: {name} is in more than one folder; {folder}'s record is used", file=sys.stderr)
+        records.update(found)
     both = f"{args.single}+{args.other}"
     if args.by_input:
         by_input(records, args.single, args.other)

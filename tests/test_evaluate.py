@@ -372,29 +372,36 @@ def test_a_prior_file_brings_its_own_basis_prior_or_none(tmp_path):
 
 
 def test_a_merl_file_changed_or_another_file_of_its_name_is_evaluated_again(tmp_path):
-    """Resuming keeps a MERL file's record only for the same file with the same bytes: the label (the
-    file's stem) alone would report the old material's numbers for a new one."""
-    first, other = tmp_path / "a" / "x.binary", tmp_path / "b" / "x.binary"
-    first.parent.mkdir()
-    other.parent.mkdir()
+    """Resuming keeps a MERL file's record only for the same bytes: the label (the file's stem) alone would
+    report the old material's numbers for a new one. The same bytes by another path are not evaluated
+    again, and each version's artifacts have a name of their own."""
+    import shutil
+
+    first, other, copy = tmp_path / "a" / "x.binary", tmp_path / "b" / "x.binary", tmp_path / "c" / "x.binary"
+    for path in (first, other, copy):
+        path.parent.mkdir()
     analytic.to_merl(analytic.Lambertian(0.5)).write(first)
     analytic.to_merl(analytic.Lambertian(0.1)).write(other)
+    shutil.copyfile(first, copy)
     out = tmp_path / "eval"
 
-    def albedo_error(spec):
+    def evaluate(spec):
         seen = []
         ev.run_evaluation([str(spec)], out, config=TINY, progress=False, figures=False, on_record=seen.append)
         records = ev.read_records(out / ev.RESULTS_FILE, TINY.hash())
         assert [r["material"] for r in records] == ["x"]  # one record per material, the latest
-        return len(seen), records[0]["floor"]["eq1"], records[0]["spec"]
+        assert ev.artifact_path(out, records[0]).is_file()
+        return len(seen), records[0]
 
-    runs, floor_a, spec = albedo_error(first)
-    assert (runs, spec) == (1, str(first))
-    assert albedo_error(first) == (0, floor_a, str(first))      # the same file: resumed, nothing evaluated
-    runs, floor_b, spec = albedo_error(other)                   # another file of the same name
-    assert (runs, spec) == (1, str(other))
+    runs, a = evaluate(first)
+    assert runs == 1 and a["spec"] == str(first) and len(a["source_sha256"]) == 16
+    assert evaluate(first) == (0, a)                # the same file: resumed, nothing evaluated
+    assert evaluate(copy) == (0, a)                 # the same bytes by another path: resumed too
+    runs, b = evaluate(other)                       # another file of the same name
+    assert runs == 1 and b["spec"] == str(other) and b["source_sha256"] != a["source_sha256"]
+    assert b["slug"] != a["slug"] and ev.artifact_path(out, a).is_file()  # the first one's artifacts kept
     analytic.to_merl(analytic.Lambertian(0.9)).write(other)     # the same file, new bytes
-    assert albedo_error(other)[0] == 1
+    assert evaluate(other)[0] == 1
 
 
 def test_warnings_are_named_recorded_and_said_by_the_process_writing_the_records(tmp_path):
@@ -413,4 +420,40 @@ def test_warnings_are_named_recorded_and_said_by_the_process_writing_the_records
     assert record["warnings"] and all(m.startswith(f"{label} under synthetic:1: ") for m in record["warnings"])
     assert len(set(record["warnings"])) == len(record["warnings"])
     assert [str(w.message) for w in said if str(w.message) in record["warnings"]] == record["warnings"]
+    # Other warnings (numpy's) are said again once per place, not as often as they were recorded.
+    import warnings
 
+    from mi_bivariate.evaluate.protocol import _say_others
+
+    repeat = warnings.WarningMessage(RuntimeWarning("overflow"), RuntimeWarning, "somewhere.py", 7)
+    with warnings.catch_warnings(record=True) as again:
+        warnings.simplefilter("default")
+        _say_others([repeat] * 3)
+    assert [str(w.message) for w in again] == ["overflow"]
+
+
+
+def test_a_prior_file_that_saw_the_material_is_said(tmp_path):
+    """``evaluate --prior FILE`` on a material the file's priors learnt from: the scores are not leave-one-out,
+    and the evaluation says so."""
+    import shutil
+
+    from mi_bivariate import basis_prior as bp
+    from mi_bivariate import prior as pr
+    from mi_bivariate.errors import InputWarning
+    from mi_bivariate.evaluate.protocol import MaterialTask, choose_priors
+    from mi_bivariate.sources import MaterialSpec
+
+    prior_file = tmp_path / "all.npz"
+    shutil.copyfile(pr.DEFAULT_PRIOR_PATH, prior_file)               # the packaged priors saw every shared one
+    shutil.copyfile(bp.DEFAULT_BASIS_PRIOR_PATH, tmp_path / "all_basis.npz")
+    seen = pr.Prior.load(prior_file).provenance["materials"]
+    task = MaterialTask(MaterialSpec(seen[0], "nbrdf", seen[0]), ev.EvalConfig(prior=str(prior_file)))
+    with pytest.warns(InputWarning, match=f"{seen[0]}: .*all.npz and .*all_basis.npz learnt from this material"):
+        choose_priors(task)
+    other = MaterialTask(MaterialSpec("lambertian", "analytic", "lambertian"), ev.EvalConfig(prior=str(prior_file)))
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", InputWarning)
+        choose_priors(other)

@@ -133,6 +133,12 @@ def choose_priors(task: MaterialTask) -> Tuple[Optional[Prior], Any, str]:
     if cfg.prior is not None:
         prior, basis_prior = training_set.load_prior_files(cfg.prior)
         beside = training_set.basis_path_for(cfg.prior)
+        saw = [str(p) for p, learnt in ((cfg.prior, prior), (beside, basis_prior))
+               if learnt is not None and task.material.spec in learnt.provenance.get("materials", ())]
+        if saw:  # a score must come from priors that never saw the material
+            warnings.warn(f"{task.material.label}: {' and '.join(saw)} learnt from this material: its scores are not "
+                          "leave-one-out (learn the priors without it, or leave --prior out for leave-one-out "
+                          "priors of the shared materials)", InputWarning, stacklevel=2)
         return prior, basis_prior, (f"files {cfg.prior} and {beside}" if basis_prior is not None
                                     else f"file {cfg.prior} (no basis prior: no {beside.name} beside it)")
     if cfg.leave_one_out and task.material.kind == "nbrdf":
@@ -312,22 +318,45 @@ def evaluate_material(task: MaterialTask) -> Tuple[dict, Arrays]:
     cpu_start = time.process_time()
     timings: Dict[str, float] = {}
     inputs, novels = load_probes(cfg, task.data_dir)
-    priors = choose_priors(task)
     # The toolkit's warnings go into the record, each once, named after the material, and the process that
     # writes the records says them (run_evaluation): a worker process would print them in Python's own
-    # two-line form, under no material's name.
-    with warnings.catch_warnings(record=True) as said:
-        warnings.simplefilter("always")
-        with jit_threads(task.threads):
-            record, arrays = _evaluate_material(task, inputs, novels, priors, timings, t_start, cpu_start)
+    # two-line form, under no material's name. A failed material's warnings are said at once: they may
+    # explain the failure.
     label = task.material.label
-    record["warnings"] = list(dict.fromkeys(
-        str(w.message) if str(w.message).startswith(label) else f"{label}: {w.message}"
-        for w in said if issubclass(w.category, InputWarning)))
+    said: List[warnings.WarningMessage] = []
+    try:
+        with warnings.catch_warnings(record=True) as said:
+            warnings.simplefilter("always")
+            priors = choose_priors(task)
+            with jit_threads(task.threads):
+                record, arrays = _evaluate_material(task, inputs, novels, priors, timings, t_start, cpu_start)
+    except BaseException:
+        for message in _input_warnings(said, label):
+            warnings.warn(message, InputWarning, stacklevel=2)
+        _say_others(said)
+        raise
+    record["warnings"] = _input_warnings(said, label)
+    _say_others(said)
+    return record, arrays
+
+
+#: The registry of :func:`_say_others`: Python's once per place filter, across materials.
+_SAID: Dict[Any, Any] = {}
+
+
+def _input_warnings(said: Sequence[warnings.WarningMessage], material: str) -> List[str]:
+    """The toolkit's warnings among ``said``, each once, named after ``material``."""
+    return list(dict.fromkeys(
+        str(w.message) if str(w.message).startswith(f"{material} ") or str(w.message).startswith(f"{material}:")
+        else f"{material}: {w.message}" for w in said if issubclass(w.category, InputWarning)))
+
+
+def _say_others(said: Sequence[warnings.WarningMessage]) -> None:
+    """Warn again the other warnings among ``said`` (numpy's, the libraries'), under the filters in force and
+    once per place (their record kept every repeat)."""
     for w in said:
         if not issubclass(w.category, InputWarning):
-            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
-    return record, arrays
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno, registry=_SAID)
 
 
 def _named(message: str, material: str, probes: Sequence[str]) -> str:
@@ -371,7 +400,6 @@ def _evaluate_material(task: MaterialTask, inputs: List[List[Probe]], novels: Li
         "material": task.material.label,
         "kind": task.material.kind,
         "spec": task.material.spec,
-        "source_sha256": task.material.source_digest(),
         "slug": task.material.slug,
         "config_hash": cfg.hash(),
         "floor": truth.floor_errors,

@@ -301,5 +301,7 @@ def format_summary(records: Sequence[dict]) -> str:
             vals = [r[key] for r in sel if key in r and math.isfinite(r[key])]
             if vals:
                 parts.append(f"{label} {np.median(vals):.3f}")
+                if key == "relight_ratio_median" and len(vals) < len(sel):  # floors below the references' noise
+                    parts[-1] += f" (over {len(vals)} of {len(sel)} materials: the others' floors are noise)"
         lines.append(f"  input {probe}: median " + ", ".join(parts))
     return "\n".join(lines)

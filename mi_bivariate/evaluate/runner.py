@@ -32,9 +32,10 @@ from typing import Any, Callable, Dict, Iterator, List, Optional, Sequence, Tupl
 import mitsuba as mi
 import numpy as np
 
+from mi_bivariate import training_set
 from mi_bivariate.atomic import atomic_path
 from mi_bivariate.common import PathLike
-from mi_bivariate.errors import InputError, InputWarning
+from mi_bivariate.errors import InputError, InputWarning, Terminated
 from mi_bivariate.evaluate.config import EvalConfig
 from mi_bivariate.evaluate.protocol import MaterialTask, evaluate_material
 from mi_bivariate.evaluate.results import (
@@ -49,7 +50,6 @@ from mi_bivariate.evaluate.results import (
     write_summary_csv,
 )
 from mi_bivariate.merl import MERLBRDF
-from mi_bivariate.prior import Prior
 from mi_bivariate.probes import check_lit
 from mi_bivariate.sources import MaterialSpec, load_probe, resolve_materials
 from mi_bivariate.threads import pin_process_threads
@@ -182,13 +182,15 @@ def _run_tasks(tasks: List[MaterialTask], jobs: int, dask: Any) -> Iterator[Tupl
                     yield futures[fut], fut.result()
                 except Exception as exc:  # noqa: BLE001
                     yield futures[fut], exc
-        except BaseException:
+        except BaseException as exc:
             for fut in futures:
                 fut.cancel()
-            # Ctrl-C reaches the workers too; SIGTERM to this process alone (``timeout``) would leave the
-            # pool's shutdown waiting for their materials to finish: end them now, as their death signal does.
-            for worker in multiprocessing.active_children():
-                worker.terminate()
+            if isinstance(exc, Terminated):
+                # SIGTERM to this process alone (``timeout``) would leave the pool's shutdown waiting for the
+                # workers' materials to finish: end them now, as their death signal would (Ctrl-C reaches
+                # them itself, and they clean up after it). Only this pool's processes.
+                for worker in list(getattr(pool, "_processes", {}).values()):
+                    worker.terminate()
             raise
 
 
@@ -248,7 +250,7 @@ def run_evaluation(materials: Sequence[Union[str, MaterialSpec]], out_dir: PathL
     for name in config.novel_probes:
         check_lit(load_probe(name, data_dir, cache=True), name)
     if config.prior is not None:
-        Prior.load(config.prior)
+        training_set.load_prior_files(config.prior)  # and the basis prior beside it, as each material loads them
     for m in specs:
         if m.kind == "merl":
             MERLBRDF.check_file(m.spec)
@@ -283,11 +285,11 @@ def _run_locked(specs: List[MaterialSpec], out: Path, config: EvalConfig, jobs: 
     results = out / RESULTS_FILE
     repair_results(results)
     h = config.hash()
-    # A record counts as done only for the same source: a MERL file's label (its stem) given by another
+    # A MERL file's record counts as done only for the same bytes: its label (the file's stem) given by another
     # file, or by the same file since changed, is evaluated again (its new record, appended, is the one read).
-    source = {m.label: (m.spec, m.source_digest()) for m in specs}
-    done = {r["material"] for r in read_records(results, h)
-            if source.get(r["material"]) == (r.get("spec"), r.get("source_sha256"))}
+    # Records written before the digest was kept have none: their MERL files are evaluated once more.
+    digest = {m.label: m.source_digest() for m in specs}
+    done = {r["material"] for r in read_records(results, h) if r.get("source_sha256") == digest.get(r["material"])}
     if threads is None and dask is None and jobs > 1:
         threads = threads_per_job(jobs)
     tasks = [MaterialTask(m, config, None if data_dir is None else str(data_dir), threads,
@@ -316,6 +318,9 @@ def _run_locked(specs: List[MaterialSpec], out: Path, config: EvalConfig, jobs: 
                 record, arrays = result
                 for message in record.get("warnings", ()):  # said here, whichever process evaluated it
                     warnings.warn(message, InputWarning, stacklevel=2)
+                if digest[task.material.label] is not None:  # a MERL file: its bytes, and artifacts of their own
+                    record["source_sha256"] = digest[task.material.label]
+                    record["slug"] = f"{record['slug']}-{record['source_sha256'][:8]}"
                 # Artifacts before the record: a record on disk always has its artifacts.
                 save_artifacts(artifact_path(out, record), arrays)
                 append_record(results, record)
@@ -326,7 +331,7 @@ def _run_locked(specs: List[MaterialSpec], out: Path, config: EvalConfig, jobs: 
             bar.close()
 
     by_label = {r["material"]: r for r in read_records(results, h)
-                if source.get(r["material"]) == (r.get("spec"), r.get("source_sha256"))}
+                if r.get("source_sha256") == digest.get(r["material"])}
     records = [by_label[m.label] for m in specs if m.label in by_label]
     write_summary_csv(records, out / SUMMARY_FILE)
     if figures and records:
