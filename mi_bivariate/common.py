@@ -1,10 +1,11 @@
-"""Small definitions every stage shares: the path type, luminance and JSON without NaN.
+"""Small definitions every stage shares: the path type, luminance, JSON without NaN, file digests.
 
 This module imports nothing of the package, so any module may use it.
 """
 
 from __future__ import annotations
 
+import hashlib
 import math
 import os
 from typing import Any, Union
@@ -34,3 +35,16 @@ def finite_json(value: Any) -> Any:
     if isinstance(value, (float, np.floating)) and not math.isfinite(value):
         return None
     return value
+
+
+def file_digest(path: "PathLike") -> str:
+    """16 hex digits of SHA-256 over a file's bytes, read in blocks, or ``"missing"`` where it cannot be read:
+    what decides a result keyed by a file (a prior, a MERL material), whatever its name or time stamp."""
+    digest = hashlib.sha256()
+    try:
+        with open(path, "rb") as f:
+            for block in iter(lambda: f.read(1 << 20), b""):
+                digest.update(block)
+    except OSError:
+        return "missing"
+    return digest.hexdigest()[:16]

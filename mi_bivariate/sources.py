@@ -32,7 +32,7 @@ import drjit as dr
 import numpy as np
 
 from mi_bivariate import analytic, bivariate, merl, nbrdf, probes
-from mi_bivariate.common import PathLike
+from mi_bivariate.common import PathLike, file_digest
 from mi_bivariate.errors import InputError
 
 #: Analytic families a spec may name without parameters (their class defaults).
@@ -127,20 +127,10 @@ class MaterialSpec:
         return slug
 
     def source_digest(self) -> Optional[str]:
-        """16 hex digits of SHA-256 over a ``"merl"`` material's file (``None`` for the other kinds, which
-        their name or spec determines): a result kept for a file's label is not reused once the file's
-        content changes, or the label is given by another file. ``"unreadable"`` if it cannot be read
-        (its evaluation then says why)."""
-        if self.kind != "merl":
-            return None
-        digest = hashlib.sha256()  # read in blocks (hashlib.file_digest needs Python 3.11)
-        try:
-            with open(self.spec, "rb") as f:
-                for block in iter(lambda: f.read(1 << 20), b""):
-                    digest.update(block)
-        except OSError:
-            return "unreadable"
-        return digest.hexdigest()[:16]
+        """A ``"merl"`` material's :func:`~mi_bivariate.common.file_digest` (``None`` for the other kinds,
+        which their name or spec determines): a result kept for a file's label is not reused once the file's
+        content changes, or the label is given by another file."""
+        return file_digest(self.spec) if self.kind == "merl" else None
 
 
 def resolve_materials(items: Sequence[str], data_dir: Optional[PathLike] = None) -> List[MaterialSpec]:

@@ -18,7 +18,7 @@ from typing import List, Optional, Tuple, Union
 
 from mi_bivariate import basis_prior, prior, solve, training_set
 from mi_bivariate.baselines import FAMILIES
-from mi_bivariate.common import PathLike
+from mi_bivariate.common import PathLike, file_digest
 from mi_bivariate.errors import InputError
 from mi_bivariate.lighting import DEFAULT_DIRS
 from mi_bivariate.sources import DEFAULT_ANALYTIC, have_shared_data
@@ -140,18 +140,11 @@ class EvalConfig:
     def hash(self) -> str:
         """16 hex digits of SHA-256 over the canonical JSON of the config and protocol version."""
         extra = {} if self.prior is None else {  # bytes, not names; "missing" for no basis prior beside it
-            "prior_sha256": _file_digest(self.prior),
-            "basis_prior_sha256": _file_digest(training_set.basis_path_for(self.prior))}
+            "prior_sha256": file_digest(self.prior),
+            "basis_prior_sha256": file_digest(training_set.basis_path_for(self.prior))}
         text = json.dumps({"protocol": PROTOCOL_VERSION, "solver": _solver_identity(), **self.to_dict(), **extra},
                           sort_keys=True)
         return hashlib.sha256(text.encode()).hexdigest()[:16]
-
-
-def _file_digest(path: PathLike) -> str:
-    try:
-        return hashlib.sha256(Path(path).read_bytes()).hexdigest()[:16]
-    except OSError:
-        return "missing"
 
 
 def _solver_identity() -> dict:
@@ -160,9 +153,8 @@ def _solver_identity() -> dict:
     A finished material is only reused on resume when these are unchanged, so a
     re-learnt prior or a re-tuned alpha never mixes with old results.
     """
-    digest = hashlib.sha256(Path(prior.DEFAULT_PRIOR_PATH).read_bytes()).hexdigest()[:16]
-    basis = _file_digest(basis_prior.DEFAULT_BASIS_PRIOR_PATH)
-    return {"default_prior_sha256": digest, "default_basis_prior_sha256": basis,
+    return {"default_prior_sha256": file_digest(prior.DEFAULT_PRIOR_PATH),
+            "default_basis_prior_sha256": file_digest(basis_prior.DEFAULT_BASIS_PRIOR_PATH),
             "default_alpha": solve.DEFAULT_ALPHA_RULE, "discrepancy_target": solve.DISCREPANCY_TARGET,
             "solver": "mis+noise-aware+basis v2"}
 
