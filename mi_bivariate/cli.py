@@ -19,7 +19,7 @@ from typing import Dict, Optional, Sequence, Tuple
 
 from mi_bivariate import __version__
 from mi_bivariate.atomic import stop_on_signal
-from mi_bivariate.errors import InputError, Terminated
+from mi_bivariate.errors import InputError, Terminated, renamed
 
 
 class _HelpFormatter(argparse.HelpFormatter):
@@ -324,10 +324,7 @@ def build_parser() -> argparse.ArgumentParser:
 def _user_names(text: str, source_names: Dict[str, str]) -> str:
     """One line, its leading internal source name (``alpha``, ``image``) replaced by the user's file or option."""
     text = " ".join(text.split())
-    for name, path in source_names.items():
-        if text.startswith(name + ":"):
-            return path + text[len(name):]
-    return text
+    return renamed(text, source_names) or text
 
 
 def _warning_formatter(source_names: Dict[str, str]):

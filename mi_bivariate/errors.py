@@ -9,7 +9,7 @@ the class.
 from __future__ import annotations
 
 import os
-from typing import Optional
+from typing import Mapping, Optional
 
 from mi_bivariate.common import PathLike
 
@@ -25,6 +25,17 @@ class InputError(ValueError):
         if hint:
             msg = f"{msg} ({hint})"
         super().__init__(msg)
+
+
+def renamed(message: str, names: Mapping[str, str]) -> Optional[str]:
+    """``message`` with its leading internal source name (``"image: ..."``, ``"image 1: ..."``,
+    ``"alpha: ..."``: the ``source`` of an :class:`InputError` or the start of an
+    :class:`InputWarning`) replaced by what the user knows it as (``names[name]``: their file, their
+    option, the material under its probe); ``None`` when the message starts with none of ``names``."""
+    for name, user_name in names.items():
+        if message.startswith(name + ":"):
+            return user_name + message[len(name):]
+    return None
 
 
 class InputWarning(UserWarning):

@@ -13,7 +13,6 @@ The caller has selected the Mitsuba variant (the runner's front doors, see
 
 from __future__ import annotations
 
-import re
 import time
 import warnings
 from dataclasses import dataclass
@@ -23,7 +22,7 @@ import numpy as np
 
 from mi_bivariate import adequacy, baselines, bivariate, metrics, training_set
 from mi_bivariate.bivariate import BivariateBRDF
-from mi_bivariate.errors import InputWarning
+from mi_bivariate.errors import InputWarning, renamed
 from mi_bivariate.evaluate.config import EvalConfig
 from mi_bivariate.evaluate.renders import Renderer, Shot, plugin
 from mi_bivariate.noise import add_camera_noise
@@ -362,11 +361,9 @@ def _say_others(said: Sequence[warnings.WarningMessage]) -> None:
 def _named(message: str, material: str, probes: Sequence[str]) -> str:
     """A recovery's warning about ``"image"`` (``"image k"`` of several) as about ``material`` under the
     probe (``probes[k]``) that lit that image."""
-    found = re.match(r"image(?: (\d+))?: ", message)
-    if found is None:
-        return f"{material} under {'+'.join(probes)}: {message}"
-    k = int(found.group(1) or 0)
-    return f"{material} under {probes[k] if k < len(probes) else f'image {k}'}: {message[found.end():]}"
+    names = {"image": f"{material} under {probes[0]}"} if probes else {}
+    names.update({f"image {k}": f"{material} under {probe}" for k, probe in enumerate(probes)})
+    return renamed(message, names) or f"{material} under {'+'.join(probes)}: {message}"
 
 
 def _evaluate_material(task: MaterialTask, inputs: List[List[Probe]], novels: List[Probe], priors: Any,
