@@ -9,7 +9,7 @@ for the current variant and registers them once per variant. Call it (or
 
 from __future__ import annotations
 
-from typing import Dict
+from typing import Dict, Set
 
 import mitsuba as mi
 
@@ -18,6 +18,8 @@ from mi_bivariate.plugins.merl import make_merl_bsdf
 
 # variant -> {plugin name: class}
 _CLASSES: Dict[str, Dict[str, type]] = {}
+# the variants whose plugin registry has them
+_REGISTERED: Set[str] = set()
 
 
 def plugin_classes() -> Dict[str, type]:
@@ -32,9 +34,9 @@ def plugin_classes() -> Dict[str, type]:
 
 def register() -> None:
     """Register the ``bivariate`` and ``merl`` BSDFs with the active variant (idempotent)."""
+    classes = plugin_classes()  # checks that a variant is set
     variant = mi.variant()
-    first = variant not in _CLASSES
-    classes = plugin_classes()
-    if first:
+    if variant not in _REGISTERED:
         for name, cls in classes.items():
             mi.register_bsdf(name, lambda props, cls=cls: cls(props))
+        _REGISTERED.add(variant)

@@ -199,7 +199,10 @@ def make_tabulated_bsdf_base():
       (the ``filename`` and ``table`` properties; raise ``InputError``);
     - ``profile_values(host) -> (values, theta_h_nodes, theta_d_nodes)`` for the
       half-vector density;
-    - ``_eval_brdf(wi, wo) -> mi.Color3f`` (the table's value in 1/sr, no cosine).
+    - ``_eval_brdf(wi, wo) -> mi.Color3f`` (the value in 1/sr, no cosine, of ``self.lookup``: the
+      table as the renders use it);
+    - optionally ``updated_table(table) -> mi.TensorXf``: a table set through ``mi.traverse`` made
+      what the renders use (checked, filled; gradients kept), ``self.lookup``.
 
     Defined in a function because ``mi.BSDF`` only exists once a variant is set.
     """
@@ -231,21 +234,22 @@ def make_tabulated_bsdf_base():
             self.m_flags = flags
             self.sampler: HalfVectorSampler | None = None
             if "filename" in props:
-                table = self.read_file(str(props["filename"]))
+                table = self.read_file(resolve_path(str(props["filename"])))
             elif "table" in props:
                 table = self.from_array(bitmap_to_array(props["table"], f"{self.plugin_name} table"))
             else:
                 raise InputError(self.plugin_name, f"the BSDF needs a 'filename' ({self.file_suffix}) or a 'table' "
                                                   "(mi.Bitmap) property")
-            self.table = mi.TensorXf(table)
+            self.table = mi.TensorXf(table)  # the parameter (mi.traverse assigns to this object in place)
+            self.lookup = self.table  # what eval reads: the table as the renders use it (read_file / from_array)
             self._rebuild()
 
         def _rebuild(self) -> None:
-            """Check the table's shape and rebuild the sampler from it."""
+            """Check the table's shape and rebuild the sampler from the table the renders use."""
             shape = tuple(self.table.shape)
             if len(shape) != self.table_ndim or shape[-1] != 3 or not self.valid_shape(shape):
                 raise InputError(self.plugin_name, f"table has shape {shape}, which this plugin cannot use")
-            values, theta_h_nodes, theta_d_nodes = self.profile_values(dr.detach(self.table).numpy())
+            values, theta_h_nodes, theta_d_nodes = self.profile_values(dr.detach(self.lookup).numpy())
             self.sampler = HalfVectorSampler(half_vector_profile(luminance(values), theta_h_nodes, theta_d_nodes,
                                                                  cosine_only=self.sampling == "cosine"))
 
@@ -256,7 +260,22 @@ def make_tabulated_bsdf_base():
             callback.put("table", self.table, mi.ParamFlags.Differentiable)
 
         def parameters_changed(self, keys: list) -> None:
+            shape = tuple(self.table.shape)
+            if len(shape) != self.table_ndim or shape[-1] != 3 or not self.valid_shape(shape):
+                raise InputError(self.plugin_name, f"table has shape {shape}, which this plugin cannot use")
+            self.lookup = self.updated_table(self.table)
             self._rebuild()
+
+        def updated_table(self, table: mi.TensorXf) -> mi.TensorXf:
+            """A table set through ``mi.traverse`` as the renders may use it (the ``table`` property's
+            rules; gradients kept). Here: refused unless finite and non-negative."""
+            host = dr.detach(table).numpy()
+            if not np.all(np.isfinite(host)):
+                raise InputError(self.plugin_name, "the table set through mi.traverse holds NaN or infinite values")
+            if np.any(host < 0.0):
+                raise InputError(self.plugin_name, f"the table set through mi.traverse has negative values "
+                                 f"(min {host.min():g} 1/sr)", "clamp it, or optimise its logarithm")
+            return table
 
         def _enabled(self, ctx: mi.BSDFContext) -> bool:
             return ctx.is_enabled(mi.BSDFFlags.GlossyReflection) or ctx.is_enabled(mi.BSDFFlags.DiffuseReflection)
@@ -305,6 +324,12 @@ def make_tabulated_bsdf_base():
                     f"sampling={self.sampling!r}, p_cosine={self.sampler.cosine_weight:.3f}]")
 
     return TabulatedBSDF
+
+
+def resolve_path(filename: str) -> str:
+    """``filename`` through Mitsuba's file resolver: a relative name is found beside the scene file
+    being loaded (or in the resolver's other folders), as every built-in plugin finds its files."""
+    return str(mi.file_resolver().resolve(filename))
 
 
 def bitmap_to_array(bitmap: Any, source: str) -> np.ndarray:

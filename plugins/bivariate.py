@@ -12,9 +12,12 @@ Properties:
 The table's nodes sit at ``s, t = i / (n - 1)`` of the paper's st map
 (``s = 2 theta_d / pi``, ``t = sqrt(2 theta_h / pi)``); values are bilinear in
 (s, t) between nodes and clamped outside. One-sided like ``diffuse``: zero when
-either direction is at or below the horizon.
+either direction is at or below the horizon (wrap it in ``twosided`` for both sides).
+A relative ``filename`` is found as Mitsuba finds its files (beside the scene file being loaded).
 
-Differentiable parameter: ``table`` (``mi.TensorXf``, ``(n_t, n_s, 3)``).
+Differentiable parameter: ``table`` (``mi.TensorXf``, ``(n_t, n_s, 3)``); a table set through
+``mi.traverse`` must be finite and non-negative (optimise its logarithm, as
+:mod:`mi_bivariate.synthesis` does), and may change the grid.
 """
 
 from __future__ import annotations
@@ -62,7 +65,7 @@ def make_bivariate_bsdf():
             fu = u - mi.Float(i0)
             fv = v - mi.Float(j0)
             base = j0 * self.n_s + i0
-            flat = self.table.array
+            flat = self.lookup.array
             c00 = dr.gather(mi.Color3f, flat, base)
             c01 = dr.gather(mi.Color3f, flat, base + 1)
             c10 = dr.gather(mi.Color3f, flat, base + self.n_s)

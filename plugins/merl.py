@@ -15,8 +15,14 @@ nodes of the same (theta_h, theta_d), or 0 where there is none: lookups near
 the horizon then continue the data instead of dropping to zero, and a
 bivariate BRDF stored as a MERL table is reproduced exactly.
 
+One-sided like ``diffuse``: zero when either direction is at or below the horizon (wrap it in
+``twosided`` for both sides). A relative ``filename`` is found as Mitsuba finds its files (beside
+the scene file being loaded).
+
 Importance sampling uses the phi_d-averaged table (a 90 x 90 bivariate table).
-Differentiable parameter: ``table`` (``mi.TensorXf``, ``(90, 90, 180, 3)``).
+Differentiable parameter: ``table`` (``mi.TensorXf``, ``(90, 90, 180, 3)``). A table set through
+``mi.traverse`` is filled as above (the filled nodes get no gradient) and refused if it holds
+infinities.
 """
 
 from __future__ import annotations
@@ -52,9 +58,9 @@ def fill_missing(table: np.ndarray, valid: np.ndarray) -> np.ndarray:
     return np.where(valid[..., None], clean, mean[:, :, None, :].astype(np.float32))
 
 
-def prepare_merl_table(table: np.ndarray, source: str) -> np.ndarray:
-    """Validate a ``(90, 90, 180, 3)`` MERL table (1/sr) and fill its missing entries."""
-    table = np.asarray(table, dtype=np.float32)
+def valid_nodes(table: np.ndarray, source: str) -> np.ndarray:
+    """``(90, 90, 180) bool``: the measured (finite, non-negative) nodes above the horizon of a
+    ``(90, 90, 180, 3)`` MERL table (1/sr); refused when it holds infinities or no such node."""
     if table.shape != (N_THETA_H, N_THETA_D, N_PHI_D, 3):
         raise InputError(source, f"a MERL table must have shape (90, 90, 180, 3), got {table.shape}")
     if np.isinf(table).any():
@@ -63,7 +69,13 @@ def prepare_merl_table(table: np.ndarray, source: str) -> np.ndarray:
     valid = measured & geometric_mask()
     if not valid.any():
         raise InputError(source, "MERL table has no valid (finite, non-negative, above-horizon) sample")
-    return fill_missing(table, valid)
+    return valid
+
+
+def prepare_merl_table(table: np.ndarray, source: str) -> np.ndarray:
+    """Validate a ``(90, 90, 180, 3)`` MERL table (1/sr) and fill its missing entries."""
+    table = np.asarray(table, dtype=np.float32)
+    return fill_missing(table, valid_nodes(table, source))
 
 
 def make_merl_bsdf():
@@ -84,6 +96,18 @@ def make_merl_bsdf():
                 raise InputError("merl table", f"bitmap must be 8100 x 180 (H x W) RGB, got {array.shape}")
             return prepare_merl_table(array.reshape(N_THETA_H, N_THETA_D, N_PHI_D, 3), "merl table")
 
+        def updated_table(self, table: mi.TensorXf) -> mi.TensorXf:
+            """A table set through ``mi.traverse`` filled like the ``table`` property (missing and
+            below-horizon nodes from the phi_d mean of the valid ones); the valid nodes keep their
+            gradients, the filled ones have none."""
+            host = dr.detach(table).numpy()
+            valid = valid_nodes(host, self.plugin_name)
+            filled = fill_missing(host, valid)
+            if np.array_equal(filled, host):
+                return table
+            keep = mi.TensorXb(np.ascontiguousarray(np.broadcast_to(valid[..., None], host.shape)))
+            return dr.select(keep, table, mi.TensorXf(filled))
+
         def valid_shape(self, shape: Tuple[int, ...]) -> bool:
             return shape == (N_THETA_H, N_THETA_D, N_PHI_D, 3)
 
@@ -100,7 +124,7 @@ def make_merl_bsdf():
             return u_h, u_d, u_p
 
         def _gather(self, i_h: mi.UInt32, i_d: mi.UInt32, i_p: mi.UInt32) -> mi.Color3f:
-            return dr.gather(mi.Color3f, self.table.array, (i_h * N_THETA_D + i_d) * N_PHI_D + i_p)
+            return dr.gather(mi.Color3f, self.lookup.array, (i_h * N_THETA_D + i_d) * N_PHI_D + i_p)
 
         def _eval_brdf(self, wi: mi.Vector3f, wo: mi.Vector3f) -> mi.Color3f:
             u_h, u_d, u_p = self._coordinates(wi, wo)

@@ -14,8 +14,9 @@ from mitsuba.chi2 import BSDFAdapter, ChiSquareTest, SphericalDomain
 from mi_bivariate.analytic import BivariateLobe, CookTorranceGGX, Lambertian, to_merl
 from mi_bivariate.bivariate import BivariateBRDF
 from mi_bivariate.coordinates import half_diff_from_dirs, st_from_dirs
+from mi_bivariate.errors import InputError
 from mi_bivariate.geometry import SphereCamera
-from mi_bivariate.merl import MERLBRDF
+from mi_bivariate.merl import MERLBRDF, geometric_mask
 from mi_bivariate.probes import Probe
 from mi_bivariate.render import bsdf_dict, sphere_scene_dict
 from mi_bivariate.variants import ensure_variant
@@ -75,6 +76,20 @@ def test_register_is_idempotent_per_variant():
     flags = bsdf.flags()
     assert mi.has_flag(flags, mi.BSDFFlags.GlossyReflection) and mi.has_flag(flags, mi.BSDFFlags.FrontSide)
     assert not mi.has_flag(flags, mi.BSDFFlags.BackSide)
+
+
+def test_plugin_classes_before_register_still_registers_in_a_fresh_process():
+    """``plugin_classes()`` builds the classes; the registry is a separate matter: a later ``register()``
+    (or ``ensure_variant()``) must still put them in this variant's registry."""
+    import subprocess
+    import sys
+
+    code = (f"import mitsuba as mi, numpy as np; mi.set_variant({suite_variant()!r})\n"
+            "from mi_bivariate.plugins import plugin_classes, register\n"
+            "plugin_classes(); register()\n"
+            "print(mi.load_dict({'type': 'bivariate', 'table': mi.Bitmap(np.full((4, 4, 3), 0.1, np.float32))}))\n")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0 and "BivariateBSDF" in run.stdout, run.stderr[-2000:]
 
 
 @pytest.mark.parametrize("props, message", [
@@ -189,6 +204,29 @@ def test_sample_agrees_with_pdf(chi2_tables, plugin, material, theta_deg):
     assert chi2.run(significance_level=0.01, test_count=12, quiet=True), chi2.messages
 
 
+@pytest.mark.parametrize("plugin", ["bivariate", "merl"])
+@pytest.mark.parametrize("theta_deg", [0.0, 45.0, 80.0])
+def test_sample_weight_is_eval_over_pdf(chi2_tables, plugin, theta_deg):
+    """``sample``'s weight is ``eval / pdf`` at the sampled direction (chi2's adapter turns weights into
+    0 or 1, so the chi2 test above cannot see a wrong weight), its ``pdf`` is ``pdf()``'s, and a direction
+    at or below the horizon has weight 0."""
+    bsdf = mi.load_dict(chi2_tables[(plugin, "glossy")])
+    n = 20000
+    theta = math.radians(theta_deg)
+    si = dr.zeros(mi.SurfaceInteraction3f, n)
+    si.wi = mi.Vector3f(math.sin(theta), 0.0, math.cos(theta))
+    rng = np.random.default_rng(5)
+    ctx = mi.BSDFContext()
+    bs, weight = bsdf.sample(ctx, si, mi.Float(rng.random(n, np.float32)),
+                             mi.Point2f(*(mi.Float(rng.random(n, np.float32)) for _ in range(2))))
+    value, pdf = np.array(bsdf.eval(ctx, si, bs.wo), np.float64).T, np.array(bsdf.pdf(ctx, si, bs.wo), np.float64)
+    weight, sampled_pdf = np.array(weight, np.float64).T, np.array(bs.pdf, np.float64)
+    up = np.array(bs.wo.z) > 0.0
+    assert up.mean() > 0.5 and np.all(weight[~up] == 0.0) and np.all(sampled_pdf[~up] == 0.0)
+    np.testing.assert_allclose(sampled_pdf[up], pdf[up], rtol=1e-6)
+    np.testing.assert_allclose(weight[up], value[up] / pdf[up][:, None], rtol=1e-5, atol=1e-7)
+
+
 def test_pdf_integrates_to_reflected_mass():
     # Independent of chi2: integrate the pdf on a fine (cos theta, phi) grid.
     bsdf = mi.load_dict(bsdf_dict(lobe_table(width=0.05, diffuse=0.05, specular=20.0)))
@@ -270,6 +308,28 @@ def test_filename_properties(tmp_path):
     np.testing.assert_allclose(plugin_eval(merl, wi, wo), plugin_eval(from_bitmap, wi, wo), rtol=0.02, atol=1e-4)
 
 
+@pytest.mark.parametrize("plugin, suffix", [("bivariate", ".npz"), ("merl", ".binary")])
+def test_a_relative_filename_is_found_beside_the_scene_file(tmp_path, monkeypatch, plugin, suffix):
+    """Like Mitsuba's own plugins, a relative ``filename`` in a scene file is resolved against the scene
+    file's folder, not the working directory."""
+    biv = lobe_table(width=0.2, diffuse=0.3, specular=2.0, n=8)
+    folder = tmp_path / "scene"
+    folder.mkdir()
+    biv.save(folder / "t.npz")
+    biv.write_merl(folder / "t.binary")
+    (folder / "scene.xml").write_text(
+        '<scene version="3.0.0"><shape type="sphere"><bsdf type="%s">'
+        '<string name="filename" value="t%s"/></bsdf></shape></scene>' % (plugin, suffix))
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    scene = mi.load_file(str(folder / "scene.xml"))
+    from_scene = scene.shapes()[0].bsdf()
+    absolute = mi.load_dict({"type": plugin, "filename": str(folder / f"t{suffix}")})
+    wi, wo = random_pairs(200, seed=6, min_cos=0.3)
+    np.testing.assert_array_equal(plugin_eval(from_scene, wi, wo), plugin_eval(absolute, wi, wo))
+
+
 # ------------------------------------------------------ parameters and AD
 
 def sphere_scene(bsdf: dict, res: int = 16) -> mi.Scene:
@@ -330,3 +390,51 @@ def test_gradient_matches_finite_difference(sampling):
     # sampling the perturbed table is sampled differently (different noise).
     rtol = 1e-3 if sampling == "cosine" else 0.1
     assert directional == pytest.approx(fd, rel=rtol)
+
+
+def test_merl_table_set_through_traverse_is_filled_like_a_loaded_one():
+    """A MERL table with missing (NaN, negative) and below-horizon entries, set through ``mi.traverse``,
+    renders as the same table loaded (no NaN pixel), and its valid entries keep their gradients."""
+    a = to_merl(CookTorranceGGX(albedo_diffuse=0.2, specular=1.0, alpha=0.2, ior=1.5), dtype=np.float32)
+    b = to_merl(CookTorranceGGX(albedo_diffuse=0.5, specular=1.0, alpha=0.3, ior=1.5), dtype=np.float32)
+    raw = np.array(b.table, np.float32).reshape(90, 90, 180, 3)
+    assert np.isnan(raw).any()
+    raw[3, 40, 7] = -1.0  # MERL's own marker of a missing sample
+    scene = sphere_scene(merl_dict(a, "nearest"), res=32)
+    params = mi.traverse(scene)
+    key = "sphere.bsdf.table"
+    params[key] = mi.TensorXf(raw)
+    params.update()
+    updated = np.array(mi.render(scene, spp=16, seed=2))
+    loaded = np.array(mi.render(sphere_scene(merl_dict(MERLBRDF(raw), "nearest"), res=32), spp=16, seed=2))
+    assert np.all(np.isfinite(updated))
+    np.testing.assert_allclose(updated, loaded, rtol=1e-5, atol=1e-7)
+    # The filled nodes have no gradient, the valid ones have theirs (eval at random pairs, summed).
+    table = mi.TensorXf(raw)
+    dr.enable_grad(table)
+    params[key] = table
+    params.update()
+    wi, wo = random_pairs(4000, seed=8)
+    si = dr.zeros(mi.SurfaceInteraction3f, len(wi))
+    si.wi = mi.Vector3f(*(mi.Float(wi[:, k].astype(np.float32)) for k in range(3)))
+    value = scene.shapes()[0].bsdf().eval(mi.BSDFContext(), si, mi.Vector3f(*(mi.Float(wo[:, k].astype(np.float32))
+                                                                            for k in range(3))))
+    dr.backward(dr.sum(value, axis=None))
+    grad = np.array(dr.grad(table))
+    missing = ~((raw >= 0.0).all(-1) & geometric_mask())
+    assert np.all(grad[missing] == 0.0) and np.count_nonzero(grad[~missing]) > 1000
+    params[key] = mi.TensorXf(np.where(np.isnan(raw), np.inf, raw))
+    with pytest.raises(InputError, match="infinite"):
+        params.update()
+
+
+def test_bivariate_table_set_through_traverse_is_checked():
+    scene = sphere_scene(bsdf_dict(lambertian_table()))
+    params = mi.traverse(scene)
+    key = "sphere.bsdf.table"
+    table = np.array(params[key])
+    for bad, message in ((np.nan, "NaN or infinite"), (-0.5, "negative values")):
+        table[1, 2, 0] = bad
+        params[key] = mi.TensorXf(table)
+        with pytest.raises(InputError, match=message):
+            params.update()
