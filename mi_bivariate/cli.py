@@ -382,16 +382,37 @@ def main(argv: Optional[Sequence[str]] = None, *, own_process: bool = False) -> 
     except MemoryError:
         print(f"mi-bivariate: error: {args.command}: out of memory (use smaller sizes)", file=sys.stderr)
         return 2
-    except Terminated:
-        print("mi-bivariate: terminated", file=sys.stderr)
-        return 128 + signal.SIGTERM
-    except KeyboardInterrupt:
-        print("mi-bivariate: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:  # Ctrl-C, or SIGTERM as Terminated
+        return _stopped(exc)
+    except RuntimeError as exc:  # Dr.Jit wraps what a Python plugin raised inside a render
+        cause = _interruption(exc)
+        if cause is None:
+            raise
+        return _stopped(cause)
     finally:
         warnings.formatwarning = formatwarning
         for signum, handler in replaced.items():
             signal.signal(signum, handler)
+
+
+def _interruption(exc: BaseException) -> Optional[KeyboardInterrupt]:
+    """The Ctrl-C or SIGTERM behind ``exc`` (among its causes and contexts), if any."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return exc
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return None
+
+
+def _stopped(exc: KeyboardInterrupt) -> int:
+    """One line and the shell's status for a command stopped by SIGTERM (143) or Ctrl-C (130)."""
+    if isinstance(exc, Terminated):
+        print("mi-bivariate: terminated", file=sys.stderr)
+        return 128 + signal.SIGTERM
+    print("mi-bivariate: interrupted", file=sys.stderr)
+    return 130
 
 
 def _stop_on_signals() -> Dict[int, object]:

@@ -143,6 +143,10 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 # --------------------------------------------------------------------------- render
 
+#: ``render`` says what it renders (on a terminal) from this many samples: ~10 s on two cores.
+RENDER_NOTICE_SAMPLES = 2 ** 24
+
+
 def cmd_render(args: argparse.Namespace) -> int:
     _check_render_sizes(args.resolution, args.spp)
     _check_seed(args.seed)
@@ -154,6 +158,10 @@ def cmd_render(args: argparse.Namespace) -> int:
     ensure_variant(args.variant, vectorised=True)  # the plugins and the lighting matrix are JIT code
     brdf = load_brdf(args.brdf, args.data)
     probe = _load_turned_probe(args)
+    samples = args.resolution ** 2 * args.spp
+    if samples >= RENDER_NOTICE_SAMPLES and sys.stderr.isatty():  # one kernel: no progress to show, so say it
+        print(f"rendering {args.resolution} x {args.resolution} px at {args.spp} spp ({samples / 1e6:.0f} M "
+              "samples) ...", file=sys.stderr, flush=True)
     result = render.render_sphere(render.bsdf_dict(brdf), probe, resolution=args.resolution, spp=args.spp,
                                   camera=args.camera, seed=args.seed)
     bad = int(np.count_nonzero(~np.isfinite(result.image)))
@@ -222,7 +230,7 @@ def cmd_learn_prior(args: argparse.Namespace) -> int:
     _check_outputs_of(Path(args.out), (".npz",), "learn-prior writes a .npz prior (and its basis beside it)",
                       [Path(args.out), basis_out], _input_files(args, *args.sources))
     smooth, basis = training_set.learn_priors_from_merl(args.sources, n_t=args.grid[0], n_s=args.grid[1],
-                                                        data_dir=args.data)
+                                                        data_dir=args.data, progress=sys.stderr.isatty())
     with atomic_paths([args.out, basis_out], suffixes=[".npz", ".npz"]) as (tmp_smooth, tmp_basis):
         smooth.save(tmp_smooth)
         basis.save(tmp_basis)
@@ -416,9 +424,12 @@ def cmd_recover_batch(args: argparse.Namespace) -> int:
                 failed.append(image)
                 continue
             except InputError as exc:
-                if str(exc.source) not in (str(image), str(args.mask)):  # shared by every photo: stop here
-                    print(f"recovered {k - 1 - len(failed)} of {len(args.images)} photos before this error",
-                          file=sys.stderr)
+                if not any(_same_path(exc.source, p) for p in (image, args.mask)):  # every photo's: stop here
+                    done = k - 1 - len(failed)
+                    if done or failed:
+                        said = f"{done} of {len(args.images)} photos recovered before this error"
+                        raise InputError(exc.source, exc.problem, f"{exc.hint}; {said}" if exc.hint else said) \
+                            from None
                     raise
                 print(f"mi-bivariate: error: {exc}", file=sys.stderr)
                 failed.append(image)
@@ -428,6 +439,11 @@ def cmd_recover_batch(args: argparse.Namespace) -> int:
     print(f"recovered {len(args.images) - len(failed)} of {len(args.images)} photos"
           + (f"; failed: {', '.join(failed)}" if failed else ""))
     return 2 if failed else 0
+
+
+def _same_path(a: Optional[str], b: Optional[str]) -> bool:
+    """Whether two path names name one file (``./x.exr`` and ``x.exr``, ``a//b`` and ``a/b``, links)."""
+    return a is not None and b is not None and same_file(a, b)
 
 
 # --------------------------------------------------------------------------- demo

@@ -471,6 +471,10 @@ def write_png(path: PathLike, image: np.ndarray, exposure: Optional[float] = Non
     if image.ndim != 3 or image.shape[2] != 3:
         raise InputError(path, f"image must have shape (H, W, 3), got {image.shape}")
     rgb = tonemap(image, exposure) if image.dtype != np.uint8 else image
+    # Encoded in memory and written by Python: Mitsuba's file stream does not report a full disk (it left
+    # an empty PNG and no error).
+    stream = mi.MemoryStream()
+    mi.Bitmap(np.ascontiguousarray(rgb), pixel_format=mi.Bitmap.PixelFormat.RGB).write(stream, mi.Bitmap.FileFormat.PNG)
     with atomic_path(path, suffix=".png") as tmp:
-        mi.Bitmap(np.ascontiguousarray(rgb), pixel_format=mi.Bitmap.PixelFormat.RGB).write(str(tmp))
+        Path(tmp).write_bytes(stream.raw_buffer())
     return path

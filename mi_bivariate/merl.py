@@ -68,12 +68,16 @@ def above_horizon(theta_h, theta_d, phi_d) -> np.ndarray:
 
 
 def check_reflects(table: np.ndarray, source: Any, hint: str = "give a material that reflects light") -> None:
-    """Raise :class:`InputError` naming ``source`` if a 3D ``table`` holds no positive value (every value 0
-    or missing): such a material reflects no light, its photo is black, and a reduction's relative error
-    is undefined."""
-    if not np.any(np.asarray(table) > 0.0):  # NaN (missing) compares False
-        raise InputError(source, "the BRDF table holds no positive value (every value is 0 or missing): it "
-                                 "reflects no light, and the relative error of a reduction is undefined", hint)
+    """Raise :class:`InputError` naming ``source`` if a MERL ``(90, 90, 180, 3)`` table holds no positive
+    value above the horizon (every value there 0 or missing; the nodes below it are never lit): such a
+    material reflects no light, its photo is black, and a reduction's relative error is undefined."""
+    table = np.asarray(table)
+    if table.shape[:3] == MERL_SHAPE:
+        table = table[geometric_mask()]
+    if not np.any(table > 0.0):  # NaN (missing) compares False
+        raise InputError(source, "the BRDF table holds no positive value above the horizon (every value is 0 "
+                                 "or missing): it reflects no light, and the relative error of a reduction "
+                                 "is undefined", hint)
 
 
 @functools.lru_cache(maxsize=1)

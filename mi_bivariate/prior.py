@@ -56,7 +56,6 @@ operators never use them.
 
 from __future__ import annotations
 
-import datetime
 import json
 import os
 from pathlib import Path
@@ -370,7 +369,6 @@ class Prior:
             "ceiling": None if ceiling is None else f"{ceiling} x median of each map",
             "pair_scale": scales,
             "pair_scale_note": "each pair divided by its sigmas' geometric mean (stored as pair_scale)",
-            "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
             "grid": _grid_meta(n_t, n_s),
         }
         return cls(pairs, provenance)

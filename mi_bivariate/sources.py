@@ -73,9 +73,9 @@ def load_brdf(spec: str, data_dir: Optional[PathLike] = None,
         InputError: a file of another type, or a spec that is none of these.
     """
     path = Path(spec)
-    if path.suffix == ".binary":
+    if path.suffix.lower() == ".binary":
         return merl.MERLBRDF.read(path)
-    if path.suffix == ".npz":
+    if path.suffix.lower() == ".npz":
         return bivariate.BivariateBRDF.load(path)
     if spec in nbrdf.ALL_NBRDF_MATERIALS:
         return nbrdf.nbrdf_merl(spec, data_dir=data_dir)

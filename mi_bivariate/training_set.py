@@ -58,13 +58,7 @@ def reduced_tables(n_t: int = 32, n_s: int = 32, names: Sequence[str] = ALL_NBRD
     root = nbrdf_data_dir(data_dir)
     code = _code_digest(BivariateBRDF, MERLBRDF, nbrdf_merl, coordinates)  # the reduction and what it reads
     path = cache_dir() / f"nbrdf_reductions_{_data_digest(root)}_{code}_{int(n_t)}x{int(n_s)}.npz"
-    stored: Dict[str, np.ndarray] = {}
-    if cache and path.is_file():
-        try:
-            with np.load(path, allow_pickle=False) as z:
-                stored = {k: np.asarray(z[k], np.float64) for k in z.files}
-        except (OSError, ValueError):
-            stored = {}
+    stored = _cached_tables(path, (int(n_t), int(n_s), 3)) if cache else {}
     missing = [n for n in names if n not in stored]
     if missing:
         iterator = missing
@@ -80,9 +74,22 @@ def reduced_tables(n_t: int = 32, n_s: int = 32, names: Sequence[str] = ALL_NBRD
                 with atomic_path(path, suffix=".npz") as tmp:
                     with open(tmp, "wb") as fh:
                         np.savez(fh, **stored)
-            except OSError:
+            except (OSError, InputError):  # (atomic_path names an unwritable folder with an InputError)
                 pass  # a read-only home only costs time
     return {n: stored[n] for n in names}
+
+
+def _cached_tables(path: Path, shape: Tuple[int, int, int]) -> Dict[str, np.ndarray]:
+    """The reductions cached in ``path``, those of the expected ``shape`` and finite; nothing where the
+    file is missing or cannot be read (cut short, not a zip: they are reduced again)."""
+    if not path.is_file():
+        return {}
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            stored = {k: np.asarray(z[k], np.float64) for k in z.files}
+    except Exception:  # noqa: BLE001 - any damage (EOFError, BadZipFile, ValueError, OSError) costs time only
+        return {}
+    return {k: v for k, v in stored.items() if v.shape == shape and np.all(np.isfinite(v))}
 
 
 def learn_priors(tables: Dict[str, np.ndarray], exclude: Sequence[str] = (),
@@ -140,15 +147,17 @@ def leave_one_out_priors(material: str, n_t: int = 32, n_s: int = 32,
             for prior, path in zip(priors, paths):
                 with atomic_path(path, suffix=".npz") as tmp:
                     prior.save(tmp)
-        except OSError:
+        except (OSError, InputError):  # (atomic_path names an unwritable folder with an InputError)
             pass  # a read-only home only costs time
     return priors
 
 
 def tables_from_sources(sources: Union[PathLike, Iterable[PathLike]], n_t: int = 32, n_s: int = 32,
-                        data_dir: Optional[PathLike] = None) -> Tuple[Dict[str, np.ndarray], Dict[str, str]]:
+                        data_dir: Optional[PathLike] = None,
+                        progress: bool = False) -> Tuple[Dict[str, np.ndarray], Dict[str, str]]:
     """Reduce MERL materials to ``(n_t, n_s, 3)`` tables: a folder of ``.binary`` files, files,
-    or MERL-NBRDF names (:data:`mi_bivariate.nbrdf.ALL_NBRDF_MATERIALS`).
+    or MERL-NBRDF names (:data:`mi_bivariate.nbrdf.ALL_NBRDF_MATERIALS`); ``progress``: tqdm bars
+    over the materials reduced.
 
     Returns:
         ``({name: table}, {name: where it came from})``.
@@ -156,8 +165,13 @@ def tables_from_sources(sources: Union[PathLike, Iterable[PathLike]], n_t: int =
     tables: Dict[str, np.ndarray] = {}
     origin: Dict[str, str] = {}
     names = [str(s) for s in merl_files(sources) if str(s) in ALL_NBRDF_MATERIALS and not Path(s).is_file()]
-    shared = reduced_tables(n_t, n_s, names, data_dir) if names else {}
-    for src in merl_files(sources):
+    shared = reduced_tables(n_t, n_s, names, data_dir, progress=progress) if names else {}
+    files = merl_files(sources)
+    if progress and any(Path(src).is_file() for src in files):
+        from tqdm import tqdm
+
+        files = tqdm(files, desc="reducing MERL files", unit="material")
+    for src in files:
         path = Path(src)
         if path.is_file():
             merl = MERLBRDF.read(path)
@@ -184,9 +198,9 @@ def learn_prior_from_merl(sources: Union[PathLike, Iterable[PathLike]], n_t: int
 
 
 def learn_priors_from_merl(sources: Union[PathLike, Iterable[PathLike]], n_t: int = 32, n_s: int = 32,
-                           data_dir: Optional[PathLike] = None) -> Tuple[Prior, BasisPrior]:
-    """Both priors from MERL sources, each material reduced once."""
-    tables, origin = tables_from_sources(sources, n_t, n_s, data_dir)
+                           data_dir: Optional[PathLike] = None, progress: bool = False) -> Tuple[Prior, BasisPrior]:
+    """Both priors from MERL sources, each material reduced once (``progress``: bars while reducing)."""
+    tables, origin = tables_from_sources(sources, n_t, n_s, data_dir, progress)
     return Prior.learn(tables, sources=origin), BasisPrior.learn(tables, provenance={"sources": origin})
 
 

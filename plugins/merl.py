@@ -64,7 +64,9 @@ def valid_nodes(table: np.ndarray, source: str) -> np.ndarray:
     if table.shape != (N_THETA_H, N_THETA_D, N_PHI_D, 3):
         raise InputError(source, f"a MERL table must have shape (90, 90, 180, 3), got {table.shape}")
     if np.isinf(table).any():
-        raise InputError(source, "MERL table holds infinite values")
+        raise InputError(source, "MERL table holds infinite values",
+                         "a BRDF whose values overflow float32 cannot be tabulated: an analytic lobe needs a "
+                         "larger roughness, a file is corrupt")
     measured = (table >= 0.0).all(axis=-1)  # False for NaN (missing) and negative (missing) entries
     valid = measured & geometric_mask()
     if not valid.any():

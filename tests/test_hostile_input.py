@@ -340,19 +340,14 @@ def _partial_then_fail(path) -> None:
     raise _Boom("disk full")
 
 
-def _fake_bitmap_module(monkeypatch):
-    import mitsuba as mi
+def _fail_png_bytes(monkeypatch):
+    # write_png encodes in memory and writes the bytes itself (Mitsuba's file stream hid a full disk)
+    def failing(self, data):
+        with open(self, "wb") as fh:
+            fh.write(data[: len(data) // 2])
+        raise _Boom("disk full")
 
-    class FailingBitmap:
-        PixelFormat = mi.Bitmap.PixelFormat
-
-        def __init__(self, *args, **kwargs):
-            pass
-
-        def write(self, path):
-            _partial_then_fail(path)
-
-    monkeypatch.setattr(mi, "Bitmap", FailingBitmap)
+    monkeypatch.setattr(images.Path, "write_bytes", failing)
 
 
 def _fake_openexr(monkeypatch):
@@ -386,7 +381,7 @@ def _fail_savez(monkeypatch):
     # OpenEXR reports I/O failures as RuntimeError: write_exr names the destination in one line
     ("out.exr", lambda p: images.write_exr(p, np.ones((4, 4, 3), np.float32)), _fake_openexr, InputError),
     ("out.npz", _write_npz, _fail_savez, _Boom),
-    ("out.png", lambda p: images.write_png(p, np.ones((4, 4, 3), np.float32)), _fake_bitmap_module, _Boom),
+    ("out.png", lambda p: images.write_png(p, np.ones((4, 4, 3), np.float32)), _fail_png_bytes, _Boom),
 ], ids=["images.write_exr", "BivariateBRDF.save", "images.write_png"])
 def test_failed_write_leaves_previous_output(tmp_path, monkeypatch, name, write, sabotage, raised):
     target = tmp_path / name
@@ -419,6 +414,86 @@ def test_full_disk_while_writing_an_exr_is_one_line(tmp_path, monkeypatch, capsy
     err = capsys.readouterr().err.strip()
     assert code == 2 and err == (f"mi-bivariate: error: {out}: cannot be written (No space left on device) "
                                  "(check the folder exists and is writable, and that the disk has space)")
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("stop, status, line", [("Terminated", 143, "terminated"),
+                                               ("KeyboardInterrupt", 130, "interrupted")])
+def test_a_stop_inside_a_render_is_one_line(monkeypatch, capsys, stop, status, line):
+    """SIGTERM or Ctrl-C while Mitsuba traces a render raises inside a Python plugin's method; Dr.Jit
+    re-raises it as a RuntimeError whose cause it is. The command still stops with one line and the
+    shell's status; a RuntimeError with no stop behind it is not hidden."""
+    from mi_bivariate import commands
+    from mi_bivariate.errors import Terminated
+
+    raised = {"Terminated": Terminated, "KeyboardInterrupt": KeyboardInterrupt}[stop]
+
+    def rendering(args):
+        try:
+            raise raised()
+        except KeyboardInterrupt as exc:
+            raise RuntimeError("drjit.custom(<mitsuba.python.util._RenderOp>): error while performing a "
+                               "custom differentiable operation") from exc
+
+    monkeypatch.setitem(commands.COMMANDS, "info", rendering)
+    assert cli.main(["info"]) == status
+    assert capsys.readouterr().err == f"mi-bivariate: {line}\n"
+
+    def broken(args):
+        raise RuntimeError("a bug")
+
+    monkeypatch.setitem(commands.COMMANDS, "info", broken)
+    with pytest.raises(RuntimeError, match="a bug"):
+        cli.main(["info"])
+
+
+def test_upper_case_brdf_suffixes_are_read(tmp_path):
+    """``render`` (through ``sources.load_brdf``) reads ``X.BINARY`` and ``X.NPZ`` as ``reduce`` and
+    ``learn-prior`` do."""
+    from mi_bivariate.analytic import Lambertian, to_merl
+    from mi_bivariate.sources import load_brdf
+
+    merl = to_merl(Lambertian(0.5))
+    merl.write(tmp_path / "L.BINARY")
+    BivariateBRDF.reduce(merl, n_t=4, n_s=4).save(tmp_path / "L.NPZ")
+    assert isinstance(load_brdf(str(tmp_path / "L.BINARY")), MERLBRDF)
+    assert isinstance(load_brdf(str(tmp_path / "L.NPZ")), BivariateBRDF)
+
+
+def test_a_merl_file_lit_only_below_the_horizon_is_refused(tmp_path, capsys):
+    """Values only at nodes below the horizon (which no light reaches) reflect nothing: ``reduce`` refuses
+    the file in one line instead of printing NaN floors and writing a black table."""
+    from mi_bivariate.merl import geometric_mask
+
+    table = np.where(geometric_mask()[..., None], 0.0, 15.0) * np.ones(3)
+    MERLBRDF(table).write(tmp_path / "below.binary")
+    assert cli.main(["reduce", str(tmp_path / "below.binary"), "--out", str(tmp_path / "r.npz")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "no positive value above the horizon" in err, err
+    assert not (tmp_path / "r.npz").exists()
+
+
+def test_a_png_that_cannot_be_written_whole_is_an_error(tmp_path):
+    """The PNG preview hits the file-size limit (what a full disk does to it): an error and no file, not
+    a cut PNG and success (Mitsuba's own file stream said nothing). In a child process, whose limit is
+    set below the PNG's size."""
+    code = textwrap.dedent(f"""
+        import resource, signal, sys
+        import numpy as np
+        from mi_bivariate.errors import InputError
+        from mi_bivariate.images import write_png
+        image = np.random.default_rng(0).uniform(0.0, 1.0, (64, 64, 3)).astype(np.float32)
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # the write fails with EFBIG instead of killing
+        resource.setrlimit(resource.RLIMIT_FSIZE, (4096, 4096))
+        try:
+            write_png({str(tmp_path / "p.png")!r}, image)
+        except (InputError, OSError) as exc:
+            print("refused:", exc)
+            sys.exit(0)
+        sys.exit(1)
+    """)
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0 and "refused" in run.stdout, (run.stdout, run.stderr[-2000:])
     assert list(tmp_path.iterdir()) == []
 
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 
@@ -84,6 +86,17 @@ def test_specular_ratio_and_split_errors():
         Prior.learn({"a": lambertian, "b": np.ones((4, 4, 3))})
     with pytest.raises(InputError, match="empty"):
         Prior.learn({})
+
+
+def test_learning_twice_writes_the_same_bytes(tmp_path):
+    """A prior is a function of its training tables: learnt again, its file is byte for byte the same
+    (no date in it), so a configuration keyed by the file's digest sees the same prior."""
+    rng = np.random.default_rng(4)
+    tables = {name: rng.uniform(0.1, 2.0, (6, 6, 3)) for name in ("a", "b", "c", "d")}
+    for k in range(2):
+        Prior.learn(tables, gloss_threshold=1.0).save(tmp_path / f"p{k}.npz")
+        time.sleep(1.1 if k == 0 else 0.0)  # a date in seconds would differ
+    assert (tmp_path / "p0.npz").read_bytes() == (tmp_path / "p1.npz").read_bytes()
 
 
 def test_floor_bounds_the_weights():
@@ -192,3 +205,24 @@ def test_load_refuses_sigmas_whose_precision_leaves_float64(tmp_path, tiny):
     arrays["gloss_sigma_s"][:] = 1e-100
     np.savez(path, **arrays)
     assert Prior.load(path).pairs["gloss"][0].min() == 1e-100
+
+
+def test_a_damaged_or_unwritable_reduction_cache_costs_time_only(data_dir, tmp_path, monkeypatch):
+    """The shared materials' reductions cache (``MI_BIVARIATE_CACHE``): a cache file cut short (a crash
+    between write and rename) or emptied is reduced again and rewritten; a cache folder nothing can be
+    written in (``/proc``, even for root) is skipped. Either way the tables are the same."""
+    from mi_bivariate import training_set
+
+    names = ["gold-metallic-paint3", "blue-acrylic", "black-fabric"]
+    monkeypatch.setenv("MI_BIVARIATE_CACHE", str(tmp_path))
+    first = training_set.reduced_tables(8, 8, names, data_dir)
+    (cached,) = tmp_path.glob("nbrdf_reductions_*.npz")
+    whole = cached.read_bytes()
+    for damaged in (b"", whole[:1000]):
+        cached.write_bytes(damaged)
+        again = training_set.reduced_tables(8, 8, names, data_dir)
+        assert all(np.array_equal(again[n], first[n]) for n in names)
+        assert cached.read_bytes() == whole  # written again, whole
+    monkeypatch.setenv("MI_BIVARIATE_CACHE", "/proc")
+    unwritable = training_set.reduced_tables(8, 8, names, data_dir)
+    assert all(np.array_equal(unwritable[n], first[n]) for n in names)

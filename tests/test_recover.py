@@ -305,7 +305,7 @@ def test_demo_without_shared_data_uses_the_probes_it_is_given(tmp_path, monkeypa
     assert not (tmp_path / "b").exists() and not (tmp_path / "c").exists()
 
 
-def test_cli_recover_batch_matches_recover_and_goes_on_past_a_bad_photo(tmp_path, any_probe, capsys):
+def test_cli_recover_batch_matches_recover_and_goes_on_past_a_bad_photo(tmp_path, any_probe, capsys, monkeypatch):
     """``recover-batch``: each photo's table is bit-identical to ``recover``'s on it (to float32 rounding
     under CUDA's atomics), a missing photo gets one error line while the others are
     written, and the exit status is then 2."""
@@ -331,6 +331,15 @@ def test_cli_recover_batch_matches_recover_and_goes_on_past_a_bad_photo(tmp_path
         for key in batch.files:
             if key != "meta":
                 assert_same_sums(batch[key], single[key], rel=1e-4, err_msg=key)
+    # A bad photo named as a shell glob or a user writes it ("./photos//c.exr") is still that photo's
+    # problem: the batch goes on (the reader names it "photos/c.exr").
+    (photos / "c.exr").write_bytes(b"")
+    monkeypatch.chdir(tmp_path)
+    capsys.readouterr()
+    assert cli_main(["recover-batch", "./photos//c.exr", "./photos/a.exr", "--probe", str(probe_file),
+                     "--out-dir", "dotted", *small]) == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("mi-bivariate: error:")]
+    assert len(err) == 1 and "c.exr" in err[0] and (tmp_path / "dotted" / "a.npz").is_file(), err
     # Two photos with the same name would write the same outputs: refused before any work.
     write_exr(tmp_path / "a.exr", shot.image)
     capsys.readouterr()
