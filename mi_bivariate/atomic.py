@@ -185,7 +185,8 @@ def check_outputs(outputs: Iterable[PathLike], inputs: Iterable[Optional[PathLik
     Raises:
         InputError: naming the output, if it is one of ``inputs`` (same file by
             ``os.path.samefile`` or resolved path), two outputs coincide, it is
-            an existing directory, its parent is a file, or its folder (the
+            an existing directory or special file (a device, pipe or socket), its parent
+            is a file, or its folder (the
             nearest existing one) is not writable: a temporary file is made and
             removed there, which also catches what permissions do not say
             (a read-only or special file system such as ``/proc``).
@@ -204,6 +205,8 @@ def check_outputs(outputs: Iterable[PathLike], inputs: Iterable[Optional[PathLik
         seen.add(key)
         if out.is_dir():
             raise InputError(out, "output is a directory", "give a file name")
+        if out.exists() and not out.is_file():  # the rename would replace a device or pipe with a file
+            raise InputError(out, "output is a device, pipe or socket, not a file", "give a file name")
         parent = out.parent
         while not parent.exists() and parent != parent.parent:
             parent = parent.parent

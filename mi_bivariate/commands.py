@@ -101,6 +101,9 @@ def _check_out_file(out: Optional[str], example: str = "brdf.npz") -> None:
     not into a folder (``example``: a file name the command writes, for the hint)."""
     if out and (Path(out).is_dir() or out.endswith(("/", os.sep))):
         raise InputError(out, "--out is a folder", "give a file name, e.g. " + os.path.join(out, example))
+    if out and Path(out).exists() and not Path(out).is_file():  # /dev/null would become /dev/null.npz
+        raise InputError(out, "--out is a device, pipe or socket, not a file",
+                         "the command writes files: give a file name, e.g. " + example)
 
 
 def _check_out_folder(out: Path, flag: str = "--out") -> None:

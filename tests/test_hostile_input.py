@@ -802,6 +802,7 @@ LIMIT_CASES = [
     ("bad variant", ["--variant", "cuda_nope"], "--variant"),
     ("out is a folder", ["--out", "."], "--out is a folder"),
     ("out names a new folder", ["--out", "new/"], "--out is a folder (give a file name, e.g. new/brdf.npz)"),
+    ("out is a device", ["--out", os.devnull], "--out is a device, pipe or socket"),  # not /dev/null.npz
     ("threads", ["--threads", "0"], "--threads"),
 ]
 
@@ -1343,3 +1344,15 @@ def test_an_absurd_sphere_radius_is_refused_before_any_overflow(files, tmp_path,
     assert line == (f"mi-bivariate: error: {files['image']}: the sphere's radius 1e+300 px is more than 100 times "
                     "the 64x64 image's larger side (give the sphere's centre and radius (--sphere CX,CY,R) in "
                     "this image's pixels)"), line
+
+
+def test_an_output_that_is_a_pipe_is_refused(tmp_path):
+    """An output path that exists as a named pipe (or a device) is refused before any work: the atomic
+    rename would replace it with a regular file."""
+    from mi_bivariate.atomic import check_outputs
+
+    fifo = tmp_path / "out.exr"
+    os.mkfifo(fifo)
+    with pytest.raises(InputError, match="device, pipe or socket"):
+        check_outputs([fifo])
+    assert fifo.is_fifo()
