@@ -43,6 +43,8 @@ from mi_bivariate import prior as prior_mod
 from mi_bivariate import solve as solve_mod
 from mi_bivariate.bivariate import BivariateBRDF
 from mi_bivariate.errors import InputError
+from mi_bivariate.limits import check_seed, finite_number, whole_number
+from mi_bivariate.probes import check_probe
 
 #: Default grid of the per-candidate solve (coarse: only the residual's minimum matters).
 ALIGN_GRID = (16, 16)
@@ -173,8 +175,28 @@ def estimate_yaw(image: np.ndarray, probe: Any, geometry: Any, *, brdf: Any = No
 
     from scipy.optimize import minimize_scalar
 
+    probe = check_probe(probe)
+    n_normals = whole_number("n_normals", n_normals)
+    texel_width = whole_number("texel_width", texel_width)
+    coarse_step_deg = finite_number("coarse_step_deg", coarse_step_deg)
+    tol_deg = finite_number("tol_deg", tol_deg)
+    seed = check_seed(seed)
+    if n_normals < 1:
+        raise InputError("n_normals", f"must be at least 1, got {n_normals}")
+    if texel_width < 2:
+        raise InputError("texel_width", f"must be at least 2 texels, got {texel_width}")
     if not 0.0 < coarse_step_deg <= 90.0:
         raise InputError("coarse_step_deg", f"must be in (0, 90], got {coarse_step_deg}")
+    if not tol_deg > 0.0:
+        raise InputError("tol_deg", f"must be above 0, got {tol_deg}")
+    if alpha is not None and not finite_number("alpha", alpha) >= 0.0:  # one fixed number (see above)
+        raise InputError("alpha", f"must be a number >= 0, got {alpha!r}")
+    if search_deg is not None:
+        if not isinstance(search_deg, (tuple, list, np.ndarray)) or len(search_deg) != 2:
+            raise InputError("search_deg", f"must be (low, high) in degrees, got {search_deg!r}")
+        search = tuple(finite_number("search_deg", v) for v in search_deg)
+        if not search[1] > search[0]:
+            raise InputError("search_deg", f"needs low < high, got {search_deg}")
     t0 = time.perf_counter()
     obs = capture.image_observations(image, geometry, n_normals=n_normals, max_view_angle_deg=max_view_angle_deg,
                                      saturation=saturation, mask=mask, seed=seed)
@@ -184,9 +206,7 @@ def estimate_yaw(image: np.ndarray, probe: Any, geometry: Any, *, brdf: Any = No
         coarse = np.arange(-180.0, 180.0, coarse_step_deg)
         low, high = -math.inf, math.inf
     else:
-        low, high = (float(v) for v in search_deg)
-        if not high > low:
-            raise InputError("search_deg", f"needs low < high, got {search_deg}")
+        low, high = search
         coarse = np.linspace(low, high, max(3, int(math.ceil((high - low) / coarse_step_deg)) + 1))
     values = np.array([residual(a) for a in coarse])
     best = float(coarse[int(np.argmin(values))])

@@ -226,10 +226,21 @@ class Intrinsics:
         """An :class:`Intrinsics` from itself or a sequence ``(fx, fy, cx, cy)``."""
         if isinstance(value, cls):
             return value
-        values = np.asarray(value, dtype=np.float64).ravel()
+        try:
+            values = np.asarray(value, dtype=np.float64).ravel()
+        except (TypeError, ValueError):
+            values = np.empty(0)
         if values.shape != (4,):
-            raise ValueError(f"intrinsics must be (fx, fy, cx, cy), got {value!r}")
+            raise InputError("intrinsics", f"must be (fx, fy, cx, cy) in pixels, got {value!r}")
         return cls(*(float(v) for v in values))
+
+    def __post_init__(self) -> None:
+        values = (self.fx, self.fy, self.cx, self.cy)
+        if any(isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v) for v in values) \
+                or not (self.fx > 0.0 and self.fy > 0.0):
+            raise InputError("intrinsics", f"(fx, fy, cx, cy) = {values!r} pixels",
+                             "the focal lengths must be finite and positive, the principal point finite "
+                             "(a mirrored image is flipped, not given a negative focal length)")
 
     def rays(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Unit camera-frame ray directions through pixel positions, ``(..., 3) float64``."""
@@ -267,8 +278,24 @@ class PerspectiveSphereGeometry(Geometry):
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "intrinsics", Intrinsics.coerce(self.intrinsics))
-        object.__setattr__(self, "centre", np.asarray(self.centre, np.float64).reshape(3))
-        object.__setattr__(self, "camera_to_world", np.asarray(self.camera_to_world, np.float64))
+        try:
+            centre = np.asarray(self.centre, np.float64)
+        except (TypeError, ValueError):
+            centre = np.empty(0)
+        if centre.shape != (3,) or not np.all(np.isfinite(centre)):
+            raise InputError("geometry", f"the sphere's centre must be 3 finite numbers (camera frame), got "
+                             f"{self.centre!r}")
+        radius = self.radius
+        if isinstance(radius, bool) or not isinstance(radius, numbers.Real) or not math.isfinite(radius) \
+                or radius <= 0.0:
+            raise InputError("geometry", f"the sphere's radius must be a finite positive number, got {radius!r}")
+        if float(np.linalg.norm(centre)) <= radius or centre[2] >= 0.0:
+            raise InputError("geometry", f"the sphere (centre {tuple(centre)}, radius {radius:g}) is not in front "
+                             "of the camera", "the camera looks down -z: a visible sphere has centre[2] < 0 and "
+                             "lies outside the camera's centre")
+        object.__setattr__(self, "centre", centre)
+        object.__setattr__(self, "radius", float(radius))
+        object.__setattr__(self, "camera_to_world", check_rotation(self.camera_to_world, "geometry"))
 
     @property
     def distance(self) -> float:

@@ -81,18 +81,41 @@ def _file_vertex_normals(path: Path, n_vertices: int) -> Optional[np.ndarray]:
             return None
         with open(path, "rb") as f:
             kwargs = mesh_loaders[kind](f, file_type=kind)
-        if isinstance(kwargs, dict) and "geometry" in kwargs and isinstance(kwargs["geometry"], dict) \
-                and len(kwargs["geometry"]) == 1:
+        placed = isinstance(kwargs, dict) and "geometry" in kwargs  # a scene graph (glTF): nodes place it
+        if placed and isinstance(kwargs["geometry"], dict) and len(kwargs["geometry"]) == 1:
             kwargs = next(iter(kwargs["geometry"].values()))
         normals = kwargs.get("vertex_normals") if isinstance(kwargs, dict) else None
+        if normals is None:
+            return None
+        normals = np.asarray(normals, dtype=np.float64)
+        if normals.shape != (n_vertices, 3) or not np.all(np.isfinite(normals)):
+            return None
+        if placed:  # trimesh moved the vertices by the node's transform: the normals follow it
+            transform = _node_transform(path)
+            if transform is None:
+                return None
+            normals = normals @ np.linalg.inv(transform[:3, :3])  # rows: (M^-T n)^T
+            normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
     except Exception:  # an unreadable normal block is the same as none
         return None
-    if normals is None:
-        return None
-    normals = np.asarray(normals, dtype=np.float64)
-    if normals.shape != (n_vertices, 3) or not np.all(np.isfinite(normals)):
-        return None
     return normals
+
+
+def _node_transform(path: Path) -> Optional[np.ndarray]:
+    """The ``(4, 4)`` transform by which a scene file's one placed geometry reaches the world (what
+    ``trimesh.load(force="mesh")`` applied to its vertices), or ``None`` if it is placed more than once."""
+    import trimesh
+
+    scene = trimesh.load(str(path), force="scene", process=False)
+    nodes = [node for names in scene.graph.geometry_nodes.values() for node in names]
+    if len(nodes) != 1:
+        return None
+    return np.asarray(scene.graph[nodes[0]][0], dtype=np.float64)
+
+
+#: File vertex normals further than this from the faces' own (median angle, degrees) are not used: they
+#: belong to another placement of the mesh or point inwards.
+MAX_NORMAL_DISAGREEMENT_DEG = 60.0
 
 
 class MeshShape:
@@ -178,6 +201,13 @@ class MeshShape:
                 raise InputError(path, f"unknown mesh file type {path.suffix!r}", f"use one of {', '.join(MESH_SUFFIXES)}")
             mesh, name = _trimesh_load(path), str(path)
             stored = _file_vertex_normals(path, len(mesh.vertices))
+            if stored is not None:
+                faces_say = np.asarray(mesh.vertex_normals)  # area-weighted normals of the faces as placed
+                angle = np.degrees(np.arccos(np.clip(np.sum(stored * faces_say, axis=1), -1.0, 1.0)))
+                if float(np.median(angle)) > MAX_NORMAL_DISAGREEMENT_DEG:
+                    warnings.warn(f"{name}: the file's vertex normals are {np.median(angle):.0f} deg (median) from "
+                                  "its faces' own, so they are not used", InputWarning, stacklevel=2)
+                    stored = None
             if stored is None:
                 # Nothing to keep in step with the file's vertex order: weld duplicates
                 # (STL repeats every corner) so computed vertex normals are smooth.
@@ -303,6 +333,14 @@ class MeshView(Geometry):
 
     shape: MeshShape
     camera: Camera
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.shape, MeshShape):
+            raise InputError("geometry", f"MeshView needs a MeshShape, got a {type(self.shape).__name__}",
+                             "load the mesh with mi_bivariate.mesh.MeshShape.load(path)")
+        if not isinstance(self.camera, Camera):
+            raise InputError("geometry", f"MeshView needs a Camera, got a {type(self.camera).__name__}",
+                             "e.g. mi_bivariate.geometry.Camera.look_at(...)")
 
     no_pixels = "no pixel sees the mesh cleanly (all are silhouette or masked pixels)"
     no_pixels_hint = "use a larger image or move the camera closer"

@@ -576,7 +576,8 @@ def recover_from_photo(image: np.ndarray, probe: Probe, *, intrinsics: Any = Non
         intrinsics: ``(fx, fy, cx, cy)`` pixels or :class:`~mi_bivariate.geometry.Intrinsics`
             (pinhole model); ``None``: orthographic.
         sphere: explicit ``(cx, cy, r)`` in pixels instead of the fit.
-        mask: optional ``(H, W) bool`` user mask of the sphere.
+        mask: optional ``(H, W) bool`` user mask of the sphere: the fit, the yaw estimate and the
+            recovery use its pixels only.
         camera_to_world: ``(3, 3)`` camera rotation in the probe's frame.
         saturation: drop pixels at or above this value; ``"auto"``: the
             image's maximum when highlights sit on a plateau there (clipped).
@@ -593,6 +594,8 @@ def recover_from_photo(image: np.ndarray, probe: Probe, *, intrinsics: Any = Non
     """
     if refine_sphere and intrinsics is not None:
         raise InputError(source, "refine_sphere models an orthographic view only", "leave it out with intrinsics")
+    if mask is not None and kwargs.get("masks") is not None:
+        raise InputError("masks", "both mask and masks are given", "give the sphere's mask once, as mask")
     image = capture.check_image(image, source)  # before the sphere fit and the saturation level read its pixels
     fit = spherefit.fit_sphere(image, mask, sphere=sphere, intrinsics=intrinsics,
                                camera_to_world=camera_to_world, source=source)
@@ -603,9 +606,11 @@ def recover_from_photo(image: np.ndarray, probe: Probe, *, intrinsics: Any = Non
         saturation = _auto_saturation(image, region)
     alignment = None
     if estimate_yaw:
-        alignment = alignment_mod.estimate_yaw(image, probe, fit.geometry, saturation=saturation,
-                                               **(yaw_kwargs or {}))
+        alignment = alignment_mod.estimate_yaw(image, probe, fit.geometry,
+                                               **{"saturation": saturation, "mask": mask, **(yaw_kwargs or {})})
         probe = alignment.probe
+    if mask is not None:  # the user's mask limits the recovery's pixels too, not only the fit's
+        kwargs["masks"] = mask
     result = recover(image, probe, fit.geometry, saturation=saturation, **kwargs)
     if refine_sphere:
         result = refine_sphere_and_recover(image, probe, result, saturation=saturation, **kwargs)

@@ -4,6 +4,7 @@ API as a researcher uses it, 2026-12-06)."""
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 import textwrap
@@ -15,7 +16,7 @@ import pytest
 from mi_bivariate import capture, metrics, recover as recover_mod, render
 from mi_bivariate.bivariate import BivariateBRDF
 from mi_bivariate.errors import InputError, InputWarning
-from mi_bivariate.geometry import SphereGeometry
+from mi_bivariate.geometry import Intrinsics, PerspectiveSphereGeometry, SphereGeometry
 from mi_bivariate.probes import Probe
 from mi_bivariate.prior import default_prior
 from mi_bivariate.recover import recover
@@ -318,3 +319,70 @@ def test_the_scores_refuse_a_probe_as_the_estimate(probe):
         metrics.brdf_errors(truth, probe)
     with pytest.raises(InputError, match="estimate: got a Probe where a BRDF goes"):
         metrics.estimate_on_merl_grid(probe)
+
+
+@pytest.mark.parametrize("make, problem", [
+    (lambda k: PerspectiveSphereGeometry(k, [0.0, 0.0, -4.0], 1.0, np.diag([-1.0, 1.0, 1.0])), "rotation"),
+    (lambda k: PerspectiveSphereGeometry((-k.fx, k.fy, k.cx, k.cy), [0.0, 0.0, -4.0]), "focal lengths"),
+    (lambda k: PerspectiveSphereGeometry(k, [0.0, -4.0]), "3 finite numbers"),
+    (lambda k: PerspectiveSphereGeometry((50.0, 50.0, 16.0), [0.0, 0.0, -4.0]), "(fx, fy, cx, cy)"),
+    (lambda k: PerspectiveSphereGeometry(k, [0.0, 0.0, -4.0], -1.0), "finite positive"),
+    (lambda k: PerspectiveSphereGeometry(k, [0.0, 0.0, 4.0]), "not in front of the camera"),
+    (lambda k: PerspectiveSphereGeometry(k, [0.0, 0.0, -0.5]), "not in front of the camera"),
+], ids=["mirror", "negative fx", "2-vector centre", "3 intrinsics", "negative radius", "behind", "around"])
+def test_a_perspective_sphere_is_checked_when_made(make, problem):
+    """A mirrored camera or a negative focal length recovered a wrong table with no error; a malformed
+    centre or intrinsics raised numpy's ValueError."""
+    with pytest.raises(InputError, match=re.escape(problem)):
+        make(Intrinsics.from_fov(64, 64, 30.0))
+
+
+def test_a_mesh_view_is_checked_when_made():
+    import trimesh
+
+    from mi_bivariate.geometry import Camera
+    from mi_bivariate.mesh import MeshShape, MeshView
+
+    with pytest.raises(InputError, match="needs a MeshShape"):
+        MeshView("torus.obj", Camera.look_at([0, 0, 3], [0, 0, 0], width=8, height=8))
+    with pytest.raises(InputError, match="needs a Camera"):
+        MeshView(MeshShape.load(trimesh.creation.icosphere()), None)
+
+
+@pytest.mark.parametrize("kwargs, name", [
+    ({"probe": None}, "probe"),
+    ({"search_deg": (-np.inf, np.inf)}, "search_deg"),
+    ({"search_deg": 5.0}, "search_deg"),
+    ({"coarse_step_deg": "5"}, "coarse_step_deg"),
+    ({"texel_width": 0}, "texel_width"),
+    ({"tol_deg": float("nan")}, "tol_deg"),
+    ({"n_normals": 0}, "n_normals"),
+    ({"alpha": "discrepancy"}, "alpha"),
+    ({"seed": -1}, "seed"),
+])
+def test_estimate_yaw_refuses_bad_arguments_before_any_work(probe, no_work, kwargs, name):
+    from mi_bivariate.alignment import estimate_yaw
+
+    args = {"probe": probe, **kwargs}
+    with pytest.raises(InputError) as info:
+        estimate_yaw(IMAGE, args.pop("probe"), SPHERE, **args)
+    assert info.value.source == name, str(info.value)
+
+
+def test_recover_from_photo_keeps_to_the_users_mask(probe, monkeypatch):
+    """``mask=`` limits the recovery's pixels (and the yaw estimate's), not only the sphere fit's: a blot
+    outside the mask adds no row."""
+    seen = {}
+
+    def observing(image, geometry, **kwargs):
+        seen.setdefault("masks", []).append(kwargs.get("mask"))
+        return real(image, geometry, **kwargs)
+
+    real = capture.image_observations
+    monkeypatch.setattr(capture, "image_observations", observing)
+    mask = np.ones(IMAGE.shape[:2], bool)
+    mask[:, : IMAGE.shape[1] // 2] = False
+    recover_mod.recover_from_photo(IMAGE, probe, mask=mask, sphere=(24.0, 24.0, 20.0), saturation=None, **SMALL)
+    assert seen["masks"] and all(m is not None and np.array_equal(m, mask) for m in seen["masks"])
+    with pytest.raises(InputError, match="both mask and masks"):
+        recover_mod.recover_from_photo(IMAGE, probe, mask=mask, masks=mask, **SMALL)

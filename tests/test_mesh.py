@@ -62,6 +62,35 @@ def test_formats_normals_and_warnings(tmp_path):
         mesh.MeshShape(np.zeros((3, 3)), np.array([[0, 1, 5]]))
 
 
+def test_a_placed_glb_mesh_keeps_its_normals_in_step_with_its_vertices(tmp_path):
+    """A glTF node's transform moves the vertices (trimesh applies it) and must turn the file's vertex
+    normals too: the same torus, turned by its node in a GLB or baked into a PLY, loads with the same
+    normals. Normals that point away from the faces (inward) are not used, with a warning."""
+    from trimesh.transformations import rotation_matrix
+
+    torus = trimesh.creation.torus(1.0, 0.45, major_sections=32, minor_sections=16)
+    assert torus.vertex_normals.shape == torus.vertices.shape  # computed: the GLB then stores them
+    turn = rotation_matrix(np.pi / 2, [1, 0, 0]) @ rotation_matrix(0.3, [0, 0, 1])
+    turn[:3, 3] = [0.5, -2.0, 1.0]
+    scene = trimesh.Scene()
+    scene.add_geometry(torus, transform=turn)
+    scene.export(tmp_path / "t.glb")
+    moved = torus.copy()
+    moved.apply_transform(turn)
+    baked = trimesh.Trimesh(moved.vertices, moved.faces, vertex_normals=moved.vertex_normals, process=False)
+    baked.export(tmp_path / "t.ply")
+    glb, ply = mesh.MeshShape.load(tmp_path / "t.glb"), mesh.MeshShape.load(tmp_path / "t.ply")
+    np.testing.assert_allclose(glb.vertices, ply.vertices, atol=1e-6)
+    assert glb.vertex_normals is not None and ply.vertex_normals is not None
+    cos = np.sum(glb.vertex_normals * ply.vertex_normals, axis=1)
+    assert np.degrees(np.arccos(np.clip(cos.min(), -1.0, 1.0))) < 0.1
+    inward = trimesh.Trimesh(moved.vertices, moved.faces, vertex_normals=-moved.vertex_normals, process=False)
+    inward.export(tmp_path / "inward.ply")
+    with pytest.warns(InputWarning, match="not used"):
+        flat = mesh.MeshShape.load(tmp_path / "inward.ply", normals="vertex")
+    assert np.all(np.sum(flat.vertex_normals * ply.vertex_normals, axis=1) > 0.9)
+
+
 def test_ray_cast_normals_match_the_analytic_sphere():
     """Mitsuba ray casts on a fine icosphere reproduce geometry.py's closed-form normals and views."""
     shape = mesh.MeshShape.load(trimesh.creation.icosphere(subdivisions=5), normals="vertex")
