@@ -135,3 +135,25 @@ def test_leave_one_out_priors_are_cached_per_training_set_and_learnt_again_when_
     np.testing.assert_array_equal(repaired[1].basis, first[1].basis)
     outside = training_set.leave_one_out_priors("a-material-of-mine", 8, 8)  # all of them, nothing excluded
     assert learnt[-1] == () and sorted(outside[1].materials) == sorted(names)
+
+
+def test_predict_without_data_is_the_prior_itself():
+    """With no node resolved the prediction is the prior, in closed form: per channel, the mean
+    ``level max(exp(mu) - EPS, 0)`` and the std ``level exp(mu) sqrt(diag(U diag(lambda) U^T) + tau^2)``,
+    ``level`` the table's median."""
+    from mi_bivariate.basis_prior import EPS
+
+    rng = np.random.default_rng(2)
+    n_t, n_s, k = 4, 5, 3
+    basis, _ = np.linalg.qr(rng.normal(size=(n_t * n_s, k)))
+    mu = rng.normal(0.0, 0.5, n_t * n_s)
+    lam = np.array([0.5, 0.2, 0.05])
+    tau = rng.uniform(0.05, 0.2, n_t * n_s)
+    prior = BasisPrior(mu, basis, lam, tau, n_t, n_s)
+    table = rng.uniform(0.1, 3.0, (n_t, n_s, 3))
+    mean, std = prior.predict(table, np.zeros_like(table), np.ones_like(table))
+    spread = np.sqrt(np.einsum("nk,k,nk->n", basis, lam, basis) + tau**2)
+    for c in range(3):
+        level = np.median(table[..., c])
+        np.testing.assert_allclose(mean[..., c].ravel(), level * np.maximum(np.exp(mu) - EPS, 0.0), rtol=1e-9)
+        np.testing.assert_allclose(std[..., c].ravel(), level * np.exp(mu) * spread, rtol=1e-9)

@@ -176,3 +176,22 @@ def test_cli_offers_the_pair_rules(capsys):
     assert stop.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("mi-bivariate: error:") and "pair-rule" in err[0]
+
+
+def test_evidence_across_prior_weights_is_the_limit_of_proper_ones():
+    """One pair at two weights (``lambda`` 0.5 and 3): the difference of the evidences (through the
+    ``rank log lambda`` of the prior's determinant) is the data-space one of the proper limit."""
+    rng = np.random.default_rng(4)
+    m = 50
+    A = rng.standard_normal((m, N)) / np.sqrt(m)
+    y = A @ rng.uniform(0.5, 2.0, N) + 0.05 * rng.standard_normal(m)
+    p = default_prior().resampled(N_T, N_S).penalty_matrix("gloss")
+    g = A.T @ A
+    got, limit = [], []
+    for lam in (0.5, 3.0):
+        f = np.linalg.solve(g + lam * p, A.T @ y)
+        phi = np.sum((y - A @ f) ** 2) + lam * f @ p @ f
+        got.append(channel_log_evidence(phi, m, np.linalg.slogdet(g + lam * p)[1], lam, p, penalty_log_pdet(p)))
+        limit.append(_data_space_log_evidence(A, y, lam * p + 1e-6 * np.ones((N, N)) / N))
+    np.testing.assert_allclose(got[1] - got[0], limit[1] - limit[0], rtol=1e-4)
+    assert abs(got[1] - got[0]) > 0.1

@@ -185,3 +185,40 @@ def test_relight_errors_by_hand():
     # a floor below the references' noise gives no ratio (it would divide by that noise)
     tiny = metrics.relight_errors(1.1 * truth, (1 + 0.5 * metrics.MIN_RELIGHT_FLOOR) * truth, truth, mask)
     assert math.isnan(tiny["ratio"]) and tiny["rel_rmse"] == pytest.approx(0.1)
+
+
+def test_psnr_peak_is_the_references():
+    ref = np.zeros((2, 2, 3))
+    ref[0, 0] = 2.0
+    img = ref.copy()
+    img[1, 1] = 3.0  # the estimate's own maximum is above the reference's
+    assert metrics.image_psnr(img, ref) == pytest.approx(10 * math.log10(4.0 / (9.0 * 3 / 12)))
+
+
+def test_eq1_min_leaves_out_the_cells_below_1e_3(lambertian_truth):
+    """An estimate wrong only where the truth is below 1e-3 1/sr: Eq. 1 sees it, ``eq1_min`` does not."""
+    from mi_bivariate.merl import MERLBRDF
+
+    table = np.array(lambertian_truth.table, np.float64)
+    dim = np.zeros(table.shape[:3], bool)
+    dim[:, :, :90] = True
+    table[dim] *= 1e-4  # ~1.6e-5 to 4e-5 1/sr there
+    truth = MERLBRDF(table, name="half dim")
+    estimate = table.copy()
+    estimate[dim] *= 2.0
+    e = metrics.brdf_errors(truth, estimate)
+    assert e["eq1"] > 0.1 and e["eq1_min"] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_an_unobserved_interior_node_unobserves_the_cells_around_it():
+    """A cell is observed only when all four nodes of its bilinear stencil are: unobserving node (1, 1)
+    of a 3 x 3 grid drops every cell with t or s strictly between the first and last node from it."""
+    from mi_bivariate.coordinates import half_diff_from_st
+
+    nodes = np.ones((3, 3), bool)
+    nodes[1, 1] = False
+    s = np.array([0.0, 0.2, 0.5, 0.7, 1.0, 0.2, 0.7, 0.0, 1.0])
+    t = np.array([0.0, 0.3, 0.5, 0.8, 1.0, 0.8, 0.3, 0.5, 0.5])
+    theta_h, theta_d = half_diff_from_st(s, t)
+    want = (s <= 0.0) | (s >= 1.0) | (t <= 0.0) | (t >= 1.0)  # off the four cells around node (1, 1)
+    np.testing.assert_array_equal(metrics.observed_cells(nodes, theta_h, theta_d), want)

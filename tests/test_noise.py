@@ -50,3 +50,14 @@ def test_chi_square_quantile_matches_scipy_stats():
     from mi_bivariate import noise
 
     assert noise._CHI2_QUANTILE == pytest.approx(float(scipy.stats.chi2.ppf(noise.QUANTILE, 1)), rel=1e-12)
+
+
+def test_camera_noise_level_is_the_relative_noise_at_the_mean_signal():
+    """``level`` is the noise's relative std at the image's mean signal: a flat image at ``v`` gets std
+    ``level v sqrt(1 + READ_FRACTION^2)`` (shot noise ``level v``, read noise ``READ_FRACTION`` of it)."""
+    from mi_bivariate.noise import READ_FRACTION, add_camera_noise
+
+    v, level = 7.0, 0.02
+    noisy = add_camera_noise(np.full((200, 200, 3), v, np.float32), level, seed=3).astype(np.float64)
+    assert np.std(noisy) / v == pytest.approx(level * np.sqrt(1.0 + READ_FRACTION**2), rel=0.01)
+    assert np.mean(noisy) == pytest.approx(v, rel=1e-3)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import warnings
 
 import numpy as np
@@ -587,3 +588,40 @@ def test_gcv_skips_alphas_an_ill_conditioned_prior_cannot_factorise():
                     ).penalty_matrix("gloss")
     curve = gcv_curve(data, penalty, 1)
     assert np.isinf(curve.scores).any() and np.isfinite(curve.alpha) and np.isfinite(curve.score)
+
+
+def test_row_sigma_by_hand():
+    """``sigma^2 = model(I) + a I + b`` per image, with ``model`` each form of the model error at
+    ``level = max(I, d Ibar)`` (``Ibar``: the image's channel mean of ``max(I, 0)``), written out for
+    two images of three rows."""
+    from mi_bivariate.solve import row_sigma
+    from mi_bivariate.solve.data_term import DARK_FRACTION
+
+    I = np.array([[1.0, 0.0, 2.0], [3.0, 0.5, -1.0], [0.001, 1.5, 4.0],
+                  [10.0, 20.0, 0.0], [30.0, 0.1, 0.0], [50.0, 60.0, 0.0]])
+    index = np.array([0, 0, 0, 1, 1, 1])
+    noise = [(0.02, 1e-4), ((0.1, 0.2, 0.3), 0.5)]
+    c = 0.03
+    for form in ("sqrt", "relative", "constant"):
+        want = np.empty_like(I)
+        for m in range(6):
+            k = index[m]
+            rows = I[index == k]
+            for ch in range(3):
+                mean = np.maximum(rows[:, ch], 0.0).mean() or 1.0
+                level = max(I[m, ch], DARK_FRACTION * mean)
+                model = {"sqrt": c * c * mean * level, "relative": (c * level) ** 2, "constant": (c * mean) ** 2}[form]
+                a, b = noise[k]
+                a = a[ch] if isinstance(a, tuple) else a
+                want[m, ch] = math.sqrt(model + a * max(I[m, ch], 0.0) + b)
+        got = row_sigma(I, index, noise, model_error=c, form=form)
+        np.testing.assert_allclose(got, want, rtol=1e-12, err_msg=form)
+
+
+def test_kkt_violation_sees_an_infeasible_point_with_a_zero_gradient():
+    """``x = (-1, 1)`` for ``G = I, b = (-1, 1)``: the gradient is 0 but ``x_0 < 0`` breaks ``x >= 0``."""
+    from mi_bivariate.solve.nnls import kkt_violation
+
+    G, b = np.eye(2), np.array([-1.0, 1.0])
+    assert kkt_violation(G, b, np.array([-1.0, 1.0])) >= 1.0
+    assert kkt_violation(G, b, np.array([0.0, 1.0])) == 0.0
