@@ -280,7 +280,8 @@ def _finish(image: np.ndarray, rows: np.ndarray, cols: np.ndarray, normals: np.n
     if n_ok == 0:
         raise InputError(source, "no usable pixel on the object (dropped: "
                          f"{', '.join(f'{k} {v}' for k, v in dropped.items() if v)})",
-                         "check the sphere, the mask and --max-view-angle")
+                         "check where the object is (the sphere, or the mesh and its camera), the mask and "
+                         "--max-view-angle")
     if not np.any(values[keep] > 0.0):
         raise InputError(source, "the image is black on the object (no positive pixel value)",
                          "check the exposure, the sphere position and the mask")
