@@ -231,16 +231,21 @@ class Intrinsics:
         except (TypeError, ValueError):
             values = np.empty(0)
         if values.shape != (4,):
-            raise InputError("intrinsics", f"must be (fx, fy, cx, cy) in pixels, got {value!r}")
+            raise InputError("intrinsics", f"must be four numbers (fx, fy, cx, cy) in pixels, got {value!r}")
         return cls(*(float(v) for v in values))
 
     def __post_init__(self) -> None:
-        values = (self.fx, self.fy, self.cx, self.cy)
-        if any(isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v) for v in values) \
-                or not (self.fx > 0.0 and self.fy > 0.0):
-            raise InputError("intrinsics", f"(fx, fy, cx, cy) = {values!r} pixels",
-                             "the focal lengths must be finite and positive, the principal point finite "
-                             "(a mirrored image is flipped, not given a negative focal length)")
+        try:
+            values = tuple(float(v) for v in (self.fx, self.fy, self.cx, self.cy))
+        except (TypeError, ValueError):
+            raise InputError("intrinsics", f"must be four numbers (fx, fy, cx, cy) in pixels, got "
+                             f"{(self.fx, self.fy, self.cx, self.cy)!r}") from None
+        if not all(math.isfinite(v) for v in values) or not (values[0] > 0.0 and values[1] > 0.0):
+            raise InputError("intrinsics", "the focal lengths must be finite and positive and the principal point "
+                             f"finite, got fx={values[0]:g}, fy={values[1]:g}, cx={values[2]:g}, cy={values[3]:g} px",
+                             "flip a mirrored image instead of giving a negative focal length")
+        for name, value in zip(("fx", "fy", "cx", "cy"), values):
+            object.__setattr__(self, name, value)
 
     def rays(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Unit camera-frame ray directions through pixel positions, ``(..., 3) float64``."""
@@ -277,7 +282,10 @@ class PerspectiveSphereGeometry(Geometry):
     camera_to_world: np.ndarray = field(default_factory=lambda: np.eye(3))
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "intrinsics", Intrinsics.coerce(self.intrinsics))
+        try:
+            object.__setattr__(self, "intrinsics", Intrinsics.coerce(self.intrinsics))
+        except InputError as exc:  # named as the geometry's
+            raise InputError("geometry", f"intrinsics: {exc.problem}", exc.hint) from None
         try:
             centre = np.asarray(self.centre, np.float64)
         except (TypeError, ValueError):
@@ -397,10 +405,8 @@ class Camera:
         object.__setattr__(self, "height", int(self.height))
         try:
             k = Intrinsics.coerce(self.intrinsics)
-        except ValueError as exc:
-            raise InputError("camera", str(exc)) from None
-        if not all(math.isfinite(v) for v in (k.fx, k.fy, k.cx, k.cy)) or k.fx <= 0 or k.fy <= 0:
-            raise InputError("camera", f"invalid intrinsics {k}")
+        except InputError as exc:  # named as the camera's
+            raise InputError("camera", f"intrinsics: {exc.problem}", exc.hint) from None
         object.__setattr__(self, "intrinsics", k)
         object.__setattr__(self, "camera_to_world", check_rotation(self.camera_to_world, "camera"))
         position = np.asarray(self.position, dtype=np.float64).reshape(-1)

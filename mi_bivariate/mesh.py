@@ -113,8 +113,8 @@ def _node_transform(path: Path) -> Optional[np.ndarray]:
     return np.asarray(scene.graph[nodes[0]][0], dtype=np.float64)
 
 
-#: File vertex normals further than this from the faces' own (median angle, degrees) are not used: they
-#: belong to another placement of the mesh or point inwards.
+#: File vertex normals further than this (median angle, degrees) from the outward normals of a closed
+#: mesh's faces are refused: they belong to another placement of the mesh or point inwards.
 MAX_NORMAL_DISAGREEMENT_DEG = 60.0
 
 
@@ -201,13 +201,15 @@ class MeshShape:
                 raise InputError(path, f"unknown mesh file type {path.suffix!r}", f"use one of {', '.join(MESH_SUFFIXES)}")
             mesh, name = _trimesh_load(path), str(path)
             stored = _file_vertex_normals(path, len(mesh.vertices))
-            if stored is not None:
-                faces_say = np.asarray(mesh.vertex_normals)  # area-weighted normals of the faces as placed
-                angle = np.degrees(np.arccos(np.clip(np.sum(stored * faces_say, axis=1), -1.0, 1.0)))
+            if stored is not None and normals != "face" and mesh.is_watertight:  # (a closed surface has an outside)
+                # The area-weighted normals of the faces as placed, turned outwards (faces wound inwards
+                # have a negative volume; the shading normals of such a file may still point out).
+                outward = np.asarray(mesh.vertex_normals) * (-1.0 if float(mesh.volume) < 0.0 else 1.0)
+                angle = np.degrees(np.arccos(np.clip(np.sum(stored * outward, axis=1), -1.0, 1.0)))
                 if float(np.median(angle)) > MAX_NORMAL_DISAGREEMENT_DEG:
-                    warnings.warn(f"{name}: the file's vertex normals are {np.median(angle):.0f} deg (median) from "
-                                  "its faces' own, so they are not used", InputWarning, stacklevel=2)
-                    stored = None
+                    raise InputError(name, f"the file's vertex normals are {np.median(angle):.0f} deg (median) "
+                                     "from the outward normals of its faces", "fix or drop them, or load it with "
+                                     "normals='face'")
             if stored is None:
                 # Nothing to keep in step with the file's vertex order: weld duplicates
                 # (STL repeats every corner) so computed vertex normals are smooth.

@@ -190,12 +190,9 @@ def fit_cone(points: np.ndarray, intrinsics: Intrinsics, circle: Tuple[float, fl
 
 def _check_intrinsics(intrinsics: Any, source: str) -> Intrinsics:
     try:
-        k = Intrinsics.coerce(intrinsics)
-    except (ValueError, TypeError):
-        raise InputError(source, f"intrinsics must be (fx, fy, cx, cy) in pixels, got {intrinsics!r}") from None
-    if not all(math.isfinite(v) for v in (k.fx, k.fy, k.cx, k.cy)) or k.fx <= 0 or k.fy <= 0:
-        raise InputError(source, f"invalid intrinsics {k}", "focal lengths fx, fy must be positive pixels")
-    return k
+        return Intrinsics.coerce(intrinsics)
+    except InputError as exc:  # named as the photo's
+        raise InputError(source, f"intrinsics: {exc.problem}", exc.hint) from None
 
 
 def _cone_from_circle(k: Intrinsics, cx: float, cy: float, r: float) -> Tuple[np.ndarray, float]:

@@ -26,6 +26,8 @@ for symbolic evaluation (no host round trips), so it works unchanged on the
 from __future__ import annotations
 
 import math
+import os
+import warnings
 from dataclasses import dataclass
 from typing import Any, Tuple
 
@@ -34,7 +36,7 @@ import mitsuba as mi
 import numpy as np
 
 from mi_bivariate.common import luminance
-from mi_bivariate.errors import InputError
+from mi_bivariate.errors import InputError, InputWarning
 
 #: Luminance weights (Rec. 709) used to turn RGB tables into one density.
 
@@ -240,15 +242,20 @@ def make_tabulated_bsdf_base():
             else:
                 raise InputError(self.plugin_name, f"the BSDF needs a 'filename' ({self.file_suffix}) or a 'table' "
                                                   "(mi.Bitmap) property")
-            self.table = mi.TensorXf(table)  # the parameter (mi.traverse assigns to this object in place)
-            self.lookup = self.table  # what eval reads: the table as the renders use it (read_file / from_array)
+            self.table = mi.TensorXf(table)  # the parameter: mi.traverse writes into this object in place
+            # What eval reads, the table as the renders use it: another handle on the same values, so that
+            # an update refused by updated_table leaves the renders with the last good table.
+            self.lookup = mi.TensorXf(self.table)
             self._rebuild()
 
-        def _rebuild(self) -> None:
-            """Check the table's shape and rebuild the sampler from the table the renders use."""
+        def _check_shape(self) -> None:
             shape = tuple(self.table.shape)
             if len(shape) != self.table_ndim or shape[-1] != 3 or not self.valid_shape(shape):
                 raise InputError(self.plugin_name, f"table has shape {shape}, which this plugin cannot use")
+
+        def _rebuild(self) -> None:
+            """Check the table's shape and rebuild the sampler from the table the renders use."""
+            self._check_shape()
             values, theta_h_nodes, theta_d_nodes = self.profile_values(dr.detach(self.lookup).numpy())
             self.sampler = HalfVectorSampler(half_vector_profile(luminance(values), theta_h_nodes, theta_d_nodes,
                                                                  cosine_only=self.sampling == "cosine"))
@@ -260,21 +267,23 @@ def make_tabulated_bsdf_base():
             callback.put("table", self.table, mi.ParamFlags.Differentiable)
 
         def parameters_changed(self, keys: list) -> None:
-            shape = tuple(self.table.shape)
-            if len(shape) != self.table_ndim or shape[-1] != 3 or not self.valid_shape(shape):
-                raise InputError(self.plugin_name, f"table has shape {shape}, which this plugin cannot use")
-            self.lookup = self.updated_table(self.table)
+            self._check_shape()
+            self.lookup = mi.TensorXf(self.updated_table(self.table))  # a handle of its own (see __init__)
             self._rebuild()
 
         def updated_table(self, table: mi.TensorXf) -> mi.TensorXf:
-            """A table set through ``mi.traverse`` as the renders may use it (the ``table`` property's
-            rules; gradients kept). Here: refused unless finite and non-negative."""
+            """A table set through ``mi.traverse`` as the renders use it (gradients kept). Here: refused
+            (the renders keep the last good table) unless finite; negative values rendered as 0, with a
+            warning (a reflectance cannot be negative; their nodes get no gradient)."""
             host = dr.detach(table).numpy()
             if not np.all(np.isfinite(host)):
-                raise InputError(self.plugin_name, "the table set through mi.traverse holds NaN or infinite values")
+                raise InputError(self.plugin_name, "the table set through mi.traverse holds NaN or infinite values",
+                                 "the renders keep the last table without them")
             if np.any(host < 0.0):
-                raise InputError(self.plugin_name, f"the table set through mi.traverse has negative values "
-                                 f"(min {host.min():g} 1/sr)", "clamp it, or optimise its logarithm")
+                warnings.warn(f"{self.plugin_name}: the table set through mi.traverse has negative values (min "
+                              f"{host.min():g} 1/sr), rendered as 0 (optimise its logarithm, or clamp it)",
+                              InputWarning, stacklevel=2)
+                return dr.maximum(table, 0.0)
             return table
 
         def _enabled(self, ctx: mi.BSDFContext) -> bool:
@@ -327,8 +336,11 @@ def make_tabulated_bsdf_base():
 
 
 def resolve_path(filename: str) -> str:
-    """``filename`` through Mitsuba's file resolver: a relative name is found beside the scene file
-    being loaded (or in the resolver's other folders), as every built-in plugin finds its files."""
+    """Where a ``filename`` property's file is: as given when it exists from the working directory,
+    else through Mitsuba's file resolver (beside the scene file being loaded, as the built-in plugins
+    find theirs). The working directory first: the resolver's copy of it dates from Mitsuba's import."""
+    if os.path.exists(filename):
+        return filename
     return str(mi.file_resolver().resolve(filename))
 
 

@@ -13,11 +13,13 @@ The table's nodes sit at ``s, t = i / (n - 1)`` of the paper's st map
 (``s = 2 theta_d / pi``, ``t = sqrt(2 theta_h / pi)``); values are bilinear in
 (s, t) between nodes and clamped outside. One-sided like ``diffuse``: zero when
 either direction is at or below the horizon (wrap it in ``twosided`` for both sides).
-A relative ``filename`` is found as Mitsuba finds its files (beside the scene file being loaded).
+A relative ``filename`` is read from the working directory, else found as Mitsuba finds its files
+(beside the scene file being loaded).
 
-Differentiable parameter: ``table`` (``mi.TensorXf``, ``(n_t, n_s, 3)``); a table set through
-``mi.traverse`` must be finite and non-negative (optimise its logarithm, as
-:mod:`mi_bivariate.synthesis` does), and may change the grid.
+Differentiable parameter: ``table`` (``mi.TensorXf``, ``(n_t, n_s, 3)``); it may change the grid. A
+table set through ``mi.traverse`` is refused if it holds NaN or infinities (the renders keep the last
+good table), and its negative values are rendered as 0 with a warning (optimise its logarithm, as
+:mod:`mi_bivariate.synthesis` does).
 """
 
 from __future__ import annotations

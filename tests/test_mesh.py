@@ -86,9 +86,17 @@ def test_a_placed_glb_mesh_keeps_its_normals_in_step_with_its_vertices(tmp_path)
     assert np.degrees(np.arccos(np.clip(cos.min(), -1.0, 1.0))) < 0.1
     inward = trimesh.Trimesh(moved.vertices, moved.faces, vertex_normals=-moved.vertex_normals, process=False)
     inward.export(tmp_path / "inward.ply")
-    with pytest.warns(InputWarning, match="not used"):
-        flat = mesh.MeshShape.load(tmp_path / "inward.ply", normals="vertex")
-    assert np.all(np.sum(flat.vertex_normals * ply.vertex_normals, axis=1) > 0.9)
+    with pytest.raises(InputError, match="from the outward normals of its faces"):
+        mesh.MeshShape.load(tmp_path / "inward.ply", normals="vertex")
+    assert mesh.MeshShape.load(tmp_path / "inward.ply", normals="face").vertex_normals is None
+    # Faces wound inwards with outward shading normals: the normals are right and kept (the winding is
+    # warned about as before).
+    rewound = trimesh.Trimesh(moved.vertices, moved.faces[:, ::-1], vertex_normals=moved.vertex_normals,
+                              process=False)
+    rewound.export(tmp_path / "rewound.ply")
+    with pytest.warns(InputWarning, match="wound inwards"):
+        kept = mesh.MeshShape.load(tmp_path / "rewound.ply")
+    np.testing.assert_allclose(kept.vertex_normals, ply.vertex_normals, atol=1e-5)
 
 
 def test_ray_cast_normals_match_the_analytic_sphere():

@@ -14,7 +14,7 @@ from mitsuba.chi2 import BSDFAdapter, ChiSquareTest, SphericalDomain
 from mi_bivariate.analytic import BivariateLobe, CookTorranceGGX, Lambertian, to_merl
 from mi_bivariate.bivariate import BivariateBRDF
 from mi_bivariate.coordinates import half_diff_from_dirs, st_from_dirs
-from mi_bivariate.errors import InputError
+from mi_bivariate.errors import InputError, InputWarning
 from mi_bivariate.geometry import SphereCamera
 from mi_bivariate.merl import MERLBRDF, geometric_mask
 from mi_bivariate.probes import Probe
@@ -332,6 +332,14 @@ def test_a_relative_filename_is_found_beside_the_scene_file(tmp_path, monkeypatc
     absolute = mi.load_dict({"type": plugin, "filename": str(folder / f"t{suffix}")})
     wi, wo = random_pairs(200, seed=6, min_cos=0.3)
     np.testing.assert_array_equal(plugin_eval(from_scene, wi, wo), plugin_eval(absolute, wi, wo))
+    # A file of that name in the working directory is the one read (Mitsuba's resolver keeps the working
+    # directory it saw at import, which may hold another file of the name).
+    other = lobe_table(width=0.5, diffuse=0.6, specular=0.5, n=8)
+    other.save(elsewhere / "t.npz")
+    other.write_merl(elsewhere / "t.binary")
+    here = mi.load_dict({"type": plugin, "filename": f"t{suffix}"})
+    there = mi.load_dict({"type": plugin, "filename": str(elsewhere / f"t{suffix}")})
+    np.testing.assert_array_equal(plugin_eval(here, wi, wo), plugin_eval(there, wi, wo))
 
 
 # ------------------------------------------------------ parameters and AD
@@ -433,12 +441,26 @@ def test_merl_table_set_through_traverse_is_filled_like_a_loaded_one():
 
 
 def test_bivariate_table_set_through_traverse_is_checked():
-    scene = sphere_scene(bsdf_dict(lambertian_table()))
+    """A non-finite table set through ``mi.traverse`` is refused and the renders keep the last good table;
+    negative values are rendered as 0, with a warning (a reflectance cannot be negative)."""
+    biv = lobe_table(width=0.3, diffuse=0.3, specular=1.0, n=8)
+    scene = sphere_scene(bsdf_dict(biv))
     params = mi.traverse(scene)
     key = "sphere.bsdf.table"
-    table = np.array(params[key])
-    for bad, message in ((np.nan, "NaN or infinite"), (-0.5, "negative values")):
-        table[1, 2, 0] = bad
-        params[key] = mi.TensorXf(table)
-        with pytest.raises(InputError, match=message):
-            params.update()
+    good = np.array(params[key])
+    before = np.array(mi.render(scene, spp=8, seed=3))
+    table = good.copy()
+    table[1, 2, 0] = np.nan
+    params[key] = mi.TensorXf(table)
+    with pytest.raises(InputError, match="NaN or infinite"):
+        params.update()
+    np.testing.assert_array_equal(np.array(mi.render(scene, spp=8, seed=3)), before)
+    table = good.copy()
+    table[:, :, 1] -= 0.5 * float(good[..., 1].max())  # some green values below 0
+    params[key] = mi.TensorXf(table)
+    with pytest.warns(InputWarning, match="negative values"):
+        params.update()
+    clamped = np.array(mi.render(scene, spp=8, seed=3))
+    reference = np.array(mi.render(sphere_scene(bsdf_dict(BivariateBRDF(np.maximum(table, 0.0)))), spp=8, seed=3))
+    assert np.all(clamped >= 0.0)
+    np.testing.assert_allclose(clamped, reference, rtol=1e-5, atol=1e-7)
