@@ -278,7 +278,7 @@ def make_tabulated_bsdf_base():
             host = dr.detach(table).numpy()
             if not np.all(np.isfinite(host)):
                 raise InputError(self.plugin_name, "the table set through mi.traverse holds NaN or infinite values",
-                                 "the renders keep the last table without them")
+                                 "set a finite table; until then the renders keep the last good one")
             if np.any(host < 0.0):
                 warnings.warn(f"{self.plugin_name}: the table set through mi.traverse has negative values (min "
                               f"{host.min():g} 1/sr), rendered as 0 (optimise its logarithm, or clamp it)",
