@@ -26,6 +26,11 @@ class InputError(ValueError):
             msg = f"{msg} ({hint})"
         super().__init__(msg)
 
+    def within(self, source: Optional[PathLike], part: str) -> "InputError":
+        """The same problem named as a part of ``source`` (``camera: intrinsics: ...``): for a front door
+        whose argument holds the object that was refused."""
+        return InputError(source, f"{part}: {self.problem}", self.hint)
+
 
 def renamed(message: str, names: Mapping[str, str]) -> Optional[str]:
     """``message`` with its leading internal source name (``"image: ..."``, ``"image 1: ..."``,

@@ -285,7 +285,7 @@ class PerspectiveSphereGeometry(Geometry):
         try:
             object.__setattr__(self, "intrinsics", Intrinsics.coerce(self.intrinsics))
         except InputError as exc:  # named as the geometry's
-            raise InputError("geometry", f"intrinsics: {exc.problem}", exc.hint) from None
+            raise exc.within("geometry", "intrinsics") from None
         try:
             centre = np.asarray(self.centre, np.float64)
         except (TypeError, ValueError):
@@ -406,7 +406,7 @@ class Camera:
         try:
             k = Intrinsics.coerce(self.intrinsics)
         except InputError as exc:  # named as the camera's
-            raise InputError("camera", f"intrinsics: {exc.problem}", exc.hint) from None
+            raise exc.within("camera", "intrinsics") from None
         object.__setattr__(self, "intrinsics", k)
         object.__setattr__(self, "camera_to_world", check_rotation(self.camera_to_world, "camera"))
         position = np.asarray(self.position, dtype=np.float64).reshape(-1)

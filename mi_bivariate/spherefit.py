@@ -192,7 +192,7 @@ def _check_intrinsics(intrinsics: Any, source: str) -> Intrinsics:
     try:
         return Intrinsics.coerce(intrinsics)
     except InputError as exc:  # named as the photo's
-        raise InputError(source, f"intrinsics: {exc.problem}", exc.hint) from None
+        raise exc.within(source, "intrinsics") from None
 
 
 def _cone_from_circle(k: Intrinsics, cx: float, cy: float, r: float) -> Tuple[np.ndarray, float]:

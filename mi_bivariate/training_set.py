@@ -32,6 +32,7 @@ from .merl import MERLBRDF
 from .nbrdf import ALL_NBRDF_MATERIALS, NBRDF_FILE, NBRDF_TRAIN_FILE
 from .nbrdf import data_dir as nbrdf_data_dir
 from .nbrdf import nbrdf_merl
+from .npzio import read_npz
 from .prior import Prior
 from .sources import merl_files
 
@@ -85,11 +86,11 @@ def _cached_tables(path: Path, shape: Tuple[int, int, int]) -> Dict[str, np.ndar
     if not path.is_file():
         return {}
     try:
-        with np.load(path, allow_pickle=False) as z:
-            stored = {k: np.asarray(z[k], np.float64) for k in z.files}
-    except Exception:  # noqa: BLE001 - any damage (EOFError, BadZipFile, ValueError, OSError) costs time only
+        stored = read_npz(path, "reductions cache", text=())
+    except InputError:  # any damage costs time only
         return {}
-    return {k: v for k, v in stored.items() if v.shape == shape and np.all(np.isfinite(v))}
+    return {k: np.asarray(v, np.float64) for k, v in stored.items()
+            if v.shape == shape and v.dtype.kind == "f" and np.all(np.isfinite(v))}
 
 
 def learn_priors(tables: Dict[str, np.ndarray], exclude: Sequence[str] = (),
