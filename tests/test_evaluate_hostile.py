@@ -289,3 +289,39 @@ def test_results_lines_are_valid_json_without_nan_or_infinity(tmp_path):
     assert json.loads(line, parse_constant=refuse) == {"material": "m", "config_hash": "h", "a": None,
                                                         "b": [None, 1.5, None], "c": {"d": None, "e": 2}, "f": None}
     assert ev.read_records(path) == [json.loads(line)]
+
+
+def test_a_damaged_render_cache_is_rendered_again_and_a_damaged_artifact_is_one_error(tmp_path):
+    """A cached reference render cut short (a full disk, a copy interrupted) costs a render, not the
+    material: it was read by a bare np.load whose BadZipFile escaped, and every rerun failed on it. A
+    material's damaged artifacts file is an InputError naming it, not a traceback from make_figures."""
+    from mi_bivariate.bivariate import BivariateBRDF
+    from mi_bivariate.evaluate.renders import Renderer
+    from mi_bivariate.probes import Probe
+    from mi_bivariate.sources import MaterialSpec
+    from mi_bivariate.variants import ensure_variant
+
+    ensure_variant()
+    spec, probe = MaterialSpec("grey", "analytic", "lambert"), Probe.constant(1.0, 16)
+    brdf = BivariateBRDF(np.full((6, 6, 3), 0.1, np.float32))
+
+    def render():
+        renderer = Renderer(TINY, spec, str(tmp_path), truth=None)
+        shot = renderer.render(brdf, probe, "constant", 16, 1, TINY.novel_spp, cache_key="truth")
+        return renderer.renders, renderer.cached, shot.image
+
+    first = render()
+    (cached,) = tmp_path.glob("*.npz")
+    whole = cached.read_bytes()
+    for damaged in (whole[: len(whole) // 2], whole[:40], b"", b"\x93NUMPY" + whole[6:]):
+        cached.write_bytes(damaged)
+        again = render()
+        assert again[:2] == (1, 0)
+        np.testing.assert_array_equal(again[2], first[2])
+    assert render()[:2] == (0, 1)   # written again whole
+    artifacts = tmp_path / "artifacts.npz"
+    ev.save_artifacts(artifacts, {"floor": np.ones((4, 4, 3), np.float32)})
+    artifacts.write_bytes(artifacts.read_bytes()[:50])
+    with pytest.raises(InputError, match="truncated or corrupt") as info:
+        ev.load_artifacts(artifacts)
+    assert info.value.source == str(artifacts)

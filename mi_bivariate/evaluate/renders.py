@@ -23,8 +23,10 @@ import numpy as np
 
 from mi_bivariate import reference, render
 from mi_bivariate.evaluate.config import EvalConfig
+from mi_bivariate.errors import InputError
 from mi_bivariate.evaluate.results import save_artifacts
 from mi_bivariate.geometry import SphereGeometry
+from mi_bivariate.npzio import read_npz
 from mi_bivariate.probes import Probe
 from mi_bivariate.sources import MaterialSpec
 
@@ -84,15 +86,16 @@ class Renderer:
             path = self.cache_dir / f"{hashlib.sha256(key.encode()).hexdigest()[:24]}.npz"
             if path.is_file():
                 try:
-                    with np.load(path, allow_pickle=False) as npz:
-                        g = npz["geometry"]
-                        shot = Shot(np.asarray(npz["image"], np.float32), np.asarray(npz["mask"], bool),
-                                     SphereGeometry(float(g[0]), float(g[1]), float(g[2]),
-                                                    np.asarray(npz["camera_to_world"], np.float64)))
+                    npz = read_npz(path, "render cache", required=("image", "mask", "geometry", "camera_to_world"),
+                                   text=())
+                    g = npz["geometry"]
+                    shot = Shot(np.asarray(npz["image"], np.float32), np.asarray(npz["mask"], bool),
+                                SphereGeometry(float(g[0]), float(g[1]), float(g[2]),
+                                               np.asarray(npz["camera_to_world"], np.float64)))
                     self.cached += 1
                     return shot
-                except (OSError, ValueError, KeyError, EOFError):
-                    pass                               # unreadable: render again and overwrite
+                except (InputError, ValueError, IndexError):
+                    pass                               # damaged: render again and overwrite
         t0 = time.perf_counter()
         if self.cfg.renderer == "reference":
             out = reference.render_reference(bsdf, probe, resolution=resolution, seed=seed,

@@ -28,6 +28,7 @@ from mi_bivariate.atomic import atomic_path
 from mi_bivariate.common import PathLike, finite_json
 from mi_bivariate.errors import InputWarning
 from mi_bivariate.figures import evaluation_figures
+from mi_bivariate.npzio import read_npz
 
 RESULTS_FILE = "results.jsonl"
 SUMMARY_FILE = "summary.csv"
@@ -143,9 +144,9 @@ def artifact_path(out_dir: PathLike, record_or_slug: Union[dict, str], config_ha
 
 
 def load_artifacts(path: PathLike) -> Dict[str, np.ndarray]:
-    """Read a material's artifacts (all arrays into memory)."""
-    with np.load(path, allow_pickle=False) as npz:
-        return {k: npz[k] for k in npz.files}
+    """Read a material's artifacts (all arrays into memory); :class:`~mi_bivariate.errors.InputError`
+    naming the file if it is missing or damaged."""
+    return read_npz(path, "material's artifacts file", text=())
 
 
 def summary_rows(records: Sequence[dict]) -> List[dict]:
