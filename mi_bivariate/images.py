@@ -325,7 +325,8 @@ def check_rgbe(path: PathLike) -> None:
     """Validate a Radiance RGBE file's header and run-length structure without decoding it.
 
     Raises:
-        InputError: no signature, no header end, an unsupported resolution
+        InputError: no signature, no header end, pixels other than RGBE (a
+            ``FORMAT=32-bit_rle_xyze`` file), an unsupported resolution
             line, a scanline of the wrong width, a zero or overlong run, or
             missing data.
     """
@@ -342,6 +343,10 @@ def check_rgbe(path: PathLike) -> None:
     end = data.find(b"\n\n")
     if end < 0:
         raise bad("the header never ends")
+    formats = [line[len(b"FORMAT="):].strip() for line in data[:end].split(b"\n") if line.startswith(b"FORMAT=")]
+    if formats and formats[-1] != b"32-bit_rle_rgbe":  # Mitsuba reads XYZE pixels as if they were RGB
+        raise InputError(path, f"Radiance HDR pixels are {formats[-1].decode(errors='replace')!r}, not RGBE "
+                               "(32-bit_rle_rgbe)", "convert it to RGB (ra_xyze -r) or to OpenEXR")
     res_end = data.find(b"\n", end + 2)
     fields = data[end + 2:res_end].split() if res_end > 0 else []
     if len(fields) != 4 or fields[0] not in (b"-Y", b"+Y") or fields[2] not in (b"+X", b"-X") \

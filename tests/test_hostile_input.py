@@ -1356,3 +1356,17 @@ def test_an_output_that_is_a_pipe_is_refused(tmp_path):
     with pytest.raises(InputError, match="device, pipe or socket"):
         check_outputs([fifo])
     assert fifo.is_fifo()
+
+
+def test_a_radiance_file_of_xyze_pixels_is_refused(tmp_path):
+    """A Radiance file whose header says FORMAT=32-bit_rle_xyze holds CIE XYZ, not RGB: Mitsuba read it as
+    RGB without a word (a photo or probe of the wrong colours). Refused, whatever its name; RGBE loads."""
+    good = _rgbe_bytes(tmp_path, corrupt=False)
+    assert b"FORMAT=32-bit_rle_rgbe\n" in good
+    xyze = good.replace(b"FORMAT=32-bit_rle_rgbe\n", b"FORMAT=32-bit_rle_xyze\n")
+    for name in ("xyz.hdr", "xyz.exr"):
+        (tmp_path / name).write_bytes(xyze)
+        _raises(lambda: images.load_image(tmp_path / name), "32-bit_rle_xyze")
+        _raises(lambda: Probe.load(tmp_path / name), "32-bit_rle_xyze")
+    (tmp_path / "rgb.hdr").write_bytes(good.replace(b"FORMAT=", b"EXPOSURE=1\nFORMAT="))
+    np.testing.assert_array_equal(images.load_image(tmp_path / "rgb.hdr"), images.load_image(tmp_path / "src.hdr"))
