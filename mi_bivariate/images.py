@@ -216,6 +216,9 @@ def _held_fd(fd: int, stream: Any) -> Iterator[None]:
 
 def _read_exr_unchecked(path: Path, OpenEXR) -> Tuple[np.ndarray, Dict[str, str]]:  # noqa: N803
     header = OpenEXR.File(str(path), header_only=True).header()
+    if header.get("type") in (OpenEXR.deepscanline, OpenEXR.deeptile):
+        raise InputError(path, "is a deep OpenEXR image (a list of samples per pixel), not a flat one",
+                         "flatten it (composite its samples) into a scanline or tiled image")
     lo, hi = (np.asarray(v, np.int64) for v in header["dataWindow"])
     width, height = int(hi[0] - lo[0] + 1), int(hi[1] - lo[1] + 1)
     _check_size(path, width, height)

@@ -1370,3 +1370,18 @@ def test_a_radiance_file_of_xyze_pixels_is_refused(tmp_path):
         _raises(lambda: Probe.load(tmp_path / name), "32-bit_rle_xyze")
     (tmp_path / "rgb.hdr").write_bytes(good.replace(b"FORMAT=", b"EXPOSURE=1\nFORMAT="))
     np.testing.assert_array_equal(images.load_image(tmp_path / "rgb.hdr"), images.load_image(tmp_path / "src.hdr"))
+
+
+def test_a_deep_exr_is_refused_as_deep_not_as_corrupt(tmp_path):
+    """A deep OpenEXR (samples lists per pixel) is a valid file the reader cannot use: said so, with what
+    to do, instead of 'corrupt OpenEXR file (setting an array element with a sequence.)'."""
+    import OpenEXR
+
+    samples = np.empty((4, 8), dtype=object)
+    for index in np.ndindex(samples.shape):
+        samples[index] = np.array([0.5, 0.25], np.float32)
+    path = tmp_path / "deep.exr"
+    OpenEXR.File({"type": OpenEXR.deepscanline, "compression": OpenEXR.ZIPS_COMPRESSION},
+                 {c: samples.copy() for c in "RGBZ"}).write(str(path))
+    _raises(lambda: images.load_image(path), "deep OpenEXR image.*flatten it")
+    _raises(lambda: Probe.load(path), "deep OpenEXR image")
