@@ -355,6 +355,9 @@ def check_rgbe(path: PathLike) -> None:
     if len(fields) != 4 or fields[0] not in (b"-Y", b"+Y") or fields[2] not in (b"+X", b"-X") \
             or not fields[1].isdigit() or not fields[3].isdigit():
         raise bad("unsupported resolution line")
+    if (fields[0], fields[2]) != (b"-Y", b"+X"):  # Mitsuba reads top-down, left-to-right files only
+        raise InputError(path, f"Radiance HDR orientation '{b' '.join(fields).decode()}' (flipped or "
+                               "mirrored) is not supported", "write it top-down (-Y H +X W), or convert it to OpenEXR")
     height, width = int(fields[1]), int(fields[3])
     if height == 0 or width == 0:
         raise bad("empty image")

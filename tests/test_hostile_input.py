@@ -1385,3 +1385,13 @@ def test_a_deep_exr_is_refused_as_deep_not_as_corrupt(tmp_path):
                  {c: samples.copy() for c in "RGBZ"}).write(str(path))
     _raises(lambda: images.load_image(path), "deep OpenEXR image.*flatten it")
     _raises(lambda: Probe.load(path), "deep OpenEXR image")
+
+
+def test_a_flipped_radiance_file_is_refused_by_its_orientation(tmp_path):
+    """Radiance files stored bottom-up (+Y) or mirrored (-X) are valid, and Mitsuba refuses them with 'I/O
+    error while attempting to read a line of text: Success' called a truncated file: their orientation is
+    named instead."""
+    good = _rgbe_bytes(tmp_path, corrupt=False)
+    for line in (b"+Y 16 +X 16", b"-Y 16 -X 16", b"+Y 16 -X 16"):
+        (tmp_path / "flipped.hdr").write_bytes(good.replace(b"-Y 16 +X 16", line))
+        _raises(lambda: images.load_image(tmp_path / "flipped.hdr"), re.escape(f"orientation '{line.decode()}'"))
