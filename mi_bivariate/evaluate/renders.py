@@ -22,8 +22,8 @@ import mitsuba as mi
 import numpy as np
 
 from mi_bivariate import reference, render
-from mi_bivariate.evaluate.config import EvalConfig
 from mi_bivariate.errors import InputError
+from mi_bivariate.evaluate.config import EvalConfig
 from mi_bivariate.evaluate.results import save_artifacts
 from mi_bivariate.geometry import SphereGeometry
 from mi_bivariate.npzio import read_npz
