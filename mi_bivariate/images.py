@@ -6,7 +6,8 @@ never by its name:
 
 - OpenEXR (``76 2f 31 01``) through the ``OpenEXR`` package;
 - Radiance RGBE (``#?``) after :func:`check_rgbe` validated its structure
-  (Mitsuba's RGBE reader corrupts the heap on a bad run length), then Mitsuba;
+  (Mitsuba's RGBE reader corrupts the heap on a bad run length), then Mitsuba,
+  with the header's ``EXPOSURE``/``COLORCORR`` undone (:func:`rgbe_scale`);
 - PFM (``PF``/``Pf`` header) after its header and size are checked, then Mitsuba;
 - PNG and JPEG (8-bit, not radiometric): with an :class:`InputWarning`, or
   an :class:`InputError` where a linear image is required or the file is
@@ -99,6 +100,11 @@ def read_image(path: PathLike, allow_ldr: bool = True) -> Tuple[np.ndarray, Dict
             corrupt file, too large, unsupported channel layout, 8-bit content
             where linear radiance is required.
     """
+    return _read_checked(Path(path), allow_ldr, keep_alpha=False)
+
+
+def _read_checked(path: Path, allow_ldr: bool, keep_alpha: bool) -> Tuple[np.ndarray, Dict[str, str]]:
+    """:func:`read_image` (with the file's alpha last when ``keep_alpha`` and it has one)."""
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in HDR_SUFFIXES + LDR_SUFFIXES:
@@ -116,26 +122,34 @@ def read_image(path: PathLike, allow_ldr: bool = True) -> Tuple[np.ndarray, Dict
         raise InputError(path, "cannot be read as an image: not an OpenEXR, Radiance HDR, PFM, PNG or JPEG file",
                          "the file is corrupt or of another type")
     if fmt in ("png", "jpeg"):
+        kind = f"{_ldr_bits(path, fmt)}-bit {FORMAT_NAMES[fmt]}"
         if suffix in HDR_SUFFIXES:
-            raise InputError(path, f"is an 8-bit {FORMAT_NAMES[fmt]} image named {path.suffix}: not linear radiance",
+            raise InputError(path, f"is {'an' if kind.startswith('8') else 'a'} {kind} image named {path.suffix}: "
+                                   "not linear radiance",
                              "convert the original capture to a linear HDR image")
         if not allow_ldr:
-            raise InputError(path, "8-bit image: not radiometric", "use a linear HDR image (.exr, .hdr, .pfm)")
-        warnings.warn(f"{path}: 8-bit image is not radiometric; it is linearised from sRGB, "
-                      "and the recovered BRDF is only qualitative", InputWarning, stacklevel=3)
+            raise InputError(path, f"{kind} image: not radiometric", "use a linear HDR image (.exr, .hdr, .pfm)")
+        warnings.warn(f"{path}: {kind} image is not radiometric; it is linearised from sRGB, "
+                      "and the recovered BRDF is only qualitative", InputWarning, stacklevel=4)
+    return _read_pixels(path, fmt, keep_alpha)
+
+
+def _read_pixels(path: Path, fmt: str, keep_alpha: bool) -> Tuple[np.ndarray, Dict[str, str]]:
+    """:func:`read_image`'s pixels of a file of format ``fmt``: ``(H, W, 3) float32``, or ``(H, W, 4)``
+    with its alpha last when ``keep_alpha`` and the file has one."""
     if fmt == "exr":
-        data, metadata = _read_exr(path)
+        data, metadata = _read_exr(path, keep_alpha)
     else:
-        data, metadata = _read_with_mitsuba(path, fmt), {}
+        data, metadata = _read_with_mitsuba(path, fmt, keep_alpha), {}
     if fmt == "pfm":
         _check_pfm_values(path, data)
     if data.ndim == 2:
         data = data[..., None]
     channels = data.shape[2]
     if channels in (1, 2):  # Y or YA
-        data = np.repeat(data[..., :1], 3, axis=2)
+        data = np.concatenate([np.repeat(data[..., :1], 3, axis=2), data[..., 1:2 if keep_alpha else 1]], axis=2)
     elif channels in (3, 4):
-        data = data[..., :3]
+        data = data[..., :4 if keep_alpha else 3]
     else:
         raise InputError(path, f"has {channels} channels", "expected grey, RGB or RGBA")
     if data.size == 0:
@@ -149,13 +163,14 @@ def _exr_error(path: Path, exc: BaseException) -> InputError:
                       "the file is truncated or corrupt")
 
 
-def _read_exr(path: Path) -> Tuple[np.ndarray, Dict[str, str]]:
-    """An EXR's first part through the ``OpenEXR`` package: ``(H, W, C) float32`` and string metadata."""
+def _read_exr(path: Path, keep_alpha: bool = False) -> Tuple[np.ndarray, Dict[str, str]]:
+    """An EXR's first part through the ``OpenEXR`` package: ``(H, W, C) float32`` (RGB or Y, then A
+    when ``keep_alpha`` and the file has it) and string metadata."""
     import OpenEXR
 
     try:
         with _library_output():
-            return _read_exr_unchecked(path, OpenEXR)
+            return _read_exr_unchecked(path, OpenEXR, keep_alpha)
     except InputError:
         raise
     except Exception as exc:  # noqa: BLE001 -- RuntimeError, UnicodeDecodeError, ... on corrupt files
@@ -214,7 +229,7 @@ def _held_fd(fd: int, stream: Any) -> Iterator[None]:
                     os.write(fd, text)
 
 
-def _read_exr_unchecked(path: Path, OpenEXR) -> Tuple[np.ndarray, Dict[str, str]]:  # noqa: N803
+def _read_exr_unchecked(path: Path, OpenEXR, keep_alpha: bool = False) -> Tuple[np.ndarray, Dict[str, str]]:  # noqa: N803
     header = OpenEXR.File(str(path), header_only=True).header()
     if header.get("type") in (OpenEXR.deepscanline, OpenEXR.deeptile):
         raise InputError(path, "is a deep OpenEXR image (a list of samples per pixel), not a flat one",
@@ -232,9 +247,19 @@ def _read_exr_unchecked(path: Path, OpenEXR) -> Tuple[np.ndarray, Dict[str, str]
     elif "Y" in upper:
         order = [upper["Y"]]
     else:
-        raise InputError(path, f"has {len(names)} channels ({', '.join(names) or 'none'})",
-                         "expected grey, RGB or RGBA")
+        layers = sorted({n.rsplit(".", 1)[0] for n in names if "." in n and n.rsplit(".", 1)[1].upper() in "RGB"})
+        raise InputError(path, f"has {len(names)} channels ({', '.join(names[:8]) or 'none'}"
+                               f"{', ...' if len(names) > 8 else ''})",
+                         f"expected grey, RGB or RGBA at the top level; its colour is in the layer(s) "
+                         f"{', '.join(repr(v) for v in layers[:4])}: save the one to use as a plain RGB image"
+                         if layers else "expected grey, RGB or RGBA")
+    if keep_alpha and "A" in upper:
+        order.append(upper["A"])
     planes = OpenEXR.File(str(path), separate_channels=True).channels()
+    integer = [n for n in order if np.issubdtype(np.asarray(planes[n].pixels).dtype, np.integer)]
+    if integer:
+        raise InputError(path, f"channel {integer[0]} holds integers (UINT), not radiance",
+                         "save the image's colour as HALF or FLOAT channels")
     stack = [np.asarray(planes[n].pixels, dtype=np.float32) for n in order]
     if any(p.shape != (height, width) for p in stack):
         raise InputError(path, "cannot be read as an image: channel sizes disagree with the data window")
@@ -288,6 +313,16 @@ def _check_pfm_values(path: Path, data: np.ndarray) -> None:
                          "its byte order may be wrong: a negative scale in the header means little-endian")
 
 
+def _ldr_bits(path: Path, fmt: str) -> int:
+    """Bits per channel of a PNG (its IHDR's bit depth: 16, or 8 for 1-8) or a JPEG (8)."""
+    if fmt == "png":
+        with open(path, "rb") as f:
+            head = f.read(25)
+        if len(head) == 25 and head[12:16] == b"IHDR" and head[24] == 16:
+            return 16
+    return 8
+
+
 def _png_size(path: Path) -> None:
     with open(path, "rb") as f:
         head = f.read(24)
@@ -296,8 +331,9 @@ def _png_size(path: Path) -> None:
     _check_size(path, int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big"))
 
 
-def _read_with_mitsuba(path: Path, fmt: str) -> np.ndarray:
-    """RGBE, PFM, PNG or JPEG through ``mi.Bitmap`` after the structural checks."""
+def _read_with_mitsuba(path: Path, fmt: str, keep_alpha: bool = False) -> np.ndarray:
+    """RGBE, PFM, PNG or JPEG through ``mi.Bitmap`` after the structural checks (PNG and JPEG as
+    linear RGB, or RGBA when ``keep_alpha`` and the file has alpha)."""
     if fmt == "rgbe":
         check_rgbe(path)
     elif fmt == "pfm":
@@ -307,8 +343,12 @@ def _read_with_mitsuba(path: Path, fmt: str) -> np.ndarray:
     try:
         bitmap = mi.Bitmap(str(path))
         if fmt in ("png", "jpeg"):
-            bitmap = bitmap.convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.Float32, srgb_gamma=False)
-        return np.array(bitmap, dtype=np.float32, copy=True)
+            layout = mi.Bitmap.PixelFormat.RGBA if keep_alpha and bitmap.has_alpha() else mi.Bitmap.PixelFormat.RGB
+            bitmap = bitmap.convert(layout, mi.Struct.Type.Float32, srgb_gamma=False)
+        data = np.array(bitmap, dtype=np.float32, copy=True)
+        if fmt == "rgbe":
+            data *= rgbe_scale(path)
+        return data
     except Exception as exc:  # noqa: BLE001 -- Mitsuba raises RuntimeError with a long C++ message
         text = " ".join(str(exc).split())
         # Mitsuba repeats the path and prefixes its class name; keep only the problem.
@@ -395,22 +435,55 @@ def check_rgbe(path: PathLike) -> None:
             raise bad(f"truncated at scanline {y}")
 
 
+def rgbe_scale(path: PathLike) -> np.ndarray:
+    """What a Radiance file's pixels are multiplied by to give the radiance they were written from:
+    ``(3,) float32``, one over the product of the header's ``EXPOSURE=`` values and, per channel, of its
+    ``COLORCORR=`` values (both cumulative, Radiance's file format); ones without them. Mitsuba's reader
+    ignores both, so :func:`read_image` applies this.
+
+    Raises:
+        InputError: a value that is not a positive finite number (or not three of them for COLORCORR).
+    """
+    path = Path(path)
+    with open(path, "rb") as f:
+        head = f.read(1 << 16)
+    end = head.find(b"\n\n")
+    scale = np.ones(3, np.float64)
+    for line in head[:end if end >= 0 else len(head)].split(b"\n"):
+        for key, count in ((b"EXPOSURE=", 1), (b"COLORCORR=", 3)):
+            if line.startswith(key):
+                try:
+                    values = np.array([float(v) for v in line[len(key):].split()], np.float64)
+                except ValueError:
+                    values = np.array([])
+                if len(values) != count or not np.all(np.isfinite(values)) or np.any(values <= 0.0):
+                    raise InputError(path, f"Radiance header line {line.decode(errors='replace')!r} is not "
+                                           f"{'a positive number' if count == 1 else 'three positive numbers'}",
+                                     "fix or remove the line")
+                scale /= values
+    return scale.astype(np.float32)
+
+
 def load_mask(path: PathLike, shape: tuple) -> np.ndarray:
-    """Load a mask image as ``(H, W) bool`` (usable: a value > 0 in any channel; 0, negative or NaN: not),
-    checking it matches ``shape`` and selects a pixel.
+    """Load a mask image as ``(H, W) bool`` (usable: a value > 0 in any colour channel and, where the file
+    has alpha, alpha > 0; 0, negative, NaN or transparent: not), checking it matches ``shape`` and selects a
+    pixel. (A mask painted on a transparent layer over white is the painted part, not the whole image.)
 
     Any image format will do (8-bit ones without a warning: a mask is not radiometric).
     """
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", InputWarning)
-        data = load_image(path, allow_ldr=True)
+        data = _read_checked(Path(path), allow_ldr=True, keep_alpha=True)[0]
     if data.shape[:2] != tuple(shape[:2]):
         raise InputError(path, f"mask is {data.shape[1]}x{data.shape[0]} but the image is {shape[1]}x{shape[0]}",
                          "give a mask of the image's size")
-    mask = np.any(data > 0, axis=2)
+    mask = np.any(data[..., :3] > 0, axis=2)
+    if data.shape[2] == 4:
+        mask &= data[..., 3] > 0
     if not mask.any():
         raise InputError(path, "the mask selects no pixel (no value > 0)",
-                         "mark the sphere's pixels with values > 0; 0, negative and NaN pixels are left out")
+                         "mark the sphere's pixels with values > 0; 0, negative, NaN and transparent pixels are "
+                         "left out")
     return mask
 
 

@@ -182,7 +182,7 @@ class MERLBRDF:
 
         Raises:
             InputError: the file is missing, truncated or not a MERL table, or holds no positive value
-            or values beyond float32.
+            or values beyond float32 (too large, or all too small).
         """
         path = Path(path)
         cls.check_file(path)
@@ -211,6 +211,9 @@ class MERLBRDF:
         if finite.max() > np.finfo(np.float32).max:  # renders, reductions and the solve run in float32
             raise InputError(path, f"MERL file holds values up to {finite.max():.3g} 1/sr, beyond float32",
                              "check the file")
+        if finite.max() < np.finfo(np.float32).tiny:  # every value would be 0 (or subnormal) in float32
+            raise InputError(path, f"MERL file holds values up to {finite.max():.3g} 1/sr only, below float32's "
+                                   "range: the material would render black", "check the file (its scale)")
         return cls(table, name=name or path.stem)
 
     def write(self, path: PathLike) -> None:

@@ -911,13 +911,15 @@ def test_npz_writers_refuse_another_suffix(tmp_path, capsys, files, command):
 
 
 @pytest.mark.parametrize("command", ["reduce", "demo", "learn-prior", "render"])
-@pytest.mark.parametrize("content", ["zero", "missing", "beyond float32"])
+@pytest.mark.parametrize("content", ["zero", "missing", "beyond float32", "below float32"])
 def test_unusable_merl_is_refused_naming_the_file(tmp_path, capsys, command, content):
-    """A MERL file of zeros, of missing values only, or with values float32 cannot hold: one line naming the
-    file, whichever command reads it (demo and learn-prior blamed the rendered image or the file's stem)."""
+    """A MERL file of zeros, of missing values only, or with values float32 cannot hold (too large, or all
+    too small: the table became all zeros without a word): one line naming the file, whichever command reads
+    it (demo and learn-prior blamed the rendered image or the file's stem)."""
     bad = tmp_path / f"{content.replace(' ', '_')}.binary"
     table = {"zero": np.zeros(MERL_SHAPE + (3,)), "missing": np.full(MERL_SHAPE + (3,), np.nan),
-             "beyond float32": np.full(MERL_SHAPE + (3,), 1e300)}[content]
+             "beyond float32": np.full(MERL_SHAPE + (3,), 1e300),
+             "below float32": np.full(MERL_SHAPE + (3,), 1e-300)}[content]
     MERLBRDF(table, name=content).write(bad)
     args = {"reduce": [str(bad), "--out", str(tmp_path / "z.npz")],
             "demo": ["--material", str(bad), "--out", str(tmp_path / "d"), "--resolution", "8", "--spp", "1"],
@@ -925,7 +927,7 @@ def test_unusable_merl_is_refused_naming_the_file(tmp_path, capsys, command, con
             "render": [str(bad), "--probe", "synthetic:1", "--out", str(tmp_path / "r.exr"), "--resolution", "8",
                        "--spp", "1"]}[command]
     line = _cli([command, *args], capsys)
-    expected = "beyond float32" if content == "beyond float32" else "no positive value"
+    expected = content if "float32" in content else "no positive value"
     assert line.startswith(f"mi-bivariate: error: {bad}: ") and expected in line, line
     assert sorted(p.name for p in tmp_path.iterdir()) == [bad.name]
 
@@ -1395,3 +1397,79 @@ def test_a_flipped_radiance_file_is_refused_by_its_orientation(tmp_path):
     for line in (b"+Y 16 +X 16", b"-Y 16 -X 16", b"+Y 16 -X 16"):
         (tmp_path / "flipped.hdr").write_bytes(good.replace(b"-Y 16 +X 16", line))
         _raises(lambda: images.load_image(tmp_path / "flipped.hdr"), re.escape(f"orientation '{line.decode()}'"))
+
+
+def test_radiance_exposure_and_colorcorr_are_undone(tmp_path):
+    """A Radiance file's EXPOSURE= and COLORCORR= lines say what its pixels were multiplied by (cumulative,
+    Radiance's format); Mitsuba ignores them, so a photo or probe written with EXPOSURE=2 read twice as bright.
+    They are undone; a value that is not a positive number is refused."""
+    good = _rgbe_bytes(tmp_path, corrupt=False)
+    plain = images.load_image(tmp_path / "src.hdr")
+    (tmp_path / "exposed.hdr").write_bytes(good.replace(b"FORMAT=", b"EXPOSURE=2\nEXPOSURE= 2.5\nCOLORCORR=1 2 4\nFORMAT="))
+    np.testing.assert_allclose(images.load_image(tmp_path / "exposed.hdr"),
+                               plain / np.array([5.0, 10.0, 20.0], np.float32), rtol=1e-6)
+    latlong = _write_bitmap(tmp_path / "probe.hdr", np.random.default_rng(1).uniform(0.1, 2.0, (16, 32, 3)))
+    (tmp_path / "probe_exposed.hdr").write_bytes(latlong.read_bytes().replace(b"FORMAT=", b"EXPOSURE=4\nFORMAT="))
+    np.testing.assert_allclose(Probe.load(tmp_path / "probe_exposed.hdr").data,
+                               Probe.load(latlong).data / np.float32(4.0), rtol=1e-6)
+    for line in (b"EXPOSURE=0", b"EXPOSURE=-1", b"EXPOSURE=bright", b"COLORCORR=1 2"):
+        (tmp_path / "bad.hdr").write_bytes(good.replace(b"FORMAT=", line + b"\nFORMAT="))
+        _raises(lambda: images.load_image(tmp_path / "bad.hdr"), re.escape(repr(line.decode())))
+
+
+def _png(path: Path, pixels: np.ndarray, layout) -> Path:
+    import mitsuba as mi
+
+    mi.Bitmap(np.ascontiguousarray(pixels), pixel_format=layout).write(str(path))
+    return path
+
+
+def test_a_mask_drawn_on_a_transparent_layer_is_its_opaque_part(tmp_path):
+    """A mask painted on a transparent layer over white (white RGB everywhere, the sphere only in alpha)
+    selected every pixel: alpha was dropped. Transparent pixels are now left out (PNG and EXR alike);
+    an opaque alpha changes nothing."""
+    import mitsuba as mi
+
+    alpha = np.zeros((16, 16), np.uint8)
+    alpha[4:12, 5:9] = 255
+    rgba = np.dstack([np.full((16, 16, 3), 255, np.uint8), alpha])
+    png = _png(tmp_path / "mask.png", rgba, mi.Bitmap.PixelFormat.RGBA)
+    assert images.load_mask(png, (16, 16)).sum() == 32
+    exr = _png(tmp_path / "mask.exr", np.dstack([np.ones((16, 16, 3), np.float32), alpha / np.float32(255)]),
+               mi.Bitmap.PixelFormat.RGBA)
+    np.testing.assert_array_equal(images.load_mask(exr, (16, 16)), alpha > 0)
+    grey = np.zeros((16, 16, 4), np.uint8)
+    grey[2:6, 2:6, :3] = 200
+    grey[..., 3] = 255
+    opaque = _png(tmp_path / "opaque.png", grey, mi.Bitmap.PixelFormat.RGBA)
+    assert images.load_mask(opaque, (16, 16)).sum() == 16
+    assert images.load_image(png).shape == (16, 16, 3)          # an image's alpha is still dropped
+    _png(tmp_path / "clear.png", np.dstack([np.full((16, 16, 3), 255, np.uint8), np.zeros((16, 16), np.uint8)]),
+         mi.Bitmap.PixelFormat.RGBA)
+    _raises(lambda: images.load_mask(tmp_path / "clear.png", (16, 16)), "selects no pixel.*transparent")
+
+
+def test_exr_integer_channels_and_named_layers(tmp_path):
+    """UINT colour channels (object ids) are not radiance: refused, not read as light. A file whose colour
+    sits only in a named layer (Blender's multilayer EXR) is told which layer it is."""
+    import OpenEXR
+
+    ids = np.arange(64, dtype=np.uint32).reshape(8, 8)
+    OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION}, {c: ids.copy() for c in "RGB"}).write(
+        str(tmp_path / "ids.exr"))
+    _raises(lambda: images.load_image(tmp_path / "ids.exr"), "holds integers")
+    ones = np.ones((8, 8), np.float32)
+    OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION},
+                 {f"beauty.{c}": ones.copy() for c in "RGB"} | {"depth.Z": ones.copy()}).write(
+        str(tmp_path / "layers.exr"))
+    _raises(lambda: images.load_image(tmp_path / "layers.exr"), "in the layer.*'beauty'")
+
+
+def test_a_16_bit_png_is_called_16_bit(tmp_path):
+    import mitsuba as mi
+
+    path = _png(tmp_path / "deep.png", np.full((8, 8, 3), 30000, np.uint16), mi.Bitmap.PixelFormat.RGB)
+    with pytest.warns(InputWarning, match="16-bit PNG image is not radiometric"):
+        images.load_image(path)
+    (tmp_path / "deep.exr").write_bytes(path.read_bytes())
+    _raises(lambda: images.load_image(tmp_path / "deep.exr"), "is a 16-bit PNG image named .exr")
