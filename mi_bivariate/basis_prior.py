@@ -96,7 +96,7 @@ class BasisPrior:
         variances: ``(K,)`` component variances ``lambda``.
         residual: ``(N,)`` per-node leave-one-out reconstruction error ``tau`` (log units).
         n_t, n_s: grid.
-        provenance: materials, date, settings.
+        provenance: materials and settings (no date).
     """
     mean: np.ndarray
     basis: np.ndarray

@@ -252,7 +252,8 @@ class Prior:
         pairs: ``{"diffuse": (sigma_s, sigma_t), "gloss": (sigma_s, sigma_t)}``, each map
             ``(n_t, n_s)`` float64, dimensionless, > 0 (see the module docstring for
             the storage convention).
-        provenance: JSON-serialisable dict: materials, split, criterion, date, grid.
+        provenance: JSON-serialisable dict: materials, split, criterion, grid (no date: the same
+            materials give the same file).
     """
 
     def __init__(self, pairs: Mapping[str, SigmaPair], provenance: Optional[dict] = None):
