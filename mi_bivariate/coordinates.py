@@ -6,7 +6,7 @@ Every function here is written once and works on two kinds of input:
 - Dr.Jit: directions are ``mi.Vector3f`` (or any Dr.Jit 3-vector), angles are
   ``mi.Float``; this is what the BSDF plugins and the lighting matrix use.
 
-Conventions (see ``design.md``): all angles in radians; theta_h, theta_d in
+Conventions: all angles in radians; theta_h, theta_d in
 [0, pi/2] for directions in the upper hemisphere; phi_h, phi_d in (-pi, pi] as
 returned by ``atan2``; :func:`fold_phi_d` maps phi_d to [0, pi) as MERL does
 (reciprocity makes an isotropic BRDF pi-periodic in phi_d).

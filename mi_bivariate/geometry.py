@@ -11,7 +11,7 @@
   :class:`SphereGeometry` (orthographic sphere), :class:`PerspectiveSphereGeometry`
   (pinhole photo of a sphere) and :class:`mi_bivariate.mesh.MeshView` (a mesh).
 
-Default camera (design.md): orthographic, on world +z looking towards -z;
+Default camera (README, "Conventions"): orthographic, on world +z looking towards -z;
 image right = world +x, image up = world +y. Pixel (i, j) (column i, row j)
 has its centre at x = i + 0.5, y = j + 0.5 with image y pointing down. A
 sphere is given by its centre and radius in pixels. Other poses are a

@@ -8,7 +8,7 @@ minimises
 
 with ``R`` the prior's weighted differences (``||Λs^-1 Ds f||^2 + ||Λt^-1 Dt f||^2``,
 :mod:`mi_bivariate.prior`). This is the paper's Eq. 6 with three changes, each
-measured (``docs/recovery.md``, "What each change brought"):
+measured (``docs/recovery.md``, "Recovering BRDFs that hold up under new light"):
 
 - **Noise-aware rows.** ``sigma`` is each observation's noise standard deviation
   (:func:`row_sigma`): a relative model error every prediction carries plus the
