@@ -128,7 +128,7 @@ def _add_recover_options(p: argparse.ArgumentParser) -> None:
                         "fit residual reported")
     p.add_argument("--refine-sphere", action="store_true",
                    help="then refine the sphere's centre and radius by the image's shading and recover again "
-                        "(orthographic view only; 10-30 s): the silhouette fit of a glossy sphere can be "
+                        "(orthographic view only; 10-32 s): the silhouette fit of a glossy sphere can be "
                         "0.3-0.6 px off, which raised four metals' relight error by 25-85%% under grace; a "
                         "refinement that would move the outline more than 1 px, or whose recovery fits the image "
                         "worse, is not taken (a warning says so)")

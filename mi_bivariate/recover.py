@@ -586,7 +586,7 @@ def recover_from_photo(image: np.ndarray, probe: Probe, *, intrinsics: Any = Non
             the aligned probe (the main error source for captured data).
         yaw_kwargs: options for :func:`~mi_bivariate.alignment.estimate_yaw`.
         refine_sphere: then refine the sphere by the image's shading and recover again
-            (:func:`refine_sphere_and_recover`; orthographic only, 10-30 s).
+            (:func:`refine_sphere_and_recover`; orthographic only, 10-32 s).
         kwargs: passed to :func:`recover`.
 
     Returns:

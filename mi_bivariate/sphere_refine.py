@@ -27,7 +27,7 @@ A minimum further than :data:`MAX_SHIFT_PX` from the starting outline is found b
 
 Orthographic spheres (:class:`~mi_bivariate.geometry.SphereGeometry`) only. Each evaluation is a
 lighting matrix of ``n_normals`` rows and a solve, about 0.2-0.3 s on two cores. A refinement
-takes 32-80 of them (a budget of 80), 10-28 s. ``recover --refine-sphere`` runs it between a
+takes 32-80 of them (a budget of 80), 10-32 s. ``recover --refine-sphere`` runs it between a
 first recovery and the final one (:func:`mi_bivariate.recover.refine_sphere_and_recover`).
 """
 
