@@ -307,15 +307,15 @@ def observations_from_sphere(image: np.ndarray, geometry: SphereGeometry, n_norm
 
     A camera pixel integrates the radiance over its square footprint, whose
     normals spread by about ``1 / (radius cos theta)`` radians at view angle
-    theta: 0.6 degrees at the centre of a 100 px-radius sphere, 5.7 at 80
-    degrees, 28 at 88. The paper's model (``footprint=None``) takes the
-    centre normal, which is exact for images of pixel centres and good away
-    from the rim. The pixel-footprint model (``footprint=DEG``) gives every
-    row whose footprint spreads more than ``DEG`` an ``s x s`` grid of
-    sub-pixel normals (``s = ceil(spread / DEG)``, at most
-    :data:`FOOTPRINT_MAX_SIDE`), whose lighting-matrix rows are averaged: the
-    model of an area-integrating camera, which makes rim pixels usable
-    (raise ``max_view_angle_deg`` towards 90 with it).
+    theta: 0.6 degrees at the centre of a 100 px-radius sphere, 3.3 at 80
+    degrees, 16 at 88 (5.7 and 28 at a 57 px radius). The paper's model
+    (``footprint=None``) takes the centre normal, which is exact for images
+    of pixel centres and good away from the rim. The pixel-footprint model
+    (``footprint=DEG``) gives every row whose footprint spreads more than
+    ``DEG`` an ``s x s`` grid of sub-pixel normals (``s = ceil(spread /
+    DEG)``, at most :data:`FOOTPRINT_MAX_SIDE`), whose lighting-matrix rows
+    are averaged: the model of an area-integrating camera, which makes rim
+    pixels usable (raise ``max_view_angle_deg`` towards 90 with it).
 
     Args:
         image: ``(H, W, 3)`` linear RGB.
