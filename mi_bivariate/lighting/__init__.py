@@ -263,7 +263,7 @@ def lighting_matrix(obs: Observations, probes: Union[Any, Sequence[Any]], n_t: i
             paper's uniform hemisphere lattice in mirrored pairs
             (:func:`light_directions`). Under a real probe with small bright
             sources (grace_latlong_1k) and a glossy table, ``"uniform"`` at
-            K = 32768 predicts pixels with 10-15% per-pixel quadrature noise,
+            K = 32768 predicts pixels with 10-50% per-pixel quadrature noise,
             which the solve then fits; see ``docs/recovery.md``.
 
     Returns:
