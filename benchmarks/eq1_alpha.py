@@ -17,7 +17,7 @@ found it); ``docs/recovery.md`` section 4d gives both.
 
 from __future__ import annotations
 
-import sys
+import argparse
 
 from ablation import full_table, render_rows, sphere_rows
 
@@ -37,9 +37,11 @@ def row_setup():
 
 
 def main() -> None:
-    if len(sys.argv) != 3:
-        sys.exit(__doc__)
-    names, alphas = sys.argv[1].split(","), [float(a) for a in sys.argv[2].split(",")]
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("materials", help="comma-separated MERL-NBRDF names")
+    parser.add_argument("alphas", help="comma-separated alphas")
+    args = parser.parse_args()
+    names, alphas = args.materials.split(","), [float(a) for a in args.alphas.split(",")]
     ensure_variant()
     obs, grace, L, observed, tables = row_setup()
     for name in names:

@@ -14,7 +14,7 @@ docs/results.md ("BRDF errors") and ``bivariate.exact_floor`` quote its figures.
 
 from __future__ import annotations
 
-import sys
+import argparse
 
 import numpy as np
 
@@ -33,7 +33,9 @@ def eq1_optimal_constants(truth) -> np.ndarray:
 
 
 def main() -> None:
-    names = sys.argv[1:] or list(MATERIALS)
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("materials", nargs="*", help=f"MERL-NBRDF names (default: {' '.join(MATERIALS)})")
+    names = parser.parse_args().materials or list(MATERIALS)
     print("| material | exact floor (phi_d mean) | Eq. 1 of sum(1/f) / sum(1/f^2) per node |\n|---|---:|---:|")
     for name in names:
         truth = nbrdf.nbrdf_merl(name)

@@ -41,7 +41,7 @@ Development materials only (the shapes and priors never saw them); it chooses no
 
 from __future__ import annotations
 
-import sys
+import argparse
 
 import drjit as dr
 import mitsuba as mi
@@ -165,19 +165,13 @@ def projected(pixels, plain, prior, basis, base, parts, scale, errors, observed,
 
 
 def main() -> None:
-    projection = "--projection" in sys.argv
-    if projection:
-        sys.argv.remove("--projection")
-    relight = "--relight" in sys.argv
-    if relight:
-        sys.argv.remove("--relight")
-    fit = 0
-    if "--fit" in sys.argv:
-        at = sys.argv.index("--fit")
-        fit = int(sys.argv[at + 1])
-        del sys.argv[at:at + 2]
-    if len(sys.argv) != 2:
-        sys.exit(__doc__)
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("materials", help="comma-separated MERL-NBRDF development names")
+    parser.add_argument("--fit", type=int, default=0, metavar="K", help="fit K shape coefficients from the image")
+    parser.add_argument("--projection", action="store_true", help="with --fit: by variable projection")
+    parser.add_argument("--relight", action="store_true", help="also relight each table under the novel probes")
+    args = parser.parse_args()
+    projection, relight, fit = args.projection, args.relight, args.fit
     ensure_variant()
     obs, grace, _, observed, tables = row_setup()
     # Every column through the same per-row sampler (the product's lighting matrix pools the
@@ -199,7 +193,7 @@ def main() -> None:
     if relight:  # the tables relit under ablation.py's novel probes, against the 3D truth, per exact floor
         novel = {p: probes.shared_probe(p) for p in NOVEL}
         L_novel = {p: lighting.lighting_matrix(obs, novel[p], n_dirs=32768, seed=5) for p in NOVEL}
-    for name in sys.argv[1].split(","):
+    for name in args.materials.split(","):
         truth = nbrdf.nbrdf_merl(name)
         errors = BRDFErrors(truth)
         floor = errors(phi_d_average(truth))["eq1"]  # the exact floor (paper Fig. 3)

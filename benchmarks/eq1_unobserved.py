@@ -27,6 +27,7 @@ A diagnostic for development materials: it chooses nothing.
 
 from __future__ import annotations
 
+import argparse
 import sys
 import time
 
@@ -77,9 +78,11 @@ def nearest_fill(table: np.ndarray, measured: np.ndarray, unobserved: np.ndarray
 
 
 def main() -> None:
-    if len(sys.argv) > 2 or (len(sys.argv) == 2 and sys.argv[1].startswith("-")):
-        sys.exit(__doc__)
-    names = sys.argv[1].split(",") if len(sys.argv) == 2 else list(NBRDF_MATERIALS)
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("materials", nargs="?", help="comma-separated MERL-NBRDF names (default: the 23 "
+                        "development materials)")
+    args = parser.parse_args()
+    names = args.materials.split(",") if args.materials else list(NBRDF_MATERIALS)
     ensure_variant()
     obs, grace = sphere_rows(3000)
     L = lighting.lighting_matrix(obs, grace, n_dirs=8000)

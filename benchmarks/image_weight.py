@@ -12,7 +12,7 @@ grace_256 / pisa_256 / pedestrian_overpass_1k, leave-one-out priors, the default
 
 from __future__ import annotations
 
-import sys
+import argparse
 import time
 
 import numpy as np
@@ -27,8 +27,9 @@ FACTORS = (1.0, 2.0, 4.0)
 
 
 def main() -> None:
-    if len(sys.argv) != 2:
-        sys.exit(__doc__)
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("materials", help="comma-separated MERL-NBRDF names")
+    args = parser.parse_args()
     ensure_variant()
     obs = capture.image_observations(np.ones((128, 128, 3), np.float32), SphereGeometry(64, 64, 60),
                                      n_normals=2000, seed=0, saturation=2.0)
@@ -39,7 +40,7 @@ def main() -> None:
     tables = training_set.reduced_tables(32, 32)
     L = np.concatenate([L_in[p] for p in inputs])
     index = np.repeat([0, 1], len(obs))
-    for name in sys.argv[1].split(","):
+    for name in args.materials.split(","):
         t0 = time.perf_counter()
         prior, basis = training_set.learn_priors(tables, exclude=(name,))
         table3d = full_table(name)

@@ -8,6 +8,8 @@ on a shared material never use these: the evaluation learns leave-one-out priors
 (:func:`mi_bivariate.training_set.leave_one_out_priors`).
 """
 
+import argparse
+
 from mi_bivariate import training_set
 from mi_bivariate.basis_prior import DEFAULT_BASIS_PRIOR_PATH
 from mi_bivariate.nbrdf import ALL_NBRDF_MATERIALS
@@ -15,6 +17,7 @@ from mi_bivariate.prior import DEFAULT_PRIOR_PATH
 
 
 def main() -> None:
+    argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter).parse_args()  # --help prints this, writes nothing
     smooth, basis = training_set.learn_priors_from_merl(list(ALL_NBRDF_MATERIALS), 32, 32)
     smooth.save(DEFAULT_PRIOR_PATH)
     basis.save(DEFAULT_BASIS_PRIOR_PATH)

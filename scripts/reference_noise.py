@@ -1,6 +1,6 @@
 """Measure the quadrature error of the reference renderer (mi_bivariate.reference).
 
-Usage: python scripts/reference_noise.py [RESOLUTION] [FACTOR] [MATERIALS] [PROBES]
+    python scripts/reference_noise.py [RESOLUTION] [FACTOR] [MATERIALS] [PROBES]
 (defaults 64, 1, the six materials and three probes below)
 
 MATERIALS, PROBES: comma-separated MERL-NBRDF and shared probe names.
@@ -9,7 +9,7 @@ For each material x probe: relative RMS difference of two seeds / sqrt 2 over th
 (``seed``), the difference against a render with 4x the directions (``vs 4x``), and the
 CPU and wall seconds per render (one Dr.Jit thread). Directions = FACTOR x reference.DEFAULT_DIRECTIONS.
 """
-import sys
+import argparse
 
 import drjit as dr
 
@@ -21,19 +21,28 @@ MATERIALS = ("blue-acrylic", "gold-metallic-paint3", "specular-white-phenolic", 
              "brass", "hematite")
 PROBES = ("grace_latlong_1k", "pisa_256", "pedestrian_overpass_1k")
 
-ensure_variant()
-dr.set_thread_count(1)
-res = int(sys.argv[1]) if len(sys.argv) > 1 else 64
-factor = float(sys.argv[2]) if len(sys.argv) > 2 else 1.0
-materials = sys.argv[3].split(",") if len(sys.argv) > 3 else MATERIALS
-probes = sys.argv[4].split(",") if len(sys.argv) > 4 else PROBES
-dirs = reference.scaled_directions(factor)
-print(f"resolution {res}, directions {dirs} per pixel (cosine, lobe, environment)")
-print("| material | probe | seed noise | vs 4x | CPU s / render | wall s / render |")
-print("|---|---|---:|---:|---:|---:|")
-for name in materials:
-    truth = nbrdf.nbrdf_merl(name)
-    for probe in probes:
-        q = reference.quadrature_noise(truth, ev.load_probe(probe), res, dirs, reference_factor=4.0)
-        print(f"| {name} | {probe} | {q['seed_rms']:.4f} | {q['vs_large']:.4f} | {q['cpu_seconds']:.1f} | "
-              f"{q['seconds']:.1f} |", flush=True)
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("resolution", nargs="?", type=int, default=64, help="sphere image size (default: 64)")
+    parser.add_argument("factor", nargs="?", type=float, default=1.0,
+                        help="directions, times reference.DEFAULT_DIRECTIONS (default: 1)")
+    parser.add_argument("materials", nargs="?", default=",".join(MATERIALS), help="comma-separated names")
+    parser.add_argument("probes", nargs="?", default=",".join(PROBES), help="comma-separated shared probes")
+    args = parser.parse_args()
+    ensure_variant()
+    dr.set_thread_count(1)
+    dirs = reference.scaled_directions(args.factor)
+    print(f"resolution {args.resolution}, directions {dirs} per pixel (cosine, lobe, environment)")
+    print("| material | probe | seed noise | vs 4x | CPU s / render | wall s / render |")
+    print("|---|---|---:|---:|---:|---:|")
+    for name in args.materials.split(","):
+        truth = nbrdf.nbrdf_merl(name)
+        for probe in args.probes.split(","):
+            q = reference.quadrature_noise(truth, ev.load_probe(probe), args.resolution, dirs, reference_factor=4.0)
+            print(f"| {name} | {probe} | {q['seed_rms']:.4f} | {q['vs_large']:.4f} | {q['cpu_seconds']:.1f} | "
+                  f"{q['seconds']:.1f} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -201,3 +201,27 @@ def test_modules_import_only_their_own_or_earlier_layers():
             upward += [f"{'/'.join(parts)} -> {n}" for n in names if level.get(n, -1) > level[top]]
     assert not unlisted, sorted(set(unlisted))
     assert not upward, sorted(set(upward))
+
+
+def test_every_script_answers_help_and_does_no_work():
+    """``python benchmarks/X.py --help`` (and scripts/) prints its usage and exits 0 without starting its
+    work: three benchmarks ignored --help and started measuring, four crashed on it, and
+    scripts/make_priors.py would have overwritten the packaged priors."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    scripts = sorted(p for folder in ("benchmarks", "scripts") for p in (ROOT / folder).glob("*.py")
+                     if not p.name.startswith("_"))
+    assert len(scripts) >= 30
+    packaged = {p: p.stat().st_mtime_ns for p in (ROOT / "mi_bivariate" / "data").iterdir()}
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+
+    def ask(path: Path):
+        run = subprocess.run([sys.executable, path.name, "--help"], cwd=path.parent, env=env, capture_output=True,
+                             text=True, timeout=120)
+        return path.name, run.returncode, run.stdout, run.stderr[-500:]
+
+    with ThreadPoolExecutor(2) as pool:
+        answers = list(pool.map(ask, scripts))
+    wrong = [(name, rc, err) for name, rc, out, err in answers if rc != 0 or not out.startswith("usage:")]
+    assert not wrong, wrong
+    assert {p: p.stat().st_mtime_ns for p in (ROOT / "mi_bivariate" / "data").iterdir()} == packaged
