@@ -220,7 +220,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("learn-prior", help="learn the smoothness prior from a set of MERL materials")
     p.add_argument("sources", nargs="+", help="folders of MERL .binary files, .binary files, or MERL-NBRDF names")
     p.add_argument("--out", type=_parse_path, default="prior.npz", help="output .npz")
-    p.add_argument("--grid", type=int, nargs=2, default=(32, 32), metavar=("N_T", "N_S"))
+    p.add_argument("--grid", type=int, nargs=2, default=(32, 32), metavar=("N_T", "N_S"),
+                   help="st grid the priors are learnt on (theta_h nodes, theta_d nodes; default 32 32)")
     _add_data(p)
     
 
@@ -289,7 +290,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--novel-spp", type=int, default=None, help="samples per pixel of validation renders (default 64)")
     p.add_argument("--normals", type=int, default=None, help="normals M (default 8000)")
     p.add_argument("--dirs", type=int, default=None, help="light directions K (default 8000)")
-    p.add_argument("--grid", type=int, nargs=2, default=None, metavar=("N_T", "N_S"))
+    p.add_argument("--grid", type=int, nargs=2, default=None, metavar=("N_T", "N_S"),
+                   help="st grid of the recovered tables (theta_h nodes, theta_d nodes; default 32 32)")
     p.add_argument("--alpha", type=_parse_alpha, default=None,
                    help="regularisation weight, or how to choose it: 'discrepancy' (default) or 'gcv'")
     p.add_argument("--baselines", nargs="*", default=None, metavar="MODEL",

@@ -3,9 +3,10 @@
 BRDF errors compare a bivariate table against a 3D MERL table on the MERL
 grid; see :func:`mi_bivariate.bivariate.reduction_error` for Eq. 1 itself.
 
-Where the image looks: Eq. 1 over all cells is dominated by the few cells
-where the truth is near zero (1e-6..1e-3 1/sr at grazing angles), which no
-image constrains. :class:`BRDFErrors` therefore also reports Eq. 1 over the
+Where the image looks: Eq. 1 over all cells is dominated by the cells where
+the truth is near zero (1e-6..1e-3 1/sr, mostly at grazing angles: under
+0.1% of the cells for most shared materials, up to 27% for some; see
+docs/results.md, Metrics), which no image constrains. :class:`BRDFErrors` therefore also reports Eq. 1 over the
 *observed* cells (:func:`observed_cells`, from a boolean mask of observed st
 nodes such as :func:`mi_bivariate.adequacy.observed_nodes`), over the cells
 with f > 1e-3 1/sr, and per region of the st domain (:data:`REGIONS`).
