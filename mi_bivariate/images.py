@@ -9,7 +9,7 @@ never by its name:
   (Mitsuba's RGBE reader corrupts the heap on a bad run length), then Mitsuba,
   with the header's ``EXPOSURE``/``COLORCORR`` undone (:func:`rgbe_scale`);
 - PFM (``PF``/``Pf`` header) after its header and size are checked, then Mitsuba;
-- PNG and JPEG (8-bit, not radiometric): with an :class:`InputWarning`, or
+- PNG and JPEG (8- or 16-bit sRGB, not radiometric): with an :class:`InputWarning`, or
   an :class:`InputError` where a linear image is required or the file is
   named like an HDR image.
 
@@ -88,7 +88,7 @@ def read_image(path: PathLike, allow_ldr: bool = True) -> Tuple[np.ndarray, Dict
         path: the file; its extension must be an image one (``.exr``,
             ``.hdr``, ``.rgbe``, ``.pic``, ``.pfm``, ``.png``, ``.jpg``), but
             the content decides the format.
-        allow_ldr: accept 8-bit PNG/JPEG (linearised from sRGB, with an
+        allow_ldr: accept PNG/JPEG (linearised from sRGB, with an
             :class:`InputWarning`); otherwise they are an :class:`InputError`.
 
     Returns:
@@ -97,7 +97,7 @@ def read_image(path: PathLike, allow_ldr: bool = True) -> Tuple[np.ndarray, Dict
 
     Raises:
         InputError: unknown extension or content, missing, truncated or
-            corrupt file, too large, unsupported channel layout, 8-bit content
+            corrupt file, too large, unsupported channel layout, PNG/JPEG content
             where linear radiance is required.
     """
     return _read_checked(Path(path), allow_ldr, keep_alpha=False)

@@ -109,7 +109,7 @@ def read_hdr_image(path: PathLike) -> Tuple[np.ndarray, Optional[np.ndarray]]:
     """Read an HDR image (OpenEXR, Radiance RGBE or PFM content) as linear RGB.
 
     The format is decided by the content (:func:`mi_bivariate.images.read_image`,
-    the toolkit's one image reader); 8-bit content is refused. Alpha channels
+    the toolkit's one image reader); PNG and JPEG content is refused. Alpha channels
     are dropped and grey images expanded to RGB. Values must be finite and
     non-negative; nothing is clamped.
 
