@@ -237,6 +237,8 @@ def _read_exr_unchecked(path: Path, OpenEXR, keep_alpha: bool = False) -> Tuple[
     lo, hi = (np.asarray(v, np.int64) for v in header["dataWindow"])
     width, height = int(hi[0] - lo[0] + 1), int(hi[1] - lo[1] + 1)
     _check_size(path, width, height)
+    shown_lo, shown_hi = (np.asarray(v, np.int64) for v in header.get("displayWindow", (lo, hi)))
+    _check_size(path, int(shown_hi[0] - shown_lo[0] + 1), int(shown_hi[1] - shown_lo[1] + 1))
     channels = list(header.get("channels", []))
     names = [str(c.name) for c in channels]
     if any((c.xSampling, c.ySampling) != (1, 1) for c in channels):
@@ -264,7 +266,28 @@ def _read_exr_unchecked(path: Path, OpenEXR, keep_alpha: bool = False) -> Tuple[
     if any(p.shape != (height, width) for p in stack):
         raise InputError(path, "cannot be read as an image: channel sizes disagree with the data window")
     metadata = {str(k): v for k, v in header.items() if isinstance(v, str)}
-    return np.stack(stack, axis=-1), metadata
+    return _in_display_window(path, np.stack(stack, axis=-1), lo, shown_lo, shown_hi), metadata
+
+
+def _in_display_window(path: Path, data: np.ndarray, lo: np.ndarray, shown_lo: np.ndarray,
+                       shown_hi: np.ndarray) -> np.ndarray:
+    """An EXR's pixels ``data`` (its data window, from ``lo``) placed in its display window (what a viewer
+    shows, and what pixel coordinates such as ``--sphere`` or a principal point refer to): pixels outside
+    the data window are 0, pixels outside the display window (overscan) are left out. Unchanged when the
+    windows agree."""
+    height, width = data.shape[:2]
+    if np.array_equal(lo, shown_lo) and np.array_equal(lo + [width - 1, height - 1], shown_hi):
+        return data
+    shown = np.zeros((int(shown_hi[1] - shown_lo[1] + 1), int(shown_hi[0] - shown_lo[0] + 1)) + data.shape[2:],
+                     data.dtype)
+    x0, y0 = (int(v) for v in np.maximum(lo, shown_lo))
+    x1, y1 = (int(v) for v in np.minimum(lo + [width - 1, height - 1], shown_hi) + 1)
+    if x0 >= x1 or y0 >= y1:
+        raise InputError(path, "its data window lies outside its display window: no pixel would be shown",
+                         "write the image with its data inside the display window")
+    shown[y0 - shown_lo[1]:y1 - shown_lo[1], x0 - shown_lo[0]:x1 - shown_lo[0]] = \
+        data[y0 - lo[1]:y1 - lo[1], x0 - lo[0]:x1 - lo[0]]
+    return shown
 
 
 def _check_pfm(path: Path) -> None:

@@ -1473,3 +1473,32 @@ def test_a_16_bit_png_is_called_16_bit(tmp_path):
         images.load_image(path)
     (tmp_path / "deep.exr").write_bytes(path.read_bytes())
     _raises(lambda: images.load_image(tmp_path / "deep.exr"), "is a 16-bit PNG image named .exr")
+
+
+def test_an_exr_is_read_in_its_display_window(tmp_path):
+    """An EXR whose data window is a crop of its display window (Nuke's autocrop) was read as the crop: a
+    --sphere centre or a --fov principal point, given as a viewer shows the image, was off by the crop's
+    offset. The pixels are now placed in the display window (0 outside the data window); overscan beyond the
+    display window is left out; a data window wholly outside it is refused."""
+    import OpenEXR
+
+    rng = np.random.default_rng(0)
+
+    def write(name, data_lo, data_hi, shown_hi=(99, 99)):
+        size = (data_hi[1] - data_lo[1] + 1, data_hi[0] - data_lo[0] + 1, 3)
+        pixels = rng.uniform(0.1, 1.0, size).astype(np.float32)
+        header = {"compression": OpenEXR.ZIP_COMPRESSION,
+                  "dataWindow": (np.array(data_lo, np.int32), np.array(data_hi, np.int32)),
+                  "displayWindow": (np.array([0, 0], np.int32), np.array(shown_hi, np.int32))}
+        OpenEXR.File(header, {"RGB": pixels}).write(str(tmp_path / name))
+        return tmp_path / name, pixels
+
+    path, pixels = write("crop.exr", (10, 20), (25, 27))
+    image = images.load_image(path)
+    assert image.shape == (100, 100, 3)
+    np.testing.assert_array_equal(image[20:28, 10:26], pixels)
+    assert image.sum() == pixels.sum()
+    path, pixels = write("overscan.exr", (-5, -3), (104, 102))
+    np.testing.assert_array_equal(images.load_image(path), pixels[3:103, 5:105])
+    path, _ = write("outside.exr", (200, 200), (210, 210))
+    _raises(lambda: images.load_image(path), "outside its display window")
