@@ -142,7 +142,8 @@ def resolve_materials(items: Sequence[str], data_dir: Optional[PathLike] = None)
     shared MERL-NBRDF name, or an analytic spec such as ``ggx:alpha=0.1``.
 
     Raises:
-        InputError: an item that is none of these, or an empty folder.
+        InputError: an item that is none of these, an empty folder, or two different materials of one
+            label (:func:`unique_materials`).
     """
     out: List[MaterialSpec] = []
     for item in items:
@@ -163,12 +164,30 @@ def resolve_materials(items: Sequence[str], data_dir: Optional[PathLike] = None)
             raise InputError(item, "not a folder, .binary file, MERL-NBRDF name or analytic spec",
                              f"MERL-NBRDF names: {', '.join(nbrdf.ALL_NBRDF_MATERIALS)}; or one of "
                              f"{', '.join(NBRDF_SETS)}")
-    seen, unique = set(), []
-    for m in out:
-        if m.label not in seen:
-            seen.add(m.label)
-            unique.append(m)
-    return unique
+    return unique_materials(out)
+
+
+def unique_materials(specs: Sequence[MaterialSpec]) -> List[MaterialSpec]:
+    """``specs`` with repeats of one material dropped (order kept).
+
+    Results are kept by a material's label, so two *different* materials of one label (two MERL files of
+    one name in two folders, a file named like a shared material) cannot both be evaluated: the second is
+    refused, never silently dropped.
+
+    Raises:
+        InputError: two materials of one label.
+    """
+    def identity(m: MaterialSpec) -> Tuple[str, str]:  # a file by its real path; a name or spec by its label
+        return (m.kind, os.path.realpath(m.spec) if m.kind == "merl" else m.label)
+
+    first: Dict[str, MaterialSpec] = {}
+    for m in specs:
+        seen = first.setdefault(m.label, m)
+        if identity(seen) != identity(m):
+            raise InputError(m.spec, f"another material given is also named {m.label!r} ({seen.spec}); results "
+                                     "are kept by name", "rename one of the files, or evaluate them in separate "
+                                     "runs (another --out)")
+    return list(first.values())
 
 
 def load_truth(material: MaterialSpec, data_dir: Optional[PathLike] = None) -> "merl.MERLBRDF":

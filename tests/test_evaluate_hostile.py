@@ -325,3 +325,26 @@ def test_a_damaged_render_cache_is_rendered_again_and_a_damaged_artifact_is_one_
     with pytest.raises(InputError, match="truncated or corrupt") as info:
         ev.load_artifacts(artifacts)
     assert info.value.source == str(artifacts)
+
+
+def test_two_materials_of_one_name_are_refused_not_dropped(tmp_path, capsys):
+    """Results are kept by a material's name: two MERL files ``m.binary`` in two folders were once resolved to
+    one (the second silently dropped: "1 materials", exit 0). Now the second is named in one error line before
+    any work; one material given twice (the same file by two paths, a spec passed twice) is evaluated once."""
+    from mi_bivariate import analytic
+
+    for folder, albedo in (("a", 0.5), ("b", 0.2)):
+        (tmp_path / folder).mkdir()
+        analytic.to_merl(analytic.Lambertian([albedo] * 3)).write(tmp_path / folder / "m.binary")
+    out = tmp_path / "eval"
+    status = main(["evaluate", str(tmp_path / "a" / "m.binary"), str(tmp_path / "b" / "m.binary"),
+                   "--out", str(out), *TINY_ARGS])
+    line = _one_line_error(capsys, status)
+    assert str(tmp_path / "b" / "m.binary") in line and "also named 'm'" in line, line
+    assert not out.exists()
+    same = [str(tmp_path / "a" / "m.binary"), str(tmp_path / "a" / ".." / "a" / "m.binary"), str(tmp_path / "a")]
+    assert [(s.label, s.spec) for s in ev.resolve_materials(same)] == [("m", same[0])]
+    spec = ev.resolve_materials([MATERIAL])[0]
+    records = ev.run_evaluation([spec, spec], out, config=TINY, progress=False, figures=False)
+    assert [r["material"] for r in records] == [spec.label]
+    assert len((out / ev.RESULTS_FILE).read_bytes().splitlines()) == 1

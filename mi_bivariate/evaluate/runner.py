@@ -51,7 +51,7 @@ from mi_bivariate.evaluate.results import (
 )
 from mi_bivariate.merl import MERLBRDF
 from mi_bivariate.probes import check_lit
-from mi_bivariate.sources import MaterialSpec, load_probe, resolve_materials
+from mi_bivariate.sources import MaterialSpec, load_probe, resolve_materials, unique_materials
 from mi_bivariate.threads import pin_process_threads
 from mi_bivariate.variants import ensure_variant
 
@@ -236,6 +236,7 @@ def run_evaluation(materials: Sequence[Union[str, MaterialSpec]], out_dir: PathL
     if any(s is None for s in specs):
         specs = resolve_materials([str(m) for m in materials if not isinstance(m, MaterialSpec)], data_dir) + \
             [m for m in materials if isinstance(m, MaterialSpec)]
+    specs = unique_materials(specs)  # a material given twice once; two of one name refused
     if not specs:
         raise InputError("materials", "no materials given")
     # Fail early (in the parent, with a one-line error naming the file) on a missing, black or (an
