@@ -136,6 +136,30 @@ def test_config_validation_and_noise_option():
     assert ev.EvalConfig().noise == 0.0 and ev.EvalConfig().renderer == "reference"    # clean by default
 
 
+def test_the_views_of_a_noisy_input_get_independent_noise():
+    """With ``--noise``, the views of an input ``"a+b"`` once got the same draws (one seed): their noises were
+    perfectly correlated (0.99999), not the independent noise of two photos. Now each view has its own seed;
+    the first view (and a single input) keeps the noise it had."""
+    from mi_bivariate.evaluate import protocol
+    from mi_bivariate.evaluate.renders import Shot
+    from mi_bivariate.noise import add_camera_noise
+
+    class Flat:  # a lit square per view, 1 and 3 units
+        def render(self, bsdf, probe, part, resolution, seed, spp, cache_key=None):
+            image = np.zeros((resolution, resolution, 3), np.float32)
+            image[4:-4, 4:-4] = 1.0 if part == "a" else 3.0
+            return Shot(image, image[..., 0] > 0, None)
+
+    cfg = ev.EvalConfig(resolution=32, noise=0.05, seed=5)
+    (a, b), _ = protocol.render_inputs(Flat(), cfg, "a+b", [None, None], None)
+    corr = np.corrcoef((a[4:-4, 4:-4] - 1.0).ravel(), (b[4:-4, 4:-4] - 3.0).ravel())[0, 1]
+    assert abs(corr) < 0.1, corr
+    (single,), _ = protocol.render_inputs(Flat(), cfg, "a", [None], None)
+    np.testing.assert_array_equal(a, single)
+    np.testing.assert_array_equal(single, add_camera_noise(Flat().render(None, None, "a", 32, 5, 0).image, 0.05,
+                                                           seed=5 + ev.NOISE_SEED_OFFSET))
+
+
 @pytest.fixture(scope="module")
 def resumed(tmp_path_factory):
     """Kill a CLI run after its first material, cut its last line, resume in-process."""

@@ -142,6 +142,8 @@ class EvalConfig:
         extra = {} if self.prior is None else {  # bytes, not names; "missing" for no basis prior beside it
             "prior_sha256": file_digest(self.prior),
             "basis_prior_sha256": file_digest(training_set.basis_path_for(self.prior))}
+        if self.noise > 0.0 and any("+" in name for name in self.input_probes):
+            extra["noise_per_view"] = True  # the views' noises made independent: such results are not reused
         text = json.dumps({"protocol": PROTOCOL_VERSION, "solver": _solver_identity(), **self.to_dict(), **extra},
                           sort_keys=True)
         return hashlib.sha256(text.encode()).hexdigest()[:16]

@@ -35,7 +35,9 @@ from mi_bivariate.threads import jit_threads
 
 #: View angles (degrees) of the stored incident-plane curves (Fig. 6).
 INCIDENT_VIEWS = (30.0, 60.0)
-#: Seed offset of the input noise (``EvalConfig.noise``).
+#: Seed offset of the input noise (``EvalConfig.noise``): view ``k`` of an input (``"a+b"``) gets the noise of
+#: seed ``seed + (k + 1) * NOISE_SEED_OFFSET``, so the views' noises are independent (one seed once gave every
+#: view the same draws).
 NOISE_SEED_OFFSET = 7919
 
 Arrays = Dict[str, np.ndarray]
@@ -186,11 +188,11 @@ def render_inputs(renderer: Renderer, cfg: EvalConfig, name: str, probe_list: Li
                   truth_bsdf: Any) -> Tuple[List[np.ndarray], list]:
     """The input images of one input spec (one per ``+`` part), with camera noise if configured."""
     images, geometries = [], []
-    for part, probe in zip(name.split("+"), probe_list):
+    for k, (part, probe) in enumerate(zip(name.split("+"), probe_list)):
         shot = renderer.render(truth_bsdf, probe, part, cfg.resolution, cfg.seed, cfg.spp, cache_key="truth")
         image = shot.image
-        if cfg.noise > 0.0:
-            image = add_camera_noise(image, cfg.noise, seed=cfg.seed + NOISE_SEED_OFFSET)
+        if cfg.noise > 0.0:  # each view its own draws (the first as a single input's)
+            image = add_camera_noise(image, cfg.noise, seed=cfg.seed + (k + 1) * NOISE_SEED_OFFSET)
         images.append(image)
         geometries.append(shot.geometry)
     return images, geometries
