@@ -348,3 +348,28 @@ def test_two_materials_of_one_name_are_refused_not_dropped(tmp_path, capsys):
     records = ev.run_evaluation([spec, spec], out, config=TINY, progress=False, figures=False)
     assert [r["material"] for r in records] == [spec.label]
     assert len((out / ev.RESULTS_FILE).read_bytes().splitlines()) == 1
+
+
+def test_two_probes_of_one_name_are_refused(tmp_path, capsys):
+    """Records keep a probe's results under its label (the file's stem): ``--novel-probes a/sky.exr b/sky.exr``
+    once scored one of them (the other's truth overwritten, "pisa_256" given as a name and as a file alike) and
+    exited 0. Now one error line names the second before any work, for novel and input probes alike."""
+    from mi_bivariate.images import write_exr
+
+    for folder, sun in (("a", 50.0), ("b", 500.0)):
+        (tmp_path / folder).mkdir()
+        sky = np.full((16, 32, 3), 0.3, np.float32)
+        sky[3:5, 8:10] = sun
+        write_exr(tmp_path / folder / "sky.exr", sky)
+    out = tmp_path / "eval"
+    args = list(TINY_ARGS)
+    at = args.index("synthetic:7")
+    args[at:at + 1] = [str(tmp_path / "a" / "sky.exr"), str(tmp_path / "b" / "sky.exr")]
+    line = _one_line_error(capsys, main(["evaluate", MATERIAL, "--out", str(out), *args]))
+    assert str(tmp_path / "b" / "sky.exr") in line and "--novel-probes names two probes 'sky'" in line, line
+    assert not out.exists()
+    for bad in (dict(novel_probes=("synthetic:7", "synthetic:7")), dict(input_probes=("synthetic:1",) * 2),
+                dict(input_probes=("synthetic:1+synthetic:3", "synthetic:1+synthetic:3"))):
+        with pytest.raises(InputError, match="names two probes"):
+            ev.EvalConfig(**{**TINY.to_dict(), **bad}).validate()
+    ev.EvalConfig(input_probes=("synthetic:1", "synthetic:3", "synthetic:1+synthetic:3")).validate()

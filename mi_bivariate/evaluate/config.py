@@ -21,7 +21,7 @@ from mi_bivariate.baselines import FAMILIES
 from mi_bivariate.common import PathLike, file_digest
 from mi_bivariate.errors import InputError
 from mi_bivariate.lighting import DEFAULT_DIRS
-from mi_bivariate.sources import DEFAULT_ANALYTIC, have_shared_data
+from mi_bivariate.sources import DEFAULT_ANALYTIC, have_shared_data, probe_label
 
 #: Bumped when the protocol changes in a way that changes numbers (part of the config hash).
 PROTOCOL_VERSION = 3
@@ -130,6 +130,15 @@ class EvalConfig:
                              f"use {' '.join(FAMILIES)}, or none")
         if self.alpha is not None:
             solve.check_alpha(self.alpha)
+        # Results are kept by a probe's label (its file's stem): two probes of one label would overwrite each other.
+        for flag, names in (("--input-probes", self.input_probes), ("--novel-probes", self.novel_probes)):
+            first: dict = {}
+            for name in names:
+                label = "+".join(probe_label(p) for p in name.split("+"))
+                if label in first:
+                    raise InputError(name, f"{flag} names two probes {label!r} ({first[label]} and {name}); results "
+                                           "are kept by name", "give each probe once, or rename a file")
+                first[label] = name
 
     def novel_seed(self, probe: str) -> int:
         """The render seed of novel probe ``probe``: ``seed + 1 + k`` for the ``k``-th of
