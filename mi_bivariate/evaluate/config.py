@@ -147,10 +147,15 @@ class EvalConfig:
         return int(self.seed) + 1 + (probes.index(probe) if probe in probes else 0)
 
     def hash(self) -> str:
-        """16 hex digits of SHA-256 over the canonical JSON of the config and protocol version."""
+        """16 hex digits of SHA-256 over the canonical JSON of the config and protocol version (and the bytes of
+        a prior file and of probe files: a result is not reused once the file it came from changed)."""
         extra = {} if self.prior is None else {  # bytes, not names; "missing" for no basis prior beside it
             "prior_sha256": file_digest(self.prior),
             "basis_prior_sha256": file_digest(training_set.basis_path_for(self.prior))}
+        files = {part: file_digest(part) for name in (*self.input_probes, *self.novel_probes)
+                 for part in name.split("+") if Path(part).suffix}  # a probe file by its bytes, as a MERL file
+        if files:
+            extra["probe_files_sha256"] = files
         if self.noise > 0.0 and any("+" in name for name in self.input_probes):
             extra["noise_per_view"] = True  # the views' noises made independent: such results are not reused
         text = json.dumps({"protocol": PROTOCOL_VERSION, "solver": _solver_identity(), **self.to_dict(), **extra},
