@@ -402,3 +402,29 @@ def test_a_probe_file_changed_is_evaluated_again(tmp_path):
     (probe,) = first[0]["inputs"]
     assert again[0]["inputs"][probe]["images"]["sky"] != first[0]["inputs"][probe]["images"]["sky"]
     assert ev.EvalConfig().hash() == ev.EvalConfig().hash()  # shared names: no file read, the hash as before
+
+
+def test_every_record_states_its_reference_noise(tmp_path):
+    """The truth's renders under the novel probes are the references of every relight error, and their own noise
+    was measured once, off-line (results.md), for a few materials, never per record. Each record now holds it per
+    novel probe (two seeds' relative RMS difference / sqrt 2, as reference.quadrature_noise measures it); the
+    summary states it."""
+    import math
+
+    from mi_bivariate import metrics, reference
+    from mi_bivariate.evaluate import protocol
+
+    config = ev.EvalConfig(**{**TINY.__dict__, "novel_probes": ("synthetic:7", "synthetic:3"), "novel_resolution": 16,
+                              "reference_directions": (16, 32, 16)})
+    (record,) = ev.run_evaluation([MATERIAL], tmp_path / "eval", config=config, progress=False, figures=False)
+    assert set(record["reference_noise"]) == {"synthetic:7", "synthetic:3"}
+    truth = ev.load_truth(ev.resolve_materials([MATERIAL])[0])
+    for name in config.novel_probes:
+        seed = config.novel_seed(name)
+        a, b = (reference.render_reference(truth, ev.load_probe(name), 16, s, config.reference_directions)
+                for s in (seed, seed + protocol.REFERENCE_NOISE_SEED_OFFSET))
+        want = metrics.image_relative_rmse(b.image, a.image, a.mask) / math.sqrt(2.0)
+        assert 0.0 < record["reference_noise"][name] == pytest.approx(want, rel=1e-6)
+    assert "reference noise" in ev.format_summary([record])
+    row = ev.summary_rows([record])[0]
+    assert row["reference_noise_max"] == max(record["reference_noise"].values())

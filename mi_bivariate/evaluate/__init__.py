@@ -13,7 +13,8 @@ per input probe:
    quadrature seed: the recovery (``bivariate`` plugin), the exact reduction's
    ``n_t x n_s`` table and the 3D truth; the *relight floor* is the reduction's
    image error against the truth, and the recovery's error is reported with
-   its ratio to that floor (:func:`mi_bivariate.metrics.relight_errors`);
+   its ratio to that floor (:func:`mi_bivariate.metrics.relight_errors`); the truth's own noise is measured by a
+   second render of another seed (``"reference_noise"`` per novel probe);
 4. fit the parametric baselines (:mod:`mi_bivariate.baselines`) to the same
    observations through the same lighting matrix;
 5. record the BRDF errors of :class:`mi_bivariate.metrics.BRDFErrors` (Eq. 1

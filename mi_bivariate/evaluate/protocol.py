@@ -13,6 +13,7 @@ The caller has selected the Mitsuba variant (the runner's front doors, see
 
 from __future__ import annotations
 
+import math
 import time
 import warnings
 from dataclasses import dataclass
@@ -39,6 +40,9 @@ INCIDENT_VIEWS = (30.0, 60.0)
 #: seed ``seed + (k + 1) * NOISE_SEED_OFFSET``, so the views' noises are independent (one seed once gave every
 #: view the same draws).
 NOISE_SEED_OFFSET = 7919
+#: Seed offset of the second render of the truth under each novel probe, which measures the reference's own
+#: noise (:func:`render_novel_truths`).
+REFERENCE_NOISE_SEED_OFFSET = 104729
 
 Arrays = Dict[str, np.ndarray]
 
@@ -77,6 +81,7 @@ class _Novel:
     truth: Dict[str, Shot]
     floor: Dict[str, np.ndarray]
     floor_images: Dict[str, dict]
+    noise: Dict[str, float]  #: the truth render's own noise: two seeds' relative RMS difference / sqrt 2
 
 
 def _f16(image: np.ndarray) -> np.ndarray:
@@ -165,10 +170,12 @@ def load_truth_and_floor(task: MaterialTask, timings: Dict[str, float]) -> _Trut
 
 def render_novel_truths(renderer: Renderer, cfg: EvalConfig, novels: List[Probe], truth_bsdf: Any,
                         floor_bsdf: Any, arrays: Arrays) -> _Novel:
-    """The truth and the exact reduction rendered under every novel probe (:meth:`EvalConfig.novel_seed`), and the
-    reduction's image errors (the relight floor)."""
+    """The truth and the exact reduction rendered under every novel probe (:meth:`EvalConfig.novel_seed`), the
+    reduction's image errors (the relight floor), and the truth render's noise, measured by a second render of
+    another seed (:data:`REFERENCE_NOISE_SEED_OFFSET`; cached as the first is), as
+    :func:`mi_bivariate.reference.quadrature_noise` measures it."""
     grid_key = f"grid_table_{cfg.grid[0]}x{cfg.grid[1]}"
-    novel = _Novel({}, {}, {})
+    novel = _Novel({}, {}, {}, {})
     for name, probe in zip(cfg.novel_probes, novels):
         label = probe_label(name)
         seed = cfg.novel_seed(name)
@@ -178,6 +185,9 @@ def render_novel_truths(renderer: Renderer, cfg: EvalConfig, novels: List[Probe]
         novel.truth[label] = shot
         novel.floor[label] = floor_shot.image
         novel.floor_images[label] = _image_errors(floor_shot.image, shot.image, shot.mask)
+        again = renderer.render(truth_bsdf, probe, name, cfg.novel_resolution, seed + REFERENCE_NOISE_SEED_OFFSET,
+                                cfg.novel_spp, cache_key="truth")
+        novel.noise[label] = metrics.image_relative_rmse(again.image, shot.image, shot.mask) / math.sqrt(2.0)
         arrays[f"truth__{label}"] = _f16(shot.image)
         arrays[f"floor_render__{label}"] = _f16(floor_shot.image)
         arrays["mask"] = shot.mask
@@ -405,6 +415,7 @@ def _evaluate_material(task: MaterialTask, inputs: List[List[Probe]], novels: Li
         "floors": truth.floor_values,
         "floor_images": novel.floor_images,
         "relight_floor": {k: v["rel_rmse"] for k, v in novel.floor_images.items()},
+        "reference_noise": novel.noise,
         "inputs": per_input,
         "renderer": cfg.renderer,
         "timings": timings,

@@ -166,6 +166,9 @@ def summary_rows(records: Sequence[dict]) -> List[dict]:
             row["image_rel_rmse_mean"] = float(np.mean(rmse)) if rmse else float("nan")
             row["image_psnr_mean"] = float(np.mean(psnr)) if psnr else float("nan")
             row["floor_image_rel_rmse_mean"] = float(np.mean(floor_rmse)) if floor_rmse else float("nan")
+            noise = [v for v in r.get("reference_noise", {}).values() if math.isfinite(v)]
+            if noise:  # the truth renders' own noise, the largest over the novel probes (older records: none)
+                row["reference_noise_max"] = float(max(noise))
             for key in ("exact_floor", "grid_floor", "exact_floor_min", "grid_floor_min"):
                 if key in r.get("floors", {}):
                     row[key] = r["floors"][key]
@@ -290,6 +293,13 @@ def format_summary(records: Sequence[dict]) -> str:
                                   for r in records for entry in r.get("inputs", {}).values())
     if sources:  # packaged priors saw the shared materials: a score needs leave-one-out ones
         lines.append("  priors: " + ", ".join(f"{k} ({v} recoveries)" for k, v in sorted(sources.items())))
+    noise = [v for r in records for v in (r.get("reference_noise") or {}).values()
+             if isinstance(v, float) and math.isfinite(v)]
+    if noise:  # what the relight errors and floors cannot resolve
+        lines.append(f"  reference noise (the truth's renders under the novel probes; two seeds): median "
+                     f"{np.median(noise):.2g}, largest {max(noise):.2g}"
+                     + ("" if len(noise) == sum(len(r.get("floor_images", {})) for r in records)
+                        else " (records from before it was measured have none)"))
     for probe in dict.fromkeys(r["input_probe"] for r in rows):
         sel = [r for r in rows if r["input_probe"] == probe]
         parts = []
