@@ -428,3 +428,23 @@ def test_every_record_states_its_reference_noise(tmp_path):
     assert "reference noise" in ev.format_summary([record])
     row = ev.summary_rows([record])[0]
     assert row["reference_noise_max"] == max(record["reference_noise"].values())
+
+
+@pytest.mark.parametrize("data", ["unset", "no weights"])
+def test_missing_shared_data_is_one_line_before_any_material(tmp_path, capsys, monkeypatch, data):
+    """MERL-NBRDF materials without the shared data (MI_BIVARIATE_DATA unset, or a folder without the weights file)
+    once failed one by one: 'evaluate nbrdf' printed 23 warnings and then the error. A problem every material
+    shares is one line, before any work."""
+    if data == "unset":
+        monkeypatch.delenv("MI_BIVARIATE_DATA", raising=False)
+    else:
+        (tmp_path / "data" / "merl_nbrdf").mkdir(parents=True)
+        monkeypatch.setenv("MI_BIVARIATE_DATA", str(tmp_path / "data"))
+    out = tmp_path / "eval"
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        status = main(["evaluate", "blue-acrylic", "gold-paint", "--out", str(out), *TINY_ARGS])
+    err = capsys.readouterr().err
+    assert status == 2 and len(err.splitlines()) == 1 and err.startswith("mi-bivariate: error: "), err
+    assert not [w for w in said if issubclass(w.category, InputWarning)], [str(w.message) for w in said]
+    assert not out.exists()

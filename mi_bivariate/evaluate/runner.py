@@ -32,7 +32,7 @@ from typing import Any, Callable, Dict, Iterator, List, Optional, Sequence, Tupl
 import mitsuba as mi
 import numpy as np
 
-from mi_bivariate import training_set
+from mi_bivariate import nbrdf, training_set
 from mi_bivariate.atomic import atomic_path
 from mi_bivariate.common import PathLike
 from mi_bivariate.errors import InputError, InputWarning, Terminated
@@ -255,6 +255,11 @@ def run_evaluation(materials: Sequence[Union[str, MaterialSpec]], out_dir: PathL
     for m in specs:
         if m.kind == "merl":
             MERLBRDF.check_file(m.spec)
+        elif m.kind == "nbrdf":  # the shared data folder and its weights file: every such material's problem
+            weights = nbrdf.weights_path(m.spec, data_dir)
+            if not weights.is_file():
+                raise InputError(weights, "MERL-NBRDF weights not found",
+                                 "MI_BIVARIATE_DATA (or --data) must point at the shared data folder")
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise InputError(out, "the output folder is a file", "choose another --out")
