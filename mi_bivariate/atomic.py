@@ -27,7 +27,7 @@ def _write_error(path: Path, exc: OSError) -> InputError:
                       "check the folder exists and is writable, and that the disk has space")
 
 
-#: Open :func:`_signals_deferred` blocks, and the stop a signal asked for meanwhile (raised when they end).
+#: Open :func:`signals_deferred` blocks, and the stop a signal asked for meanwhile (raised when they end).
 _held = 0
 _pending: Optional[Type[BaseException]] = None
 
@@ -49,8 +49,9 @@ def stop_on_signal(stop: Type[BaseException] = Terminated):
 
 
 @contextlib.contextmanager
-def _signals_deferred() -> Iterator[None]:
-    """Hold the stops of :func:`stop_on_signal` handlers until the block ends. The count is the process's,
+def signals_deferred() -> Iterator[None]:
+    """Hold the stops of :func:`stop_on_signal` handlers until the block ends (also around the start of Dr.Jit
+    and Mitsuba, whose C++ aborts or crashes on an exception raised inside it). The count is the process's,
     not a thread's: a stop held while another thread writes would be raised in that thread (no thread
     writes outputs today)."""
     global _held, _pending
@@ -68,7 +69,7 @@ def _make_temp(path: Path, suffix: str, temps: List[Path]) -> None:
     """Create a temporary for ``path`` and append it to ``temps`` (with signals held in between)."""
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        with _signals_deferred():
+        with signals_deferred():
             fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix or path.suffix, dir=path.parent)
             temps.append(Path(tmp))
             os.close(fd)
@@ -135,7 +136,7 @@ def atomic_paths(paths: Sequence[PathLike], suffixes: Optional[Sequence[str]] = 
 
         try:
             yield list(temps)
-            with _signals_deferred():  # all or none: no signal between two renames
+            with signals_deferred():  # all or none: no signal between two renames
                 for tmp, path in zip(temps, paths):
                     _publish(tmp, path)
         except OSError as exc:
@@ -147,7 +148,7 @@ def atomic_paths(paths: Sequence[PathLike], suffixes: Optional[Sequence[str]] = 
                 raise
             raise InputError(target, exc.problem, exc.hint) from None
     except BaseException:
-        with _signals_deferred():  # a second stop does not cut the clean-up short
+        with signals_deferred():  # a second stop does not cut the clean-up short
             for tmp in temps:
                 with contextlib.suppress(OSError):
                     tmp.unlink()

@@ -18,7 +18,7 @@ import warnings
 from typing import Dict, Optional, Sequence, Tuple
 
 from mi_bivariate import __version__
-from mi_bivariate.atomic import stop_on_signal
+from mi_bivariate.atomic import signals_deferred, stop_on_signal
 from mi_bivariate.errors import InputError, Terminated, renamed
 
 
@@ -360,7 +360,8 @@ def main(argv: Optional[Sequence[str]] = None, *, own_process: bool = False) -> 
     try:
         if own_process:
             replaced = _stop_on_signals()
-        commands = importlib.import_module("mi_bivariate.commands")  # the pipeline, loaded only to run
+        with signals_deferred():  # a stop raised inside Dr.Jit's or Mitsuba's start aborted or crashed the process
+            commands = importlib.import_module("mi_bivariate.commands")  # the pipeline, loaded only to run
         if own_process:
             gc.freeze()
         return int(commands.COMMANDS[args.command](args) or 0)

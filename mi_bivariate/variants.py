@@ -23,6 +23,7 @@ from typing import Optional
 
 import mitsuba as mi
 
+from mi_bivariate.atomic import signals_deferred
 from mi_bivariate.errors import InputError
 from mi_bivariate.plugins import register
 
@@ -61,14 +62,17 @@ def ensure_variant(variant: Optional[str] = None, vectorised: bool = False) -> s
     if variant not in mi.variants():
         raise InputError(source, f"Mitsuba variant {variant!r} is not available in this build",
                          f"available: {', '.join(v for v in mi.variants() if v in choices)}")
-    if current != variant:
-        try:
-            mi.set_variant(variant)
-        except (ImportError, RuntimeError) as exc:  # e.g. cuda_ad_rgb without a usable GPU or driver
-            reason = " ".join(str(exc).split())[:200] or type(exc).__name__
-            fallback = [v for v in ("llvm_ad_rgb", "scalar_rgb") if v in choices and v != variant][:1]
-            raise InputError(source, f"Mitsuba variant {variant!r} cannot start on this machine ({reason})",
-                             f"use {fallback[0]}" if fallback else "use another variant") from None
-    register()
+    # A stop (mi_bivariate.atomic.stop_on_signal) raised inside the variant's start was said as the variant
+    # failing to start: it waits for the start to end.
+    with signals_deferred():
+        if current != variant:
+            try:
+                mi.set_variant(variant)
+            except (ImportError, RuntimeError) as exc:  # e.g. cuda_ad_rgb without a usable GPU or driver
+                reason = " ".join(str(exc).split())[:200] or type(exc).__name__
+                fallback = [v for v in ("llvm_ad_rgb", "scalar_rgb") if v in choices and v != variant][:1]
+                raise InputError(source, f"Mitsuba variant {variant!r} cannot start on this machine ({reason})",
+                                 f"use {fallback[0]}" if fallback else "use another variant") from None
+        register()
     return variant
 
