@@ -297,7 +297,7 @@ def _recover_priors(args: argparse.Namespace) -> tuple:
     args.source_names.update({"alpha": "--alpha", "noise": "--noise"})
     if args.prior is not None:
         args.source_names["basis_prior"] = str(basis_path_for(args.prior))
-        smooth_prior, basis_prior = training_set.load_prior_files(args.prior)
+        smooth_prior, basis_prior = training_set.load_prior_files(args.prior, basis=not args.no_basis_prior)
     return smooth_prior, None if args.no_basis_prior else basis_prior
 
 

@@ -211,10 +211,11 @@ def basis_path_for(prior_path: PathLike) -> Path:
     return path.with_name(path.stem + "_basis.npz")
 
 
-def load_prior_files(prior_path: PathLike) -> Tuple[Prior, Optional[BasisPrior]]:
+def load_prior_files(prior_path: PathLike, basis: bool = True) -> Tuple[Prior, Optional[BasisPrior]]:
     """The priors ``learn-prior`` wrote to ``prior_path``: the smoothness prior there and the basis prior
     beside it (:func:`basis_path_for`), or ``None`` where there is none (a recovery then uses no basis
-    prior: never the packaged one, which saw every shared material). What ``recover --prior`` and
-    ``evaluate --prior`` load alike. Raises :class:`InputError` naming the file that cannot be used."""
+    prior: never the packaged one, which saw every shared material) or ``basis`` is false (``recover
+    --no-basis-prior``: that file is not read). What ``recover --prior`` and ``evaluate --prior`` load
+    alike. Raises :class:`InputError` naming the file that cannot be used."""
     basis_file = basis_path_for(prior_path)
-    return Prior.load(prior_path), BasisPrior.load(basis_file) if basis_file.is_file() else None
+    return Prior.load(prior_path), BasisPrior.load(basis_file) if basis and basis_file.is_file() else None

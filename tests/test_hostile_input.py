@@ -1200,6 +1200,26 @@ def test_errors_name_the_users_file_or_option(files, tmp_path, capsys):
     assert line.startswith(f"mi-bivariate: error: {tmp_path / 'pp_basis.npz'}: is learnt on a 32 x 32 grid"), line
 
 
+def test_no_basis_prior_does_not_read_the_basis_prior_beside_prior(files, tmp_path, capsys):
+    """``--prior P --no-basis-prior`` recovers with P's smoothness prior alone: the basis prior file beside
+    P is not read, so a broken one does not stop it (it did: 'not a readable .npz file'), nor does one
+    learnt on another grid."""
+    from mi_bivariate.basis_prior import default_basis_prior
+    from mi_bivariate.prior import default_prior
+
+    default_prior().save(tmp_path / "pp.npz")
+    for basis in (b"not a basis prior", None):
+        if basis is None:
+            default_basis_prior().save(tmp_path / "pp_basis.npz")  # learnt on 32 x 32, the recovery's is 4 x 4
+        else:
+            (tmp_path / "pp_basis.npz").write_bytes(basis)
+        out = tmp_path / "x.npz"
+        argv = _recover_args(files, prior=str(tmp_path / "pp.npz"), out=str(out)) + ["--no-basis-prior"]
+        assert cli.main(argv) == 0, capsys.readouterr().err
+        assert BivariateBRDF.load(out).provenance["basis_prior"] is None
+        out.unlink()
+
+
 @pytest.mark.parametrize("which", ["--input-probe", "--novel-probe"])
 def test_demo_names_a_black_probe(files, tmp_path, capsys, data_dir, which):
     line = _cli(["demo", "--out", str(tmp_path / "d"), which, str(files["black_probe"]), "--resolution", "16",
