@@ -31,7 +31,7 @@ from typing import Any, Dict, Iterable, Iterator, List, Optional, Sequence, Tupl
 import drjit as dr
 import numpy as np
 
-from mi_bivariate import analytic, bivariate, merl, nbrdf, probes
+from mi_bivariate import analytic, bivariate, limits, merl, nbrdf, probes
 from mi_bivariate.common import PathLike, file_digest
 from mi_bivariate.errors import InputError
 
@@ -298,7 +298,9 @@ def load_probe(spec: str, data_dir: Optional[PathLike] = None, cache: bool = Fal
             try:
                 seed = int(spec[len(SYNTHETIC_PREFIX):])
             except ValueError:
-                raise InputError(spec, "synthetic probe seed must be an integer") from None
+                seed = None
+            if seed is None or not 0 <= seed <= limits.MAX_SEED:  # numpy refuses a negative seed with a traceback
+                raise InputError(spec, f"synthetic probe seed must be an integer from 0 to {limits.MAX_SEED}")
             probe = probes.Probe(synthetic_environment(seed=seed), source=spec)
         elif Path(spec).suffix:
             name = _shared_probe_name(Path(spec), data_dir)

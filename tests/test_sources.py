@@ -77,6 +77,9 @@ def test_synthetic_probes_and_labels():
     assert sources.load_probe("synthetic:3") is not probe                       # uncached by default
     with pytest.raises(InputError, match="seed must be an integer"):
         sources.load_probe("synthetic:x")
+    for seed in ("-1", "4294967296"):  # -1 was numpy's ValueError, a traceback from recover --probe synthetic:-1
+        with pytest.raises(InputError, match=f"synthetic:{seed}: synthetic probe seed must be an integer from 0 to"):
+            sources.load_probe("synthetic:" + seed)
     assert sources.probe_label("/a/b/pisa_256.hdr") == "pisa_256"
     assert sources.probe_label("synthetic:1") == "synthetic:1"
 
