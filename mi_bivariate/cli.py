@@ -61,7 +61,8 @@ def _parse_sphere(text: str):
 
 
 def _parse_path(text: str) -> str:
-    """An output path: any non-empty name (an empty ``--out`` has no file name to write)."""
+    """A path: any non-empty name (an empty ``--out`` has no file name to write; an empty ``--prior`` ended in
+    a traceback, an empty ``--mask`` was taken as no mask)."""
     if not text.strip():
         raise argparse.ArgumentTypeError("expected a file or folder name, got an empty one")
     return text
@@ -132,7 +133,7 @@ def _add_recover_options(p: argparse.ArgumentParser) -> None:
                         "0.3-0.6 px off, which raised four metals' relight error by 25-85%% under grace; a "
                         "refinement that would move the outline more than 1 px, or whose recovery fits the image "
                         "worse, is not taken (a warning says so)")
-    p.add_argument("--mask", default=None, help="optional mask image, of the photo's size (pixels with a value > 0 in any channel are usable; "
+    p.add_argument("--mask", type=_parse_path, default=None, help="optional mask image, of the photo's size (pixels with a value > 0 in any channel are usable; "
                         "0, negative or NaN ones are not)")
     p.add_argument("--fov", type=float, default=None, metavar="DEG",
                    help="the photo's horizontal field of view for a pinhole camera with its principal point at "
@@ -156,7 +157,7 @@ def _add_recover_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--noise", type=_parse_noise, default="auto", metavar="auto|none|A,B",
                    help="camera noise, variance A*I+B in image units: estimated from the image (auto, default), "
                         "none (clean input) or given")
-    p.add_argument("--prior", default=None, metavar="FILE",
+    p.add_argument("--prior", type=_parse_path, default=None, metavar="FILE",
                    help="smoothness prior from learn-prior (its _basis.npz beside it is the basis prior)")
     p.add_argument("--no-basis-prior", action="store_true", help="smoothness prior alone (the paper's Eq. 6)")
     p.add_argument("--sampling", choices=("mis", "uniform"), default="mis",

@@ -319,8 +319,11 @@ def test_cli_one_line_error(files, tmp_path, monkeypatch, capsys, case, argv, na
     (["--probe-rotation=0,nan,0"], "expected three angles in degrees RX,RY,RZ"),
     (["--probe-rotation=0,1e308,0"], "each angle must be in [-360, 360] degrees"),
     (["--sphere", "nan,32,28"], "--sphere expects finite CX,CY,R"),
+    (["--prior", ""], "argument --prior: expected a file or folder name, got an empty one"),  # was a traceback
+    (["--mask", ""], "argument --mask: expected a file or folder name, got an empty one"),  # was no mask
 ], ids=["negative radius", "deterministic with threads", "report-render without a report",
-        "two probe angles", "a NaN probe angle", "a probe angle of no precision", "a NaN sphere centre"])
+        "two probe angles", "a NaN probe angle", "a probe angle of no precision", "a NaN sphere centre",
+        "an empty prior name", "an empty mask name"])
 def test_cli_usage_errors_are_argparse_errors(capsys, extra, match):
     """Malformed or conflicting arguments are usage errors (argparse: exit status 2, one line, no traceback)."""
     with pytest.raises(SystemExit) as info:
