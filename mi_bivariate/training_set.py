@@ -206,8 +206,11 @@ def learn_priors_from_merl(sources: Union[PathLike, Iterable[PathLike]], n_t: in
 
 
 def basis_path_for(prior_path: PathLike) -> Path:
-    """Where ``learn-prior`` writes the basis prior beside a smoothness prior file: ``<stem>_basis.npz``."""
+    """Where ``learn-prior`` writes the basis prior beside a smoothness prior file: ``<stem>_basis.npz``.
+    Raises :class:`InputError` for a path without a file name (``.``, ``/``), which no prior file has."""
     path = Path(prior_path)
+    if not path.name:
+        raise InputError(prior_path, "not a file", "give the path of a .npz file, not of a folder")
     return path.with_name(path.stem + "_basis.npz")
 
 

@@ -1203,6 +1203,14 @@ def test_errors_name_the_users_file_or_option(files, tmp_path, capsys):
     assert line.startswith(f"mi-bivariate: error: {tmp_path / 'pp_basis.npz'}: is learnt on a 32 x 32 grid"), line
 
 
+@pytest.mark.parametrize("prior", [".", "/"])
+def test_a_prior_named_by_a_folder_without_a_file_name_is_one_line(files, tmp_path, capsys, prior):
+    """``--prior .`` or ``--prior /`` ended in a traceback (``PosixPath('.') has an empty name``, from the
+    basis prior's name beside it)."""
+    line = _cli(_recover_args(files, prior=prior, out=str(tmp_path / "x.npz")), capsys)
+    assert line == f"mi-bivariate: error: {prior}: not a file (give the path of a .npz file, not of a folder)", line
+
+
 def test_no_basis_prior_does_not_read_the_basis_prior_beside_prior(files, tmp_path, capsys):
     """``--prior P --no-basis-prior`` recovers with P's smoothness prior alone: the basis prior file beside
     P is not read, so a broken one does not stop it (it did: 'not a readable .npz file'), nor does one
