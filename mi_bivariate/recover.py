@@ -80,7 +80,7 @@ class Recovery:
         stages = ", ".join(f"{k} {v:.2f} s" for k, v in self.timings.items())
         refined = [self.sphere_refinement.summary()] if self.sphere_refinement is not None else []
         return "\n".join(refined + [
-            f"observations: {len(obs.values)} normals (dropped pixels: {dropped})",
+            f"observations: {len(obs.values)} normals (sampled normals dropped: {dropped})",
             f"lighting matrix: {self.lighting_matrix.shape[0]} x {self.lighting_matrix.shape[1]} x 3",
             f"adequacy: {self.adequacy.summary()}",
             f"solve: alpha ({self.solution.alpha_rule}) R/G/B "

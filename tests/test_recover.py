@@ -187,6 +187,21 @@ def test_the_packaged_basis_prior_is_resampled_to_the_recoverys_grid(any_probe):
     assert not np.allclose(with_basis.brdf.table, without.brdf.table)
 
 
+def test_the_summary_counts_dropped_normals_not_pixels(any_probe):
+    """The summary's drop counts are of the sampled normals (``Observations.dropped``), not of pixels: 16 NaN
+    pixels on the sphere were said as "dropped pixels: ... nonfinite: 4" when 4 sampled normals fell on them."""
+    from mi_bivariate.geometry import SphereGeometry
+
+    image = np.full((48, 48, 3), 0.5, np.float32)
+    image[20:24, 20:24] = np.nan  # 16 pixels on the sphere
+    result = recover(image, any_probe, SphereGeometry(24, 24, 20), n_normals=300, n_dirs=200, grid=(4, 4),
+                     basis_prior=None)
+    dropped = result.observations.dropped
+    assert 0 < dropped["nonfinite"] < 16 and len(result.observations.values) + sum(dropped.values()) == 300
+    assert f"{len(result.observations.values)} normals (sampled normals dropped: " in result.summary()
+    assert "pixels" not in result.summary().splitlines()[0]
+
+
 def test_bad_input_is_reported(any_probe):
     from mi_bivariate.geometry import SphereGeometry
 
