@@ -105,6 +105,34 @@ def estimate_camera_noise(image: np.ndarray, mask: Optional[np.ndarray] = None,
     return float(a), float(b)
 
 
+def check_noise_model(value, source: str = "noise") -> Tuple[np.ndarray, np.ndarray]:
+    """One camera-noise model ``(a, b)`` of the variance ``a I + b`` (image units), each a number or a
+    per-channel ``(3,)`` sequence, finite and ``>= 0``: returned as two ``(3,)`` float64 arrays.
+
+    Raises:
+        InputError: naming ``source``, for anything else (a string, one number, three entries, a
+            ``(2,)`` per-channel array, NaN, a negative value).
+    """
+    hint = "give the pair (a, b) of the variance a I + b, each a number or three (R, G, B), e.g. (0, sigma**2)"
+    if isinstance(value, (str, bytes)) or not isinstance(value, (list, tuple, np.ndarray)) or len(value) != 2:
+        raise InputError(source, f"expected the noise model (a, b), got {value!r}", hint)
+    pair = []
+    for v in value:
+        if isinstance(v, (str, bytes)):
+            raise InputError(source, f"expected the noise model (a, b) of numbers, got {value!r}", hint)
+        try:
+            x = np.asarray(v, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise InputError(source, f"expected the noise model (a, b) of numbers, got {value!r}", hint) from None
+        if x.ndim > 1 or (x.ndim == 1 and len(x) != 3):
+            raise InputError(source, f"a and b must each be a number or three (R, G, B), got {value!r}", hint)
+        pair.append(np.broadcast_to(x, (3,)).copy())
+    a, b = pair
+    if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b)) and np.all(a >= 0) and np.all(b >= 0)):
+        raise InputError(source, f"camera noise (a, b) must be finite and >= 0, got {value!r}", hint)
+    return a, b
+
+
 #: Read-noise standard deviation as a fraction of the shot noise at the mean signal.
 READ_FRACTION = 0.1
 

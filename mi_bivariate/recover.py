@@ -29,7 +29,7 @@ from mi_bivariate.basis_prior import BasisPrior, default_basis_prior
 from mi_bivariate.bivariate import BivariateBRDF
 from mi_bivariate.errors import InputError, InputWarning
 from mi_bivariate.geometry import Geometry, SphereGeometry, check_sphere
-from mi_bivariate.noise import estimate_camera_noise
+from mi_bivariate.noise import check_noise_model, estimate_camera_noise
 from mi_bivariate.probes import Probe, check_lit, check_probe
 from mi_bivariate.solve import IMAGE_WEIGHTS, cross_image_factors, solve_stages
 from mi_bivariate.threads import blas_threads
@@ -203,8 +203,8 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
             the first estimate and its per-node confidence give the basis prior's
             prediction, which then joins Eq. 6 as a per-node Gaussian.
         noise: the camera's noise, variance ``a I + b`` in each image's units:
-            ``(a, b)`` for every image, a list with one ``(a, b)`` or ``None`` per
-            image, ``"auto"`` (default: estimated from each image,
+            ``(a, b)`` for every image (``a`` and ``b`` each a number or three, R, G, B),
+            a list with one ``(a, b)`` or ``None`` per image, ``"auto"`` (default: estimated from each image,
             :func:`noise.estimate_camera_noise`; ~0 for a clean rendering), or
             ``None`` (clean input; only the model error counts, see
             :func:`solve.row_sigma`). Measured on a 256-spp Mitsuba render of a
@@ -444,12 +444,29 @@ def _noise_list(noise: Any, images: Sequence[np.ndarray]) -> Optional[list]:
     if isinstance(noise, numbers.Real) or (isinstance(noise, np.ndarray) and noise.ndim == 0):
         raise InputError("noise", f"got one number ({float(noise):g}); give the pair (a, b) of the variance a I + b",
                          "e.g. noise=(0, sigma**2) for a constant sigma")
-    if isinstance(noise, (list, tuple, np.ndarray)) and len(noise) == 2 and all(np.isscalar(v) for v in noise):
-        return [tuple(float(v) for v in noise)] * n
+    if not isinstance(noise, (list, tuple, np.ndarray)):
+        raise InputError("noise", f"must be 'auto', (a, b), a list or None, got a {type(noise).__name__}",
+                         "e.g. noise=(0, sigma**2) for a constant sigma, or one (a, b) or None per image")
+    if _one_noise_model(noise):
+        return [check_noise_model(noise, "noise")] * n
     items = list(noise)
     if len(items) != n:
-        raise InputError("noise", f"{len(items)} noise models given for {n} images")
-    return [None if v is None else tuple(np.asarray(x, np.float64) for x in v) for v in items]
+        raise InputError("noise", f"{len(items)} noise models given for {n} images",
+                         "give one (a, b) for every image, or a list of one (a, b) or None per image")
+    return [None if v is None else check_noise_model(v, f"noise[{k}]" if n > 1 else "noise")
+            for k, v in enumerate(items)]
+
+
+def _one_noise_model(noise: Sequence) -> bool:
+    """Whether ``noise`` reads as one ``(a, b)`` for every image (two numbers, or two ``(R, G, B)``), not as
+    a list of one model (a pair) or ``None`` per image."""
+    def entry(v: Any) -> bool:
+        try:
+            shape = np.shape(v)
+        except ValueError:  # ragged
+            return False
+        return v is not None and (shape == () or shape == (3,))
+    return len(noise) == 2 and all(entry(v) for v in noise)
 
 
 def _estimate_noise(image: np.ndarray, source: str) -> Tuple[np.ndarray, np.ndarray]:

@@ -198,6 +198,31 @@ def test_noise_as_one_number_is_refused_and_as_an_array_pair_accepted(probe, mon
     np.testing.assert_allclose(pair.brdf.table, listed.brdf.table, rtol=1e-4, atol=1e-6 * listed.brdf.table.max())
 
 
+
+def test_a_malformed_noise_model_is_refused_naming_noise_before_any_work(probe, no_work):
+    """Before, a model in a per-image list was read only inside the solve, after the lighting matrix: a
+    string or three entries there raised a bare ValueError from numpy ("could not convert string to
+    float", "too many values to unpack"), as did two strings for one image; a non-iterable a TypeError."""
+    two = [IMAGE, IMAGE[::-1].copy()]
+    for noise, source in [(("a", "b"), "noise"), ({"a": 1}, "noise"), (object(), "noise"),
+                          ([(1e-4, 1e-6, 0.0), None], "noise[0]"), ([None, "auto"], "noise[1]"),
+                          ([1e-4, (0.0, 1e-6)], "noise[0]"), ([([1e-4] * 2, [1e-6] * 3), None], "noise[0]"),
+                          ([None, (-1.0, 0.0)], "noise[1]"), ([(np.nan, 0.0), None], "noise[0]")]:
+        with pytest.raises(InputError) as info:
+            recover(two, probe, [SPHERE, SPHERE], **{**SMALL, "noise": noise})
+        assert info.value.source == source, (noise, str(info.value))
+
+
+def test_one_per_channel_noise_model_is_every_images(probe):
+    """``(a, b)`` of three (R, G, B) each, as an "auto" estimate records them, is one model for every
+    image (before: "2 noise models given for 1 images")."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", InputWarning)
+        rgb = recover(IMAGE, probe, SPHERE, **{**SMALL, "noise": ([1e-4] * 3, [1e-6] * 3)})
+        pair = recover(IMAGE, probe, SPHERE, **{**SMALL, "noise": (1e-4, 1e-6)})
+    assert rgb.brdf.provenance["noise"] == pair.brdf.provenance["noise"]
+    np.testing.assert_allclose(rgb.brdf.table, pair.brdf.table, rtol=1e-4, atol=1e-6 * pair.brdf.table.max())
+
 def test_images_are_checked_for_their_number_type(probe):
     with pytest.raises(InputError, match="expected real numbers"):
         recover(IMAGE.astype(np.complex64), probe, SPHERE, **SMALL)

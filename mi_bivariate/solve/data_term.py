@@ -18,6 +18,7 @@ import numpy as np
 
 from mi_bivariate.errors import InputError
 from mi_bivariate.lighting.gram import weighted_gram
+from mi_bivariate.noise import check_noise_model
 from mi_bivariate.solve.common import validate_problem
 from mi_bivariate.threads import thread_map
 
@@ -78,9 +79,7 @@ def row_sigma(I: np.ndarray, image_index: Optional[np.ndarray] = None,
             var = np.broadcast_to((model_error * mean) ** 2, level.shape).copy()
         params = None if noise is None else noise[int(k)] if int(k) < len(noise) else None
         if params is not None:
-            a, b = (np.broadcast_to(np.asarray(v, np.float64), (3,)) for v in params)
-            if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b)) and np.all(a >= 0) and np.all(b >= 0)):
-                raise InputError("noise", f"camera noise (a, b) must be finite and >= 0, got {params}")
+            a, b = check_noise_model(params)
             var = var + a * values + b
         sigma2[rows] = var
     return np.sqrt(sigma2)
