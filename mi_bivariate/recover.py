@@ -11,6 +11,7 @@ regularised solve (:mod:`solve`, Eq. 6 with the learnt :mod:`prior`)
 
 from __future__ import annotations
 
+import hashlib
 import numbers
 import time
 import warnings
@@ -28,7 +29,7 @@ from mi_bivariate import sphere_refine, spherefit
 from mi_bivariate.basis_prior import BasisPrior, default_basis_prior
 from mi_bivariate.bivariate import BivariateBRDF
 from mi_bivariate.errors import InputError, InputWarning
-from mi_bivariate.geometry import Geometry, SphereGeometry, check_sphere
+from mi_bivariate.geometry import Geometry, PerspectiveSphereGeometry, SphereGeometry, check_sphere
 from mi_bivariate.noise import check_noise_model, estimate_camera_noise
 from mi_bivariate.probes import Probe, check_lit, check_probe
 from mi_bivariate.solve import IMAGE_WEIGHTS, cross_image_factors, solve_stages
@@ -144,6 +145,32 @@ def _geometry_list(geometry: Any, n: int) -> List[Geometry]:
     return geometries
 
 
+def _digest(array: np.ndarray) -> Tuple[Any, ...]:
+    return array.shape, array.dtype.str, hashlib.blake2b(np.ascontiguousarray(array).tobytes(), digest_size=16).digest()
+
+
+def _refuse_repeated_images(images: Sequence[np.ndarray], geometries: Sequence[Geometry], masks: Sequence[Any]) -> None:
+    """:class:`InputError` naming ``images`` when one entry repeats another: the same pixels, the same object
+    (the same geometry object, or spheres of equal numbers) and the same mask. Its rows would count twice, as
+    if the photo's noise were smaller than it is (the table then leans on it over the priors), and
+    ``image_weights="cross"`` would weigh the photo against itself. The same photo with another sphere
+    (two spheres in one photo) or another mask is not a repeat."""
+    seen: Dict[Tuple[Any, ...], List[int]] = {}
+    for k, (image, geometry, mask) in enumerate(zip(images, geometries, masks)):
+        mask_key = None if mask is None else np.asarray(mask)
+        if mask_key is not None:  # anything but numbers is not a mask: refused, naming it, where it is read
+            mask_key = _digest(mask_key.astype(bool)) if mask_key.dtype.kind in "biuf" else ("not a mask", k)
+        key = (_digest(image), mask_key)
+        for j in seen.get(key, []):
+            other = geometries[j]
+            if other is geometry or (isinstance(geometry, (SphereGeometry, PerspectiveSphereGeometry))
+                                     and type(other) is type(geometry) and other.record() == geometry.record()):
+                raise InputError("images", f"image {k} repeats image {j} (the same pixels, object and mask): its "
+                                 "pixels would count twice, as if the photo's noise were smaller than it is",
+                                 "give each photo once; a photo of two spheres: one geometry each")
+        seen.setdefault(key, []).append(k)
+
+
 def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
             probe: Union[Probe, Sequence[Probe]],
             geometry: Union[Geometry, Sequence[Geometry]],
@@ -169,7 +196,8 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
 
     Args:
         images: one ``(H, W, 3)`` linear image or a list of them (other views
-            or other probes; all rows stack into one system).
+            or other probes; all rows stack into one system). A photo given twice with the
+            same geometry and mask is refused (its pixels would count twice).
         probe: the probe lighting each image (one for all, or one per image),
             in Mitsuba's envmap frame (y up).
         geometry: what each image shows, a :class:`~mi_bivariate.geometry.Geometry`:
@@ -232,6 +260,7 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
     probe_list = _as_list(probe, n, "probes", "probe")
     geometries = _geometry_list(geometry, n)
     mask_list = _as_list(masks, n, "masks", "masks")
+    _refuse_repeated_images(images, geometries, mask_list)
     n_t, n_s = limits.check_grid(grid)
     limits.check_recovery_sizes(n_normals, n_dirs, (n_t, n_s))
     n_normals, n_dirs, seed = int(n_normals), int(n_dirs), limits.check_seed(seed)

@@ -203,7 +203,7 @@ def test_a_malformed_noise_model_is_refused_naming_noise_before_any_work(probe, 
     """Before, a model in a per-image list was read only inside the solve, after the lighting matrix: a
     string or three entries there raised a bare ValueError from numpy ("could not convert string to
     float", "too many values to unpack"), as did two strings for one image; a non-iterable a TypeError."""
-    two = [IMAGE, IMAGE[::-1].copy()]
+    two = [IMAGE, IMAGE * np.float32(0.9)]
     for noise, source in [(("a", "b"), "noise"), ({"a": 1}, "noise"), (object(), "noise"),
                           ([(1e-4, 1e-6, 0.0), None], "noise[0]"), ([None, "auto"], "noise[1]"),
                           ([1e-4, (0.0, 1e-6)], "noise[0]"), ([([1e-4] * 2, [1e-6] * 3), None], "noise[0]"),
@@ -222,6 +222,27 @@ def test_one_per_channel_noise_model_is_every_images(probe):
         pair = recover(IMAGE, probe, SPHERE, **{**SMALL, "noise": (1e-4, 1e-6)})
     assert rgb.brdf.provenance["noise"] == pair.brdf.provenance["noise"]
     np.testing.assert_allclose(rgb.brdf.table, pair.brdf.table, rtol=1e-4, atol=1e-6 * pair.brdf.table.max())
+
+
+def test_the_same_photo_twice_is_refused_before_any_work(probe, no_work):
+    """Before, a photo given twice (a copy, another dtype, one mask for both) counted twice: with all its
+    pixels in both (a 64 px sphere, n_dirs 2000), the table moved by 19% (noise "auto") and 48% (None) of
+    its peak from the photo's alone, the photo's weight doubled against the priors'; with fewer normals
+    (1500), each copy saw another lattice and image_weights="cross" weighed the photo against itself
+    (sigma factor 34.6 on one copy with noise None)."""
+    photo = IMAGE * np.linspace(0.5, 1.0, 48, dtype=np.float32)[:, None, None]
+    mask = np.ones((48, 48), bool)
+    for images, geometries, masks in [([photo, photo], SPHERE, None),
+                                      ([photo, photo.astype(np.float64)], [SPHERE, SphereGeometry(24.0, 24.0, 20.0)],
+                                       None),
+                                      (np.stack([photo, IMAGE, photo]), SPHERE, mask)]:
+        with pytest.raises(InputError, match="repeats image 0") as info:
+            recover(images, probe, geometries, **{**SMALL, "masks": masks})
+        assert info.value.source == "images" and "give each photo once" in str(info.value)
+    # the same photo of two spheres, or under two masks, is two sets of pixels: it goes on to the work
+    for geometries, masks in [([SPHERE, SphereGeometry(20.0, 24.0, 10.0)], None), (SPHERE, [mask, None])]:
+        with pytest.raises(AssertionError, match="started work"):
+            recover([photo, photo], probe, geometries, **{**SMALL, "masks": masks})
 
 def test_images_are_checked_for_their_number_type(probe):
     with pytest.raises(InputError, match="expected real numbers"):
