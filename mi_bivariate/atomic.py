@@ -177,6 +177,20 @@ def _file_key(path: Path) -> tuple:
     return ("path", str(Path(path).resolve()))
 
 
+def check_out_file(out: PathLike, flag: str = "--out", example: str = "brdf.npz") -> None:
+    """An output named as a file stem (``X`` for ``X.npz`` and the files beside it) must not name a folder,
+    an existing one or one written with a trailing separator (``o/new/``, which the path would otherwise read
+    as the file ``o/new.npz``, beside the folder), nor a device, pipe or socket (``/dev/null`` would become
+    ``/dev/null.npz``): :class:`InputError` naming ``out``, its hint naming ``flag`` and ``example``, a file
+    name the caller writes."""
+    text = os.fspath(out)
+    if text and (Path(text).is_dir() or text.endswith(("/", os.sep))):
+        raise InputError(text, f"{flag} is a folder", "give a file name, e.g. " + os.path.join(text, example))
+    if text and Path(text).exists() and not Path(text).is_file():
+        raise InputError(text, f"{flag} is a device, pipe or socket, not a file",
+                         "the command writes files: give a file name, e.g. " + example)
+
+
 def check_outputs(outputs: Iterable[PathLike], inputs: Iterable[Optional[PathLike]] = (),
                   flag: str = "--out") -> None:
     """Refuse outputs that would clobber an input or cannot be written, before any work is done.

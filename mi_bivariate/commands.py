@@ -32,7 +32,7 @@ from mi_bivariate import evaluate as ev
 from mi_bivariate import export, lighting, limits, merl
 from mi_bivariate import recover as rec
 from mi_bivariate import render, spherefit, synthesis, training_set
-from mi_bivariate.atomic import atomic_paths, check_outputs, same_file
+from mi_bivariate.atomic import atomic_paths, check_out_file, check_outputs, same_file
 from mi_bivariate.errors import InputError, InputWarning
 from mi_bivariate.geometry import Intrinsics
 from mi_bivariate.images import load_image, load_mask, write_exr, write_png
@@ -99,11 +99,8 @@ def _check_out_file(out: Optional[str], example: str = "brdf.npz") -> None:
     """``--out`` naming a folder, an existing one or one written with a trailing separator (``o/new/``,
     which the path would otherwise read as the file ``o/new.npz``), is refused: the command writes files,
     not into a folder (``example``: a file name the command writes, for the hint)."""
-    if out and (Path(out).is_dir() or out.endswith(("/", os.sep))):
-        raise InputError(out, "--out is a folder", "give a file name, e.g. " + os.path.join(out, example))
-    if out and Path(out).exists() and not Path(out).is_file():  # /dev/null would become /dev/null.npz
-        raise InputError(out, "--out is a device, pipe or socket, not a file",
-                         "the command writes files: give a file name, e.g. " + example)
+    if out:
+        check_out_file(out, "--out", example)
 
 
 def _check_out_folder(out: Path, flag: str = "--out") -> None:

@@ -6,7 +6,7 @@ import os
 from pathlib import Path
 from typing import Iterable, List
 
-from mi_bivariate.atomic import atomic_paths, check_outputs
+from mi_bivariate.atomic import atomic_paths, check_out_file, check_outputs
 from mi_bivariate.common import PathLike
 from mi_bivariate.errors import InputError
 from mi_bivariate.recover import Recovery
@@ -55,11 +55,13 @@ def write_outputs(result: Recovery, out: PathLike, merl: bool = False, report: b
 
     Raises:
         InputError: naming ``out``, if an output would replace one of those inputs,
-            or cannot be written (a directory, a folder that is not writable).
+            or cannot be written (a directory, a folder that is not writable), or ``out`` names a
+            folder (an existing one, or one ending in a separator: give a file name in it).
     """
     paths = output_paths(out, merl=merl, report=report)
     protected = recovery_input_files(result) + [Path(p) for p in inputs]
     try:
+        check_out_file(out, flag="out")  # a folder's name would write X.npz beside it, not in it
         check_outputs(paths, protected, flag="out")
     except InputError as exc:
         raise InputError("out", f"{exc.source}: {exc.problem}", exc.hint) from None

@@ -270,6 +270,23 @@ def test_write_outputs_never_replaces_the_recoverys_inputs(tmp_path):
     assert [p.name for p in paths] == ["brdf.npz", "brdf.exr"] and all(p.is_file() for p in paths)
 
 
+
+def test_write_outputs_refuses_a_folder_as_out(tmp_path):
+    """Before, ``write_outputs(result, folder)`` wrote ``folder.npz`` and ``folder.exr`` beside the folder, not
+    in it (and ``"new/"`` wrote ``new.npz``), where the docstring promised an InputError for a directory; the
+    CLI's --out refused both. Now one check (atomic.check_out_file) refuses both, naming ``out``."""
+    probe = probes.Probe.constant([1.0, 0.9, 0.8], res=16)
+    shot = render.render_sphere({"type": "diffuse"}, probe, resolution=32, spp=2, seed=0)
+    result = recover(shot.image, probe, shot.geometry, n_normals=200, n_dirs=300, grid=(8, 8), basis_prior=None,
+                     noise=None)
+    folder = tmp_path / "outputs"
+    folder.mkdir()
+    for out in (folder, str(tmp_path / "new") + "/"):
+        with pytest.raises(InputError, match="out is a folder") as info:
+            write_outputs(result, out, report=False)
+        assert info.value.source == "out", str(info.value)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["outputs"] and not any(folder.iterdir())
+
 def test_demo_runs_small(tmp_path, capsys):
     """The README's main command, at a small size."""
     code = cli_main(["demo", "--out", str(tmp_path), "--resolution", "64", "--spp", "16"])
