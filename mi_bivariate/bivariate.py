@@ -144,7 +144,10 @@ class BivariateBRDF:
         return np.where(known[..., None], value, np.nan)
 
     def eval(self, theta_h, theta_d) -> np.ndarray:
-        """Bilinear (in st) lookup at half/difference angles (radians, broadcast) -> ``(..., 3)`` 1/sr."""
+        """Bilinear (in st) lookup at half/difference angles (radians, broadcast) -> ``(..., 3)`` 1/sr.
+
+        Angles outside ``[0, pi/2]`` are clamped to the table's edge (a negative theta_h reads as 0, beyond
+        pi/2 as the last node), as :meth:`eval_st` clamps s and t; NaN angles give NaN."""
         s, t = st_from_half_diff(np.asarray(theta_h, np.float64), np.asarray(theta_d, np.float64))
         return self.eval_st(s, t)
 

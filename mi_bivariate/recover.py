@@ -272,7 +272,11 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
         _check_angle("footprint", footprint)
     if saturation is not None and not (isinstance(saturation, numbers.Real) and saturation > 0.0):
         raise InputError("saturation", f"must be a positive number or None, got {saturation!r}")
-    solve_mod.check_alpha(alpha)  # fail before the lighting matrix
+    given = solve_mod.check_alpha(alpha)  # fail before the lighting matrix
+    if not isinstance(given, str) and np.any(given == 0.0):
+        warnings.warn("alpha 0: no smoothness prior, so the nodes the image barely constrains are free, and the "
+                      "table can reach absurd values there (measured: 4e19 1/sr on a 64 px sphere); use the "
+                      "default ('discrepancy') or a small alpha such as 1e-4", InputWarning, stacklevel=2)
     solve_mod.check_pair_rule(pair_rule)
     basis = _basis_prior(basis_prior, n_t, n_s)  # its type and grid checked before the lighting matrix
     if image_weights not in IMAGE_WEIGHTS:
@@ -368,7 +372,8 @@ def _basis_prior(value: Union[BasisPrior, None, str], n_t: int, n_s: int) -> Opt
     if value is None or isinstance(value, BasisPrior):
         if value is not None and (value.n_t, value.n_s) != (n_t, n_s):
             raise InputError("basis_prior", f"is learnt on a {value.n_t} x {value.n_s} grid, the recovery "
-                             f"uses {n_t} x {n_s}", "learn one on this grid (mi-bivariate learn-prior)")
+                             f"uses {n_t} x {n_s}", "learn one on this grid (mi-bivariate learn-prior --grid), or "
+                             "recover without it (basis_prior=None; recover --no-basis-prior)")
         return value
     if value != "default":
         raise InputError("basis_prior", f"must be 'default', None or a BasisPrior, got {value!r}")

@@ -55,7 +55,7 @@ def ensure_variant(variant: Optional[str] = None, vectorised: bool = False) -> s
             variant = current
         else:
             variant = os.environ.get("MI_BIVARIATE_VARIANT") or DEFAULT_VARIANT
-            source = "MI_BIVARIATE_VARIANT"
+            source = "MI_BIVARIATE_VARIANT" if os.environ.get("MI_BIVARIATE_VARIANT") else "default variant"
     choices = [v for v in SUPPORTED_VARIANTS if not (vectorised and v == "scalar_rgb")]
     if variant not in choices:
         raise InputError(source, f"unsupported Mitsuba variant {variant!r}", f"use one of {', '.join(choices)}")

@@ -432,3 +432,34 @@ def test_recover_from_photo_keeps_to_the_users_mask(probe, monkeypatch):
     assert seen["masks"] and all(m is not None and np.array_equal(m, mask) for m in seen["masks"])
     with pytest.raises(InputError, match="both mask and masks"):
         recover_mod.recover_from_photo(IMAGE, probe, mask=mask, masks=mask, **SMALL)
+
+
+@pytest.mark.parametrize("alpha", [0.0, (1e-2, 0.0, 1e-2)])
+def test_alpha_zero_warns_that_the_table_is_unconstrained(probe, no_work, alpha):
+    """alpha 0 (the unregularised fit, the paper's ablation) is allowed, but without a word it gave tables of
+    4e19 1/sr on a small sphere: it now warns, before any work."""
+    with pytest.warns(InputWarning, match="alpha 0: no smoothness prior"), \
+            pytest.raises(AssertionError, match="started work"):
+        recover(IMAGE, probe, SPHERE, **{**SMALL, "alpha": alpha})
+
+
+@pytest.mark.parametrize("env", [None, "llvm_ad_rgb"])
+def test_a_variant_that_cannot_start_names_where_it_came_from(monkeypatch, env):
+    """A default variant that fails to start named MI_BIVARIATE_VARIANT even where it was not set."""
+    import mitsuba as mi
+
+    from mi_bivariate import variants
+
+    if env is None:
+        monkeypatch.delenv("MI_BIVARIATE_VARIANT", raising=False)
+    else:
+        monkeypatch.setenv("MI_BIVARIATE_VARIANT", env)
+    monkeypatch.setattr(mi, "variant", lambda: "scalar_rgb")
+
+    def fail(name):
+        raise RuntimeError("no LLVM")
+
+    monkeypatch.setattr(mi, "set_variant", fail)
+    with pytest.raises(InputError, match="cannot start on this machine") as info:
+        variants.ensure_variant(vectorised=True)
+    assert info.value.source == ("default variant" if env is None else "MI_BIVARIATE_VARIANT")
