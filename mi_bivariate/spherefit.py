@@ -104,9 +104,13 @@ class SphereFit:
 
     def summary(self) -> str:
         """One line: centre, radius, residual and confidence."""
-        text = (f"sphere ({self.method}): centre ({self.cx:.2f}, {self.cy:.2f}) px, radius {self.radius:.2f} px, "
-                f"boundary RMS {self.rms_px:.3f} px over {self.n_boundary} points "
-                f"({100 * self.inlier_fraction:.0f}% inliers, {100 * self.arc_fraction:.0f}% of the outline)")
+        text = f"sphere ({self.method}): centre ({self.cx:.2f}, {self.cy:.2f}) px, radius {self.radius:.2f} px, "
+        if self.method == "user":  # given, not fitted: no inliers or arc of its own, only how the image agrees
+            text += (f"the image's outline {self.rms_px:.3f} px RMS from it over {self.n_boundary} points"
+                     if self.n_boundary else "not checked against the image (no outline found)")
+        else:
+            text += (f"boundary RMS {self.rms_px:.3f} px over {self.n_boundary} points "
+                     f"({100 * self.inlier_fraction:.0f}% inliers, {100 * self.arc_fraction:.0f}% of the outline)")
         if isinstance(self.geometry, PerspectiveSphereGeometry):
             text += f", distance {self.geometry.distance:.4g} radii" if self.geometry.radius == 1.0 else \
                 f", distance {self.geometry.distance:.4g}"

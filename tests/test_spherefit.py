@@ -95,6 +95,10 @@ def test_explicit_sphere_wins_and_warns_on_disagreement():
     with pytest.warns(InputWarning, match="away from the silhouette"):
         fit = spherefit.fit_sphere(image, sphere=(70.0, 60.0, 40.0))
     assert (fit.cx, fit.cy, fit.radius, fit.method) == (70.0, 60.0, 40.0, "user")
+    # Its summary says how far the image's outline is from it (it printed "100% inliers, 100% of the outline",
+    # numbers a given sphere does not have, beside an RMS of 6 px)
+    assert "inliers" not in fit.summary() and f"the image's outline {fit.rms_px:.3f} px RMS from it" in fit.summary()
+    assert 4.0 < fit.rms_px < 8.0
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         fit = spherefit.fit_sphere(image, sphere=(64.2, 60.0, 40.0))
