@@ -100,6 +100,7 @@ def show_difference(ax: Any, image: np.ndarray, reference: np.ndarray, mask: np.
     ax.set_axis_off()
     bar = ax.figure.colorbar(im, ax=ax, fraction=0.046, pad=0.02)
     bar.set_label("% of the mean pixel" if scale == 100.0 else f"x{scale:g} of the mean pixel", fontsize=7)
+    bar.ax.tick_params(labelsize=7)  # the axes' tick size: "350" or "4500" stays inside a fixed layout
 
 
 def plot_table(ax: Any, brdf: BivariateBRDF, title: str, channel: Optional[int] = None,
@@ -116,7 +117,9 @@ def plot_table(ax: Any, brdf: BivariateBRDF, title: str, channel: Optional[int] 
     ax.set_xlabel("theta_d (deg)", fontsize=8)
     ax.set_ylabel("theta_h (deg)", fontsize=8)
     ax.set_title(title, fontsize=9)
-    ax.figure.colorbar(im, ax=ax, fraction=0.046, pad=0.02, label="log10 f (1/sr)")
+    bar = ax.figure.colorbar(im, ax=ax, fraction=0.046, pad=0.02)
+    bar.set_label("log10 f (1/sr)", fontsize=8)
+    bar.ax.tick_params(labelsize=7)  # as the axes' ticks: "-1.25" clears the next panel's label
     return im
 
 
@@ -247,7 +250,9 @@ def write_recovery_report(result: Any, path: PathLike, rerender: Optional[np.nda
                              fontsize=9)
         axes[1, 1].set_xlabel("s = 2 theta_d / pi", fontsize=8)
         axes[1, 1].set_ylabel("t = sqrt(2 theta_h / pi)", fontsize=8)
-        fig.colorbar(im, ax=axes[1, 1], fraction=0.046, pad=0.02)
+        bar = fig.colorbar(im, ax=axes[1, 1], fraction=0.046, pad=0.02)
+        bar.set_label("1 - posterior / prior variance", fontsize=7)
+        bar.ax.tick_params(labelsize=7)
         # log10 values on linear axes: the same picture as log axes without their
         # mathtext tick labels (the slowest part of drawing this figure).
         seen = np.log10(np.maximum(luminance(obs.values), 1e-6))

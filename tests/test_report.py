@@ -167,3 +167,26 @@ def test_a_frozen_layout_stays_frozen_under_autolayout(tmp_path):
         report.save_figure(fig, tmp_path / "f.png", dpi=report.REPORT_DPI, tight=False, close=False)
     assert draws == [1]
     plt.close(fig)
+
+
+@pytest.mark.parametrize("case", ["residual x5", "residual x30", "table 10^-2.2..10^-0.3"])
+def test_report_layout_holds_for_wide_colour_scale_ticks(tmp_path, recovery, monkeypatch, case):
+    """Colour scales whose tick labels are wider than the fixture's: a residual map up to 500% or 4500%
+    of the mean pixel (glossy and metal photos reach 170-390%; its bar's label left the figure) and a
+    table whose scale ticks at -2.25, -2.00, ... (its bar's label ran into the next panel's)."""
+    import dataclasses
+
+    import matplotlib.pyplot as plt
+
+    from mi_bivariate.bivariate import BivariateBRDF
+
+    result = recovery[0]
+    if case.startswith("residual"):
+        result = dataclasses.replace(result, predicted=result.predicted * float(case.split("x")[1]))
+    else:
+        table = np.broadcast_to(np.logspace(-2.2, -0.3, 32)[:, None, None], (32, 32, 3))
+        result = dataclasses.replace(result, brdf=BivariateBRDF(table))
+    fig = _report_figure((result,), tmp_path, monkeypatch)
+    problems = _layout_problems(fig)
+    plt.close(fig)
+    assert problems == []
