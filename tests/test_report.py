@@ -190,3 +190,24 @@ def test_report_layout_holds_for_wide_colour_scale_ticks(tmp_path, recovery, mon
     problems = _layout_problems(fig)
     plt.close(fig)
     assert problems == []
+
+
+@pytest.mark.parametrize("n_reasons", [1, 2])
+def test_report_shows_a_whole_inadequate_verdict(tmp_path, recovery, monkeypatch, n_reasons):
+    """An inadequate verdict's reasons make the adequacy line 300-450 characters: on one line it ran off
+    both sides of the figure (royal_esplanade_1k's 'INADEQUATE: the environment has almost no detail ...'
+    lost its start and its end). Wrapped, every line of it stays inside and clear of the panels' titles."""
+    import dataclasses
+
+    import matplotlib.pyplot as plt
+
+    reasons = ["the lighting matrix has numerical rank 300 of 1024 nodes (below 50%): only 300 observed normals "
+               "for 1024 nodes (use more pixels: a larger sphere or more normals)",
+               "the environment has almost no detail finer than 3 degrees (detail 0.020 < 0.06): sharp specular "
+               "lobes cannot be told from blurred ones"][-n_reasons:]
+    adequacy = dataclasses.replace(recovery[0].adequacy, adequate=False, reasons=reasons)
+    fig = _report_figure((dataclasses.replace(recovery[0], adequacy=adequacy),), tmp_path, monkeypatch)
+    problems, text = _layout_problems(fig), fig._suptitle.get_text()
+    plt.close(fig)
+    assert problems == []
+    assert text.replace("\n", " ") == adequacy.summary() and text.count("\n") == n_reasons
