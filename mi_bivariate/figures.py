@@ -22,6 +22,7 @@ from mi_bivariate.common import PathLike
 from mi_bivariate.report import (
     exposure_of,
     incident_plane,
+    node_extent,
     plot_table,
     pyplot,
     save_figure,
@@ -222,8 +223,10 @@ def plot_error_curves(records: Sequence[dict], metrics: Sequence[str] = ("eq1", 
 
 
 def _observation_image(ax: Any, omap: np.ndarray, title: str) -> None:
-    im = ax.imshow(np.log10(np.maximum(omap, 1e-3)), origin="lower", extent=(0, 1, 0, 1), cmap="cividis",
-                   aspect="auto")
+    im = ax.imshow(np.log10(np.maximum(omap, 1e-3)), origin="lower", extent=node_extent(*omap.shape[:2]),
+                   cmap="cividis", aspect="auto")
+    ax.set_xlim(0.0, 1.0)
+    ax.set_ylim(0.0, 1.0)
     ax.set_title(title, fontsize=9)
     ax.set_xlabel("s = 2 theta_d / pi", fontsize=8)
     ax.set_ylabel("t = sqrt(2 theta_h / pi)", fontsize=8)

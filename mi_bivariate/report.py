@@ -106,13 +106,25 @@ def show_difference(ax: Any, image: np.ndarray, reference: np.ndarray, mask: np.
     bar.ax.tick_params(labelsize=7)  # the axes' tick size: "350" or "4500" stays inside a fixed layout
 
 
+def node_extent(n_t: int, n_s: int) -> Tuple[float, float, float, float]:
+    """``imshow`` extent that centres each cell of an ``(n_t, n_s)`` st map on its node (s, t = i / (n - 1)).
+
+    ``extent=(0, 1, 0, 1)`` centres cell i at (i + 0.5) / n instead: half a cell off at the edges
+    (on 8 x 8, theta_h's second node, 1.8 degrees, was drawn at 3.2). Show it with limits 0..1.
+    """
+    ds, dt = 0.5 / max(n_s - 1, 1), 0.5 / max(n_t - 1, 1)
+    return (-ds, 1.0 + ds, -dt, 1.0 + dt)
+
+
 def plot_table(ax: Any, brdf: BivariateBRDF, title: str, channel: Optional[int] = None,
                vmin: Optional[float] = None, vmax: Optional[float] = None) -> Any:
     """log10 of a bivariate table over the st plane (x: s ~ theta_d, y: t ~ theta_h, specular at the bottom)."""
     table = brdf.table.mean(axis=2) if channel is None else brdf.table[..., channel]
     logt = np.log10(np.maximum(table, 1e-4))
-    im = ax.imshow(logt, origin="lower", extent=(0, 1, 0, 1), cmap="viridis", vmin=vmin, vmax=vmax,
+    im = ax.imshow(logt, origin="lower", extent=node_extent(*logt.shape), cmap="viridis", vmin=vmin, vmax=vmax,
                    aspect="auto")
+    ax.set_xlim(0.0, 1.0)
+    ax.set_ylim(0.0, 1.0)
     ticks = np.array([0, 15, 30, 45, 60, 75, 90])
     ax.set_xticks(ticks / 90.0, [f"{t}" for t in ticks], fontsize=7)
     t_ticks = np.array([0, 1, 5, 15, 30, 60, 90])
@@ -244,8 +256,10 @@ def write_recovery_report(result: Any, path: PathLike, rerender: Optional[np.nda
         # Which nodes the photo measured and which the priors supplied: how much of each node's
         # uncertainty under the priors alone the image removed (1: all, 0: none), worst channel.
         confidence = np.min(np.asarray(result.solution.measured), axis=-1)
-        im = axes[1, 1].imshow(confidence, origin="lower", extent=(0, 1, 0, 1), cmap="magma", vmin=0.0, vmax=1.0,
-                               aspect="auto")
+        im = axes[1, 1].imshow(confidence, origin="lower", extent=node_extent(*confidence.shape), cmap="magma",
+                               vmin=0.0, vmax=1.0, aspect="auto")
+        axes[1, 1].set_xlim(0.0, 1.0)
+        axes[1, 1].set_ylim(0.0, 1.0)
         axes[1, 1].contour(np.linspace(0, 1, confidence.shape[1]), np.linspace(0, 1, confidence.shape[0]),
                            confidence, levels=[0.5], colors="w", linewidths=0.8)
         axes[1, 1].set_title(f"measured by the image (1) or supplied by the priors (0)\n"

@@ -211,3 +211,33 @@ def test_report_shows_a_whole_inadequate_verdict(tmp_path, recovery, monkeypatch
     plt.close(fig)
     assert problems == []
     assert text.replace("\n", " ") == adequacy.summary() and text.count("\n") == n_reasons
+
+
+@pytest.mark.parametrize("n_t, n_s", [(8, 8), (32, 16)])
+def test_st_maps_centre_each_cell_on_its_node(n_t, n_s):
+    """A table's cell i is drawn centred on its node i / (n - 1), where the axes' ticks say it is (extent
+    (0, 1, 0, 1) centred it at (i + 0.5) / n: on 8 x 8, theta_h's node at 1.8 degrees was drawn at 3.2)."""
+    import matplotlib.pyplot as plt
+
+    from mi_bivariate.bivariate import BivariateBRDF
+
+    fig, ax = plt.subplots()
+    image = report.plot_table(ax, BivariateBRDF(np.full((n_t, n_s, 3), 0.1)), "t")
+    x0, x1, y0, y1 = image.get_extent()
+    np.testing.assert_allclose(x0 + (np.arange(n_s) + 0.5) * (x1 - x0) / n_s, np.linspace(0, 1, n_s), atol=1e-12)
+    np.testing.assert_allclose(y0 + (np.arange(n_t) + 0.5) * (y1 - y0) / n_t, np.linspace(0, 1, n_t), atol=1e-12)
+    assert ax.get_xlim() == (0.0, 1.0) and ax.get_ylim() == (0.0, 1.0)
+    plt.close(fig)
+
+
+def test_confidence_map_lines_up_with_its_contour(tmp_path, recovery, monkeypatch):
+    """The report's confidence cells sit on the nodes, where its 0.5 contour is drawn (np.linspace(0, 1, n))."""
+    import matplotlib.pyplot as plt
+
+    fig = _report_figure(recovery, tmp_path, monkeypatch)
+    ax = fig.axes[4]
+    n_t, n_s = ax.images[0].get_array().shape
+    x0, x1, y0, y1 = ax.images[0].get_extent()
+    plt.close(fig)
+    np.testing.assert_allclose([x0 + 0.5 * (x1 - x0) / n_s, x1 - 0.5 * (x1 - x0) / n_s,
+                                y0 + 0.5 * (y1 - y0) / n_t, y1 - 0.5 * (y1 - y0) / n_t], [0, 1, 0, 1], atol=1e-12)
