@@ -207,6 +207,19 @@ def predicted_image(result: Any, index: int = 0) -> Tuple[Optional[np.ndarray], 
     return predicted, observed
 
 
+def _input_title(result: Any) -> str:
+    """The input panel's title: the photo's file name (``recover`` records it) and the probe's, each shortened
+    from the left to fit one line over the panel."""
+    def short(text: str, width: int) -> str:
+        name = Path(text).name or text
+        return name if len(name) <= width else "..." + name[-(width - 3):]
+
+    photos = result.brdf.provenance.get("photos") or []
+    probe = getattr(result.probes[0], "source", None) if result.probes else None
+    return (f"input: {short(str(photos[0]), 26) if photos else 'image'}"
+            + (f", probe {short(str(probe), 22)}" if probe else ""))
+
+
 def write_recovery_report(result: Any, path: PathLike, rerender: Optional[np.ndarray] = None,
                           path_trace: bool = False) -> Path:
     """PNG report of a :class:`~mi_bivariate.recover.Recovery`.
@@ -245,7 +258,7 @@ def write_recovery_report(result: Any, path: PathLike, rerender: Optional[np.nda
         if image is not None:
             mask = result.geometries[0].surface_maps(image.shape[1], image.shape[0]).mask
             exposure = exposure_of(image, mask)
-            show_image(axes[0, 0], image, "input", exposure)
+            show_image(axes[0, 0], image, _input_title(result), exposure)
             if rerender is not None:
                 show_image(axes[0, 1], rerender, label, exposure)
                 show_difference(axes[0, 2], rerender, reference, mask, "|difference| x100 / mean")

@@ -241,3 +241,27 @@ def test_confidence_map_lines_up_with_its_contour(tmp_path, recovery, monkeypatc
     plt.close(fig)
     np.testing.assert_allclose([x0 + 0.5 * (x1 - x0) / n_s, x1 - 0.5 * (x1 - x0) / n_s,
                                 y0 + 0.5 * (y1 - y0) / n_t, y1 - 0.5 * (y1 - y0) / n_t], [0, 1, 0, 1], atol=1e-12)
+
+
+def test_report_names_its_photo_and_probe(tmp_path, recovery, monkeypatch):
+    """The report did not say which photo and probe it was made from: the input panel names both (the file
+    names; a long one shortened from the left), and the layout stays clean."""
+    import dataclasses
+
+    import matplotlib.pyplot as plt
+
+    long_name = "/captures/" + "x" * 80 + "_sphere.exr"
+    brdf = dataclasses.replace(recovery[0].brdf) if dataclasses.is_dataclass(recovery[0].brdf) else recovery[0].brdf
+    old = dict(brdf.provenance)
+    try:
+        brdf.provenance["photos"] = [long_name]
+        fig = _report_figure(recovery, tmp_path, monkeypatch)
+        title = fig.axes[0].get_title()
+        problems = _layout_problems(fig)
+        plt.close(fig)
+    finally:
+        brdf.provenance.clear()
+        brdf.provenance.update(old)
+    assert title.startswith("input: ...") and title.endswith("x_sphere.exr, probe synthetic")
+    assert len(title) == len("input: , probe synthetic") + 26
+    assert problems == []
