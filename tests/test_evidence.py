@@ -195,3 +195,48 @@ def test_evidence_across_prior_weights_is_the_limit_of_proper_ones():
         limit.append(_data_space_log_evidence(A, y, lam * p + 1e-6 * np.ones((N, N)) / N))
     np.testing.assert_allclose(got[1] - got[0], limit[1] - limit[0], rtol=1e-4)
     assert abs(got[1] - got[0]) > 0.1
+
+
+def _weighted(data, k):
+    """``(A, y)`` of channel ``k`` as the solve normalises them: ``L / (sigma sqrt(M))``, ``I / (sigma sqrt(M))``."""
+    m = data.n_rows
+    w = 1.0 / (data.sigma[:, k] * np.sqrt(m))
+    return data.lighting[:, :, k].astype(np.float64) * w[:, None], data.observations[:, k].astype(np.float64) * w
+
+
+@pytest.mark.parametrize("table_prior", [False, True])
+def test_solve_reports_the_data_space_evidence(table_prior):
+    """The evidence ``solve`` reports (its objective, log det and prior pdet together) against the marginal
+    likelihood written out in data space, for a problem whose constraints are inactive (the MAP estimate
+    is then the Gaussian posterior mean, where the formula is exact). Without a table prior: the smoothness
+    prior's proper limit (as above); with a zero-mean table prior (precision ``1 / (M std^2)``, of full
+    rank): the proper Gaussian itself, whose evidence is the data-space one with no constant left out
+    (``det C = det(G + Q) / det Q`` and ``y^T C^-1 y = Phi``); its zero mean starts the solve from an
+    empty passive set."""
+    L, I = _problem(8)
+    prior = default_prior().resampled(N_T, N_S)
+    data = solve.prepare_data_term(L, I)
+    m, alpha = data.n_rows, 1e-2
+    kwargs = {}
+    if table_prior:
+        std = np.full((N_T, N_S, 3), 3.0) * data.level  # weak beside the data: no node is pulled to zero
+        kwargs = dict(mean=np.zeros((N_T, N_S, 3)), mean_std=std)
+    result = solve.solve_prepared(data, prior, alpha, **kwargs)
+    for k in range(3):
+        A, y = _weighted(data, k)
+        truth = {}
+        for pair, sol in result.pairs.items():
+            assert np.all(sol.table[:, :, k] > 0)  # no active constraint: the formula is exact
+            q = alpha / (N * data.level[k] ** 2) * prior.penalty_matrix(pair)
+            if table_prior:
+                q = q + np.diag(1.0 / (m * kwargs["mean_std"][:, :, k].ravel() ** 2))
+            else:
+                q = q + 1e-6 * np.ones((N, N)) / N
+            truth[pair] = _data_space_log_evidence(A, y, q)
+        got = result.pairs["gloss"].log_evidence[k] - result.pairs["diffuse"].log_evidence[k]
+        expected = truth["gloss"] - truth["diffuse"]
+        assert got == pytest.approx(expected, rel=1e-4, abs=1e-6 * m)
+        assert abs(expected) > 0.1  # the pairs differ in evidence
+        if table_prior:  # a proper prior: no constant left out, the values themselves agree
+            for pair, sol in result.pairs.items():
+                assert sol.log_evidence[k] == pytest.approx(truth[pair], rel=1e-6)
