@@ -240,3 +240,28 @@ def test_solve_reports_the_data_space_evidence(table_prior):
         if table_prior:  # a proper prior: no constant left out, the values themselves agree
             for pair, sol in result.pairs.items():
                 assert sol.log_evidence[k] == pytest.approx(truth[pair], rel=1e-6)
+
+
+def test_log_dets_against_slogdet_and_a_singular_precision_against_its_eigenvalues():
+    """``log_det_spd`` and ``log_det_banded`` (whose banded Cholesky must refuse a matrix that is not
+    positive definite and hand it to the dense route) against ``slogdet``; ``penalty_log_pdet`` of a
+    rank-deficient precision that is not a graph Laplacian against its non-zero eigenvalues."""
+    from mi_bivariate.solve.evidence import log_det_spd
+
+    rng = np.random.default_rng(9)
+    a = rng.standard_normal((40, 12))
+    spd = a.T @ a + 0.1 * np.eye(12)
+    assert log_det_spd(spd) == pytest.approx(np.linalg.slogdet(spd)[1], rel=1e-12)
+    # Tridiagonal, symmetric, two negative eigenvalues: det > 0 but not positive definite.
+    indefinite = np.diag(np.r_[1.0, -2.0, -3.0, 2.0, 1.5, 1.0]) + 0.1 * (np.eye(6, k=1) + np.eye(6, k=-1))
+    sign, value = np.linalg.slogdet(indefinite)
+    assert sign > 0 and np.linalg.eigvalsh(indefinite).min() < 0
+    assert log_det_banded(indefinite) == pytest.approx(value, rel=1e-12)
+    assert log_det_banded(indefinite, band=1) == pytest.approx(value, rel=1e-12)
+    b = rng.standard_normal((N - 3, N))
+    p = b.T @ b  # PSD of rank N - 3, rows not summing to zero
+    w = np.linalg.eigvalsh(p)
+    keep = w > 1e-10 * w.max()
+    value, rank = penalty_log_pdet(p)
+    assert rank == N - 3 == keep.sum()
+    assert value == pytest.approx(np.sum(np.log(w[keep])), rel=1e-10)
