@@ -265,3 +265,34 @@ def test_log_dets_against_slogdet_and_a_singular_precision_against_its_eigenvalu
     value, rank = penalty_log_pdet(p)
     assert rank == N - 3 == keep.sum()
     assert value == pytest.approx(np.sum(np.log(w[keep])), rel=1e-10)
+
+
+@pytest.mark.parametrize("alpha", [None, "gcv"])
+def test_second_stage_is_the_stacked_nnls_with_the_basis_prediction(alpha):
+    """Stage 2 of ``solve_stages``: the basis prior's prediction from stage 1's table, resolution and
+    posterior spread (in that order) joins the objective as ``(1/M) ||(f - mean) / std||^2`` at stage 1's
+    alphas (with GCV, choosing again with the basis prior would move them); every channel's table
+    against ``scipy.optimize.nnls`` on the stacked least-squares problem."""
+    import scipy.optimize as sopt
+
+    L, I = _problem(6)
+    prior = default_prior().resampled(N_T, N_S)
+    rng = np.random.default_rng(7)
+    t = np.linspace(0, 1, N_T)[:, None, None]
+    tables = {f"m{i}": (rng.uniform(0.05, 0.5) + rng.uniform(1, 30) * np.exp(-(t / rng.uniform(0.1, 0.4)) ** 2))
+              * rng.uniform(0.5, 1.0, 3) * np.ones((1, N_S, 1)) for i in range(8)}
+    basis = BasisPrior.learn(tables, components=3)
+    data = solve.prepare_data_term(L, I)
+    first = solve.solve_prepared(data, prior, alpha)
+    both = solve_stages(data, prior, alpha, basis)
+    np.testing.assert_array_equal(both.alphas, first.alphas)
+    mean, std = basis.predict(first.table, first.resolution, first.posterior_std)
+    m = data.n_rows
+    for k, pair in enumerate(both.winner):
+        A, y = _weighted(data, k)
+        lam = both.alphas[k] / (N * data.level[k] ** 2)
+        w = 1.0 / (std[:, :, k].ravel() * np.sqrt(m))
+        stacked = np.vstack([A, np.sqrt(lam) * prior.regulariser(pair).toarray(), np.diag(w)])
+        rhs = np.concatenate([y, np.zeros(stacked.shape[0] - len(y) - N), mean[:, :, k].ravel() * w])
+        expected, _ = sopt.nnls(stacked, rhs, maxiter=100 * N)
+        np.testing.assert_allclose(both.table[:, :, k].ravel(), expected, rtol=1e-5, atol=1e-6 * expected.max())
