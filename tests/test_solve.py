@@ -625,3 +625,22 @@ def test_kkt_violation_sees_an_infeasible_point_with_a_zero_gradient():
     G, b = np.eye(2), np.array([-1.0, 1.0])
     assert kkt_violation(G, b, np.array([-1.0, 1.0])) >= 1.0
     assert kkt_violation(G, b, np.array([0.0, 1.0])) == 0.0
+
+
+@pytest.mark.parametrize("lower", [False, True])
+def test_inverse_diagonals_without_the_priors_entries_match_dense(lower):
+    """Without the prior's entries, diag(X^-1 gram) is read from one triangle T of potri's inverse as
+    ``sum_j P_ij + sum_j P_ji - P_ii`` (``P = T * gram``): against the dense inverse."""
+    import scipy.linalg as sla
+
+    from mi_bivariate.solve.common import inverse_diagonals
+
+    rng = np.random.default_rng(8)
+    n = 30
+    b_mat = rng.standard_normal((80, n))
+    gram = b_mat.T @ b_mat
+    x = gram + np.diag(rng.uniform(0.5, 2.0, n))
+    var, resolution = inverse_diagonals(x, gram, sla.cho_factor(x, lower=lower))
+    inv = np.linalg.inv(x)
+    np.testing.assert_allclose(var, np.diag(inv), rtol=1e-10)
+    np.testing.assert_allclose(resolution, np.diag(inv @ gram), rtol=0, atol=1e-10)
