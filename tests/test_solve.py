@@ -644,3 +644,17 @@ def test_inverse_diagonals_without_the_priors_entries_match_dense(lower):
     inv = np.linalg.inv(x)
     np.testing.assert_allclose(var, np.diag(inv), rtol=1e-10)
     np.testing.assert_allclose(resolution, np.diag(inv @ gram), rtol=0, atol=1e-10)
+
+
+def test_check_alpha_accepts_exactly_zero_and_its_documented_range():
+    """Given alphas: 0, or between 1e-12 and 1e6 (beyond, the normal equations lose the data term or
+    the prior in float64), one or three of them."""
+    from mi_bivariate.solve.common import ALPHA_RANGE
+
+    assert ALPHA_RANGE == (1e-12, 1e6)
+    np.testing.assert_array_equal(check_alpha(0.0), np.zeros(3))
+    np.testing.assert_array_equal(check_alpha([1e-12, 1e6, 0.0]), [1e-12, 1e6, 0.0])
+    assert check_alpha("0.5")[0] == 0.5
+    for bad in (1e-13, 2e6, [1e-2, 1e-2, 1e7], [1e-2, 5e-13, 1e-2], -1e-3, np.inf, "one", [1.0, 2.0]):
+        with pytest.raises(InputError, match="alpha"):
+            check_alpha(bad)
