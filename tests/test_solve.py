@@ -658,3 +658,31 @@ def test_check_alpha_accepts_exactly_zero_and_its_documented_range():
     for bad in (1e-13, 2e6, [1e-2, 1e-2, 1e7], [1e-2, 5e-13, 1e-2], -1e-3, np.inf, "one", [1.0, 2.0]):
         with pytest.raises(InputError, match="alpha"):
             check_alpha(bad)
+
+
+def test_discrepancy_alpha_with_a_table_prior_against_direct_solves():
+    """With the basis prior's fixed diagonal Gaussian (``extra = (precision, precision * mean)``) in
+    the system and the right-hand side, the chosen alpha is where the data term of the direct solve
+    ``(gram + lambda P + diag(precision)) f = rhs + precision * mean`` meets the target."""
+    L, I, sigma = _noisy_problem(0.05)
+    data = prepare_data_term(L, I, sigma)
+    penalty = _prior().penalty_matrix("diffuse")
+    rng = np.random.default_rng(12)
+    mean = rng.uniform(0.0, 2.0, (N, 3)) * data.level
+    precision = 0.2 * np.mean(np.diagonal(data.gram, axis1=1, axis2=2), axis=1) * rng.uniform(0.5, 1.5, (N, 3))
+
+    def rho(alpha):
+        out = []
+        for k in range(3):
+            lam = alpha / (N * data.level[k] ** 2)
+            f = np.linalg.solve(data.gram[k] + lam * penalty + np.diag(precision[:, k]),
+                                data.rhs[k] + precision[:, k] * mean[:, k])
+            out.append(data.yy[k] - 2 * f @ data.rhs[k] + f @ data.gram[k] @ f)
+        return float(np.mean(out))
+
+    grid = 10.0 ** np.arange(-2.0, 3.01, 0.5)
+    for alpha in (0.1, 3.0, 100.0):
+        target = rho(alpha)
+        choice = discrepancy_alpha(data, penalty, target=target, alphas=grid, extra=(precision, precision * mean))
+        assert choice.bounded == ""
+        assert rho(choice.alpha) == pytest.approx(target, rel=0.02)
