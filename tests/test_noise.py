@@ -61,3 +61,21 @@ def test_camera_noise_level_is_the_relative_noise_at_the_mean_signal():
     noisy = add_camera_noise(np.full((200, 200, 3), v, np.float32), level, seed=3).astype(np.float64)
     assert np.std(noisy) / v == pytest.approx(level * np.sqrt(1.0 + READ_FRACTION**2), rel=0.01)
     assert np.mean(noisy) == pytest.approx(v, rel=1e-3)
+
+
+def test_noise_reference_is_the_objects_mean_and_every_lit_pixel_gets_noise():
+    """``I_ref`` is the mean over the non-zero pixels (a black background does not dilute it), and a pixel
+    with any non-zero channel is the object's: its black channels get noise too; black pixels stay black."""
+    from mi_bivariate.noise import READ_FRACTION, add_camera_noise, noise_parameters
+
+    image = np.zeros((40, 40, 3))
+    image[10:30, 10:30] = [4.0, 0.0, 2.0]  # the object, one channel black; the rest background
+    level = 0.05
+    ref = 3.0  # mean of the non-zero values
+    a, b = noise_parameters(image, level)
+    assert a == pytest.approx(level**2 * ref, rel=1e-12)
+    assert b == pytest.approx((READ_FRACTION * level * ref) ** 2, rel=1e-12)
+    noisy = add_camera_noise(image, level, seed=1).astype(np.float64)
+    np.testing.assert_array_equal(noisy[:10], 0.0)
+    green = noisy[10:30, 10:30, 1]
+    assert np.std(green) == pytest.approx(np.sqrt(b), rel=0.15)  # read noise alone where the signal is 0
