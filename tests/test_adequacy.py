@@ -163,3 +163,34 @@ def test_detail_cache_matches_fresh_and_follows_content(monkeypatch):
     adequacy.environment_detail(probe, scale_deg=6.0)
     assert len(calls) == 4
     assert probe.content_digest() != Probe(other).content_digest()
+
+
+def test_observation_strength_region_shares_and_verdict_by_hand(monkeypatch):
+    """Closed forms on a 2-D lighting matrix whose rows share their light equally between the nodes they
+    see: a node seen equally by r rows has Kish effective number r and signal r / (nodes per row); it is
+    observed only with both enough rows and enough signal; a region's share of the weight is its share of
+    the nodes when every node is seen alike; with several probes the one with the most detail counts."""
+    n_t = n_s = 4
+    n = n_t * n_s
+    L = np.ones((40, n))  # every row sees every node alike: share 1/n, effective rows 40, signal 40/n
+    effective, signal = adequacy.node_observation_strength(L, n_t, n_s)
+    np.testing.assert_allclose(effective, 40.0)
+    np.testing.assert_allclose(signal, 40.0 / n)
+    assert adequacy.observed_nodes(L, n_t, n_s).all()
+    # Node 0 alone in 3 rows (effective 3, signal 3 + 40/n); the others faintly in 1000 rows.
+    sparse = np.vstack([np.eye(n)[[0, 0, 0]], np.full((1000, n), 1e-3) * (np.arange(n) > 0)])
+    effective, signal = adequacy.node_observation_strength(sparse, n_t, n_s)
+    assert effective.ravel()[0] == pytest.approx(3.0) and signal.ravel()[0] == pytest.approx(3.0)
+    np.testing.assert_allclose(effective.ravel()[1:], 1000.0)
+    np.testing.assert_allclose(signal.ravel()[1:], 1000.0 / (n - 1))
+    observed = adequacy.observed_nodes(sparse, n_t, n_s, min_effective=8.0, min_signal=2.0).ravel()
+    assert not observed[0] and observed[1:].all()  # node 0: signal enough, too few rows
+    # Many rows, too little signal: not observed either.
+    assert not adequacy.observed_nodes(sparse, n_t, n_s, min_effective=8.0, min_signal=100.0).ravel()[1:].any()
+    monkeypatch.setattr(adequacy, "environment_detail", lambda probe: probe)  # a probe given by its detail
+    report = adequacy.analyse(L + np.eye(n)[np.arange(40) % n], n_t, n_s, probes=[0.01, 0.5], warn=False)
+    assert report.detail == [0.01, 0.5] and report.adequate
+    assert not adequacy.analyse(L + np.eye(n)[np.arange(40) % n], n_t, n_s, probes=[0.01, 0.02], warn=False).adequate
+    masks = adequacy.region_masks(n_t, n_s)
+    for name, stats in report.regions.items():
+        assert stats["share"] == pytest.approx(masks[name].sum() / n, rel=0.1)
