@@ -243,3 +243,16 @@ def test_perspective_render_off_axis(probe):
     # The comparison can fail: a mirrored x axis is far off.
     mirrored = PerspectiveSphereGeometry(k, fit.geometry.centre * [-1, 1, 1], 1.0, rot)
     assert angle_deg(mirrored.normals_and_views(256, 192)[0], aov)[inner].max() > 10.0
+
+
+def test_fit_circle_drops_moderate_outliers_beyond_three_mad_sigmas():
+    """Boundary points with 0.3 px noise and 10% of them 4 px outside: the outliers lie beyond
+    max(1 px, 3 MAD-sigmas) of the robust fit and are dropped; the circle is the generating one."""
+    rng = np.random.default_rng(5)
+    phi = rng.uniform(0, 2 * np.pi, 400)
+    radius = 60.0 + 0.3 * rng.standard_normal(400)
+    radius[:40] += 4.0
+    points = np.stack([100.0 + radius * np.cos(phi), 80.0 + radius * np.sin(phi)], axis=1)
+    cx, cy, r, res, inliers = spherefit.fit_circle(points)
+    assert not inliers[:40].any() and inliers[40:].mean() > 0.95
+    assert np.hypot(cx - 100.0, cy - 80.0) < 0.1 and r == pytest.approx(60.0, abs=0.1)
