@@ -256,3 +256,17 @@ def test_fit_circle_drops_moderate_outliers_beyond_three_mad_sigmas():
     cx, cy, r, res, inliers = spherefit.fit_circle(points)
     assert not inliers[:40].any() and inliers[40:].mean() > 0.95
     assert np.hypot(cx - 100.0, cy - 80.0) < 0.1 and r == pytest.approx(60.0, abs=0.1)
+
+
+def test_a_sphere_cut_off_at_the_bottom_of_a_wide_image_is_not_confident():
+    """Width and height are told apart: a disc 2 px past the bottom edge of a 300 x 100 mask (well
+    inside the width) extends beyond the image; a reflection is no camera rotation."""
+    y, x = np.mgrid[0:100, 0:300] + 0.5
+    mask = (x - 150.0) ** 2 + (y - 62.0) ** 2 < 40.0**2
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", InputWarning)
+        fit = spherefit.fit_sphere(mask=mask, warn=False)
+    assert fit.radius == pytest.approx(40.0, abs=0.5)
+    assert not fit.confident and any("extends beyond the 300x100 image" in p for p in fit.problems)
+    with pytest.raises(InputError, match="rotation"):
+        spherefit.fit_sphere(mask=mask, camera_to_world=np.diag([1.0, 1.0, -1.0]))
