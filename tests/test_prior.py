@@ -226,3 +226,14 @@ def test_a_damaged_or_unwritable_reduction_cache_costs_time_only(data_dir, tmp_p
     monkeypatch.setenv("MI_BIVARIATE_CACHE", "/proc")
     unwritable = training_set.reduced_tables(8, 8, names, data_dir)
     assert all(np.array_equal(unwritable[n], first[n]) for n in names)
+
+
+def test_specular_ratio_reads_the_row_nearest_45_degrees_and_the_first_half_of_theta_d():
+    """By hand on an 11 x 9 grid: the off-specular row is round(sqrt(1/2) * 10) = 7 (theta_h = 45 deg at
+    t = sqrt(1/2)), the columns s <= 1/2 (theta_d <= 45 deg) are 0..4; the rest does not count."""
+    grey = np.ones((11, 9))
+    grey[0, :5] = 12.0
+    grey[7, :5] = 3.0
+    grey[:, 5:] = 1000.0  # grazing theta_d: ignored
+    grey[5] = 0.5  # the middle row in t, not theta_h = 45 deg
+    assert specular_ratio(grey) == pytest.approx(4.0, rel=1e-12)
