@@ -237,3 +237,26 @@ def test_specular_ratio_reads_the_row_nearest_45_degrees_and_the_first_half_of_t
     grey[:, 5:] = 1000.0  # grazing theta_d: ignored
     grey[5] = 0.5  # the middle row in t, not theta_h = 45 deg
     assert specular_ratio(grey) == pytest.approx(4.0, rel=1e-12)
+
+
+def test_sigma_maps_floor_and_ceiling_relative_to_each_maps_median():
+    """The derivative RMS per edge, floored at ``floor`` x and capped at ``ceiling`` x its own map's median
+    (s- and t-maps each their own), then divided by the geometric mean of all edge sigmas: by hand."""
+    from mi_bivariate.prior import _sigma_maps
+
+    rng = np.random.default_rng(11)
+    samples = rng.standard_normal((6, 5, 7)) * np.exp(3.0 * rng.standard_normal((1, 5, 7)))  # sigmas over decades
+    samples[:, :, 0] = 0.0  # a flat column: zero s-derivative at its edge
+    d_s = np.diff(samples, axis=2) * 6
+    d_t = np.diff(samples, axis=1) * 4
+    edges = []
+    for d in (d_s, d_t):
+        sig = np.sqrt(np.mean(d**2, axis=0))
+        sig = np.maximum(sig, 0.05 * np.median(sig))
+        edges.append(np.minimum(sig, 3.0 * np.median(sig)))
+    assert np.median(edges[0]) != pytest.approx(np.median(edges[1]), rel=0.1)  # the maps' own medians differ
+    scale = np.exp(np.mean(np.log(np.concatenate([e.ravel() for e in edges]))))
+    (sigma_s, sigma_t), got_scale = _sigma_maps(samples, 0.05, centred=False, ceiling=3.0)
+    assert got_scale == pytest.approx(scale, rel=1e-12)
+    np.testing.assert_allclose(sigma_s[:, :-1], edges[0] / scale, rtol=1e-12)
+    np.testing.assert_allclose(sigma_t[:-1, :], edges[1] / scale, rtol=1e-12)
