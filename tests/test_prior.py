@@ -260,3 +260,25 @@ def test_sigma_maps_floor_and_ceiling_relative_to_each_maps_median():
     assert got_scale == pytest.approx(scale, rel=1e-12)
     np.testing.assert_allclose(sigma_s[:, :-1], edges[0] / scale, rtol=1e-12)
     np.testing.assert_allclose(sigma_t[:-1, :], edges[1] / scale, rtol=1e-12)
+
+
+def test_samples_are_normalised_by_their_median_and_resampling_follows_s_too():
+    """Each (material, channel) is divided by its median over the nodes (not its mean: a grazing corner
+    would decide it); sigma_s varying along s (log-linear at the edge midpoints) is resampled exactly."""
+    from mi_bivariate.prior import _normalised_samples
+
+    table = np.ones((4, 5, 2))
+    table[..., 0] = np.arange(20).reshape(4, 5) + 1.0  # 1 ... 20
+    table[0, -1, 0] = 1000.0  # a grazing corner for the 5: median 11.5 (of 11 and 12), mean 60.25
+    table[..., 1] *= 2.0
+    got = _normalised_samples({"m": table})
+    np.testing.assert_allclose(got[0], table[..., 0] / 11.5, rtol=1e-12)
+    np.testing.assert_allclose(got[1], np.ones((4, 5)), rtol=1e-12)
+    n = 9
+    mids = (np.arange(n - 1) + 0.5) / (n - 1)
+    edge_s = np.exp(0.5 + 2.0 * mids)[None, :] * np.ones((n, 1))
+    sigma_s = np.concatenate([edge_s, edge_s[:, -1:]], axis=1)
+    prior = Prior({p: (sigma_s, np.ones((n, n))) for p in PAIRS})
+    coarse = prior.resampled(n, 5)
+    np.testing.assert_allclose(coarse.pairs["gloss"][0][:, :-1],
+                               np.exp(0.5 + 2.0 * (np.arange(4) + 0.5) / 4)[None, :] * np.ones((n, 1)), rtol=1e-12)
