@@ -157,3 +157,38 @@ def test_predict_without_data_is_the_prior_itself():
         level = np.median(table[..., c])
         np.testing.assert_allclose(mean[..., c].ravel(), level * np.maximum(np.exp(mu) - EPS, 0.0), rtol=1e-9)
         np.testing.assert_allclose(std[..., c].ravel(), level * np.exp(mu) * spread, rtol=1e-9)
+
+
+def test_predict_with_data_is_the_gaussian_posterior_in_data_space():
+    """With every node resolved, the prediction against the posterior written in data space (Woodbury's
+    other side): ``c_hat = Lambda U^T S^-1 (g - mu)``, ``Cov c = Lambda - Lambda U^T S^-1 U Lambda``,
+    ``S = U Lambda U^T + D``, ``D`` the observations' variances ``(rel_std^2 + 0.05^2 + tau^2) / resolution``
+    with ``rel_std = posterior_std / (f + EPS level)``; the learnt variances are the sample covariance's
+    eigenvalues (``ddof = 1``)."""
+    from mi_bivariate.basis_prior import EPS, OBSERVATION_FLOOR
+
+    tables = _family(12, 3)
+    prior = BasisPrior.learn(tables, components=4)
+    samples = np.array([np.log(np.maximum(t[..., c].ravel() / np.median(t[..., c]), 0.0) + EPS)
+                        for t in tables.values() for c in range(3)])
+    eig = np.sort(np.linalg.eigvalsh(np.cov(samples.T)))[::-1][:4]
+    np.testing.assert_allclose(prior.variances, eig, rtol=1e-8)
+    rng = np.random.default_rng(4)
+    table = _family(1, 50)["m0"] * rng.uniform(0.8, 1.2, (N_T, N_S, 3))
+    resolution = rng.uniform(0.2, 1.0, table.shape)
+    post = rng.uniform(0.01, 0.3, table.shape) * table
+    mean, std = prior.predict(table, resolution, post)
+    u, lam, tau = prior.basis, prior.variances, prior.residual
+    for c in range(3):
+        f = table[..., c].ravel()
+        level = np.median(f)
+        g = np.log(f / level + EPS)
+        rel = post[..., c].ravel() / (f + EPS * level)
+        d = (rel**2 + OBSERVATION_FLOOR**2 + tau**2) / resolution[..., c].ravel()
+        s = (u * lam) @ u.T + np.diag(d)
+        c_hat = lam * (u.T @ np.linalg.solve(s, g - prior.mean))
+        cov = np.diag(lam) - (lam[:, None] * u.T) @ np.linalg.solve(s, u * lam)
+        g_hat = prior.mean + u @ c_hat
+        var = np.einsum("nk,kl,nl->n", u, cov, u) + tau**2
+        np.testing.assert_allclose(mean[..., c].ravel(), level * np.maximum(np.exp(g_hat) - EPS, 0.0), rtol=1e-9)
+        np.testing.assert_allclose(std[..., c].ravel(), level * np.exp(g_hat) * np.sqrt(var), rtol=1e-9)
