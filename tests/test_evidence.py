@@ -8,6 +8,8 @@ pseudo-determinant against the eigenvalues, the NNLS solve's log det against LAP
 
 from __future__ import annotations
 
+from typing import Optional
+
 import numpy as np
 import pytest
 
@@ -22,16 +24,17 @@ N_T = N_S = 6
 N = N_T * N_S
 
 
-def _data_space_log_evidence(A: np.ndarray, y: np.ndarray, Q: np.ndarray) -> float:
-    """log p(y) of y ~ N(A f, 1/M), f ~ N(0, Q^-1 / M), written out in data space.
+def _data_space_log_evidence(A: np.ndarray, y: np.ndarray, Q: np.ndarray, m0: Optional[np.ndarray] = None) -> float:
+    """log p(y) of y ~ N(A f, 1/M), f ~ N(m0, Q^-1 / M) (m0 = 0 by default), written out in data space.
 
-    y ~ N(0, C / M) with C = I + A Q^-1 A^T: -1/2 log|C| - (M/2) y^T C^-1 y up to a constant of M.
+    y - A m0 ~ N(0, C / M) with C = I + A Q^-1 A^T: -1/2 log|C| - (M/2) r^T C^-1 r up to a constant of M.
     """
     m = len(y)
+    r = y if m0 is None else y - A @ m0
     c = np.eye(m) + A @ np.linalg.solve(Q, A.T)
     sign, log_det = np.linalg.slogdet(c)
     assert sign > 0
-    return -0.5 * log_det - 0.5 * m * (y @ np.linalg.solve(c, y))
+    return -0.5 * log_det - 0.5 * m * (r @ np.linalg.solve(c, r))
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
@@ -204,7 +207,7 @@ def _weighted(data, k):
     return data.lighting[:, :, k].astype(np.float64) * w[:, None], data.observations[:, k].astype(np.float64) * w
 
 
-@pytest.mark.parametrize("table_prior", [False, True])
+@pytest.mark.parametrize("table_prior", [False, True, "mean"])
 def test_solve_reports_the_data_space_evidence(table_prior):
     """The evidence ``solve`` reports (its objective, log det and prior pdet together) against the marginal
     likelihood written out in data space, for a problem whose constraints are inactive (the MAP estimate
@@ -220,7 +223,11 @@ def test_solve_reports_the_data_space_evidence(table_prior):
     kwargs = {}
     if table_prior:
         std = np.full((N_T, N_S, 3), 3.0) * data.level  # weak beside the data: no node is pulled to zero
-        kwargs = dict(mean=np.zeros((N_T, N_S, 3)), mean_std=std)
+        # a zero mean, or (the basis prior's case) a mean of its own: the Gaussian prior is then about
+        # Q^-1 D mean, and Phi holds a constant beside its exponent that depends on the pair
+        mean = np.zeros((N_T, N_S, 3)) if table_prior is True else \
+            np.random.default_rng(4).uniform(0.5, 1.5, (N_T, N_S, 3)) * data.level
+        kwargs = dict(mean=mean, mean_std=std)
     result = solve.solve_prepared(data, prior, alpha, **kwargs)
     for k in range(3):
         A, y = _weighted(data, k)
@@ -228,11 +235,14 @@ def test_solve_reports_the_data_space_evidence(table_prior):
         for pair, sol in result.pairs.items():
             assert np.all(sol.table[:, :, k] > 0)  # no active constraint: the formula is exact
             q = alpha / (N * data.level[k] ** 2) * prior.penalty_matrix(pair)
+            m0 = None
             if table_prior:
-                q = q + np.diag(1.0 / (m * kwargs["mean_std"][:, :, k].ravel() ** 2))
+                d = 1.0 / (m * kwargs["mean_std"][:, :, k].ravel() ** 2)
+                q = q + np.diag(d)
+                m0 = np.linalg.solve(q, d * kwargs["mean"][:, :, k].ravel())
             else:
                 q = q + 1e-6 * np.ones((N, N)) / N
-            truth[pair] = _data_space_log_evidence(A, y, q)
+            truth[pair] = _data_space_log_evidence(A, y, q, m0)
         got = result.pairs["gloss"].log_evidence[k] - result.pairs["diffuse"].log_evidence[k]
         expected = truth["gloss"] - truth["diffuse"]
         assert got == pytest.approx(expected, rel=1e-4, abs=1e-6 * m)

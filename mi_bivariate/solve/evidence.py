@@ -38,6 +38,7 @@ from __future__ import annotations
 from typing import Optional, Tuple
 
 import numpy as np
+import scipy.linalg
 
 from mi_bivariate.errors import InputError
 from mi_bivariate.solve.common import banded_cholesky, bandwidth, cholesky
@@ -113,7 +114,8 @@ def log_evidence(objective: float, system_log_det: float, prior_log_pdet: float,
 
 
 def channel_log_evidence(objective: float, n_rows: int, system_log_det: float, lam: float, penalty: np.ndarray,
-                         penalty_pdet: Tuple[float, int], precision: Optional[np.ndarray] = None) -> float:
+                         penalty_pdet: Tuple[float, int], precision: Optional[np.ndarray] = None,
+                         mean: Optional[np.ndarray] = None) -> float:
     """:func:`log_evidence` of one channel of the solve.
 
     Args:
@@ -126,10 +128,19 @@ def channel_log_evidence(objective: float, n_rows: int, system_log_det: float, l
         penalty_pdet: ``(log pdet P, rank P)`` (:func:`penalty_log_pdet`).
         precision: ``(N,)`` the table prior's diagonal precision, if any: the prior precision
             is then ``lambda P + diag(precision)``, of full rank (banded: ``O(N b^2)``).
+        mean: ``(N,)`` the table prior's mean (default 0). ``Phi`` holds ``(f - mean)^T D (f - mean)``
+            with ``D = diag(precision)``; the prior of the evidence is the Gaussian of precision
+            ``Q = lambda P + D`` about ``m0 = Q^-1 D mean``, whose exponent is ``Phi`` less the constant
+            ``mean^T D mean - m0^T Q m0``. That constant depends on the pair (through ``P``), so it is
+            taken out (one dense solve).
     """
     if precision is not None:
         q = lam * np.asarray(penalty, np.float64)
         q[np.diag_indices_from(q)] += precision
+        if mean is not None and np.any(mean != 0.0):
+            b = np.asarray(precision, np.float64) * np.asarray(mean, np.float64)
+            m0 = scipy.linalg.solve(q, b, assume_a="pos")
+            objective = objective - (float(b @ mean) - float(b @ m0))
         return log_evidence(objective, system_log_det, log_det_banded(q), n_rows)
     log_pdet, rank = penalty_pdet
     if lam <= 0.0 or rank == 0:  # a flat prior: nothing to weigh but the fit

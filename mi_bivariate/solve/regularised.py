@@ -312,7 +312,7 @@ def solve_prepared(data: DataTerm, prior: Optional[Prior] = None, alpha=None, *,
             times[p] = time.perf_counter() - t1
         logev = {p: None if not use_evidence else channel_log_evidence(
             solves[p].objective, data.n_rows, solves[p].log_det(), solves[p].lam, penalties[p], pdets.get(p),
-            None if precision is None else precision[:, k]) for p in pairs}
+            None if precision is None else precision[:, k], None if mean is None else mean[:, k]) for p in pairs}
         if winner is not None:
             w = winner[k]
         elif isinstance(rule, str) and rule == "gcv":
