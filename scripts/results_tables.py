@@ -79,6 +79,22 @@ def generate(out: Path) -> str:
                          f"{_f(_median(x.get('ratio') for x in e))}")
         lines.append(f"| {p} | " + " | ".join(cells) + " |")
 
+    lines += ["", "### Reference noise (the truth's renders under each novel probe: two seeds' relative RMS "
+              "difference / sqrt 2, per record)", ""]
+    if all(r.get("reference_noise") for r in recs):
+        lines += ["| novel probe | median | largest (material) | noise / the material's relight floor, largest "
+                  "| noise / its recovered relight error (any input), largest |", "|---|---:|---:|---:|---:|"]
+        for n in novels:
+            noise = {r["material"]: r["reference_noise"][n] for r in recs}
+            worst = max(noise, key=noise.get)
+            to_floor = max(r["reference_noise"][n] / r["relight_floor"][n] for r in recs)
+            to_error = max(r["reference_noise"][n] / min(e["images"][n]["rel_rmse"] for e in r["inputs"].values())
+                           for r in recs)
+            lines.append(f"| {n} | {_f(_median(noise.values()))} | {_f(noise[worst])} ({worst}) | {_f(to_floor)} "
+                         f"| {_f(to_error)} |")
+    else:
+        lines.append("Not measured in these records (written before each record measured it).")
+
     lines += ["", "### Where Eq. 1 comes from (recovered; median over materials: Eq. 1 of the region / share "
               "of the summed squared relative error)", "",
               "| input probe | specular (theta_h < 2 deg) | retro (theta_d < 10 deg) | grazing (theta_d > 75 deg) "
