@@ -30,7 +30,7 @@ within 25% (tests/test_noise.py).
 
 from __future__ import annotations
 
-from typing import Optional, Tuple
+from typing import Optional, Tuple, Union
 
 import numpy as np
 import scipy.optimize as sopt
@@ -105,9 +105,10 @@ def estimate_camera_noise(image: np.ndarray, mask: Optional[np.ndarray] = None,
     return float(a), float(b)
 
 
-def check_noise_model(value, source: str = "noise") -> Tuple[np.ndarray, np.ndarray]:
+def check_noise_model(value, source: str = "noise") -> Tuple[Union[float, np.ndarray], Union[float, np.ndarray]]:
     """One camera-noise model ``(a, b)`` of the variance ``a I + b`` (image units), each a number or a
-    per-channel ``(3,)`` sequence, finite and ``>= 0``: returned as two ``(3,)`` float64 arrays.
+    per-channel ``(3,)`` sequence, finite and ``>= 0``: returned in the form given, each a float or a
+    ``(3,)`` float64 array (both broadcast against ``(M, 3)`` rows; a recovery records the model as given).
 
     Raises:
         InputError: naming ``source``, for anything else (a string, one number, three entries, a
@@ -126,7 +127,7 @@ def check_noise_model(value, source: str = "noise") -> Tuple[np.ndarray, np.ndar
             raise InputError(source, f"expected the noise model (a, b) of numbers, got {value!r}", hint) from None
         if x.ndim > 1 or (x.ndim == 1 and len(x) != 3):
             raise InputError(source, f"a and b must each be a number or three (R, G, B), got {value!r}", hint)
-        pair.append(np.broadcast_to(x, (3,)).copy())
+        pair.append(float(x) if x.ndim == 0 else x.copy())
     a, b = pair
     if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b)) and np.all(a >= 0) and np.all(b >= 0)):
         raise InputError(source, f"camera noise (a, b) must be finite and >= 0, got {value!r}", hint)
