@@ -115,7 +115,8 @@ def check_noise_model(value, source: str = "noise") -> Tuple[Union[float, np.nda
             ``(2,)`` per-channel array, NaN, a negative value).
     """
     hint = "give the pair (a, b) of the variance a I + b, each a number or three (R, G, B), e.g. (0, sigma**2)"
-    if isinstance(value, (str, bytes)) or not isinstance(value, (list, tuple, np.ndarray)) or len(value) != 2:
+    if isinstance(value, (str, bytes)) or not isinstance(value, (list, tuple, np.ndarray)) \
+            or (isinstance(value, np.ndarray) and value.ndim == 0) or len(value) != 2:  # a 0-d array: no len()
         raise InputError(source, f"expected the noise model (a, b), got {value!r}", hint)
     pair = []
     for v in value:

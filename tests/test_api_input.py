@@ -207,7 +207,8 @@ def test_a_malformed_noise_model_is_refused_naming_noise_before_any_work(probe, 
     for noise, source in [(("a", "b"), "noise"), ({"a": 1}, "noise"), (object(), "noise"),
                           ([(1e-4, 1e-6, 0.0), None], "noise[0]"), ([None, "auto"], "noise[1]"),
                           ([1e-4, (0.0, 1e-6)], "noise[0]"), ([([1e-4] * 2, [1e-6] * 3), None], "noise[0]"),
-                          ([None, (-1.0, 0.0)], "noise[1]"), ([(np.nan, 0.0), None], "noise[0]")]:
+                          ([None, (-1.0, 0.0)], "noise[1]"), ([(np.nan, 0.0), None], "noise[0]"),
+                          ([np.array(1e-4), None], "noise[0]")]:  # a 0-d array: was len()'s TypeError
         with pytest.raises(InputError) as info:
             recover(two, probe, [SPHERE, SPHERE], **{**SMALL, "noise": noise})
         assert info.value.source == source, (noise, str(info.value))
