@@ -11,7 +11,6 @@ regularised solve (:mod:`solve`, Eq. 6 with the learnt :mod:`prior`)
 
 from __future__ import annotations
 
-import hashlib
 import numbers
 import time
 import warnings
@@ -145,8 +144,25 @@ def _geometry_list(geometry: Any, n: int) -> List[Geometry]:
     return geometries
 
 
-def _digest(array: np.ndarray) -> Tuple[Any, ...]:
-    return array.shape, array.dtype.str, hashlib.blake2b(np.ascontiguousarray(array).tobytes(), digest_size=16).digest()
+def _same_mask(a: Any, b: Any) -> bool:
+    """Whether two entries of ``masks`` are one mask (anything but an array of numbers is not a mask: refused,
+    naming it, where it is read)."""
+    if a is None or b is None:
+        return a is None and b is None
+    a, b = np.asarray(a), np.asarray(b)
+    return a.dtype.kind in "biuf" and b.dtype.kind in "biuf" and a.shape == b.shape and \
+        np.array_equal(a.astype(bool), b.astype(bool))
+
+
+def _same_pixels(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether two checked images hold the same pixels (NaN as NaN); a strided sample first rejects most
+    different photos without a full pass."""
+    if a is b:
+        return True
+    if a.shape != b.shape:
+        return False
+    a, b = np.asarray(a), np.asarray(b)
+    return np.array_equal(a[::7, ::7], b[::7, ::7], equal_nan=True) and np.array_equal(a, b, equal_nan=True)
 
 
 def _refuse_repeated_images(images: Sequence[np.ndarray], geometries: Sequence[Geometry], masks: Sequence[Any]) -> None:
@@ -154,21 +170,18 @@ def _refuse_repeated_images(images: Sequence[np.ndarray], geometries: Sequence[G
     (the same geometry object, or spheres of equal numbers) and the same mask. Its rows would count twice, as
     if the photo's noise were smaller than it is (the table then leans on it over the priors), and
     ``image_weights="cross"`` would weigh the photo against itself. The same photo with another sphere
-    (two spheres in one photo) or another mask is not a repeat."""
-    seen: Dict[Tuple[Any, ...], List[int]] = {}
-    for k, (image, geometry, mask) in enumerate(zip(images, geometries, masks)):
-        mask_key = None if mask is None else np.asarray(mask)
-        if mask_key is not None:  # anything but numbers is not a mask: refused, naming it, where it is read
-            mask_key = _digest(mask_key.astype(bool)) if mask_key.dtype.kind in "biuf" else ("not a mask", k)
-        key = (_digest(image), mask_key)
-        for j in seen.get(key, []):
+    (two spheres in one photo) or another mask is not a repeat. The pixels are compared only for entries of
+    one geometry and mask (a single photo's are not read: no cost on the usual recovery)."""
+    for k in range(1, len(images)):
+        geometry = geometries[k]
+        for j in range(k):
             other = geometries[j]
-            if other is geometry or (isinstance(geometry, (SphereGeometry, PerspectiveSphereGeometry))
-                                     and type(other) is type(geometry) and other.record() == geometry.record()):
+            same_object = other is geometry or (isinstance(geometry, (SphereGeometry, PerspectiveSphereGeometry))
+                                                and type(other) is type(geometry) and other.record() == geometry.record())
+            if same_object and _same_mask(masks[j], masks[k]) and _same_pixels(images[j], images[k]):
                 raise InputError("images", f"image {k} repeats image {j} (the same pixels, object and mask): its "
                                  "pixels would count twice, as if the photo's noise were smaller than it is",
                                  "give each photo once; a photo of two spheres: one geometry each")
-        seen.setdefault(key, []).append(k)
 
 
 def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
