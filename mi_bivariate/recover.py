@@ -145,13 +145,15 @@ def _geometry_list(geometry: Any, n: int) -> List[Geometry]:
 
 
 def _same_mask(a: Any, b: Any) -> bool:
-    """Whether two entries of ``masks`` are one mask (anything but an array of numbers is not a mask: refused,
-    naming it, where it is read)."""
+    """Whether two entries of ``masks`` select the same pixels (anything but an array of numbers is not a mask:
+    refused, naming it, where it is read). No mask and a mask of every pixel are the same: both leave every
+    pixel usable."""
+    a, b = (None if m is None else np.asarray(m) for m in (a, b))
+    if any(m is not None and m.dtype.kind not in "biuf" for m in (a, b)):
+        return False
     if a is None or b is None:
-        return a is None and b is None
-    a, b = np.asarray(a), np.asarray(b)
-    return a.dtype.kind in "biuf" and b.dtype.kind in "biuf" and a.shape == b.shape and \
-        np.array_equal(a.astype(bool), b.astype(bool))
+        return (a is None or bool(np.all(a))) and (b is None or bool(np.all(b)))
+    return a.shape == b.shape and np.array_equal(a.astype(bool), b.astype(bool))
 
 
 def _same_pixels(a: np.ndarray, b: np.ndarray) -> bool:
@@ -170,7 +172,7 @@ def _refuse_repeated_images(images: Sequence[np.ndarray], geometries: Sequence[G
     (the same geometry object, or spheres of equal numbers) and the same mask. Its rows would count twice, as
     if the photo's noise were smaller than it is (the table then leans on it over the priors), and
     ``image_weights="cross"`` would weigh the photo against itself. The same photo with another sphere
-    (two spheres in one photo) or another mask is not a repeat. The pixels are compared only for entries of
+    (two spheres in one photo) or a mask selecting other pixels is not a repeat. The pixels are compared only for entries of
     one geometry and mask (a single photo's are not read: no cost on the usual recovery)."""
     for k in range(1, len(images)):
         geometry = geometries[k]

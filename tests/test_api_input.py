@@ -236,15 +236,19 @@ def test_the_same_photo_twice_is_refused_before_any_work(probe, no_work):
     (sigma factor 34.6 on one copy with noise None)."""
     photo = IMAGE * np.linspace(0.5, 1.0, 48, dtype=np.float32)[:, None, None]
     mask = np.ones((48, 48), bool)
+    half = mask.copy()
+    half[24:] = False
     for images, geometries, masks in [([photo, photo], SPHERE, None),
                                       ([photo, photo.astype(np.float64)], [SPHERE, SphereGeometry(24.0, 24.0, 20.0)],
                                        None),
-                                      (np.stack([photo, IMAGE, photo]), SPHERE, mask)]:
+                                      (np.stack([photo, IMAGE, photo]), SPHERE, half),
+                                      ([photo, photo], SPHERE, [mask, None])]:  # every pixel, as without a mask
         with pytest.raises(InputError, match="repeats image 0") as info:
             recover(images, probe, geometries, **{**SMALL, "masks": masks})
         assert info.value.source == "images" and "give each photo once" in str(info.value)
-    # the same photo of two spheres, or under two masks, is two sets of pixels: it goes on to the work
-    for geometries, masks in [([SPHERE, SphereGeometry(20.0, 24.0, 10.0)], None), (SPHERE, [mask, None])]:
+    # the same photo of two spheres, or under two masks selecting other pixels, is two sets of pixels: it goes
+    # on to the work (a mask of every pixel beside no mask was called "two masks" here: the same rows twice)
+    for geometries, masks in [([SPHERE, SphereGeometry(20.0, 24.0, 10.0)], None), (SPHERE, [half, None])]:
         with pytest.raises(AssertionError, match="started work"):
             recover([photo, photo], probe, geometries, **{**SMALL, "masks": masks})
 
@@ -260,7 +264,7 @@ def test_the_repeat_check_reads_no_pixels_of_a_single_photo_or_of_two_objects():
 
     recover_mod._refuse_repeated_images([Unread()], [SPHERE], [None])
     recover_mod._refuse_repeated_images([Unread(), Unread()], [SPHERE, SphereGeometry(20.0, 24.0, 10.0)], [None, None])
-    recover_mod._refuse_repeated_images([Unread(), Unread()], [SPHERE, SPHERE], [None, np.ones((48, 48), bool)])
+    recover_mod._refuse_repeated_images([Unread(), Unread()], [SPHERE, SPHERE], [None, np.eye(48, dtype=bool)])
     photo = np.full((48, 48, 3), 0.5, np.float32)
     photo[3, 5] = np.nan  # a NaN pixel repeats as itself
     with pytest.raises(InputError, match="image 1 repeats image 0"):
