@@ -103,8 +103,10 @@ def read_image(path: PathLike, allow_ldr: bool = True) -> Tuple[np.ndarray, Dict
     return _read_checked(Path(path), allow_ldr, keep_alpha=False)
 
 
-def _read_checked(path: Path, allow_ldr: bool, keep_alpha: bool) -> Tuple[np.ndarray, Dict[str, str]]:
-    """:func:`read_image` (with the file's alpha last when ``keep_alpha`` and it has one)."""
+def _read_checked(path: Path, allow_ldr: bool, keep_alpha: bool,
+                  radiance: bool = True) -> Tuple[np.ndarray, Dict[str, str]]:
+    """:func:`read_image` (with the file's alpha last when ``keep_alpha`` and it has one; integer EXR channels
+    refused unless ``radiance`` is false, as for a mask, where object ids are a fine selection)."""
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in HDR_SUFFIXES + LDR_SUFFIXES:
@@ -131,14 +133,14 @@ def _read_checked(path: Path, allow_ldr: bool, keep_alpha: bool) -> Tuple[np.nda
             raise InputError(path, f"{kind} image: not radiometric", "use a linear HDR image (.exr, .hdr, .pfm)")
         warnings.warn(f"{path}: {kind} image is not radiometric; it is linearised from sRGB, "
                       "and the recovered BRDF is only qualitative", InputWarning, stacklevel=4)
-    return _read_pixels(path, fmt, keep_alpha)
+    return _read_pixels(path, fmt, keep_alpha, radiance)
 
 
-def _read_pixels(path: Path, fmt: str, keep_alpha: bool) -> Tuple[np.ndarray, Dict[str, str]]:
+def _read_pixels(path: Path, fmt: str, keep_alpha: bool, radiance: bool = True) -> Tuple[np.ndarray, Dict[str, str]]:
     """:func:`read_image`'s pixels of a file of format ``fmt``: ``(H, W, 3) float32``, or ``(H, W, 4)``
     with its alpha last when ``keep_alpha`` and the file has one."""
     if fmt == "exr":
-        data, metadata = _read_exr(path, keep_alpha)
+        data, metadata = _read_exr(path, keep_alpha, radiance)
     else:
         data, metadata = _read_with_mitsuba(path, fmt, keep_alpha), {}
     if fmt == "pfm":
@@ -163,14 +165,14 @@ def _exr_error(path: Path, exc: BaseException) -> InputError:
                       "the file is truncated or corrupt")
 
 
-def _read_exr(path: Path, keep_alpha: bool = False) -> Tuple[np.ndarray, Dict[str, str]]:
+def _read_exr(path: Path, keep_alpha: bool = False, radiance: bool = True) -> Tuple[np.ndarray, Dict[str, str]]:
     """An EXR's first part through the ``OpenEXR`` package: ``(H, W, C) float32`` (RGB or Y, then A
     when ``keep_alpha`` and the file has it) and string metadata."""
     import OpenEXR
 
     try:
         with _library_output():
-            return _read_exr_unchecked(path, OpenEXR, keep_alpha)
+            return _read_exr_unchecked(path, OpenEXR, keep_alpha, radiance)
     except InputError:
         raise
     except Exception as exc:  # noqa: BLE001 -- RuntimeError, UnicodeDecodeError, ... on corrupt files
@@ -229,7 +231,8 @@ def _held_fd(fd: int, stream: Any) -> Iterator[None]:
                     os.write(fd, text)
 
 
-def _read_exr_unchecked(path: Path, OpenEXR, keep_alpha: bool = False) -> Tuple[np.ndarray, Dict[str, str]]:  # noqa: N803
+def _read_exr_unchecked(path: Path, OpenEXR, keep_alpha: bool = False,  # noqa: N803
+                        radiance: bool = True) -> Tuple[np.ndarray, Dict[str, str]]:
     header = OpenEXR.File(str(path), header_only=True).header()
     if header.get("type") in (OpenEXR.deepscanline, OpenEXR.deeptile):
         raise InputError(path, "is a deep OpenEXR image (a list of samples per pixel), not a flat one",
@@ -258,7 +261,7 @@ def _read_exr_unchecked(path: Path, OpenEXR, keep_alpha: bool = False) -> Tuple[
     if keep_alpha and "A" in upper:
         order.append(upper["A"])
     planes = OpenEXR.File(str(path), separate_channels=True).channels()
-    integer = [n for n in order if np.issubdtype(np.asarray(planes[n].pixels).dtype, np.integer)]
+    integer = [n for n in order if radiance and np.issubdtype(np.asarray(planes[n].pixels).dtype, np.integer)]
     if integer:
         raise InputError(path, f"channel {integer[0]} holds integers (UINT), not radiance",
                          "save the image's colour as HALF or FLOAT channels")
@@ -496,7 +499,7 @@ def load_mask(path: PathLike, shape: tuple) -> np.ndarray:
     """
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", InputWarning)
-        data = _read_checked(Path(path), allow_ldr=True, keep_alpha=True)[0]
+        data = _read_checked(Path(path), allow_ldr=True, keep_alpha=True, radiance=False)[0]  # UINT ids are fine
     if data.shape[:2] != tuple(shape[:2]):
         raise InputError(path, f"mask is {data.shape[1]}x{data.shape[0]} but the image is {shape[1]}x{shape[0]}",
                          "give a mask of the image's size")

@@ -1528,6 +1528,11 @@ def test_exr_integer_channels_and_named_layers(tmp_path):
     OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION}, {c: ids.copy() for c in "RGB"}).write(
         str(tmp_path / "ids.exr"))
     _raises(lambda: images.load_image(tmp_path / "ids.exr"), "holds integers")
+    # as a mask, integers select (an object-id matte saved as UINT: it loaded as a mask before, and a mask is
+    # not radiance); zero ids are left out
+    np.testing.assert_array_equal(images.load_mask(tmp_path / "ids.exr", (8, 8)), ids > 0)
+    OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION}, {"Y": ids.copy()}).write(str(tmp_path / "ids_y.exr"))
+    np.testing.assert_array_equal(images.load_mask(tmp_path / "ids_y.exr", (8, 8)), ids > 0)
     ones = np.ones((8, 8), np.float32)
     OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION},
                  {f"beauty.{c}": ones.copy() for c in "RGB"} | {"depth.Z": ones.copy()}).write(
