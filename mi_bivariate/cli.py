@@ -133,8 +133,10 @@ def _add_recover_options(p: argparse.ArgumentParser) -> None:
                         "0.3-0.6 px off, which raised four metals' relight error by 25-85%% under grace; a "
                         "refinement that would move the outline more than 1 px, or whose recovery fits the image "
                         "worse, is not taken (a warning says so)")
-    p.add_argument("--mask", type=_parse_path, default=None, help="optional mask image, of the photo's size (pixels with a value > 0 in any channel are usable; "
-                        "0, negative or NaN ones are not)")
+    p.add_argument("--mask", type=_parse_path, default=None,
+                   help="optional mask image, of the photo's size (pixels with a value > 0 in any colour channel "
+                        "are usable, and where the file has alpha only the pixels with alpha > 0; 0, negative, "
+                        "NaN and transparent ones are not)")
     p.add_argument("--fov", type=float, default=None, metavar="DEG",
                    help="the photo's horizontal field of view for a pinhole camera with its principal point at "
                         "the image centre (default: an orthographic view, the paper's model)")

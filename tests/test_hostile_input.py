@@ -1517,6 +1517,11 @@ def test_a_mask_drawn_on_a_transparent_layer_is_its_opaque_part(tmp_path):
     _png(tmp_path / "clear.png", np.dstack([np.full((16, 16, 3), 255, np.uint8), np.zeros((16, 16), np.uint8)]),
          mi.Bitmap.PixelFormat.RGBA)
     _raises(lambda: images.load_mask(tmp_path / "clear.png", (16, 16)), "selects no pixel.*transparent")
+    # and --mask's help says so (it said every pixel with a value > 0 in any channel is usable)
+    for command in ("recover", "recover-batch"):
+        mask_help = next(a.help for a in cli.build_parser().command_parsers[command]._actions
+                         if "--mask" in a.option_strings)
+        assert "alpha > 0" in mask_help and "transparent" in mask_help and "any channel" not in mask_help, mask_help
 
 
 def test_exr_integer_channels_and_named_layers(tmp_path):
