@@ -85,11 +85,18 @@ def generate(out: Path) -> str:
         lines += ["| novel probe | median | largest (material) | noise / the material's relight floor, largest "
                   "| noise / its recovered relight error (any input), largest |", "|---|---:|---:|---:|---:|"]
         for n in novels:
-            noise = {r["material"]: r["reference_noise"][n] for r in recs}
+            # a black truth render has no relative noise (null in the record): such records are left out
+            kept = [r for r in recs if isinstance(r["reference_noise"].get(n), float)
+                    and math.isfinite(r["reference_noise"][n])]
+            if not kept:
+                lines.append(f"| {n} | - | - | - | - |")
+                continue
+            noise = {r["material"]: r["reference_noise"][n] for r in kept}
             worst = max(noise, key=noise.get)
-            to_floor = max(r["reference_noise"][n] / r["relight_floor"][n] for r in recs)
-            to_error = max(r["reference_noise"][n] / min(e["images"][n]["rel_rmse"] for e in r["inputs"].values())
-                           for r in recs)
+            to_floor = max((r["reference_noise"][n] / r["relight_floor"][n] for r in kept
+                            if r["relight_floor"].get(n)), default=float("nan"))
+            errors = [(r, min(e["images"][n]["rel_rmse"] for e in r["inputs"].values())) for r in kept]
+            to_error = max((r["reference_noise"][n] / e for r, e in errors if e), default=float("nan"))
             lines.append(f"| {n} | {_f(_median(noise.values()))} | {_f(noise[worst])} ({worst}) | {_f(to_floor)} "
                          f"| {_f(to_error)} |")
     else:

@@ -172,8 +172,9 @@ def render_novel_truths(renderer: Renderer, cfg: EvalConfig, novels: List[Probe]
                         floor_bsdf: Any, arrays: Arrays) -> _Novel:
     """The truth and the exact reduction rendered under every novel probe (:meth:`EvalConfig.novel_seed`), the
     reduction's image errors (the relight floor), and the truth render's noise, measured by a second render of
-    another seed (:data:`REFERENCE_NOISE_SEED_OFFSET`; cached as the first is), as
-    :func:`mi_bivariate.reference.quadrature_noise` measures it."""
+    another seed (:data:`REFERENCE_NOISE_SEED_OFFSET`; cached as the first is): the two renders' relative RMS
+    difference / sqrt 2, relative to the first (:func:`mi_bivariate.reference.quadrature_noise`'s ``seed_rms``
+    is relative to its second: the same to first order in the noise)."""
     grid_key = f"grid_table_{cfg.grid[0]}x{cfg.grid[1]}"
     novel = _Novel({}, {}, {}, {})
     for name, probe in zip(cfg.novel_probes, novels):
