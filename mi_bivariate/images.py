@@ -252,7 +252,8 @@ def _read_exr_unchecked(path: Path, OpenEXR, keep_alpha: bool = False,  # noqa: 
     elif "Y" in upper:
         order = [upper["Y"]]
     else:
-        layers = sorted({n.rsplit(".", 1)[0] for n in names if "." in n and n.rsplit(".", 1)[1].upper() in ("R", "G", "B")})
+        layers = sorted({n.rsplit(".", 1)[0] for n in names
+                         if "." in n and n.rsplit(".", 1)[1].upper() in ("R", "G", "B")})
         raise InputError(path, f"has {len(names)} channels ({', '.join(names[:8]) or 'none'}"
                                f"{', ...' if len(names) > 8 else ''})",
                          f"expected grey, RGB or RGBA at the top level; its colour is in the layer(s) "

@@ -156,11 +156,17 @@ def _inputs(theta_h: np.ndarray, theta_d: np.ndarray, phi_d: np.ndarray) -> np.n
     return x
 
 
+def check_weights(path: Path) -> Path:
+    """``path`` (from :func:`weights_path`), or :class:`InputError` naming it if the file is not there."""
+    if not path.is_file():
+        raise InputError(path, "MERL-NBRDF weights not found",
+                         "MI_BIVARIATE_DATA (or --data) must point at the shared data folder")
+    return path
+
+
 @functools.lru_cache(maxsize=4)
 def _load_npz(path: Path) -> Dict[str, np.ndarray]:
-    if not path.is_file():
-        raise InputError(path, "MERL-NBRDF weights not found", "MI_BIVARIATE_DATA must point at the shared data folder")
-    return read_npz(path, what="MERL-NBRDF weights file", text=())
+    return read_npz(check_weights(path), what="MERL-NBRDF weights file", text=())
 
 
 def load_nbrdf(name: str, data_dir: Optional[PathLike] = None) -> NBRDF:

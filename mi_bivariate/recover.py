@@ -172,14 +172,16 @@ def _refuse_repeated_images(images: Sequence[np.ndarray], geometries: Sequence[G
     (the same geometry object, or spheres of equal numbers) and the same mask. Its rows would count twice, as
     if the photo's noise were smaller than it is (the table then leans on it over the priors), and
     ``image_weights="cross"`` would weigh the photo against itself. The same photo with another sphere
-    (two spheres in one photo) or a mask selecting other pixels is not a repeat. The pixels are compared only for entries of
-    one geometry and mask (a single photo's are not read: no cost on the usual recovery)."""
+    (two spheres in one photo) or a mask selecting other pixels is not a repeat. The pixels are compared
+    only for entries of one geometry and mask (a single photo's are not read: no cost on the usual
+    recovery)."""
     for k in range(1, len(images)):
         geometry = geometries[k]
         for j in range(k):
             other = geometries[j]
-            same_object = other is geometry or (isinstance(geometry, (SphereGeometry, PerspectiveSphereGeometry))
-                                                and type(other) is type(geometry) and other.record() == geometry.record())
+            same_object = other is geometry or (
+                isinstance(geometry, (SphereGeometry, PerspectiveSphereGeometry))
+                and type(other) is type(geometry) and other.record() == geometry.record())
             if same_object and _same_mask(masks[j], masks[k]) and _same_pixels(images[j], images[k]):
                 raise InputError("images", f"image {k} repeats image {j} (the same pixels, object and mask): its "
                                  "pixels would count twice, as if the photo's noise were smaller than it is",

@@ -335,3 +335,8 @@ def _shared_probe_name(path: Path, data_dir: Optional[PathLike]) -> Optional[str
 def probe_label(spec: str) -> str:
     """Short name of a probe spec (file stem)."""
     return Path(spec).stem if Path(spec).suffix else spec
+
+
+def input_label(name: str) -> str:
+    """Short name of an evaluation input, one probe or several joined by ``+`` (each by :func:`probe_label`)."""
+    return "+".join(probe_label(p) for p in name.split("+"))

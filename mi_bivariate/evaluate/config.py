@@ -21,7 +21,7 @@ from mi_bivariate.baselines import FAMILIES
 from mi_bivariate.common import PathLike, file_digest
 from mi_bivariate.errors import InputError
 from mi_bivariate.lighting import DEFAULT_DIRS
-from mi_bivariate.sources import DEFAULT_ANALYTIC, have_shared_data, probe_label
+from mi_bivariate.sources import DEFAULT_ANALYTIC, have_shared_data, input_label
 
 #: Bumped when the protocol changes in a way that changes numbers (part of the config hash).
 PROTOCOL_VERSION = 3
@@ -134,7 +134,7 @@ class EvalConfig:
         for flag, names in (("--input-probes", self.input_probes), ("--novel-probes", self.novel_probes)):
             first: dict = {}
             for name in names:
-                label = "+".join(probe_label(p) for p in name.split("+"))
+                label = input_label(name)
                 if label in first:
                     raise InputError(name, f"{flag} names two probes {label!r} ({first[label]} and {name}); results "
                                            "are kept by name", "give each probe once, or rename a file")

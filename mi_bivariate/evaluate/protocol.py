@@ -31,7 +31,7 @@ from mi_bivariate.prior import Prior
 from mi_bivariate.probes import Probe
 from mi_bivariate.recover import Recovery, recover
 from mi_bivariate.report import incident_plane
-from mi_bivariate.sources import MaterialSpec, load_probe, load_truth, probe_label
+from mi_bivariate.sources import MaterialSpec, input_label, load_probe, load_truth, probe_label
 from mi_bivariate.threads import jit_threads
 
 #: View angles (degrees) of the stored incident-plane curves (Fig. 6).
@@ -287,7 +287,7 @@ def evaluate_input(task: MaterialTask, name: str, probe_list: List[Probe], novel
     """
     cfg = task.config
     prior, basis_prior, prior_source = priors
-    label = "+".join(probe_label(p) for p in name.split("+"))
+    label = input_label(name)
     t0 = time.perf_counter()
     images, geometries = render_inputs(renderer, cfg, name, probe_list, truth_bsdf)
     t_render = time.perf_counter() - t0

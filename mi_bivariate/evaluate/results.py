@@ -299,7 +299,8 @@ def format_summary(records: Sequence[dict]) -> str:
         lines.append(f"  reference noise (the truth's renders under the novel probes; two seeds): median "
                      f"{np.median(noise):.2g}, largest {max(noise):.2g}"
                      + ("" if len(noise) == sum(len(r.get("floor_images", {})) for r in records)
-                        else " (some renders have none: records written before it was measured, or a black truth render)"))
+                        else " (some renders have none: records written before it was measured, or a black "
+                             "truth render)"))
     for probe in dict.fromkeys(r["input_probe"] for r in rows):
         sel = [r for r in rows if r["input_probe"] == probe]
         parts = []

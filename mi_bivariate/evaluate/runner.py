@@ -256,10 +256,7 @@ def run_evaluation(materials: Sequence[Union[str, MaterialSpec]], out_dir: PathL
         if m.kind == "merl":
             MERLBRDF.check_file(m.spec)
         elif m.kind == "nbrdf":  # the shared data folder and its weights file: every such material's problem
-            weights = nbrdf.weights_path(m.spec, data_dir)
-            if not weights.is_file():
-                raise InputError(weights, "MERL-NBRDF weights not found",
-                                 "MI_BIVARIATE_DATA (or --data) must point at the shared data folder")
+            nbrdf.check_weights(nbrdf.weights_path(m.spec, data_dir))
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise InputError(out, "the output folder is a file", "choose another --out")
