@@ -144,15 +144,20 @@ def test_solve_keeps_the_pair_with_the_higher_evidence_and_a_given_winner():
         solve.solve_prepared(data, prior, 1e-2, pair_rule="coin")
 
 
-def test_recover_stages_keep_the_first_stage_pairs():
-    """Stage 2 (the basis prior) solves only the pairs stage 1 kept, and keeps them per channel."""
-    L, I = _problem(6)
-    prior = default_prior().resampled(N_T, N_S)
+def _toy_basis() -> BasisPrior:
+    """A basis prior learnt from 8 toy tables (a specular peak over a constant, random colours)."""
     rng = np.random.default_rng(7)
     t = np.linspace(0, 1, N_T)[:, None, None]
     tables = {f"m{i}": (rng.uniform(0.05, 0.5) + rng.uniform(1, 30) * np.exp(-(t / rng.uniform(0.1, 0.4)) ** 2))
               * rng.uniform(0.5, 1.0, 3) * np.ones((1, N_S, 1)) for i in range(8)}
-    basis = BasisPrior.learn(tables, components=3)
+    return BasisPrior.learn(tables, components=3)
+
+
+def test_recover_stages_keep_the_first_stage_pairs():
+    """Stage 2 (the basis prior) solves only the pairs stage 1 kept, and keeps them per channel."""
+    L, I = _problem(6)
+    prior = default_prior().resampled(N_T, N_S)
+    basis = _toy_basis()
     data = solve.prepare_data_term(L, I)
     first = solve.solve_prepared(data, prior)
     both = solve_stages(data, prior, None, basis)
@@ -287,11 +292,7 @@ def test_second_stage_is_the_stacked_nnls_with_the_basis_prediction(alpha):
 
     L, I = _problem(6)
     prior = default_prior().resampled(N_T, N_S)
-    rng = np.random.default_rng(7)
-    t = np.linspace(0, 1, N_T)[:, None, None]
-    tables = {f"m{i}": (rng.uniform(0.05, 0.5) + rng.uniform(1, 30) * np.exp(-(t / rng.uniform(0.1, 0.4)) ** 2))
-              * rng.uniform(0.5, 1.0, 3) * np.ones((1, N_S, 1)) for i in range(8)}
-    basis = BasisPrior.learn(tables, components=3)
+    basis = _toy_basis()
     data = solve.prepare_data_term(L, I)
     first = solve.solve_prepared(data, prior, alpha)
     both = solve_stages(data, prior, alpha, basis)
