@@ -7,7 +7,7 @@ never by its name:
 - OpenEXR (``76 2f 31 01``) through the ``OpenEXR`` package;
 - Radiance RGBE (``#?``) after :func:`check_rgbe` validated its structure
   (Mitsuba's RGBE reader corrupts the heap on a bad run length), then Mitsuba,
-  with the header's ``EXPOSURE``/``COLORCORR`` undone (:func:`rgbe_scale`);
+  with the header's ``EXPOSURE``/``COLORCORR`` undone (:func:`check_rgbe` reads them);
 - PFM (``PF``/``Pf`` header) after its header and size are checked, then Mitsuba;
 - PNG and JPEG (8- or 16-bit sRGB, not radiometric): with an :class:`InputWarning`, or
   an :class:`InputError` where a linear image is required or the file is
@@ -361,8 +361,9 @@ def _png_size(path: Path) -> None:
 def _read_with_mitsuba(path: Path, fmt: str, keep_alpha: bool = False) -> np.ndarray:
     """RGBE, PFM, PNG or JPEG through ``mi.Bitmap`` after the structural checks (PNG and JPEG as
     linear RGB, or RGBA when ``keep_alpha`` and the file has alpha)."""
+    scale = None
     if fmt == "rgbe":
-        check_rgbe(path)
+        scale = check_rgbe(path)
     elif fmt == "pfm":
         _check_pfm(path)
     elif fmt == "png":
@@ -373,8 +374,8 @@ def _read_with_mitsuba(path: Path, fmt: str, keep_alpha: bool = False) -> np.nda
             layout = mi.Bitmap.PixelFormat.RGBA if keep_alpha and bitmap.has_alpha() else mi.Bitmap.PixelFormat.RGB
             bitmap = bitmap.convert(layout, mi.Struct.Type.Float32, srgb_gamma=False)
         data = np.array(bitmap, dtype=np.float32, copy=True)
-        if fmt == "rgbe":
-            data *= rgbe_scale(path)
+        if scale is not None:
+            data *= scale
         return data
     except Exception as exc:  # noqa: BLE001 -- Mitsuba raises RuntimeError with a long C++ message
         text = " ".join(str(exc).split())
@@ -391,8 +392,13 @@ def load_image(path: PathLike, allow_ldr: bool = True) -> np.ndarray:
     return read_image(path, allow_ldr=allow_ldr)[0]
 
 
-def check_rgbe(path: PathLike) -> None:
+def check_rgbe(path: PathLike) -> np.ndarray:
     """Validate a Radiance RGBE file's header and run-length structure without decoding it.
+
+    Returns:
+        ``(3,) float32``: what the file's pixels are multiplied by to give the radiance they were
+        written from (:func:`_header_scale`: the header's ``EXPOSURE`` and ``COLORCORR``, which
+        Mitsuba's reader ignores).
 
     Raises:
         InputError: no signature, no header end, pixels other than RGBE (a
@@ -422,6 +428,7 @@ def check_rgbe(path: PathLike) -> None:
     if len(fields) != 4 or fields[0] not in (b"-Y", b"+Y") or fields[2] not in (b"+X", b"-X") \
             or not fields[1].isdigit() or not fields[3].isdigit():
         raise bad("unsupported resolution line")
+    scale = _header_scale(path, data[:end])
     if (fields[0], fields[2]) != (b"-Y", b"+X"):  # Mitsuba reads top-down, left-to-right files only
         raise InputError(path, f"Radiance HDR orientation '{b' '.join(fields).decode()}' (flipped or "
                                "mirrored) is not supported", "write it top-down (-Y H +X W), or convert it to OpenEXR")
@@ -440,7 +447,7 @@ def check_rgbe(path: PathLike) -> None:
                 raise bad(f"scanline {y} lacks its run-length marker")
             if n - pos < 4 * width * height:
                 raise bad("truncated pixel data")
-            return
+            return scale
         if (data[pos + 2] << 8 | data[pos + 3]) != width:
             raise bad(f"scanline {y} has the wrong width")
         pos += 4
@@ -460,23 +467,19 @@ def check_rgbe(path: PathLike) -> None:
                 x += count
         if pos > n:
             raise bad(f"truncated at scanline {y}")
+    return scale
 
 
-def rgbe_scale(path: PathLike) -> np.ndarray:
+def _header_scale(path: Path, header: bytes) -> np.ndarray:
     """What a Radiance file's pixels are multiplied by to give the radiance they were written from:
-    ``(3,) float32``, one over the product of the header's ``EXPOSURE=`` values and, per channel, of its
-    ``COLORCORR=`` values (both cumulative, Radiance's file format); ones without them. Mitsuba's reader
-    ignores both, so :func:`read_image` applies this.
+    ``(3,) float32``, one over the product of the ``header``'s ``EXPOSURE=`` values and, per channel, of
+    its ``COLORCORR=`` values (both cumulative, Radiance's file format); ones without them.
 
     Raises:
         InputError: a value that is not a positive finite number (or not three of them for COLORCORR).
     """
-    path = Path(path)
-    with open(path, "rb") as f:
-        head = f.read(1 << 16)
-    end = head.find(b"\n\n")
     scale = np.ones(3, np.float64)
-    for line in head[:end if end >= 0 else len(head)].split(b"\n"):
+    for line in header.split(b"\n"):
         for key, count in ((b"EXPOSURE=", 1), (b"COLORCORR=", 3)):
             if line.startswith(key):
                 try:
