@@ -65,6 +65,12 @@ def image_relative_rmse(image: np.ndarray, reference: np.ndarray, mask: Optional
     return float(np.sqrt(np.mean((a - b) ** 2)) / denom) if denom > 0 else float("inf")
 
 
+def seed_noise(image: np.ndarray, other_seed: np.ndarray, mask: Optional[np.ndarray] = None) -> float:
+    """The per-image noise of a Monte Carlo render, from a second render ``other_seed`` of another seed:
+    their relative RMS difference (relative to ``image``) divided by sqrt 2 (the seeds independent)."""
+    return image_relative_rmse(other_seed, image, mask) / math.sqrt(2.0)
+
+
 def image_psnr(image: np.ndarray, reference: np.ndarray, mask: Optional[np.ndarray] = None) -> float:
     """PSNR in dB with the reference's masked maximum as peak (linear radiance); arguments as
     :func:`image_relative_rmse`."""

@@ -47,7 +47,6 @@ Cost (measured, 2-core VM shared with other jobs, one Dr.Jit thread): see
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass
 from typing import Any, Dict, Sequence, Tuple
@@ -277,7 +276,7 @@ def quadrature_noise(bsdf: Any, probe: Any, resolution: int = 64, directions: Se
     plugin = bsdf if hasattr(bsdf, "sampler") else mi.load_dict(bsdf_dict(bsdf))
     a = render_reference(plugin, probe, resolution, seeds[0], directions)
     b = render_reference(plugin, probe, resolution, seeds[1], directions)
-    out = {"seed_rms": metrics.image_relative_rmse(a.image, b.image, a.mask) / math.sqrt(2.0),
+    out = {"seed_rms": metrics.seed_noise(b.image, a.image, a.mask),
            "seconds": a.seconds, "cpu_seconds": a.cpu_seconds, "directions": list(a.directions),
            "resolution": int(resolution)}
     if reference_factor > 1.0:

@@ -13,7 +13,6 @@ The caller has selected the Mitsuba variant (the runner's front doors, see
 
 from __future__ import annotations
 
-import math
 import time
 import warnings
 from dataclasses import dataclass
@@ -172,9 +171,8 @@ def render_novel_truths(renderer: Renderer, cfg: EvalConfig, novels: List[Probe]
                         floor_bsdf: Any, arrays: Arrays) -> _Novel:
     """The truth and the exact reduction rendered under every novel probe (:meth:`EvalConfig.novel_seed`), the
     reduction's image errors (the relight floor), and the truth render's noise, measured by a second render of
-    another seed (:data:`REFERENCE_NOISE_SEED_OFFSET`; cached as the first is): the two renders' relative RMS
-    difference / sqrt 2, relative to the first (:func:`mi_bivariate.reference.quadrature_noise`'s ``seed_rms``
-    is relative to its second: the same to first order in the noise)."""
+    another seed (:data:`REFERENCE_NOISE_SEED_OFFSET`; cached as the first is):
+    :func:`mi_bivariate.metrics.seed_noise`."""
     grid_key = f"grid_table_{cfg.grid[0]}x{cfg.grid[1]}"
     novel = _Novel({}, {}, {}, {})
     for name, probe in zip(cfg.novel_probes, novels):
@@ -188,7 +186,7 @@ def render_novel_truths(renderer: Renderer, cfg: EvalConfig, novels: List[Probe]
         novel.floor_images[label] = _image_errors(floor_shot.image, shot.image, shot.mask)
         again = renderer.render(truth_bsdf, probe, name, cfg.novel_resolution, seed + REFERENCE_NOISE_SEED_OFFSET,
                                 cfg.novel_spp, cache_key="truth")
-        novel.noise[label] = metrics.image_relative_rmse(again.image, shot.image, shot.mask) / math.sqrt(2.0)
+        novel.noise[label] = metrics.seed_noise(shot.image, again.image, shot.mask)
         arrays[f"truth__{label}"] = _f16(shot.image)
         arrays[f"floor_render__{label}"] = _f16(floor_shot.image)
         arrays["mask"] = shot.mask
