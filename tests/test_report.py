@@ -246,12 +246,10 @@ def test_confidence_map_lines_up_with_its_contour(tmp_path, recovery, monkeypatc
 def test_report_names_its_photo_and_probe(tmp_path, recovery, monkeypatch):
     """The report did not say which photo and probe it was made from: the input panel names both (the file
     names; a long one shortened from the left), and the layout stays clean."""
-    import dataclasses
-
     import matplotlib.pyplot as plt
 
     long_name = "/captures/" + "x" * 80 + "_sphere.exr"
-    brdf = dataclasses.replace(recovery[0].brdf) if dataclasses.is_dataclass(recovery[0].brdf) else recovery[0].brdf
+    brdf = recovery[0].brdf
     old = dict(brdf.provenance)
     try:
         brdf.provenance["photos"] = [long_name]
