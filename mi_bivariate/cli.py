@@ -315,7 +315,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-figures", action="store_true", help="skip the figures (tables and results only)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--abs", type=int, default=0, metavar="N",
-                   help="also run analysis by synthesis (Adam + prb) on the first N materials")
+                   help="also run analysis by synthesis (Adam + prb) on the first N materials (a rerun reports "
+                        "those already run with this configuration from analysis_by_synthesis.jsonl)")
     p.add_argument("--abs-time-factor", type=float, default=10.0,
                    help="analysis by synthesis runs up to this many times the linear solve's time (its kernel "
                         "compilation included: with --quick's sizes the default gives it only a few iterations)")

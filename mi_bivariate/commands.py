@@ -511,10 +511,21 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     print(ev.format_summary(records))
     if args.abs:
         out = Path(args.out) / "analysis_by_synthesis.jsonl"
+        # A rerun resumes, as the evaluation does: a material already run with this configuration,
+        # input probe and time factor is reported from its record, not run (and appended) again.
+        done = {(r["material"], r.get("input_probe"), r.get("time_factor")): r
+                for r in ev.read_records(out) if r["config_hash"] == config.hash()}
+        input_label = ev.probe_label(config.input_probes[0])
         for record in records[:args.abs]:
-            result = synthesis.analysis_by_synthesis(record["spec"], config.input_probes[0], config=config,
-                                                     data_dir=data, time_factor=args.abs_time_factor)
-            ev.append_record(out, result)
+            result = done.get((record["material"], input_label, args.abs_time_factor))
+            if result is None:
+                result = synthesis.analysis_by_synthesis(record["spec"], config.input_probes[0], config=config,
+                                                         data_dir=data, time_factor=args.abs_time_factor)
+                result["time_factor"] = args.abs_time_factor
+                ev.append_record(out, result)
+            else:
+                print(f"analysis by synthesis, {record['material']}: from {out} (an earlier run with this "
+                      f"configuration; delete its line to run it again)")
             a, lin = result["abs"], result["linear"]
             fastest, speedup = result["linear_to_abs_best"], result["ladder_speedup"]
             reaches = ("; AbS never reached the linear relight error" if not a["reached_linear_relight"] else

@@ -332,6 +332,15 @@ def test_evaluate_abs_records_both_routes_scored_by_the_converged_renderer(tmp_p
     if fastest is not None:
         assert {k: got[k] for k in key} == {k: fastest[k] for k in key}
 
+    # A rerun resumes: the material is reported from its record, not run and appended again; another
+    # time factor is another run.
+    assert main(["evaluate", material, "--out", str(out), *TINY_ARGS, "--abs", "1", "--abs-time-factor", "2"]) == 0
+    assert "an earlier run" in capsys.readouterr().out
+    assert len((out / "analysis_by_synthesis.jsonl").read_text().splitlines()) == 1
+    assert main(["evaluate", material, "--out", str(out), *TINY_ARGS, "--abs", "1", "--abs-time-factor", "1"]) == 0
+    lines = [json.loads(line) for line in (out / "analysis_by_synthesis.jsonl").read_text().splitlines()]
+    assert [r["time_factor"] for r in lines] == [2.0, 1.0]
+
 
 def test_cached_renders_are_keyed_by_the_truths_values(tmp_path):
     """A render cached for one truth table is not reused for another under the same material name
