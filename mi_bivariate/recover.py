@@ -69,9 +69,26 @@ class Recovery:
     sphere_refinement: Optional[sphere_refine.SphereRefinement] = None
 
     def relative_residual(self) -> float:
-        """``||I - L f|| / ||I||`` over all rows and channels."""
+        """``||I - L f|| / ||I||`` over all rows and channels (with several images, the brightest
+        dominates it: :meth:`relative_residuals` gives each image's own)."""
         values = np.asarray(self.observations.values, np.float64)  # float32 squares overflow beyond ~1e19
         return float(np.linalg.norm(values - self.predicted) / max(np.linalg.norm(values), 1e-30))
+
+    def relative_residuals(self) -> np.ndarray:
+        """``(n_images,) float64``: ``||I_k - L_k f|| / ||I_k||`` over image ``k``'s rows and channels,
+        each independent of the images' relative brightness."""
+        values = np.asarray(self.observations.values, np.float64)
+        index = self.observations.image_index
+        index = np.zeros(len(values), np.int64) if index is None else np.asarray(index)
+        out = np.zeros(int(index.max(initial=-1)) + 1)
+        for k in range(len(out)):
+            rows = index == k
+            out[k] = np.linalg.norm(values[rows] - self.predicted[rows]) / max(np.linalg.norm(values[rows]), 1e-30)
+        return out
+
+    def _per_image_residuals(self) -> str:
+        each = self.relative_residuals()
+        return f" (per image: {', '.join(f'{r:.4f}' for r in each)})" if len(each) > 1 else ""
 
     def summary(self) -> str:
         obs = self.observations
@@ -87,7 +104,7 @@ class Recovery:
             f"{' '.join(f'{a:.3g}' for a in self.solution.alphas)}, prior pair per channel {winners} "
             f"(by {self.solution.pair_rule}), "
             f"basis prior {'on' if self.brdf.provenance.get('basis_prior') else 'off'}, "
-            f"relative residual {self.relative_residual():.4f}",
+            f"relative residual {self.relative_residual():.4f}{self._per_image_residuals()}",
             f"confidence: the image measured {100 * float(np.mean(np.min(self.solution.measured, -1) > 0.5)):.0f}% "
             f"of the nodes (their uncertainty more than halved), the priors supplied the rest",
             f"timings: {stages}",

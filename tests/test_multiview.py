@@ -77,10 +77,15 @@ def test_views_and_probes_stack_into_one_solve(views):
     assert set(np.unique(three.observations.image_index)) == {0, 1, 2}
     assert list(np.unique(three.observations.probe_index)) == [0, 1, 2]
     # Each image is explained by the one table: poses, probes and perspective are all right.
+    each = three.relative_residuals()
     for k in range(3):
         rows = three.observations.image_index == k
         r = np.linalg.norm(three.predicted[rows] - three.observations.values[rows])
         assert r / np.linalg.norm(three.observations.values[rows]) < 0.12, k
+        assert each[k] == pytest.approx(r / np.linalg.norm(three.observations.values[rows]), rel=1e-6)
+    assert "(per image: " + ", ".join(f"{v:.4f}" for v in each) + ")" in three.summary()
+    assert one.relative_residuals() == pytest.approx([one.relative_residual()], rel=1e-12)
+    assert "per image" not in one.summary()
     assert table_error(three.brdf) < 0.1, (table_error(one.brdf), table_error(three.brdf))
     # More images observe more of the st domain.
     assert three.adequacy.unobserved_nodes <= one.adequacy.unobserved_nodes
