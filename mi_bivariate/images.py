@@ -233,7 +233,8 @@ def _held_fd(fd: int, stream: Any) -> Iterator[None]:
 
 def _read_exr_unchecked(path: Path, OpenEXR, keep_alpha: bool = False,  # noqa: N803
                         radiance: bool = True) -> Tuple[np.ndarray, Dict[str, str]]:
-    header = OpenEXR.File(str(path), header_only=True).header()
+    part = _exr_part(path, OpenEXR.File(str(path), header_only=True).parts)
+    header = part.header
     if header.get("type") in (OpenEXR.deepscanline, OpenEXR.deeptile):
         raise InputError(path, "is a deep OpenEXR image (a list of samples per pixel), not a flat one",
                          "flatten it (composite its samples) into a scanline or tiled image")
@@ -261,7 +262,7 @@ def _read_exr_unchecked(path: Path, OpenEXR, keep_alpha: bool = False,  # noqa: 
                          if layers else "expected grey, RGB or RGBA")
     if keep_alpha and "A" in upper:
         order.append(upper["A"])
-    planes = OpenEXR.File(str(path), separate_channels=True).channels()
+    planes = OpenEXR.File(str(path), separate_channels=True).parts[part.part_index].channels
     integer = [n for n in order if radiance and np.issubdtype(np.asarray(planes[n].pixels).dtype, np.integer)]
     if integer:
         raise InputError(path, f"channel {integer[0]} holds integers (UINT), not radiance",
@@ -271,6 +272,26 @@ def _read_exr_unchecked(path: Path, OpenEXR, keep_alpha: bool = False,  # noqa: 
         raise InputError(path, "cannot be read as an image: channel sizes disagree with the data window")
     metadata = {str(k): v for k, v in header.items() if isinstance(v, str)}
     return _in_display_window(path, np.stack(stack, axis=-1), lo, shown_lo, shown_hi), metadata
+
+
+def _exr_part(path: Path, parts: list):
+    """The part of a (multi-part) EXR to read: the only one, or the only one with its colour (R, G, B
+    or Y) at the top level. A file whose several parts hold colour (render passes: beauty, diffuse,
+    ...) is refused with their names, not read from its first part without a word."""
+    if len(parts) == 1:
+        return parts[0]
+
+    def has_colour(part) -> bool:
+        upper = {str(c.name).upper() for c in part.header.get("channels", [])}
+        return {"R", "G", "B"} <= upper or "Y" in upper
+
+    coloured = [p for p in parts if has_colour(p)]
+    if len(coloured) == 1:
+        return coloured[0]
+    names = [str(p.name()) or f"#{i}" for i, p in enumerate(coloured or parts)]
+    raise InputError(path, f"is a multi-part OpenEXR image whose parts {', '.join(repr(n) for n in names[:6])}"
+                           f"{', ...' if len(names) > 6 else ''} {'all hold' if coloured else 'hold no'} colour",
+                     "save the part to use as a single-part image")
 
 
 def _in_display_window(path: Path, data: np.ndarray, lo: np.ndarray, shown_lo: np.ndarray,

@@ -1545,6 +1545,26 @@ def test_exr_integer_channels_and_named_layers(tmp_path):
     _raises(lambda: images.load_image(tmp_path / "layers.exr"), "in the layer.*'beauty'")
 
 
+def test_a_multi_part_exr_is_read_from_its_only_coloured_part_or_refused(tmp_path):
+    """A multi-part EXR (render passes) was read from its first part without a word: the 'diffuse' pass in
+    place of the 'beauty' the user meant. Several coloured parts are refused with their names; a file whose
+    only coloured part is not the first (depth first, then RGB) is read from that part."""
+    import OpenEXR
+
+    def part(channels, name):
+        return OpenEXR.Part({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}, channels,
+                            name=name)
+
+    one, two = np.ones((8, 8, 3), np.float32), np.full((8, 8, 3), 2.0, np.float32)
+    OpenEXR.File([part({"RGB": one}, "diffuse"), part({"RGB": two}, "beauty")]).write(str(tmp_path / "passes.exr"))
+    _raises(lambda: images.load_image(tmp_path / "passes.exr"), "parts 'diffuse', 'beauty' all hold colour")
+    _raises(lambda: Probe.load(tmp_path / "passes.exr"), "multi-part")
+    OpenEXR.File([part({"Z": one[..., 0].copy()}, "depth"), part({"RGB": two}, "beauty")]).write(
+        str(tmp_path / "depth_first.exr"))
+    np.testing.assert_array_equal(images.load_image(tmp_path / "depth_first.exr"), two)
+    np.testing.assert_array_equal(images.load_mask(tmp_path / "depth_first.exr", (8, 8)), np.ones((8, 8), bool))
+
+
 def test_a_16_bit_png_is_called_16_bit(tmp_path):
     import mitsuba as mi
 
