@@ -116,13 +116,9 @@ def node_extent(n_t: int, n_s: int) -> Tuple[float, float, float, float]:
     return (-ds, 1.0 + ds, -dt, 1.0 + dt)
 
 
-def plot_table(ax: Any, brdf: BivariateBRDF, title: str, channel: Optional[int] = None,
-               vmin: Optional[float] = None, vmax: Optional[float] = None) -> Any:
-    """log10 of a bivariate table over the st plane (x: s ~ theta_d, y: t ~ theta_h, specular at the bottom)."""
-    table = brdf.table.mean(axis=2) if channel is None else brdf.table[..., channel]
-    logt = np.log10(np.maximum(table, 1e-4))
-    im = ax.imshow(logt, origin="lower", extent=node_extent(*logt.shape), cmap="viridis", vmin=vmin, vmax=vmax,
-                   aspect="auto")
+def degree_axes(ax: Any) -> None:
+    """An st map's axes (0..1 each) labelled in degrees: theta_d along s = 2 theta_d / pi, theta_h along
+    t = sqrt(2 theta_h / pi)."""
     ax.set_xlim(0.0, 1.0)
     ax.set_ylim(0.0, 1.0)
     ticks = np.array([0, 15, 30, 45, 60, 75, 90])
@@ -131,9 +127,22 @@ def plot_table(ax: Any, brdf: BivariateBRDF, title: str, channel: Optional[int] 
     ax.set_yticks(np.sqrt(t_ticks / 90.0), [f"{t}" for t in t_ticks], fontsize=7)
     ax.set_xlabel("theta_d (deg)", fontsize=8)
     ax.set_ylabel("theta_h (deg)", fontsize=8)
+
+
+def plot_table(ax: Any, brdf: BivariateBRDF, title: str, channel: Optional[int] = None,
+               vmin: Optional[float] = None, vmax: Optional[float] = None) -> Any:
+    """log10 of a bivariate table over the st plane (x: s ~ theta_d, y: t ~ theta_h, specular at the bottom)."""
+    table = brdf.table.mean(axis=2) if channel is None else brdf.table[..., channel]
+    logt = np.log10(np.maximum(table, 1e-4))
+    im = ax.imshow(logt, origin="lower", extent=node_extent(*logt.shape), cmap="viridis", vmin=vmin, vmax=vmax,
+                   aspect="auto")
+    degree_axes(ax)
     ax.set_title(title, fontsize=9)
-    bar = ax.figure.colorbar(im, ax=ax, fraction=0.046, pad=0.02)
-    bar.set_label("log10 f (1/sr)", fontsize=8)
+    # Values below 1e-4 1/sr (a zero node, the solve's lower bound) are drawn at -4: the colour bar's
+    # end says so instead of showing them as measured at 1e-4.
+    clamped = bool(np.any(table < 1e-4))
+    bar = ax.figure.colorbar(im, ax=ax, fraction=0.046, pad=0.02, extend="min" if clamped else "neither")
+    bar.set_label("log10 f (1/sr)" + (", < 1e-4 drawn at -4" if clamped else ""), fontsize=8)
     bar.ax.tick_params(labelsize=7)  # as the axes' ticks: "-1.25" clears the next panel's label
     return im
 
@@ -271,15 +280,12 @@ def write_recovery_report(result: Any, path: PathLike, rerender: Optional[np.nda
         confidence = np.min(np.asarray(result.solution.measured), axis=-1)
         im = axes[1, 1].imshow(confidence, origin="lower", extent=node_extent(*confidence.shape), cmap="magma",
                                vmin=0.0, vmax=1.0, aspect="auto")
-        axes[1, 1].set_xlim(0.0, 1.0)
-        axes[1, 1].set_ylim(0.0, 1.0)
+        degree_axes(axes[1, 1])  # as the table's panel beside it
         axes[1, 1].contour(np.linspace(0, 1, confidence.shape[1]), np.linspace(0, 1, confidence.shape[0]),
                            confidence, levels=[0.5], colors="w", linewidths=0.8)
         axes[1, 1].set_title(f"measured by the image (1) or supplied by the priors (0)\n"
                              f"{100 * float(np.mean(confidence > 0.5)):.0f}% of the nodes > 0.5 (white line)",
                              fontsize=9)
-        axes[1, 1].set_xlabel("s = 2 theta_d / pi", fontsize=8)
-        axes[1, 1].set_ylabel("t = sqrt(2 theta_h / pi)", fontsize=8)
         bar = fig.colorbar(im, ax=axes[1, 1], fraction=0.046, pad=0.02)
         bar.set_label("1 - posterior / prior variance", fontsize=7)
         bar.ax.tick_params(labelsize=7)

@@ -230,15 +230,39 @@ def test_st_maps_centre_each_cell_on_its_node(n_t, n_s):
     plt.close(fig)
 
 
+def test_table_colour_bar_marks_the_clamped_zero_nodes():
+    """Nodes below 1e-4 1/sr (zeros at the solve's bound) are drawn at log10 = -4; the colour bar said
+    nothing, so they read as measured at 1e-4. Its low end is now an arrow, and its label says so."""
+    import matplotlib.pyplot as plt
+
+    from mi_bivariate.bivariate import BivariateBRDF
+
+    table = np.full((8, 8, 3), 0.1)
+    for zeros, extend in ((False, "neither"), (True, "min")):
+        if zeros:
+            table[0, :2] = 0.0
+        fig, ax = plt.subplots()
+        image = report.plot_table(ax, BivariateBRDF(table), "t")
+        bar = image.colorbar
+        assert bar.extend == extend and ("1e-4" in bar.ax.get_ylabel()) == zeros, bar.ax.get_ylabel()
+        assert image.get_array().min() == pytest.approx(-4.0 if zeros else -1.0)
+        plt.close(fig)
+
+
 def test_confidence_map_lines_up_with_its_contour(tmp_path, recovery, monkeypatch):
     """The report's confidence cells sit on the nodes, where its 0.5 contour is drawn (np.linspace(0, 1, n))."""
     import matplotlib.pyplot as plt
 
     fig = _report_figure(recovery, tmp_path, monkeypatch)
-    ax = fig.axes[4]
+    ax, table_ax = fig.axes[4], fig.axes[3]
     n_t, n_s = ax.images[0].get_array().shape
     x0, x1, y0, y1 = ax.images[0].get_extent()
+    # ... and its axes read as the table's beside it (they were in s and t, the table's in degrees)
+    ticks = [(list(a.get_xticks()), [t.get_text() for t in a.get_xticklabels()], a.get_xlabel(),
+              list(a.get_yticks()), [t.get_text() for t in a.get_yticklabels()], a.get_ylabel())
+             for a in (ax, table_ax)]
     plt.close(fig)
+    assert ticks[0] == ticks[1] and ticks[0][2] == "theta_d (deg)", ticks
     np.testing.assert_allclose([x0 + 0.5 * (x1 - x0) / n_s, x1 - 0.5 * (x1 - x0) / n_s,
                                 y0 + 0.5 * (y1 - y0) / n_t, y1 - 0.5 * (y1 - y0) / n_t], [0, 1, 0, 1], atol=1e-12)
 
