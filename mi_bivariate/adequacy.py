@@ -64,7 +64,7 @@ import numpy as np
 from scipy.linalg import eigvalsh
 
 from mi_bivariate.capture import hemisphere_lattice
-from mi_bivariate.common import LUMINANCE_WEIGHTS, luminance
+from mi_bivariate.common import LUMINANCE_WEIGHTS, luminance, node_extent
 from mi_bivariate.coordinates import ST_REGIONS
 from mi_bivariate.errors import InputError, InputWarning
 from mi_bivariate.lighting import gram as gram_mod
@@ -361,7 +361,9 @@ class AdequacyReport:
 
         fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(10, 4))
         img = ax0.imshow(np.log10(np.maximum(self.observation_map, 1e-3)), origin="lower",
-                         extent=(0, 1, 0, 1), cmap="viridis", aspect="auto")
+                         extent=node_extent(*self.observation_map.shape[:2]), cmap="viridis", aspect="auto")
+        ax0.set_xlim(0.0, 1.0)
+        ax0.set_ylim(0.0, 1.0)
         ax0.set_xlabel("s = 2 theta_d / pi")
         ax0.set_ylabel("t = sqrt(2 theta_h / pi)")
         ax0.set_title("observations per st node (log10)")

@@ -18,11 +18,10 @@ from typing import Any, Dict, List, Sequence
 import numpy as np
 
 from mi_bivariate.bivariate import BivariateBRDF
-from mi_bivariate.common import PathLike
+from mi_bivariate.common import PathLike, node_extent
 from mi_bivariate.report import (
     exposure_of,
     incident_plane,
-    node_extent,
     plot_table,
     pyplot,
     save_figure,
@@ -289,8 +288,10 @@ def plot_table_gallery(records: Sequence[dict], artifacts: Dict[str, Dict[str, n
                                        for p in input_probes]
         for j, (label, table) in enumerate(tables):
             ax = axes[k // columns, (k % columns) * per + j]
-            ax.imshow(np.log10(np.maximum(table, 1e-4)), origin="lower", extent=(0, 1, 0, 1), cmap="viridis",
-                      vmin=lo, vmax=hi, aspect="auto")
+            ax.imshow(np.log10(np.maximum(table, 1e-4)), origin="lower", extent=node_extent(*table.shape),
+                      cmap="viridis", vmin=lo, vmax=hi, aspect="auto")
+            ax.set_xlim(0.0, 1.0)
+            ax.set_ylim(0.0, 1.0)
             ax.set_title((r["material"][:22] + "\n" if j == 0 else "\n") + label, fontsize=6)
     fig.tight_layout()
     return fig

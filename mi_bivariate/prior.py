@@ -64,7 +64,7 @@ from typing import Any, Dict, Mapping, Optional, Sequence, Tuple, Union
 import numpy as np
 import scipy.sparse as sp
 
-from mi_bivariate.common import PathLike
+from mi_bivariate.common import PathLike, node_extent
 
 from .atomic import atomic_path
 from .errors import InputError
@@ -505,7 +505,17 @@ def plot_prior(prior: Prior):
         members = sorted(n for n, p in split.items() if p == pair)
         for col, (axis, sigma) in enumerate(zip(("s", "t"), prior.pairs[pair])):
             ax = axes[row, col]
-            img = ax.imshow(np.log10(sigma), origin="lower", extent=(0, 1, 0, 1), cmap="viridis")
+            # Each sigma belongs to the difference between two nodes, drawn between them: the padded
+            # last column (s) or row (t) is a copy and is left out; along the other axis, cells sit on nodes.
+            n_t, n_s = sigma.shape
+            x0, x1, y0, y1 = node_extent(n_t, n_s)
+            if axis == "s":
+                sigma, extent = sigma[:, :-1], (0.0, 1.0, y0, y1)
+            else:
+                sigma, extent = sigma[:-1], (x0, x1, 0.0, 1.0)
+            img = ax.imshow(np.log10(sigma), origin="lower", extent=extent, cmap="viridis")
+            ax.set_xlim(0.0, 1.0)
+            ax.set_ylim(0.0, 1.0)
             fig.colorbar(img, ax=ax, label=r"$\log_{10}\sigma$")
             ax.set_title(f"{pair}: sigma of dF/d{axis}" + (f", {len(members)} mat." if members else ""),
                          fontsize="medium")

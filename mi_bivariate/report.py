@@ -16,7 +16,7 @@ import numpy as np
 from mi_bivariate import render
 from mi_bivariate.atomic import atomic_path
 from mi_bivariate.bivariate import BivariateBRDF
-from mi_bivariate.common import PathLike, luminance
+from mi_bivariate.common import PathLike, luminance, node_extent
 from mi_bivariate.coordinates import half_diff_from_dirs
 from mi_bivariate.images import auto_exposure, tonemap
 
@@ -104,16 +104,6 @@ def show_difference(ax: Any, image: np.ndarray, reference: np.ndarray, mask: np.
     bar = ax.figure.colorbar(im, ax=ax, fraction=0.046, pad=0.02)
     bar.set_label("% of the mean pixel" if scale == 100.0 else f"x{scale:g} of the mean pixel", fontsize=7)
     bar.ax.tick_params(labelsize=7)  # the axes' tick size: "350" or "4500" stays inside a fixed layout
-
-
-def node_extent(n_t: int, n_s: int) -> Tuple[float, float, float, float]:
-    """``imshow`` extent that centres each cell of an ``(n_t, n_s)`` st map on its node (s, t = i / (n - 1)).
-
-    ``extent=(0, 1, 0, 1)`` centres cell i at (i + 0.5) / n instead: half a cell off at the edges
-    (on 8 x 8, theta_h's second node, 1.8 degrees, was drawn at 3.2). Show it with limits 0..1.
-    """
-    ds, dt = 0.5 / max(n_s - 1, 1), 0.5 / max(n_t - 1, 1)
-    return (-ds, 1.0 + ds, -dt, 1.0 + dt)
 
 
 def degree_axes(ax: Any) -> None:

@@ -58,6 +58,11 @@ def test_observation_map_and_regions(sphere_obs):
         assert 0 < region["observed"] <= region["nodes"]
     fig = report.figure()
     assert len(fig.axes) >= 2
+    # Its coverage cells are centred on their nodes (extent (0, 1, 0, 1) put cell i at (i + 0.5) / n).
+    x0, x1, y0, y1 = fig.axes[0].images[0].get_extent()
+    np.testing.assert_allclose(x0 + (np.arange(32) + 0.5) * (x1 - x0) / 32, np.linspace(0, 1, 32), atol=1e-12)
+    np.testing.assert_allclose(y0 + (np.arange(32) + 0.5) * (y1 - y0) / 32, np.linspace(0, 1, 32), atol=1e-12)
+    assert fig.axes[0].get_xlim() == (0.0, 1.0) and fig.axes[0].get_ylim() == (0.0, 1.0)
 
 
 def test_spectrum_is_scale_invariant(sphere_obs):

@@ -178,6 +178,17 @@ def test_default_prior_shape_and_provenance():
             assert sigma.max() <= 100.0 * np.median(sigma) * (1 + 1e-9)
     fig = plot_prior(prior)
     assert len(fig.axes) == 8  # 4 maps + 4 colour bars
+    # Each sigma is drawn between the two nodes of its difference and on the nodes across it; the padded
+    # copy (the last column of sigma_s, the last row of sigma_t) is not drawn.
+    nodes, mids = np.linspace(0, 1, 32), (np.arange(31) + 0.5) / 31
+    for ax, (along, sigma) in zip(fig.axes[:4], [(a, m) for pair in PAIRS for a, m in zip("st", prior.pairs[pair])]):
+        image = ax.images[0]
+        rows, cols = image.get_array().shape
+        x0, x1, y0, y1 = image.get_extent()
+        xs, ys = x0 + (np.arange(cols) + 0.5) * (x1 - x0) / cols, y0 + (np.arange(rows) + 0.5) * (y1 - y0) / rows
+        np.testing.assert_allclose(xs, mids if along == "s" else nodes, atol=1e-12)
+        np.testing.assert_allclose(ys, nodes if along == "s" else mids, atol=1e-12)
+        np.testing.assert_allclose(image.get_array(), np.log10(sigma[:, :-1] if along == "s" else sigma[:-1]))
 
 
 def test_learn_prior_from_merl_names(data_dir):

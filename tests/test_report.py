@@ -287,3 +287,20 @@ def test_report_names_its_photo_and_probe(tmp_path, recovery, monkeypatch):
     assert title.startswith("input: ...") and title.endswith("x_sphere.exr, probe synthetic")
     assert len(title) == len("input: , probe synthetic") + 26
     assert problems == []
+
+
+def test_evaluation_table_gallery_centres_cells_on_nodes():
+    """The evaluation's table gallery drew cell i at (i + 0.5) / n, half a cell off the node it holds."""
+    from mi_bivariate import figures
+
+    n_t, n_s = 8, 6
+    art = {"floor": np.full((n_t, n_s, 3), 0.5), "recovered__grace": np.full((n_t, n_s, 3), 0.25)}
+    fig = figures.plot_table_gallery([{"material": "m"}], {"m": art}, ["grace"], columns=1)
+    shown = [ax for ax in fig.axes if ax.images]
+    assert len(shown) == 2
+    for ax in shown:
+        x0, x1, y0, y1 = ax.images[0].get_extent()
+        np.testing.assert_allclose(x0 + (np.arange(n_s) + 0.5) * (x1 - x0) / n_s, np.linspace(0, 1, n_s), atol=1e-12)
+        np.testing.assert_allclose(y0 + (np.arange(n_t) + 0.5) * (y1 - y0) / n_t, np.linspace(0, 1, n_t), atol=1e-12)
+        assert ax.get_xlim() == (0.0, 1.0) and ax.get_ylim() == (0.0, 1.0)
+    figures.pyplot().close(fig)
