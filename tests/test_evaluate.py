@@ -490,3 +490,24 @@ def test_a_prior_file_that_saw_the_material_is_said(tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("error", InputWarning)
         choose_priors(other)
+
+
+def test_a_merl_file_named_as_a_shared_material_is_said_to_be_seen_by_the_packaged_priors(tmp_path):
+    """A MERL file ``brass.binary`` is scored with the packaged priors, which learnt from the shared 'brass':
+    if it is that material, the score is not leave-one-out. The evaluation now says so (it said nothing);
+    a file of another name is scored without a word."""
+    import warnings
+
+    from mi_bivariate import prior as pr
+    from mi_bivariate.errors import InputWarning
+    from mi_bivariate.evaluate.protocol import MaterialTask, choose_priors
+    from mi_bivariate.sources import MaterialSpec
+
+    seen = pr.default_prior().provenance["materials"][0]
+    task = MaterialTask(MaterialSpec(seen, "merl", str(tmp_path / f"{seen}.binary")), ev.EvalConfig())
+    with pytest.warns(InputWarning, match=f"learnt from a shared material named '{seen}'.*not leave-one-out"):
+        assert choose_priors(task)[2].startswith("packaged")
+    other = MaterialTask(MaterialSpec("mine", "merl", str(tmp_path / "mine.binary")), ev.EvalConfig())
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", InputWarning)
+        choose_priors(other)

@@ -16,6 +16,7 @@ from __future__ import annotations
 import time
 import warnings
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
@@ -26,7 +27,7 @@ from mi_bivariate.errors import InputWarning, renamed
 from mi_bivariate.evaluate.config import EvalConfig
 from mi_bivariate.evaluate.renders import Renderer, Shot, plugin
 from mi_bivariate.noise import add_camera_noise
-from mi_bivariate.prior import Prior
+from mi_bivariate.prior import Prior, default_prior
 from mi_bivariate.probes import Probe
 from mi_bivariate.recover import Recovery, recover
 from mi_bivariate.report import incident_plane
@@ -149,6 +150,13 @@ def choose_priors(task: MaterialTask) -> Tuple[Optional[Prior], Any, str]:
     if cfg.leave_one_out and task.material.kind == "nbrdf":
         prior, basis_prior = training_set.leave_one_out_priors(task.material.spec, *cfg.grid, data_dir=task.data_dir)
         return prior, basis_prior, f"leave-one-out: the other {len(basis_prior.materials)} shared MERL-NBRDF materials"
+    if task.material.kind == "merl":  # a MERL file named as a shared material: the packaged priors saw one of that name
+        name = Path(task.material.spec).stem
+        learnt = default_prior()
+        if learnt is not None and name in learnt.provenance.get("materials", ()):
+            warnings.warn(f"{task.material.label}: the packaged priors were learnt from a shared material named "
+                          f"{name!r}: if this file is that material, its scores are not leave-one-out (evaluate it "
+                          f"by its shared name, {name}, for leave-one-out priors)", InputWarning, stacklevel=2)
     return None, "default", "packaged (73 shared MERL-NBRDF materials)"
 
 
