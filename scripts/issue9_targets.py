@@ -43,7 +43,7 @@ def relight(entry: dict) -> float:
 
 def ratio(entry: dict) -> float:
     """The median relight / floor over the novel probes; NaN where no floor is above the references' noise
-    (the record's ratio is then null: ``metrics.MIN_RELIGHT_FLOOR``)."""
+    (the record's ratio is then null: ``metrics.MIN_RELIGHT_FLOOR``, ``metrics.NOISE_FLOOR_FACTOR``)."""
     values = [v["ratio"] for v in entry["images"].values() if v.get("ratio") is not None]
     return float(np.median(values)) if values else float("nan")
 

@@ -185,6 +185,10 @@ def test_relight_errors_by_hand():
     # a floor below the references' noise gives no ratio (it would divide by that noise)
     tiny = metrics.relight_errors(1.1 * truth, (1 + 0.5 * metrics.MIN_RELIGHT_FLOOR) * truth, truth, mask)
     assert math.isnan(tiny["ratio"]) and tiny["rel_rmse"] == pytest.approx(0.1)
+    # ... and so does a floor below twice the reference's own measured noise (--quick's references: 5.7e-3)
+    for noise, ratio in ((0.02, 2.0), (0.024, 2.0), (0.026, math.nan)):  # the floor is 0.05
+        got = metrics.relight_errors(1.1 * truth, 1.05 * truth, truth, mask, reference_noise=noise)["ratio"]
+        assert (math.isnan(got) and math.isnan(ratio)) or got == pytest.approx(ratio), (noise, got)
 
 
 def test_psnr_peak_is_the_references():

@@ -262,7 +262,8 @@ def relight(renderer: Renderer, cfg: EvalConfig, rec: Recovery, novels: List[Pro
         nl = probe_label(novel_name)
         img = renderer.render(rec_bsdf, novels[k], novel_name, cfg.novel_resolution, cfg.novel_seed(novel_name),
                               cfg.novel_spp).image
-        images[nl] = metrics.relight_errors(img, novel.floor[nl], novel.truth[nl].image, novel.truth[nl].mask)
+        images[nl] = metrics.relight_errors(img, novel.floor[nl], novel.truth[nl].image, novel.truth[nl].mask,
+                                            novel.noise[nl])
         arrays[f"recovered_render__{label}__{nl}"] = _f16(img)
     return images
 
