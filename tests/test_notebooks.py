@@ -16,14 +16,22 @@ def test_notebook_runs(name, tmp_path, monkeypatch):
     nbformat = pytest.importorskip("nbformat")
     nbclient = pytest.importorskip("nbclient")
     monkeypatch.setenv("MI_BIVARIATE_QUICK", "1")        # the kernel inherits the environment
+    # The notebooks' temporary folders (the quickstart's 34 MB export, the quick evaluation) go with the
+    # test's: before, every run left them in the system's temporary folder.
+    monkeypatch.setenv("TMPDIR", str(tmp_path))
+    text = _execute(nbformat, nbclient, name, tmp_path)
+    assert any(tmp_path.glob("mi_bivariate_*")), "the notebook's outputs were written outside the test's folder"
+    if name == "quickstart.ipynb":  # a shared material is recovered with priors that never saw it
+        assert ("priors: leave-one-out" if have_shared_data() else "priors: packaged") in text, text[:2000]
+
+
+def _execute(nbformat, nbclient, name: str, folder: Path) -> str:
+    """Run a notebook top to bottom in ``folder``; fail on an error output; return its text outputs."""
     nb = nbformat.read(NOTEBOOKS / name, as_version=4)
     # 300 s a cell: with a cold cache the quickstart's leave-one-out priors reduce 73 materials first
     client = nbclient.NotebookClient(nb, timeout=300, kernel_name="python3",
-                                     resources={"metadata": {"path": str(tmp_path)}})
+                                     resources={"metadata": {"path": str(folder)}})
     client.execute()
-    errors = [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])
-              if o.get("output_type") == "error"]
-    assert not errors
-    if name == "quickstart.ipynb":  # a shared material is recovered with priors that never saw it
-        text = "".join(o.get("text", "") for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", []))
-        assert ("priors: leave-one-out" if have_shared_data() else "priors: packaged") in text, text[:2000]
+    outputs = [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])]
+    assert not [o for o in outputs if o.get("output_type") == "error"]
+    return "".join(o.get("text", "") for o in outputs)
