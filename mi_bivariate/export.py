@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import os
+import warnings
 from pathlib import Path
 from typing import Iterable, List
 
 from mi_bivariate.atomic import atomic_paths, check_out_file, check_outputs
 from mi_bivariate.common import PathLike
-from mi_bivariate.errors import InputError
+from mi_bivariate.errors import InputError, InputWarning
 from mi_bivariate.recover import Recovery
 from mi_bivariate.report import write_recovery_report
 
@@ -51,7 +52,8 @@ def write_outputs(result: Recovery, out: PathLike, merl: bool = False, report: b
     its provenance names) and ``inputs``. The recovery does not know the path of a
     photo loaded in Python: give it in ``inputs`` (``inputs=["photo.exr"]``) or
     record it as ``result.brdf.provenance["photos"]`` to protect it.
-    Returns the paths written.
+    Returns the paths written. An output of the set that this call does not write (a ``.binary`` or a
+    report) left beside ``out`` by an earlier run is warned about (:class:`InputWarning`), not deleted.
 
     Raises:
         InputError: naming ``out``, if an output would replace one of those inputs,
@@ -72,4 +74,11 @@ def write_outputs(result: Recovery, out: PathLike, merl: bool = False, report: b
             result.brdf.to_merl().write(temps[2])
         if report:
             write_recovery_report(result, temps[-1], path_trace=report_render)
+    # An earlier run's .binary or report beside the new table would read as part of this set.
+    stale = [p for p in output_paths(out, merl=True, report=True) if p not in paths and p.is_file()]
+    if stale:
+        them = "it" if len(stale) == 1 else "them"
+        warnings.warn(f"out: {', '.join(p.name for p in stale)} beside {paths[0].name} {'was' if them == 'it' else 'were'} "
+                      f"not written by this run and may belong to an earlier table (delete {them}, or write "
+                      f"{them} again: --merl, the report)", InputWarning, stacklevel=2)
     return paths

@@ -20,7 +20,7 @@ from helpers import assert_same_sums
 from mi_bivariate import analytic, nbrdf, probes, render
 from mi_bivariate.bivariate import BivariateBRDF, reduction_error
 from mi_bivariate.cli import main as cli_main
-from mi_bivariate.errors import InputError
+from mi_bivariate.errors import InputError, InputWarning
 from mi_bivariate.export import write_outputs
 from mi_bivariate.images import write_exr
 from mi_bivariate.metrics import image_relative_rmse
@@ -268,6 +268,25 @@ def test_write_outputs_never_replaces_the_recoverys_inputs(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["photo.exr", "probe.exr"]  # nothing written
     paths = write_outputs(result, tmp_path / "brdf.npz", report=False, inputs=[photo])
     assert [p.name for p in paths] == ["brdf.npz", "brdf.exr"] and all(p.is_file() for p in paths)
+
+
+def test_write_outputs_warns_of_an_earlier_runs_files_beside_the_new_table(tmp_path):
+    """A rerun to the same out without --merl left the earlier run's brdf.binary beside the new brdf.npz, which
+    read as one set. It is warned about (not deleted); a run that writes the whole set again says nothing."""
+    probe = probes.Probe.constant([1.0, 0.9, 0.8], res=16)
+    shot = render.render_sphere({"type": "diffuse"}, probe, resolution=32, spp=2, seed=0)
+    result = recover(shot.image, probe, shot.geometry, n_normals=200, n_dirs=300, grid=(8, 8), basis_prior=None,
+                     noise=None)
+    out = tmp_path / "brdf.npz"
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", InputWarning)
+        write_outputs(result, out, merl=True, report=False)
+        write_outputs(result, out, merl=True, report=False)
+    with pytest.warns(InputWarning, match=r"^out: brdf.binary beside brdf.npz was not written by this run"):
+        write_outputs(result, out, report=False)
+    assert (tmp_path / "brdf.binary").is_file()
 
 
 
