@@ -10,6 +10,7 @@ from typing import Iterable, List
 from mi_bivariate.atomic import atomic_paths, check_out_file, check_outputs
 from mi_bivariate.common import PathLike
 from mi_bivariate.errors import InputError, InputWarning
+from mi_bivariate.merl import check_values
 from mi_bivariate.recover import Recovery
 from mi_bivariate.report import write_recovery_report
 
@@ -67,11 +68,14 @@ def write_outputs(result: Recovery, out: PathLike, merl: bool = False, report: b
         check_outputs(paths, protected, flag="out")
     except InputError as exc:
         raise InputError("out", f"{exc.source}: {exc.problem}", exc.hint) from None
+    merl_table = result.brdf.to_merl() if merl else None
+    if merl_table is not None:  # checked before anything is written, naming the output (not its temporary)
+        check_values(merl_table.table, paths[2], "a MERL reader would refuse it: leave --merl out")
     with atomic_paths(paths) as temps:
         result.brdf.save(temps[0])
         result.brdf.save_exr(temps[1])
-        if merl:
-            result.brdf.to_merl().write(temps[2])
+        if merl_table is not None:
+            merl_table.write(temps[2], validate=False)
         if report:
             write_recovery_report(result, temps[-1], path_trace=report_render)
     # An earlier run's .binary or report beside the new table would read as part of this set.

@@ -22,7 +22,7 @@ import hashlib
 import math
 import os
 from pathlib import Path
-from typing import Any, Callable, List, Tuple, Union
+from typing import Any, Callable, List, Optional, Tuple, Union
 
 import mitsuba as mi
 import numpy as np
@@ -78,6 +78,32 @@ def check_reflects(table: np.ndarray, source: Any, hint: str = "give a material 
         raise InputError(source, "the BRDF table holds no positive value above the horizon (every value is 0 "
                                  "or missing): it reflects no light, and the relative error of a reduction "
                                  "is undefined", hint)
+
+
+def check_values(table: np.ndarray, source: Any, hint: Optional[str] = None) -> None:
+    """Raise :class:`InputError` naming ``source`` unless a MERL ``(90, 90, 180, 3)`` float64 table (1/sr, NaN
+    for a missing sample) is one :meth:`MERLBRDF.read` accepts: no infinite value, some light above the
+    horizon, a valid sample in every channel and in all three at one node, values within float32's range.
+    ``hint`` replaces the hints, which speak of a file read."""
+    table = np.asarray(table, np.float64)
+    path = source
+    if np.isinf(table).any():
+        raise InputError(path, "MERL file holds infinite values", hint or "the file is corrupt")
+    check_reflects(table, path, hint or hint or "check the file")
+    finite = table[np.isfinite(table)]
+    missing = [name for c, name in enumerate("RGB") if not np.isfinite(table[..., c]).any()]
+    if missing:  # the others hold light, but no sample is valid in every channel
+        raise InputError(path, f"channel {'/'.join(missing)} has no valid sample (every value there is "
+                               "negative, MERL's mark of a missing sample)", hint or "check the file")
+    if not np.any(np.all(np.isfinite(table), axis=-1) & geometric_mask()):
+        raise InputError(path, "no sample above the horizon is valid in all three colour channels (the "
+                               "channels' valid samples do not overlap)", hint or "check the file")
+    if finite.max() > np.finfo(np.float32).max:  # renders, reductions and the solve run in float32
+        raise InputError(path, f"MERL file holds values up to {finite.max():.3g} 1/sr, beyond float32",
+                         hint or "check the file")
+    if finite.max() < np.finfo(np.float32).tiny:  # every value would be 0 (or subnormal) in float32
+        raise InputError(path, f"MERL file holds values up to {finite.max():.3g} 1/sr only, below float32's "
+                               "range: the material would render black", hint or "check the file (its scale)")
 
 
 @functools.lru_cache(maxsize=1)
@@ -197,30 +223,21 @@ class MERLBRDF:
             channel = raw[c] * MERL_SCALE[c]
             channel[raw[c] < 0.0] = np.nan
             table[..., c] = channel
-        if np.isinf(table).any():
-            raise InputError(path, "MERL file holds infinite values", "the file is corrupt")
-        check_reflects(table, path, "check the file")
-        finite = table[np.isfinite(table)]
-        missing = [name for c, name in enumerate("RGB") if not np.isfinite(table[..., c]).any()]
-        if missing:  # the others hold light, but no sample is valid in every channel
-            raise InputError(path, f"channel {'/'.join(missing)} has no valid sample (every value there is "
-                                   "negative, MERL's mark of a missing sample)", "check the file")
-        if not np.any(np.all(np.isfinite(table), axis=-1) & geometric_mask()):
-            raise InputError(path, "no sample above the horizon is valid in all three colour channels (the "
-                                   "channels' valid samples do not overlap)", "check the file")
-        if finite.max() > np.finfo(np.float32).max:  # renders, reductions and the solve run in float32
-            raise InputError(path, f"MERL file holds values up to {finite.max():.3g} 1/sr, beyond float32",
-                             "check the file")
-        if finite.max() < np.finfo(np.float32).tiny:  # every value would be 0 (or subnormal) in float32
-            raise InputError(path, f"MERL file holds values up to {finite.max():.3g} 1/sr only, below float32's "
-                                   "range: the material would render black", "check the file (its scale)")
+        check_values(table, path)
         return cls(table, name=name or path.stem)
 
-    def write(self, path: PathLike) -> None:
-        """Write a MERL ``.binary`` file atomically; missing (NaN) samples are written as -1."""
+    def write(self, path: PathLike, validate: bool = True) -> None:
+        """Write a MERL ``.binary`` file atomically; missing (NaN) samples are written as -1.
+
+        Raises:
+            InputError: naming ``path``, for a table :meth:`read` would refuse (:func:`check_values`);
+            ``validate=False`` writes it anyway (files to test readers with).
+        """
         table = np.asarray(self.table, np.float64)
         if np.any(table < 0.0):
             raise ValueError(f"{self.name}: MERL table has negative values; they would read back as missing")
+        if validate:  # as read() would
+            check_values(table, path, "a MERL reader would refuse it: check the table's values")
         raw = np.empty((3,) + MERL_SHAPE, np.float64)
         for c in range(3):
             channel = table[..., c] / MERL_SCALE[c]

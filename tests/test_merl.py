@@ -70,6 +70,24 @@ def test_write_is_atomic(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.parametrize("values", ["zero", "infinite", "huge", "underflow"])
+def test_write_refuses_a_table_read_would_refuse(tmp_path, values):
+    """MERLBRDF.write (and BivariateBRDF.to_merl().write) wrote files MERLBRDF.read refuses: an all-zero
+    table, an infinite value, values beyond or below float32. Each is refused before anything is written."""
+    table = np.full(MERL_SHAPE + (3,), 0.5)
+    table[..., :] = {"zero": 0.0, "infinite": 0.5, "huge": 1e39, "underflow": 1e-39}[values]
+    if values == "infinite":
+        table[10, 10, 10] = np.inf
+    with pytest.raises(InputError, match="bad.binary.*a MERL reader would refuse it"):
+        MERLBRDF(table).write(tmp_path / "bad.binary")
+    assert list(tmp_path.iterdir()) == []
+    if values == "zero":
+        from mi_bivariate.bivariate import BivariateBRDF
+
+        with pytest.raises(InputError, match="no positive value"):
+            BivariateBRDF(np.zeros((8, 8, 3), np.float32)).to_merl().write(tmp_path / "bad.binary")
+
+
 @pytest.mark.parametrize("case", ["truncated", "trailing", "foreign", "tiny", "missing", "directory"])
 def test_bad_files_raise_input_error(raw_file, tmp_path, case):
     data = raw_file[0].read_bytes()

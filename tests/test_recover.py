@@ -287,6 +287,13 @@ def test_write_outputs_warns_of_an_earlier_runs_files_beside_the_new_table(tmp_p
     with pytest.warns(InputWarning, match=r"^out: brdf.binary beside brdf.npz was not written by this run"):
         write_outputs(result, out, report=False)
     assert (tmp_path / "brdf.binary").is_file()
+    # A table no MERL reader accepts (all zero) is refused with --merl, naming the output, before any write.
+    import dataclasses
+
+    black = dataclasses.replace(result, brdf=BivariateBRDF(np.zeros_like(result.brdf.table)))
+    with pytest.raises(InputError, match=r"black.binary: the BRDF table holds no positive value"):
+        write_outputs(black, tmp_path / "black.npz", merl=True, report=False)
+    assert not any(tmp_path.glob("black*")) and not any(tmp_path.glob(".black*"))
 
 
 
