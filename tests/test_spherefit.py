@@ -270,3 +270,23 @@ def test_a_sphere_cut_off_at_the_bottom_of_a_wide_image_is_not_confident():
     assert not fit.confident and any("extends beyond the 300x100 image" in p for p in fit.problems)
     with pytest.raises(InputError, match="rotation"):
         spherefit.fit_sphere(mask=mask, camera_to_world=np.diag([1.0, 1.0, -1.0]))
+
+
+def test_an_explicit_sphere_under_perspective_is_the_fitted_one():
+    """An off-axis sphere seen by a pinhole camera: the silhouette is an ellipse, and the sphere given
+    explicitly as its best circle (CX, CY, R: what the fit reports) must describe the same sphere as the
+    fit, whose normals are the exact ray-sphere normals of the true geometry (the truth here)."""
+    k = Intrinsics(180.0, 180.0, 128.0, 96.0)
+    truth = PerspectiveSphereGeometry(k, [1.1, -0.6, -4.0], 1.0)
+    normals, views, mask = truth.normals_and_views(256, 192)
+    fit = spherefit.fit_sphere(mask=mask, intrinsics=k)
+    # The cone's residuals: crack midpoints lie within half a pixel of the ellipse (its best circle's
+    # RMS residual is 0.84 px).
+    assert fit.confident and fit.rms_px < 0.4, fit.summary()
+    assert np.linalg.norm(fit.geometry.centre - truth.centre) < 2e-3 * truth.distance
+    user = spherefit.fit_sphere(mask=mask, intrinsics=k, sphere=(fit.cx, fit.cy, fit.radius))
+    assert user.method == "user"
+    assert np.linalg.norm(user.geometry.centre - truth.centre) < 2e-3 * truth.distance, user.geometry.centre
+    got, _, got_mask = user.geometry.normals_and_views(256, 192)
+    inner = mask & got_mask & (angle_deg(normals, views) < 60.0)
+    assert inner.sum() > 3000 and angle_deg(got, normals)[inner].max() < 0.5
