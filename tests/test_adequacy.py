@@ -199,3 +199,14 @@ def test_observation_strength_region_shares_and_verdict_by_hand(monkeypatch):
     masks = adequacy.region_masks(n_t, n_s)
     for name, stats in report.regions.items():
         assert stats["share"] == pytest.approx(masks[name].sum() / n, rel=0.1)
+
+
+@pytest.mark.parametrize("name,detail", [("grace_latlong_1k", 0.19), ("grace_256", 0.32), ("uffizi_256", 0.23),
+                                         ("pisa_256", 0.14), ("venice_sunset_1k", 0.16),
+                                         ("pedestrian_overpass_1k", 0.25), ("royal_esplanade_1k", 0.02)])
+def test_detail_matches_the_calibration_table(data_dir, name, detail):
+    """The module docstring's calibration table (detail at 3 degrees) is what environment_detail gives on
+    each shared probe, to its two decimals."""
+    from mi_bivariate.probes import shared_probe
+
+    assert adequacy.environment_detail(shared_probe(name, data_dir)) == pytest.approx(detail, abs=0.006)

@@ -217,3 +217,39 @@ def test_sphere_footprints_are_finer_than_the_footprint_angle():
         grid = sub.reshape(side, side, 3)
         worst = max(worst, angle(grid[:, 1:], grid[:, :-1]).max(), angle(grid[1:], grid[:-1]).max())
     assert worst <= 1.2 * footprint, worst
+
+
+def test_rim_pixels_mixed_with_the_background_are_never_used():
+    """Up to the rim (max_view_angle 90): no used pixel reaches outside the silhouette (its centre plus
+    half its diagonal inside the circle, the closed form of a square pixel inside a disc); the others
+    are counted as silhouette drops."""
+    image, geo = sphere_image()
+    obs = capture.observations_from_sphere(image, geo, n_normals=20000, max_view_angle_deg=90.0)
+    centre = obs.pixels[:, ::-1] + 0.5 - [geo.cx, geo.cy]
+    assert np.all(np.linalg.norm(centre, axis=1) + math.sqrt(0.5) < geo.radius)
+    assert obs.dropped["silhouette"] > 100
+
+
+def test_normal_map_rows_face_their_own_view_within_the_limit():
+    """A pinhole photo: each pixel has its own view. Every row's normal lies within max_view_angle of
+    that pixel's own view (not just of the mean view the lattice is laid about)."""
+    k = Intrinsics(120.0, 120.0, 64.0, 64.0)
+    geo = PerspectiveSphereGeometry(k, [0.9, 0.5, -3.0], 1.0)
+    normals, views, mask = geo.normals_and_views(128, 128, coverage="full")
+    image = np.where(mask[..., None], 0.2 + normals[..., 2:], 0.0).repeat(3, axis=2).astype(np.float32)
+    obs = capture.image_observations(image, geo, n_normals=4000, max_view_angle_deg=60.0)
+    cos = np.sum(obs.normals * obs.views, axis=1)
+    assert len(obs) > 500 and cos.min() >= math.cos(math.radians(60.0)) - 1e-9
+    np.testing.assert_allclose(obs.views, views[obs.pixels[:, 0], obs.pixels[:, 1]])
+
+
+def test_stacked_footprints_stay_with_their_rows():
+    """Three observation sets of different sizes with pixel footprints: after stacking, each footprint
+    normal still belongs to its row (within the footprint's spread of the row's centre normal)."""
+    image, geo = sphere_image()
+    parts = [capture.observations_from_sphere(image, geo, n_normals=n, max_view_angle_deg=88.0, footprint=1.0,
+                                              seed=n) for n in (400, 700, 1200)]
+    s = capture.stack(parts)
+    assert len(s.footprint_rows) == sum(len(p.footprint_rows) for p in parts) > 100
+    cos = np.sum(s.footprint_normals * s.normals[s.footprint_rows], axis=1)
+    assert np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))).max() < 15.0

@@ -83,3 +83,45 @@ def test_recover_refuses_an_unknown_image_weighting():
     with pytest.raises(InputError, match="image_weights"):
         recover(np.ones((16, 16, 3), np.float32), synthetic_environment(), SphereGeometry(8, 8, 6),
                 image_weights="loudest")
+
+
+def test_factors_follow_the_documented_formula():
+    """A second implementation of the docstring's rule, on noisy images of three sizes (the degrees of
+    freedom given back matter most for the smallest): d_ij^2 = max(||L_j f_i - I_j||^2 - s_j^2, 0) / ||I_j||^2
+    with s_j^2 = sum_c RSS_jc M_j / (M_j - dof_jc), d_i the RMS over j != i, factors d / min d (>= 1)."""
+    L, I, index, _ = _images(bias=0.3, noise=0.05)
+    keep = np.concatenate([np.arange(300), 300 + np.arange(120), 600 + np.arange(200)])
+    L, I, index = L[keep], I[keep], index[keep]
+    prior = default_prior().resampled(N_T, N_S)
+    sigma = solve.row_sigma(I, index)
+    factors = cross_image_factors(L, I, index, sigma, prior, 1e-2)
+    tables, own = [], []
+    for i in range(3):
+        rows = index == i
+        result = solve_stages(solve.prepare_data_term(L[rows], I[rows], sigma[rows]), prior, 1e-2)
+        table = result.table.reshape(-1, 3).astype(np.float32).astype(np.float64)
+        dof = result.resolution.reshape(-1, 3).sum(axis=0)
+        rss = np.sum((np.einsum("mnc,nc->mc", L[rows].astype(np.float64), table) - I[rows]) ** 2, axis=0)
+        tables.append(table)
+        own.append(float(np.sum(rss * rows.sum() / (rows.sum() - dof))))
+    d = np.zeros(3)
+    for i in range(3):
+        excess = []
+        for j in range(3):
+            if j != i:
+                rows = index == j
+                rss = np.sum((np.einsum("mnc,nc->mc", L[rows].astype(np.float64), tables[i]) - I[rows]) ** 2)
+                excess.append(max(rss - own[j], 0.0) / np.sum(I[rows] ** 2))
+        d[i] = np.sqrt(np.mean(excess))
+    expected = np.maximum(d / max(d.min(), 1e-3), 1.0)
+    np.testing.assert_allclose(factors, expected, rtol=1e-5)
+    assert factors[2] > 1.3
+
+
+def test_images_that_agree_keep_their_weight():
+    """Noise-free images of one table under different lights: every table predicts the others to
+    rounding, no excess, every factor exactly 1 (never below: the factors only ever lower a weight)."""
+    L, I, index, _ = _images(bias=0.0)
+    prior = default_prior().resampled(N_T, N_S)
+    factors = cross_image_factors(L, I, index, solve.row_sigma(I, index), prior, 1e-6)
+    np.testing.assert_array_equal(factors, 1.0)

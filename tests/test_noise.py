@@ -79,3 +79,26 @@ def test_noise_reference_is_the_objects_mean_and_every_lit_pixel_gets_noise():
     np.testing.assert_array_equal(noisy[:10], 0.0)
     green = noisy[10:30, 10:30, 1]
     assert np.std(green) == pytest.approx(np.sqrt(b), rel=0.15)  # read noise alone where the signal is 0
+
+
+def test_estimate_holds_at_the_dark_and_bright_ends():
+    """The fitted a I + b against the added noise (variance / 3: the channels' mean) at the 2% and 98%
+    quantiles of the signal, where the read-noise floor and the shot noise dominate in turn."""
+    clean, mask = _sphere_like()
+    a, b = 0.01, 1e-4
+    a_hat, b_hat = estimate_camera_noise(add_camera_noise(clean, a, b, seed=1), mask)
+    for q in (0.02, 0.98):
+        level = np.quantile(clean[mask, 0], q)
+        assert a_hat * level + b_hat == pytest.approx((a * level + b) / 3, rel=0.15), q
+
+
+def test_estimate_uses_only_second_differences_inside_the_mask():
+    """A mask with holes every fourth row and column (masked-out highlights, say): pixels next to a hole
+    have no second difference; the estimate is the added noise's."""
+    clean, mask = _sphere_like()
+    y, x = np.mgrid[0:256, 0:256]
+    holes = mask & (x % 4 != 0) & (y % 4 != 0)
+    a, b = 0.01, 1e-4
+    a_hat, b_hat = estimate_camera_noise(add_camera_noise(clean, a, b, seed=2), holes)
+    level = np.median(clean[holes, 0])
+    assert a_hat * level + b_hat == pytest.approx((a * level + b) / 3, rel=0.25)

@@ -272,6 +272,27 @@ def test_a_sphere_cut_off_at_the_bottom_of_a_wide_image_is_not_confident():
         spherefit.fit_sphere(mask=mask, camera_to_world=np.diag([1.0, 1.0, -1.0]))
 
 
+def test_fit_cone_finds_an_off_axis_cone_and_signs_its_residuals_outside_positive():
+    """Closed form: the silhouette of an off-axis sphere (PerspectiveSphereGeometry.silhouette, the cone of
+    half-angle asin(r / d) about the centre ray). Points pushed 2 px outward from the projected centre have
+    residual +2 px, pushed inward -2 px (the documented sign), and are outliers; the cone is the true one."""
+    k = Intrinsics(180.0, 180.0, 128.0, 96.0)
+    truth = PerspectiveSphereGeometry(k, [1.1, -0.6, -4.0], 1.0)
+    outline = truth.silhouette(400)
+    centre = k.project(truth.centre)
+    outward = (outline - centre) / np.linalg.norm(outline - centre, axis=1, keepdims=True)
+    points = outline.copy()
+    points[:40] += 2.0 * outward[:40]
+    points[40:80] -= 2.0 * outward[40:80]
+    axis, alpha, res, inliers = spherefit.fit_cone(points, k, spherefit.fit_circle(outline)[:3])
+    assert np.allclose(axis, truth.centre / truth.distance, atol=1e-9)
+    assert alpha == pytest.approx(truth.half_angle, abs=1e-9)
+    np.testing.assert_allclose(res[:40], 2.0, atol=1e-6)
+    np.testing.assert_allclose(res[40:80], -2.0, atol=1e-6)
+    np.testing.assert_allclose(res[80:], 0.0, atol=1e-6)
+    assert not inliers[:80].any() and inliers[80:].all()
+
+
 def test_an_explicit_sphere_under_perspective_is_the_fitted_one():
     """An off-axis sphere seen by a pinhole camera: the silhouette is an ellipse, and the sphere given
     explicitly as its best circle (CX, CY, R: what the fit reports) must describe the same sphere as the
@@ -290,3 +311,110 @@ def test_an_explicit_sphere_under_perspective_is_the_fitted_one():
     got, _, got_mask = user.geometry.normals_and_views(256, 192)
     inner = mask & got_mask & (angle_deg(normals, views) < 60.0)
     assert inner.sum() > 3000 and angle_deg(got, normals)[inner].max() < 0.5
+
+
+def test_an_image_with_a_mask_is_refined_to_sub_pixel_accuracy():
+    """A user mask that leaves out a stand in front of the sphere: the outline is refined from the image
+    near the mask's own outline (not the stand's), to the supersampled disc's centre and radius."""
+    cx, cy, r = 131.3, 100.7, 80.4
+    cov = disc_coverage((256, 240), cx, cy, r)
+    image = np.repeat(2.0 * cov[..., None], 3, axis=2)
+    y, x = np.mgrid[0:256, 0:240] + 0.5
+    stand = (np.abs(x - cx) < 20.0) & (y > 150.0)
+    image[stand] = 1.0
+    fit = spherefit.fit_sphere(image, (cov > 0.5) & ~stand)
+    assert fit.confident and fit.method == "mask" and fit.inlier_fraction > 0.95, fit.summary()
+    assert abs(fit.cx - cx) < 0.02 and abs(fit.cy - cy) < 0.02 and abs(fit.radius - r) < 0.02, fit.summary()
+    assert fit.rms_px < 0.1
+
+
+def test_an_explicit_sphere_reports_its_distance_from_the_outline():
+    """Closed form: a circle offset by d from the true outline is d / sqrt(2) RMS from it (to second
+    order; the cracks' density along the outline, |cos| + |sin|, leaves the mean of cos^2 at 1/2)."""
+    cov = disc_coverage((128, 140), 64.0, 60.0, 40.0)
+    image = np.repeat(cov[..., None], 3, axis=2)
+    for sphere in ((70.0, 60.0, 40.0), (64.0, 66.0, 40.0)):
+        with pytest.warns(InputWarning, match="away from the silhouette"):
+            fit = spherefit.fit_sphere(image, sphere=sphere)
+        assert fit.rms_px == pytest.approx(6.0 / math.sqrt(2.0), rel=0.05), (sphere, fit.rms_px)
+
+
+def test_a_sphere_cut_off_by_the_frame_reports_the_outline_it_sees():
+    """Closed form: a disc of radius r centred dx from the right edge shows 1 - acos(dx / r) / pi of its
+    outline; below 3/4 the fit says so (besides the sphere extending beyond the image)."""
+    y, x = np.mgrid[0:128, 0:128] + 0.5
+    mask = (x - 110.0) ** 2 + (y - 64.0) ** 2 < 40.0**2
+    fit = spherefit.fit_sphere(mask=mask, warn=False)
+    seen = 1.0 - math.acos(18.0 / 40.0) / math.pi
+    assert fit.arc_fraction == pytest.approx(seen, abs=2.0 / 64), fit.summary()
+    assert any(f"only {100 * fit.arc_fraction:.0f}% of the outline is seen" == p for p in fit.problems), fit.problems
+    assert any("beyond" in p for p in fit.problems) and not fit.confident
+
+
+def test_disc_mask_is_the_pixel_centres_inside_the_circle():
+    """silhouette.disc_mask against SphereGeometry.normals' coverage (pixel centres at k + 0.5), on a
+    non-square image with cx != cy."""
+    from mi_bivariate.silhouette import disc_mask
+
+    for cx, cy, r in ((40.3, 25.0, 17.5), (12.0, 30.5, 9.0)):
+        expected = SphereGeometry(cx, cy, r).normals(70, 50)[1]
+        assert np.array_equal(disc_mask((50, 70), cx, cy, r), expected)
+
+
+def test_intrinsics_rays_with_non_square_pixels():
+    """Closed form: the pixel (cx + fx a, cy - fy b) sees along (a, b, -1) (x right, y up, looking down -z),
+    and project() takes the ray back to the pixel; fx != fy tells the two focal lengths apart."""
+    k = Intrinsics(200.0, 150.0, 60.5, 41.0)
+    a, b = np.array([0.3, -0.2, 0.0, 0.45]), np.array([-0.1, 0.25, 0.0, 0.3])
+    x, y = k.cx + k.fx * a, k.cy - k.fy * b
+    expected = np.stack([a, b, -np.ones_like(a)], axis=1)
+    np.testing.assert_allclose(k.rays(x, y), expected / np.linalg.norm(expected, axis=1, keepdims=True), atol=1e-12)
+    np.testing.assert_allclose(k.project(3.0 * expected), np.stack([x, y], axis=1), atol=1e-9)
+
+
+@pytest.mark.parametrize("fx, fy, centre", [(90.0, 110.0, (0.1, 0.05, -6.0)), (90.0, 110.0, (0.7, -0.4, -3.5)),
+                                            (20.0, 20.0, (1.2, 0.0, -0.2))],
+                         ids=["inside the frame", "off-axis", "beside the camera"])
+def test_perspective_sphere_coverage_and_normals_match_mitsuba_ray_intersection(fx, fy, centre):
+    """Mitsuba's own ray-sphere intersection is the truth: a pixel is covered ("centre") when its centre ray
+    hits the sphere, fully ("full") when the rays through its four corners all do; the normal is Mitsuba's
+    at the centre ray's hit. Non-square pixels and an off-axis sphere tell x from y; a sphere beside the
+    camera, partly behind its image plane, is met by the backward half of some rays' lines: no hit."""
+    import mitsuba as mi
+
+    k = Intrinsics(fx, fy, 30.0, 22.0)
+    geo = PerspectiveSphereGeometry(k, list(centre), 1.0)
+    width, height = 64, 48
+    scene = mi.load_dict({"type": "scene", "sphere": {"type": "sphere", "center": geo.centre.tolist(), "radius": 1.0}})
+
+    def hits(x, y):
+        d = k.rays(x, y).reshape(-1, 3)
+        si = scene.ray_intersect(mi.Ray3f(mi.Point3f(0.0, 0.0, 0.0), mi.Vector3f(d.T.astype(np.float32))))
+        return np.array(si.is_valid()).reshape(x.shape), np.array(si.n).T.reshape(x.shape + (3,))
+
+    corner, _ = hits(*np.meshgrid(np.arange(width + 1.0), np.arange(height + 1.0)))
+    centre, n_mitsuba = hits(*np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5))
+    full = corner[:-1, :-1] & corner[:-1, 1:] & corner[1:, :-1] & corner[1:, 1:]
+    normals, _, mask = geo.normals_and_views(width, height)
+    full_mask = geo.normals_and_views(width, height, coverage="full")[2]
+    assert 100 < full.sum() < mask.sum()
+    # float32 rays may disagree on a corner grazing the silhouette to 1e-6
+    assert np.count_nonzero(mask != centre) <= 2 and np.count_nonzero(full_mask != full) <= 2
+    inner = mask & full
+    assert angle_deg(normals, n_mitsuba)[inner].max() < 0.05
+
+
+def test_orthographic_sphere_normals_match_the_renderers_under_a_rotated_camera():
+    """SphereGeometry.normals (pixel centres at k + 0.5, camera frame to world by camera_to_world) against
+    Mitsuba's normals AOV of an orthographic render from a turned camera (96 x 80 px, cx != cy)."""
+    rot = rotation_matrix((25.0, -40.0, 10.0))
+    res = render.render_sphere({"type": "diffuse"}, Probe.constant(1.0, 16), resolution=(96, 80), spp=64,
+                               camera_to_world=rot, seed=1)
+    normals, mask = res.geometry.normals(96, 80)
+    inner = mask & res.mask & (normals @ res.geometry.view_direction() > 0.5)
+    assert inner.sum() > 2000
+    angle = angle_deg(normals, res.normals)[inner]
+    # The AOV averages 64 random points of each pixel; the geometry takes its centre.
+    assert np.median(angle) < 0.15 and angle.max() < 1.0, (np.median(angle), angle.max())
+    x, y = np.meshgrid(np.arange(96) + 0.5, np.arange(80) + 0.5)
+    assert np.allclose(res.geometry.normals_at(x, y)[mask], normals[mask])
