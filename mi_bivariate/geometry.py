@@ -298,7 +298,7 @@ class PerspectiveSphereGeometry(Geometry):
                 or radius <= 0.0:
             raise InputError("geometry", f"the sphere's radius must be a finite positive number, got {radius!r}")
         if float(np.linalg.norm(centre)) <= radius or centre[2] >= 0.0:
-            raise InputError("geometry", f"the sphere (centre {tuple(centre)}, radius {radius:g}) is not in front "
+            raise InputError("geometry", f"the sphere (centre ({', '.join(f'{v:g}' for v in centre)}), radius {radius:g}) is not in front "
                              "of the camera", "the camera looks down -z: a visible sphere has centre[2] < 0 and "
                              "lies outside the camera's centre")
         object.__setattr__(self, "centre", centre)

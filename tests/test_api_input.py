@@ -404,7 +404,7 @@ def test_the_scores_refuse_a_probe_as_the_estimate(probe):
     (lambda k: PerspectiveSphereGeometry(k, [0.0, -4.0]), "3 finite numbers"),
     (lambda k: PerspectiveSphereGeometry((50.0, 50.0, 16.0), [0.0, 0.0, -4.0]), "(fx, fy, cx, cy)"),
     (lambda k: PerspectiveSphereGeometry(k, [0.0, 0.0, -4.0], -1.0), "finite positive"),
-    (lambda k: PerspectiveSphereGeometry(k, [0.0, 0.0, 4.0]), "not in front of the camera"),
+    (lambda k: PerspectiveSphereGeometry(k, [0.0, 0.0, 4.0]), "sphere (centre (0, 0, 4), radius 1) is not in front of the camera"),
     (lambda k: PerspectiveSphereGeometry(k, [0.0, 0.0, -0.5]), "not in front of the camera"),
 ], ids=["mirror", "negative fx", "2-vector centre", "3 intrinsics", "negative radius", "behind", "around"])
 def test_a_perspective_sphere_is_checked_when_made(make, problem):
