@@ -219,3 +219,26 @@ def test_recovery_with_visibility_beats_without(torus_view):
     assert with_vis[1] < 0.8 * without[1], result
     assert with_vis[2] < 0.6 * without[2], result
     assert with_vis[2] < 0.1, result
+
+
+def test_an_off_centre_orthographic_camera_renders_where_its_rays_go():
+    """Mitsuba's render from ``Camera.sensor_dict`` of an orthographic camera whose principal point is off
+    the image's centre (a crop) puts the sphere where the camera's own rays (``Camera.rays``, the recovery's
+    model) see it: its silhouette's centroid and area from the render, against the closed form."""
+    from mi_bivariate.probes import Probe
+
+    rot = np.linalg.qr(np.random.default_rng(4).normal(size=(3, 3)))[0]
+    rot *= np.sign(np.linalg.det(rot))
+    cx, cy, scale = 27.0, 49.0, 18.0                        # px, px, px per world unit; the image is 80 x 72
+    cam = Camera(80, 72, (scale, scale, cx, cy), rot, rot @ [0, 0, 5.0], orthographic=True)
+    shape = mesh.MeshShape.load(trimesh.creation.icosphere(subdivisions=5), normals="vertex")
+    image = render_mesh({"type": "diffuse"}, Probe.constant(1.0, 8), mesh.MeshView(shape, cam), spp=16)
+    covered = image.mean(axis=-1) > 0.0
+    ys, xs = np.nonzero(covered)
+    # The unit sphere at the origin is on the camera's axis: its centre at the principal point (pixel centres
+    # at +0.5), its outline a circle of radius `scale` px.
+    assert np.mean(xs) + 0.5 == pytest.approx(cx, abs=0.1) and np.mean(ys) + 0.5 == pytest.approx(cy, abs=0.1)
+    grey = image.mean(axis=-1)
+    assert grey.sum() / np.median(grey[covered]) == pytest.approx(np.pi * scale ** 2, rel=0.01)  # area, px^2
+    origins, directions = cam.rays(np.array([cx]), np.array([cy]))
+    assert np.linalg.norm(np.cross(origins[0], directions[0])) < 1e-9   # that ray passes through the centre
