@@ -51,10 +51,10 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mi_bivariate import metrics, render
+from mi_bivariate import capture, metrics, render
 from mi_bivariate.bivariate import BivariateBRDF
 from mi_bivariate.common import PathLike
-from mi_bivariate.errors import InputWarning
+from mi_bivariate.errors import InputError, InputWarning
 from mi_bivariate.evaluate.config import EvalConfig
 from mi_bivariate.evaluate.protocol import MaterialTask, choose_priors
 from mi_bivariate.evaluate.renders import Renderer, Shot
@@ -131,7 +131,15 @@ def optimise_table(image: np.ndarray, mask: np.ndarray, probe: Any, start: np.nd
 
     Returns:
         ``{"iterations", "time_s", "losses" (per iteration), "table" (final, (n_t, n_s, 3))}``.
+
+    Raises:
+        InputError: an image that is not a square RGB image, a mask of another size or without a
+        usable sphere pixel, a sphere that is black, ``eval_every`` < 1. Sphere pixels holding NaN or
+        infinities are left out of the loss (as the linear route leaves them out), with a warning.
     """
+    image, mask = _checked_image_mask(image, mask)
+    if int(eval_every) < 1:
+        raise InputError("eval_every", f"must be at least 1 (iterations between checkpoints), got {eval_every!r}")
     start = np.ascontiguousarray(np.maximum(np.asarray(start, np.float32), 1e-6))
     res = image.shape[0]
     cam = SphereCamera.create("orthographic", res, radius_fraction=0.45)
@@ -190,6 +198,30 @@ def optimise_table(image: np.ndarray, mask: np.ndarray, probe: Any, start: np.nd
         if done:
             break
     return {"iterations": it, "time_s": clock, "losses": losses, "table": table_now()}
+
+
+def _checked_image_mask(image: Any, mask: Any) -> Tuple[np.ndarray, np.ndarray]:
+    """``(R, R, 3) float32`` image and ``(R, R) bool`` mask of its usable sphere pixels (non-finite ones
+    dropped, with an :class:`InputWarning`), else :class:`InputError`."""
+    image = capture.check_image(image, "image")
+    if image.shape[0] != image.shape[1]:
+        raise InputError("image", f"expected a square image of the sphere, got {image.shape[0]}x{image.shape[1]}",
+                         "the orthographic camera of render.render_sphere renders R x R pixels")
+    if mask is None:
+        raise InputError("mask", "a mask of the sphere's pixels is needed", "e.g. the mask of render.render_sphere's shot")
+    mask = capture._check_mask(mask, image.shape[:2], "mask")
+    finite = np.all(np.isfinite(image), axis=-1)
+    dropped = int(np.count_nonzero(mask & ~finite))
+    if dropped:
+        warnings.warn(f"image: {dropped} sphere pixel(s) hold NaN or infinite values; left out of the loss",
+                      InputWarning, stacklevel=3)
+    mask = mask & finite
+    if not mask.any():
+        raise InputError("mask", "no sphere pixel to fit (the mask, less non-finite pixels, is empty)")
+    if not np.any(image[mask] != 0.0):
+        raise InputError("image", "the image is black on the sphere (every masked pixel is 0)",
+                         "check the exposure and the mask")
+    return image, mask
 
 
 def time_to_error(points: Sequence[dict], target: float) -> Optional[dict]:

@@ -8,6 +8,7 @@ from helpers import independent_relight_floor
 
 from mi_bivariate import render, synthesis
 from mi_bivariate.bivariate import BivariateBRDF
+from mi_bivariate.errors import InputError, InputWarning
 from mi_bivariate.probes import Probe
 
 
@@ -42,6 +43,42 @@ def test_adam_through_prb_recovers_a_scaled_table():
     # Seeded; the backward pass accumulates table gradients with atomic adds over threads, so
     # the sums are reproducible to float32 rounding, not bit for bit.
     np.testing.assert_allclose(again["table"], run["table"], rtol=1e-3)
+
+
+def test_optimise_table_refuses_or_drops_what_it_cannot_fit():
+    """A NaN pixel on the sphere is dropped from the loss (as the linear route drops it) instead of
+    turning every loss into NaN and freezing the table; images and masks it cannot use, and a zero
+    ``eval_every``, are refused with one readable line, before any render."""
+    from mi_bivariate.variants import ensure_variant
+
+    ensure_variant()
+    probe = Probe.constant(1.0, 16)
+    truth = np.broadcast_to(np.array([0.5, 0.3, 0.2]) / np.pi, (4, 4, 3)).astype(np.float32)
+    shot = render.render_sphere(render.bsdf_dict(BivariateBRDF(truth)), probe, resolution=16, spp=8, seed=0)
+    settings = synthesis.SynthesisSettings(spp=4, seed=3)
+
+    def run(image=shot.image, mask=shot.mask, **kwargs):
+        return synthesis.optimise_table(image, mask, probe, 2.0 * truth, settings, budget_s=1e9, max_iterations=3,
+                                        **kwargs)
+
+    image = shot.image.copy()
+    image[8, 8, 0] = np.nan
+    assert shot.mask[8, 8]
+    with pytest.warns(InputWarning, match="1 sphere pixel"):
+        dropped = run(image)
+    without = shot.mask.copy()
+    without[8, 8] = False
+    kept = run(mask=without)                              # the same pixel left out by the caller
+    assert np.all(np.isfinite(dropped["losses"])) and not np.allclose(dropped["table"], 2.0 * truth)
+    np.testing.assert_allclose(dropped["losses"], kept["losses"], rtol=1e-5)
+    for kwargs, message in [(dict(mask=np.zeros_like(shot.mask)), "no sphere pixel"),
+                            (dict(mask=shot.mask[:10]), "mask has shape"),
+                            (dict(image=shot.image[..., 0]), "RGB image"),
+                            (dict(image=shot.image[:, :12], mask=shot.mask[:, :12]), "square"),
+                            (dict(image=np.zeros_like(shot.image)), "black"),
+                            (dict(eval_every=0), "eval_every")]:
+        with pytest.raises(InputError, match=message):
+            run(**kwargs)
 
 
 def test_time_to_error_picks_the_fastest_run_that_reaches_the_error():
