@@ -46,13 +46,15 @@ def machine() -> str:
 def ratio_row(r: dict) -> str:
     lin, a = r["linear"], r["abs"]
     best, t_best = a["best_relight"], a["best_relight_time_s"]
-    if lin["relight"] <= best:
+    if lin["relight"] <= best and a.get("best_relight_iteration") == 0:
+        ratio = "no ratio: AbS never beat its start"  # its best at time 0 (not "0x")
+    elif lin["relight"] <= best:
         # The linear route is at least as good as AbS's best: it got there in its own time.
         ratio = f"{t_best / lin['time_s']:.1f}x (AbS best at {t_best:.1f} s)"
     else:
         ratio = "AbS better"
     reached = a["time_to_linear_relight_s"]
-    equal = (f"{reached / lin['time_s']:.1f}x" if reached is not None
+    equal = ("at its start (0 s)" if reached == 0 else f"{reached / lin['time_s']:.1f}x" if reached is not None
              else f"> {a['time_s'] / lin['time_s']:.0f}x (not reached in {a['time_s']:.0f} s)")
     floor = f"{r['relight_floor']:.4f}" if "relight_floor" in r else "-"
     return (f"| {r['material']} | {lin['time_s']:.2f} | {lin['relight']:.4f} | {floor} | {a['start_relight']:.4f} | "

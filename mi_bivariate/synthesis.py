@@ -281,9 +281,10 @@ def linear_run(shot: Any, probe: Any, config: EvalConfig, n_normals: int, n_dirs
 def linear_reaches(points: Sequence[dict], best_relight: float,
                    best_time_s: float) -> Tuple[Optional[dict], Optional[float]]:
     """The fastest linear run at least as good as AbS's best relight error, and AbS's time to that
-    best over that run's time (``None``, ``None`` when no run reaches it)."""
+    best over that run's time (``None``, ``None`` when no run reaches it; the ratio ``None`` when
+    ``best_time_s`` is 0: AbS's best is its start, which has no time of its own to compare)."""
     fastest = time_to_error(points, best_relight)
-    if fastest is None or fastest["time_s"] <= 0:
+    if fastest is None or fastest["time_s"] <= 0 or best_time_s <= 0:
         return fastest, None
     return fastest, best_time_s / fastest["time_s"]
 
@@ -348,7 +349,7 @@ def analysis_by_synthesis(material: Any, input_probe: str = "grace_latlong_1k", 
         (iterations, time, settings, best and final
         errors, when the linear errors were first reached), ``speedup`` (AbS
         time to its best relight error / the linear route's time at the
-        configuration's sizes, when that is at least as good),
+        configuration's sizes, when that is at least as good; ``None`` when AbS's best is its start),
         ``ladder_speedup`` (the same over the fastest linear run, ladder
         included, that reaches AbS's best) and ``trace``.
     """
@@ -432,7 +433,9 @@ def analysis_by_synthesis(material: Any, input_probe: str = "grace_latlong_1k", 
     reached_eq1 = first("eq1", linear_errors["eq1"])
     reached_log = first("log", linear_errors["log"])
     reached_relight = first("relight", linear_relight)
-    speedup = best["time_s"] / linear_s if linear_relight <= best["relight"] and linear_s > 0 else None
+    # AbS's best at its start (time 0): it never improved, and there is no time to compare (not "0x").
+    speedup = (best["time_s"] / linear_s if linear_relight <= best["relight"] and linear_s > 0 and best["time_s"] > 0
+               else None)
     linear = {**linear, "relight": linear_relight}
     fastest, ladder_speedup = linear_reaches(ladder + [linear], best["relight"], best["time_s"])
     if best_table["relight"] != best["relight"]:

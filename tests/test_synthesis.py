@@ -139,6 +139,30 @@ def test_linear_reaches_takes_the_fastest_point_that_is_as_good_as_abs_best():
     assert synthesis.linear_reaches(ladder + [default], 0.01, 30.0) == (None, None)
 
 
+def test_no_speedup_is_claimed_when_abs_never_beats_its_start(monkeypatch):
+    """AbS's best at its start (time 0) gives no ratio, not "0x": the linear route was not infinitely
+    slower, AbS just never improved (seen with --quick on blue-acrylic)."""
+    from mi_bivariate.evaluate.config import EvalConfig
+
+    assert synthesis.linear_reaches([{"time_s": 0.3, "relight": 0.09}], 0.1, 0.0) == (
+        {"time_s": 0.3, "relight": 0.09}, None)
+
+    def no_progress(image, mask, probe, start, settings, budget_s, max_iterations, eval_every, on_checkpoint):
+        on_checkpoint(10, 1.0, 0.5, 4.0 * np.asarray(start))   # worse than the start
+        return {"iterations": 10, "time_s": 1.0, "losses": [0.5] * 10, "table": 4.0 * np.asarray(start)}
+
+    monkeypatch.setattr(synthesis, "optimise_table", no_progress)
+    monkeypatch.setattr(synthesis, "choose_priors", lambda task: (None, None, "test: no basis prior"))
+    config = EvalConfig(input_probes=("synthetic:1",), novel_probes=("synthetic:7",), resolution=32, spp=8,
+                        novel_spp=4, novel_resolution=16, n_normals=300, n_dirs=1000, grid=(8, 8), baselines=(),
+                        reference_directions=(256, 512, 256))
+    r = synthesis.analysis_by_synthesis("ggx:diffuse=0.2,specular=0.5,alpha=0.2", "synthetic:1", config=config,
+                                        linear_ladder=(), ladder_repeats=1)
+    assert r["abs"]["best_relight_iteration"] == 0 and r["linear"]["relight"] <= r["abs"]["best_relight"]
+    assert r["speedup"] is None and r["ladder_speedup"] is None
+    assert r["linear_to_abs_best"]["n_normals"] == 300      # the linear run that reaches it is still named
+
+
 def test_scoring_ignores_pixels_outside_the_mask_and_its_noise_is_the_reference_renderers():
     """Outside the mask (pixels the sphere only partly covers, the background) nothing is scored; the
     noise is :func:`mi_bivariate.reference.quadrature_noise`'s, an independent implementation."""
