@@ -318,8 +318,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also run analysis by synthesis (Adam + prb) on the first N materials (a rerun reports "
                         "those already run with this configuration from analysis_by_synthesis.jsonl)")
     p.add_argument("--abs-time-factor", type=float, default=10.0,
-                   help="analysis by synthesis runs up to this many times the linear solve's time (its kernel "
-                        "compilation included: with --quick's sizes the default gives it only a few iterations)")
+                   help="analysis by synthesis runs up to this many times the linear solve's time (both timed "
+                        "after a warm-up, kernel compilation excluded)")
     _add_variant(p)
     _add_data(p)
     
