@@ -42,6 +42,7 @@ clock stops while errors are measured.
 
 from __future__ import annotations
 
+import math
 import time
 import warnings
 from dataclasses import asdict, dataclass
@@ -95,6 +96,28 @@ class SynthesisSettings:
     max_depth: int = 2
     log_bounds: tuple = (-14.0, 9.0)
     seed: int = 1000
+
+    def __post_init__(self) -> None:
+        """Refuse settings the optimiser cannot use (:class:`InputError`)."""
+        def number(value: Any) -> bool:
+            return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool) \
+                and math.isfinite(value)
+
+        if not (isinstance(self.spp, (int, np.integer)) and self.spp >= 1):
+            raise InputError("spp", f"must be a whole number >= 1 (samples per pixel per iteration), got {self.spp!r}")
+        if not (number(self.learning_rate) and self.learning_rate > 0):
+            raise InputError("learning_rate", f"must be a finite number > 0, got {self.learning_rate!r}")
+        if not (number(self.smoothness) and self.smoothness >= 0):
+            raise InputError("smoothness", f"must be a finite number >= 0, got {self.smoothness!r}")
+        if self.sampling not in ("table", "cosine"):
+            raise InputError("sampling", f"must be 'table' or 'cosine', got {self.sampling!r}")
+        if not (isinstance(self.max_depth, (int, np.integer)) and (self.max_depth >= 2 or self.max_depth == -1)):
+            raise InputError("max_depth", f"must be >= 2 (2: direct illumination; -1: unlimited), got "
+                                          f"{self.max_depth!r}", "depth 1 renders no reflection, only the emitters")
+        bounds = tuple(self.log_bounds)
+        if not (len(bounds) == 2 and all(number(b) for b in bounds) and bounds[0] < bounds[1]):
+            raise InputError("log_bounds", f"must be two finite numbers (low, high), low < high, "
+                                           f"got {self.log_bounds!r}")
 
 
 def lambertian_start(L: np.ndarray, values: np.ndarray) -> np.ndarray:
@@ -208,7 +231,8 @@ def _checked_image_mask(image: Any, mask: Any) -> Tuple[np.ndarray, np.ndarray]:
         raise InputError("image", f"expected a square image of the sphere, got {image.shape[0]}x{image.shape[1]}",
                          "the orthographic camera of render.render_sphere renders R x R pixels")
     if mask is None:
-        raise InputError("mask", "a mask of the sphere's pixels is needed", "e.g. the mask of render.render_sphere's shot")
+        raise InputError("mask", "a mask of the sphere's pixels is needed",
+                         "e.g. the mask of render.render_sphere's shot")
     mask = capture._check_mask(mask, image.shape[:2], "mask")
     finite = np.all(np.isfinite(image), axis=-1)
     dropped = int(np.count_nonzero(mask & ~finite))

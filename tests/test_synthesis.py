@@ -81,6 +81,18 @@ def test_optimise_table_refuses_or_drops_what_it_cannot_fit():
             run(**kwargs)
 
 
+@pytest.mark.parametrize("field, value, message", [
+    ("spp", 0, "spp"), ("spp", 2.5, "spp"), ("learning_rate", -0.05, "learning_rate"),
+    ("learning_rate", float("nan"), "learning_rate"), ("smoothness", -1e-3, "smoothness"),
+    ("max_depth", 1, "max_depth"), ("log_bounds", (9.0, -14.0), "log_bounds"), ("sampling", "uniform", "sampling")])
+def test_synthesis_settings_refuse_what_the_optimiser_cannot_use(field, value, message):
+    """spp 0 rendered at Mitsuba's default sampler count (4) while the record said 0; a negative step
+    climbs the loss; max_depth 1 renders no reflection (a black sphere, zero gradients): all refused."""
+    with pytest.raises(InputError, match=message):
+        synthesis.SynthesisSettings(**{field: value})
+    synthesis.SynthesisSettings()                         # the defaults are valid
+
+
 def test_time_to_error_picks_the_fastest_run_that_reaches_the_error():
     points = [{"time_s": 0.3, "relight": 0.20}, {"time_s": 0.5, "relight": 0.10},
               {"time_s": 1.0, "relight": 0.06}, {"time_s": 0.4, "relight": 0.12}]
