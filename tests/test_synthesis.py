@@ -154,8 +154,6 @@ def test_linear_reaches_takes_the_fastest_point_that_is_as_good_as_abs_best():
 def test_no_speedup_is_claimed_when_abs_never_beats_its_start(monkeypatch):
     """AbS's best at its start (time 0) gives no ratio, not "0x": the linear route was not infinitely
     slower, AbS just never improved (seen with --quick on blue-acrylic)."""
-    from mi_bivariate.evaluate.config import EvalConfig
-
     assert synthesis.linear_reaches([{"time_s": 0.3, "relight": 0.09}], 0.1, 0.0) == (
         {"time_s": 0.3, "relight": 0.09}, None)
 
@@ -166,10 +164,7 @@ def test_no_speedup_is_claimed_when_abs_never_beats_its_start(monkeypatch):
         return {"iterations": 10, "time_s": 1.0, "losses": [0.5] * 10, "table": 4.0 * np.asarray(start)}
 
     monkeypatch.setattr(synthesis, "optimise_table", no_progress)
-    monkeypatch.setattr(synthesis, "choose_priors", lambda task: (None, None, "test: no basis prior"))
-    config = EvalConfig(input_probes=("synthetic:1",), novel_probes=("synthetic:7",), resolution=32, spp=8,
-                        novel_spp=4, novel_resolution=16, n_normals=300, n_dirs=1000, grid=(8, 8), baselines=(),
-                        reference_directions=(256, 512, 256))
+    config = _tiny_abs_config(monkeypatch)
     r = synthesis.analysis_by_synthesis("ggx:diffuse=0.2,specular=0.5,alpha=0.2", "synthetic:1", config=config,
                                         linear_ladder=(), ladder_repeats=1)
     assert r["abs"]["best_relight_iteration"] == 0 and r["linear"]["relight"] <= r["abs"]["best_relight"]
@@ -177,12 +172,20 @@ def test_no_speedup_is_claimed_when_abs_never_beats_its_start(monkeypatch):
     assert r["linear_to_abs_best"]["n_normals"] == 300      # the linear run that reaches it is still named
 
 
+def _tiny_abs_config(monkeypatch):
+    """A small configuration for analysis_by_synthesis with optimise_table stood in, and no priors learnt."""
+    from mi_bivariate.evaluate.config import EvalConfig
+
+    monkeypatch.setattr(synthesis, "choose_priors", lambda task: (None, None, "test: no basis prior"))
+    return EvalConfig(input_probes=("synthetic:1",), novel_probes=("synthetic:7",), resolution=32, spp=8,
+                      novel_spp=4, novel_resolution=16, n_normals=300, n_dirs=1000, grid=(8, 8), baselines=(),
+                      reference_directions=(256, 512, 256))
+
+
 def test_abs_clock_excludes_kernel_compilation_as_the_linear_routes_does(monkeypatch):
     """The linear route is timed after a warm-up run (its kernels compiled); AbS is timed alike. Here a
     stand-in for optimise_table whose first call in the process pays 100 s of "compilation" in its first
     iteration, as the real one pays 2.4-5 s with a cold Dr.Jit kernel cache (0.6 s an iteration after)."""
-    from mi_bivariate.evaluate.config import EvalConfig
-
     calls = []
 
     def optimise_table(image, mask, probe, start, settings, budget_s=60.0, max_iterations=100000, eval_every=10,
@@ -201,10 +204,7 @@ def test_abs_clock_excludes_kernel_compilation_as_the_linear_routes_does(monkeyp
         return {"iterations": it, "time_s": clock, "losses": [0.5] * it, "table": np.asarray(start)}
 
     monkeypatch.setattr(synthesis, "optimise_table", optimise_table)
-    monkeypatch.setattr(synthesis, "choose_priors", lambda task: (None, None, "test: no basis prior"))
-    config = EvalConfig(input_probes=("synthetic:1",), novel_probes=("synthetic:7",), resolution=32, spp=8,
-                        novel_spp=4, novel_resolution=16, n_normals=300, n_dirs=1000, grid=(8, 8), baselines=(),
-                        reference_directions=(256, 512, 256))
+    config = _tiny_abs_config(monkeypatch)
     r = synthesis.analysis_by_synthesis("ggx:diffuse=0.2,specular=0.5,alpha=0.2", "synthetic:1", config=config,
                                         linear_ladder=(), ladder_repeats=1, budget_s=5.0, eval_every=2)
     assert r["abs"]["iterations"] == 10 and r["abs"]["time_s"] == pytest.approx(5.0)
