@@ -80,11 +80,9 @@ class Recovery:
         values = np.asarray(self.observations.values, np.float64)
         index = self.observations.image_index
         index = np.zeros(len(values), np.int64) if index is None else np.asarray(index)
-        out = np.zeros(int(index.max(initial=-1)) + 1)
-        for k in range(len(out)):
-            rows = index == k
-            out[k] = np.linalg.norm(values[rows] - self.predicted[rows]) / max(np.linalg.norm(values[rows]), 1e-30)
-        return out
+        residual = np.bincount(index, weights=np.sum((values - self.predicted) ** 2, axis=-1))
+        signal = np.bincount(index, weights=np.sum(values ** 2, axis=-1))
+        return np.sqrt(residual) / np.maximum(np.sqrt(signal), 1e-30)
 
     def _per_image_residuals(self) -> str:
         each = self.relative_residuals()
