@@ -485,6 +485,11 @@ def test_a_prior_file_that_saw_the_material_is_said(tmp_path):
     task = MaterialTask(MaterialSpec(seen[0], "nbrdf", seen[0]), ev.EvalConfig(prior=str(prior_file)))
     with pytest.warns(InputWarning, match=f"{seen[0]}: .*all.npz and .*all_basis.npz learnt from this material"):
         choose_priors(task)
+    # ... and a MERL file named as one of them (its path never matched the provenance's names before)
+    named = MaterialTask(MaterialSpec(seen[0], "merl", str(tmp_path / f"{seen[0]}.binary")),
+                         ev.EvalConfig(prior=str(prior_file)))
+    with pytest.warns(InputWarning, match=f"learnt from a shared material named '{seen[0]}' \\(if this file"):
+        choose_priors(named)
     other = MaterialTask(MaterialSpec("lambertian", "analytic", "lambertian"), ev.EvalConfig(prior=str(prior_file)))
     import warnings
 

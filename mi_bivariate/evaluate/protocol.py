@@ -13,6 +13,7 @@ The caller has selected the Mitsuba variant (the runner's front doors, see
 
 from __future__ import annotations
 
+import functools
 import time
 import warnings
 from dataclasses import dataclass
@@ -139,25 +140,41 @@ def choose_priors(task: MaterialTask) -> Tuple[Optional[Prior], Any, str]:
     if cfg.prior is not None:
         prior, basis_prior = training_set.load_prior_files(cfg.prior)
         beside = training_set.basis_path_for(cfg.prior)
+        name = _shared_name(task.material)
         saw = [str(p) for p, learnt in ((cfg.prior, prior), (beside, basis_prior))
-               if learnt is not None and task.material.spec in learnt.provenance.get("materials", ())]
+               if learnt is not None and name in learnt.provenance.get("materials", ())]
         if saw:  # a score must come from priors that never saw the material
-            warnings.warn(f"{task.material.label}: {' and '.join(saw)} learnt from this material: its scores are not "
-                          "leave-one-out (learn the priors without it, or leave --prior out for leave-one-out "
-                          "priors of the shared materials)", InputWarning, stacklevel=2)
+            warnings.warn(f"{task.material.label}: {' and '.join(saw)} learnt from {_this(task.material)}: its "
+                          "scores are not leave-one-out (learn the priors without it, or leave --prior out for "
+                          "leave-one-out priors of the shared materials)", InputWarning, stacklevel=2)
         return prior, basis_prior, (f"files {cfg.prior} and {beside}" if basis_prior is not None
                                     else f"file {cfg.prior} (no basis prior: no {beside.name} beside it)")
     if cfg.leave_one_out and task.material.kind == "nbrdf":
         prior, basis_prior = training_set.leave_one_out_priors(task.material.spec, *cfg.grid, data_dir=task.data_dir)
         return prior, basis_prior, f"leave-one-out: the other {len(basis_prior.materials)} shared MERL-NBRDF materials"
-    if task.material.kind == "merl":  # a MERL file named as a shared material: the packaged priors saw one of that name
-        name = Path(task.material.spec).stem
-        learnt = default_prior()
-        if learnt is not None and name in learnt.provenance.get("materials", ()):
-            warnings.warn(f"{task.material.label}: the packaged priors were learnt from a shared material named "
-                          f"{name!r}: if this file is that material, its scores are not leave-one-out (evaluate it "
-                          f"by its shared name, {name}, for leave-one-out priors)", InputWarning, stacklevel=2)
+    name = _shared_name(task.material)
+    if task.material.kind == "merl" and name in _packaged_materials():
+        warnings.warn(f"{task.material.label}: the packaged priors were learnt from {_this(task.material)}: its "
+                      f"scores are not leave-one-out (evaluate it by its shared name, {name}, for leave-one-out "
+                      "priors)", InputWarning, stacklevel=2)
     return None, "default", "packaged (73 shared MERL-NBRDF materials)"
+
+
+def _shared_name(material: MaterialSpec) -> Optional[str]:
+    """The shared-material name a prior's provenance would list ``material`` under: a MERL-NBRDF material's
+    own, a MERL file's stem (``brass.binary``: 'brass'), ``None`` for an analytic one."""
+    return {"nbrdf": material.spec, "merl": Path(material.spec).stem}.get(material.kind)
+
+
+def _this(material: MaterialSpec) -> str:
+    return (f"a shared material named {_shared_name(material)!r} (if this file is that material)"
+            if material.kind == "merl" else "this material")
+
+
+@functools.lru_cache(maxsize=1)
+def _packaged_materials() -> frozenset:
+    """The materials the packaged priors were learnt from (read once per process)."""
+    return frozenset(default_prior().provenance.get("materials", ()))
 
 
 def load_truth_and_floor(task: MaterialTask, timings: Dict[str, float]) -> _Truth:
