@@ -2,7 +2,8 @@
 
 For each material: the input sphere (128 px, 128 spp, path traced) under grace_latlong_1k; the
 linear route (:func:`mi_bivariate.recover.recover`, timed stages observations + lighting matrix +
-adequacy + solve; also at 1/8, 1/4 and 1/2 of its sampled normals and directions, median of 3
+adequacy + solve; also at 1/8, 1/4 and 1/2 of its sampled normals and directions, and at these and
+its own on a grid of half the side (16 x 16, with priors learnt on it, leave-one-out), median of 3
 each: the linear route's own curve of error against time) and analysis by synthesis
 (:func:`mi_bivariate.synthesis.analysis_by_synthesis`: Adam on log f through ``prb`` with table
 importance sampling, from the Lambertian fit) for ``--time-factor`` x the linear route's time.
@@ -74,8 +75,9 @@ def fastest_row(r: dict) -> str:
     if fastest is None:
         return "AbS better"
     ratio = f"{r['ladder_speedup']:.0f}x" if r.get("ladder_speedup") is not None else "-"
-    return (f"{ratio} (M {fastest['n_normals']}, K {fastest['n_dirs']}: "
-            f"{fastest['time_s']:.2f} s, {fastest['relight']:.4f})")
+    from mi_bivariate.synthesis import rung_label  # lazy, as in main(): --help stays fast
+
+    return f"{ratio} ({rung_label(fastest)}: {fastest['time_s']:.2f} s, {fastest['relight']:.4f})"
 
 
 def plot(records: Sequence[dict], path: Path) -> None:
@@ -94,11 +96,18 @@ def plot(records: Sequence[dict], path: Path) -> None:
         lin = r["linear"]
         ladder = r.get("linear_ladder", [])
         if ladder:
-            top = max(p["n_normals"] for p in ladder)
-            for i, p in enumerate(sorted(ladder, key=lambda p: p["n_normals"])):
-                ax.plot([p["time_s"]], [p["relight"]], "rs", mfc="none", ms=4 + 3 * math.log2(top / p["n_normals"]),
-                        label="linear solve, fewer normals M and directions K (larger: fewer)" if i == 0 else None)
-        star = f"linear solve, M {lin['n_normals']}" if "n_normals" in lin else "linear solve (defaults)"
+            top = max(p["n_normals"] for p in ladder + [lin])
+            own = lin.get("grid")
+            labelled = set()
+            for p in sorted(ladder, key=lambda p: p["n_normals"]):
+                coarse = own is not None and p.get("grid", own) != own
+                label = (f"linear solve on a {p['grid'][0]} x {p['grid'][1]} grid, M and K as marked" if coarse
+                         else "linear solve, fewer normals M and directions K (larger: fewer)")
+                ax.plot([p["time_s"]], [p["relight"]], "r^" if coarse else "rs", mfc="none",
+                        ms=4 + 3 * math.log2(top / p["n_normals"]), label=None if label in labelled else label)
+                labelled.add(label)
+        star = (f"linear solve, M {lin['n_normals']}" + (f", {lin['grid'][0]} x {lin['grid'][1]}" if "grid" in lin else "")
+                if "n_normals" in lin else "linear solve (defaults)")
         ax.plot([lin["time_s"]], [lin["relight"]], "r*", ms=12, label=star)
         ax.axhline(lin["relight"], color="r", lw=0.8, ls="--")
         if "relight_floor" in r:
@@ -110,12 +119,12 @@ def plot(records: Sequence[dict], path: Path) -> None:
         ax.set_title(r["material"], fontsize=10)
         ax.grid(True, which="both", alpha=0.3)
     handles, labels = axes[0][0].get_legend_handles_labels()
-    fig.legend(handles, labels, loc="lower center", ncol=len(labels), fontsize=8, frameon=False)
+    fig.legend(handles, labels, loc="lower center", ncol=min(3, len(labels)), fontsize=8, frameon=False)
     scoring = records[0].get("scoring", {"renderer": "path"})
     how = ("converged quadrature (mi_bivariate.reference)" if scoring["renderer"] == "reference"
            else "path traced, same seed")
     fig.suptitle(f"input {records[0]['input_probe']}; truth and tables rendered alike: {how}", fontsize=9)
-    fig.tight_layout(rect=(0, 0.07, 1, 1))
+    fig.tight_layout(rect=(0, 0.11, 1, 1))
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=110, format="png")
@@ -168,7 +177,7 @@ def main(argv: Sequence[str] = None) -> None:
                   + ", ".join(f"{k.replace('_', ' ')} {v:.5f}" for k, v in noise.items()), flush=True)
             for rung in r["linear_ladder"] + [r["linear"]]:
                 stages = ", ".join(f"{k} {v:.2f}" for k, v in rung["stages"].items())
-                print(f"  linear at M {rung['n_normals']}, K {rung['n_dirs']}: {rung['time_s']:.2f} s "
+                print(f"  linear at {synthesis.rung_label(rung)}: {rung['time_s']:.2f} s "
                       f"(runs {', '.join(f'{t:.2f}' for t in rung['times_s'])}; medians: {stages}), "
                       f"relight {rung['relight']:.4f}", flush=True)
         print(f"\nMachine after the run: {machine()}")

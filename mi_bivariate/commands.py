@@ -532,7 +532,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
             reaches = ("; AbS never reached the linear relight error" if not a["reached_linear_relight"] else
                        f"; AbS reached the linear relight error at {a['time_to_linear_relight_s']:.3g} s")
             faster = (f"; the fastest linear run as good as AbS's best took {fastest['time_s']:.3g} s "
-                      f"(M {fastest['n_normals']}, K {fastest['n_dirs']}: {speedup:.0f}x faster)"
+                      f"({synthesis.rung_label(fastest)}: {speedup:.0f}x faster)"
                       if fastest is not None and speedup is not None else "")
             print(f"analysis by synthesis, {record['material']}: linear solve Eq. 1 {lin['eq1']:.4g}, relight "
                   f"{lin['relight']:.4g} (floor {result['relight_floor']:.4g}) in {lin['time_s']:.3g} s; Adam+prb "

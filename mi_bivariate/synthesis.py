@@ -45,7 +45,7 @@ from __future__ import annotations
 import math
 import time
 import warnings
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 import drjit as dr
@@ -53,6 +53,7 @@ import mitsuba as mi
 import numpy as np
 
 from mi_bivariate import capture, metrics, render
+from mi_bivariate.basis_prior import BasisPrior
 from mi_bivariate.bivariate import BivariateBRDF
 from mi_bivariate.common import PathLike
 from mi_bivariate.errors import InputError, InputWarning
@@ -70,6 +71,14 @@ LINEAR_LADDER: Tuple[float, ...] = (1 / 8, 1 / 4, 1 / 2)
 
 #: Smallest ``n_normals`` / ``n_dirs`` of a ladder rung.
 LADDER_MIN = 250
+
+#: Coarser st grids measured beside the configuration's: fractions of its sides (each rung of the
+#: ladder and the configuration's own sizes again on each coarser grid; the solve's cost grows with
+#: the cube of the node count, so a grid is the linear route's largest cost setting).
+LADDER_GRIDS: Tuple[float, ...] = (1 / 2,)
+
+#: Fewest nodes per side of a coarser ladder grid.
+LADDER_GRID_MIN = 4
 
 #: Timed stages of the linear route (:attr:`mi_bivariate.recover.Recovery.timings`).
 LINEAR_STAGES = ("observations", "lighting matrix", "adequacy", "normal equations", "solve")
@@ -273,17 +282,36 @@ def ladder_sizes(n_normals: int, n_dirs: int, fractions: Sequence[float] = LINEA
     return sorted(r for r in rungs if r[0] <= n_normals and r[1] <= n_dirs)
 
 
+def ladder_grids(grid: Tuple[int, int], fractions: Sequence[float] = LADDER_GRIDS) -> List[Tuple[int, int]]:
+    """The ladder's coarser st grids below ``grid``, finest first: each side x ``fraction``, at least
+    :data:`LADDER_GRID_MIN`; grids that are not coarser than ``grid`` on both sides are dropped."""
+    n_t, n_s = grid
+    grids = {(max(LADDER_GRID_MIN, round(n_t * f)), max(LADDER_GRID_MIN, round(n_s * f))) for f in fractions}
+    return sorted((g for g in grids if g[0] <= n_t and g[1] <= n_s and g != (n_t, n_s)), reverse=True)
+
+
+def ladder_rungs(n_normals: int, n_dirs: int, grid: Tuple[int, int], fractions: Sequence[float] = LINEAR_LADDER,
+                 grid_fractions: Sequence[float] = LADDER_GRIDS) -> List[Tuple[int, int, Tuple[int, int]]]:
+    """Every ``(n_normals, n_dirs, grid)`` rung of the ladder: :func:`ladder_sizes` on ``grid``, then,
+    on each of :func:`ladder_grids`, the same sizes and the configuration's own."""
+    sizes = ladder_sizes(n_normals, n_dirs, fractions)
+    rungs = [(m, k, tuple(grid)) for m, k in sizes]
+    for g in ladder_grids(grid, grid_fractions):
+        rungs += [(m, k, g) for m, k in [*sizes, (n_normals, n_dirs)]]
+    return rungs
+
+
 def linear_run(shot: Any, probe: Any, config: EvalConfig, n_normals: int, n_dirs: int,
                repeats: int, quiet: bool = False, priors: Tuple[Any, Any] = (None, "default")
                ) -> Tuple[Recovery, dict]:
-    """The linear route (:func:`~mi_bivariate.recover.recover`) at ``n_normals`` x ``n_dirs``, timed
+    """The linear route (:func:`~mi_bivariate.recover.recover`) at ``n_normals`` x ``n_dirs`` on ``config.grid``, timed
     ``repeats`` times in this process (``quiet``: without its input warnings, e.g. a ladder rung's
     "few usable observations", which is the benchmark's choice, not the user's input), with
     ``priors`` = ``(prior, basis_prior)`` as :func:`~mi_bivariate.recover.recover` takes them.
 
     Returns:
         The last :class:`~mi_bivariate.recover.Recovery` and a point: ``n_normals``, ``n_dirs``,
-        ``time_s`` (median over the runs of the :data:`LINEAR_STAGES` summed, s), ``times_s``
+        ``grid`` (``[n_t, n_s]``), ``time_s`` (median over the runs of the :data:`LINEAR_STAGES` summed, s), ``times_s``
         (those sums, one per run), ``stage_runs`` (each run's stages, s) and ``stages`` (median of
         each stage over the runs, s; their sum need not be ``time_s`` on a loaded machine).
     """
@@ -297,9 +325,16 @@ def linear_run(shot: Any, probe: Any, config: EvalConfig, n_normals: int, n_dirs
                           keep_inputs=False)
         runs.append({stage: float(rec.timings.get(stage, 0.0)) for stage in LINEAR_STAGES})
     times = [sum(r.values()) for r in runs]
-    return rec, {"n_normals": int(n_normals), "n_dirs": int(n_dirs), "time_s": float(np.median(times)),
+    return rec, {"n_normals": int(n_normals), "n_dirs": int(n_dirs), "grid": [int(n) for n in config.grid],
+                 "time_s": float(np.median(times)),
                  "times_s": times, "stage_runs": runs,
                  "stages": {k: float(np.median([r[k] for r in runs])) for k in LINEAR_STAGES}}
+
+
+def rung_label(point: dict) -> str:
+    """A linear point's sizes for people: ``"M 1000, K 1000, 16 x 16"`` (records without a grid: no grid)."""
+    grid = f", {point['grid'][0]} x {point['grid'][1]}" if point.get("grid") else ""
+    return f"M {point['n_normals']}, K {point['n_dirs']}{grid}"
 
 
 def linear_reaches(points: Sequence[dict], best_relight: float,
@@ -341,7 +376,8 @@ def analysis_by_synthesis(material: Any, input_probe: str = "grace_latlong_1k", 
                           eval_every: int = 10, max_iterations: int = 100000,
                           novel_probe: Optional[str] = None, settings: Optional[SynthesisSettings] = None,
                           budget_s: Optional[float] = None,
-                          linear_ladder: Sequence[float] = LINEAR_LADDER, ladder_repeats: int = 3) -> dict:
+                          linear_ladder: Sequence[float] = LINEAR_LADDER, ladder_repeats: int = 3,
+                          ladder_grid_fractions: Sequence[float] = LADDER_GRIDS) -> dict:
     """The linear solve and analysis by synthesis on the same image, errors against wall time.
 
     The input image is path traced (config resolution, spp and seed) and the
@@ -357,9 +393,11 @@ def analysis_by_synthesis(material: Any, input_probe: str = "grace_latlong_1k", 
     the seed the evaluation gives it (:meth:`EvalConfig.novel_seed`).
 
     The linear route is timed after one warm-up run, ``ladder_repeats`` times
-    (median) at the config's sizes and at each of the cheaper sizes of
-    :func:`ladder_sizes` (``linear_ladder``: fractions of ``config.n_normals``
-    and ``config.n_dirs``; ``()`` for none), all relit the same way. AbS is
+    (median) at the config's sizes and at each of the cheaper rungs of
+    :func:`ladder_rungs` (``linear_ladder``: fractions of ``config.n_normals``
+    and ``config.n_dirs``; ``ladder_grid_fractions``: coarser grids, fractions of
+    ``config.grid``'s sides, each with the priors the evaluation would choose on
+    it; ``()`` for none), all relit the same way. AbS (on ``config.grid``) is
     timed alike: after one untimed warm-up iteration (its kernels compiled;
     measured: 2.4-5 s with a cold Dr.Jit kernel cache, against 0.6 s an iteration).
 
@@ -408,8 +446,15 @@ def analysis_by_synthesis(material: Any, input_probe: str = "grace_latlong_1k", 
     relight_floor = relight(BivariateBRDF.reduce(truth, n_t=n_t, n_s=n_s))
 
     # The evaluation's priors (leave-one-out for a shared material): no score from a prior that saw it.
-    prior, basis_prior, prior_source = choose_priors(MaterialTask(spec, config, None if data_dir is None
-                                                                  else str(data_dir)))
+    def grid_priors(grid: Tuple[int, int]) -> Tuple[Any, Any, str]:
+        cfg = config if tuple(grid) == tuple(config.grid) else replace(config, grid=tuple(grid))
+        chosen = choose_priors(MaterialTask(spec, cfg, None if data_dir is None else str(data_dir)))
+        basis = chosen[1]
+        if isinstance(basis, BasisPrior) and (basis.n_t, basis.n_s) != tuple(grid):
+            basis = basis.resampled(*grid)      # a prior file learnt on the configuration's grid
+        return chosen[0], basis, chosen[2]
+
+    prior, basis_prior, prior_source = grid_priors(config.grid)
     priors = (prior, basis_prior)
     # Every linear point is timed alike: after one warm-up run in this process, the median of
     # ladder_repeats runs.
@@ -426,9 +471,18 @@ def analysis_by_synthesis(material: Any, input_probe: str = "grace_latlong_1k", 
     del rec
 
     ladder: List[dict] = []
-    for m, k in ladder_sizes(config.n_normals, config.n_dirs, linear_ladder):
-        rung, point = linear_run(shot, probe, config, m, k, ladder_repeats, quiet=True, priors=priors)
-        ladder.append({**point, "relight": relight(rung.brdf)})
+    rung_priors = {tuple(config.grid): (priors, prior_source)}
+    for m, k, grid in ladder_rungs(config.n_normals, config.n_dirs, config.grid, linear_ladder,
+                                   ladder_grid_fractions):
+        if grid not in rung_priors:
+            chosen = grid_priors(grid)
+            rung_priors[grid] = (chosen[:2], chosen[2])
+            # A warm-up on each new grid (its kernels compiled), as at the configuration's sizes.
+            linear_run(shot, probe, replace(config, grid=grid), m, k, 1, quiet=True, priors=chosen[:2])
+        cfg = config if grid == tuple(config.grid) else replace(config, grid=grid)
+        rung, point = linear_run(shot, probe, cfg, m, k, ladder_repeats, quiet=True, priors=rung_priors[grid][0])
+        ladder.append({**point, "relight": relight(rung.brdf),
+                       **({"prior": rung_priors[grid][1]} if grid != tuple(config.grid) else {})})
         del rung
 
     trace: List[dict] = []

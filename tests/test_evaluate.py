@@ -318,7 +318,8 @@ def test_evaluate_abs_records_both_routes_scored_by_the_converged_renderer(tmp_p
     assert set(r["relight_noise"]) == {"truth", "linear_table", "abs_best_table"}
     assert all(0 < v < 5e-3 for v in r["relight_noise"].values()), r["relight_noise"]
     points = r["linear_ladder"] + [r["linear"]]
-    assert [(p["n_normals"], p["n_dirs"]) for p in points] == [*synthesis.ladder_sizes(300, 1000), (300, 1000)]
+    assert ([(p["n_normals"], p["n_dirs"], tuple(p["grid"])) for p in points]
+            == [*synthesis.ladder_rungs(300, 1000, (8, 8)), (300, 1000, (8, 8))])
     for p in points:
         assert len(p["times_s"]) == 3 and p["time_s"] == sorted(p["times_s"])[1] and np.isfinite(p["relight"])
         # Each run's total is its stages' sum; the stages are per-stage medians (no timing tolerance:

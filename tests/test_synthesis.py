@@ -114,6 +114,22 @@ def test_ladder_sizes_are_cheaper_than_the_configuration_and_fixed_fractions_of_
         assert m <= 300 and k <= 20000
 
 
+def test_ladder_grids_are_coarser_than_the_configuration_and_every_rung_is_listed_once():
+    assert synthesis.ladder_grids((32, 32)) == [(16, 16)]
+    assert synthesis.ladder_grids((32, 24), (1 / 2, 1 / 4)) == [(16, 12), (8, 6)]
+    assert synthesis.ladder_grids((6, 6)) == [(4, 4)]        # floored at LADDER_GRID_MIN ...
+    assert synthesis.ladder_grids((4, 4)) == []               # ... and never the configuration's own
+    assert synthesis.ladder_grids((3, 40)) == []              # not coarser on both sides
+    assert synthesis.ladder_grids((32, 32), ()) == []
+    rungs = synthesis.ladder_rungs(8000, 8000, (32, 32))
+    sizes = [(1000, 1000), (2000, 2000), (4000, 4000)]
+    assert rungs == [(m, k, (32, 32)) for m, k in sizes] + [(m, k, (16, 16)) for m, k in sizes + [(8000, 8000)]]
+    assert synthesis.ladder_rungs(8000, 8000, (32, 32), (), ()) == []
+    assert synthesis.ladder_rungs(8000, 8000, (32, 32), ()) == [(8000, 8000, (16, 16))]
+    assert synthesis.rung_label({"n_normals": 1000, "n_dirs": 2000, "grid": [16, 12]}) == "M 1000, K 2000, 16 x 12"
+    assert synthesis.rung_label({"n_normals": 1000, "n_dirs": 2000}) == "M 1000, K 2000"   # an older record
+
+
 def test_relight_error_scores_with_the_evaluations_renderer_against_closed_forms():
     """White furnace: a Lambertian table rho / pi under a constant probe of radiance 1 renders as
     exactly rho at every pixel, so twice the table is 100% off and the truth itself 0%; the
@@ -166,7 +182,7 @@ def test_no_speedup_is_claimed_when_abs_never_beats_its_start(monkeypatch):
     monkeypatch.setattr(synthesis, "optimise_table", no_progress)
     config = _tiny_abs_config(monkeypatch)
     r = synthesis.analysis_by_synthesis("ggx:diffuse=0.2,specular=0.5,alpha=0.2", "synthetic:1", config=config,
-                                        linear_ladder=(), ladder_repeats=1)
+                                        linear_ladder=(), ladder_grid_fractions=(), ladder_repeats=1)
     assert r["abs"]["best_relight_iteration"] == 0 and r["linear"]["relight"] <= r["abs"]["best_relight"]
     assert r["speedup"] is None and r["ladder_speedup"] is None
     assert r["linear_to_abs_best"]["n_normals"] == 300      # the linear run that reaches it is still named
@@ -206,7 +222,7 @@ def test_abs_clock_excludes_kernel_compilation_as_the_linear_routes_does(monkeyp
     monkeypatch.setattr(synthesis, "optimise_table", optimise_table)
     config = _tiny_abs_config(monkeypatch)
     r = synthesis.analysis_by_synthesis("ggx:diffuse=0.2,specular=0.5,alpha=0.2", "synthetic:1", config=config,
-                                        linear_ladder=(), ladder_repeats=1, budget_s=5.0, eval_every=2)
+                                        linear_ladder=(), ladder_grid_fractions=(), ladder_repeats=1, budget_s=5.0, eval_every=2)
     assert r["abs"]["iterations"] == 10 and r["abs"]["time_s"] == pytest.approx(5.0)
     assert [t["time_s"] for t in r["trace"]] == pytest.approx([0.0, 1.0, 2.0, 3.0, 4.0, 5.0])
 
@@ -240,6 +256,8 @@ def test_analysis_by_synthesis_times_every_linear_point_alike_and_scores_at_the_
     """One warm-up run at the config's sizes, then 3 timed runs of it and of each ladder rung, the
     medians of known stage times; the novel probe rendered at the seed the evaluation gives it
     (the config's second novel probe: seed + 2), checked against an independent render."""
+    import dataclasses
+
     from mi_bivariate.evaluate.config import EvalConfig
 
     real, calls, chosen, used = synthesis.recover, [], [], []
@@ -247,14 +265,16 @@ def test_analysis_by_synthesis_times_every_linear_point_alike_and_scores_at_the_
     def recover(*args, **kwargs):
         rec = real(*args, **kwargs)
         i = len(calls)
-        calls.append((kwargs["n_normals"], kwargs["n_dirs"]))
+        calls.append((kwargs["n_normals"], kwargs["n_dirs"], tuple(kwargs["grid"])))
         used.append((kwargs["prior"], kwargs["basis_prior"]))
         rec.timings = {stage: (i + 1) * (j + 1) * 1e-3 for j, stage in enumerate(synthesis.LINEAR_STAGES)}
         return rec
 
     def choose_priors(task):                              # where the evaluation's choice comes from
-        assert task.material.label.startswith("ggx:") and task.config is config
-        chosen.append((None, None, "test: no basis prior"))   # unlike recover's default ("default")
+        assert task.material.label.startswith("ggx:")
+        # The configuration itself, or (for the ladder's coarser grid) it on that grid.
+        assert task.config is config or task.config == dataclasses.replace(config, grid=(4, 4))
+        chosen.append((None, None, f"test: no basis prior, {task.config.grid}"))   # recover's default: "default"
         return chosen[-1]
 
     monkeypatch.setattr(synthesis, "recover", recover)
@@ -265,16 +285,24 @@ def test_analysis_by_synthesis_times_every_linear_point_alike_and_scores_at_the_
     material = "ggx:diffuse=0.2,specular=0.5,alpha=0.2"
     r = synthesis.analysis_by_synthesis(material, "synthetic:1", config=config, novel_probe="synthetic:3",
                                         budget_s=0.3, eval_every=5, spp=4)
-    rungs = synthesis.ladder_sizes(300, 1000)
-    assert calls == [(300, 1000)] * 4 + [rung for rung in rungs for _ in range(3)]
-    # Every linear run used the priors chosen for this material as the evaluation chooses them.
-    (prior, basis_prior, source), = chosen
-    assert all(u[0] is prior and u[1] is basis_prior for u in used) and r["linear"]["prior"] == source
+    rungs = synthesis.ladder_rungs(300, 1000, (8, 8))
+    fine = [rung for rung in rungs if rung[2] == (8, 8)]
+    coarse = [rung for rung in rungs if rung[2] == (4, 4)]
+    assert len(fine) == 2 and coarse == [(m, k, (4, 4)) for m, k, _ in fine] + [(300, 1000, (4, 4))]
+    # A warm-up on each grid: at the config's sizes on its own, at the first coarse rung's on the coarser.
+    assert calls == ([(300, 1000, (8, 8))] * 4 + [rung for rung in fine for _ in range(3)]
+                     + [coarse[0]] + [rung for rung in coarse for _ in range(3)])
+    # Every linear run used the priors chosen for this material, on its grid, as the evaluation chooses them.
+    assert [c[2] for c in chosen] == ["test: no basis prior, (8, 8)", "test: no basis prior, (4, 4)"]
+    assert all(u == (None, None) for u in used)
+    assert r["linear"]["prior"] == chosen[0][2]
+    assert [p.get("prior") for p in r["linear_ladder"]] == [None] * len(fine) + [chosen[1][2]] * len(coarse)
     # The config's sizes: calls 1-3 (call 0 is the warm-up); the median of (2, 3, 4) x each stage's unit.
     want = {stage: 3 * (j + 1) * 1e-3 for j, stage in enumerate(synthesis.LINEAR_STAGES)}
     assert r["linear"]["stages"] == pytest.approx(want) and r["linear"]["time_s"] == pytest.approx(sum(want.values()))
-    for k, point in enumerate(r["linear_ladder"]):
-        first = 4 + 3 * k                                  # the rung's calls: first, first + 1, first + 2
+    firsts = [4 + 3 * k for k in range(len(fine))] + [4 + 3 * len(fine) + 1 + 3 * k for k in range(len(coarse))]
+    assert [(p["n_normals"], p["n_dirs"], tuple(p["grid"])) for p in r["linear_ladder"]] == rungs
+    for first, point in zip(firsts, r["linear_ladder"], strict=True):   # a rung's calls: first .. first + 2
         assert point["time_s"] == pytest.approx((first + 2) * sum(j + 1 for j in range(len(want))) * 1e-3)
 
     floors = [independent_relight_floor(config, material, "synthetic:3", seed, 16)
