@@ -21,12 +21,13 @@ good. Prints one table (time-to-equal-error ratios) and writes the records (JSON
 figure ``docs/figures/abs_vs_solve.png`` (relight error against wall time).
 
     MI_BIVARIATE_DATA=/work/shared/data python benchmarks/bench_synthesis.py \
-        [--materials gold-metallic-paint3 blue-acrylic red-phenolic] [--time-factor 20] [--out out/abs]
+        [--materials gold-metallic-paint3 blue-acrylic red-phenolic] [--time-factor 20] [--out out/abs] [--grid 16 16]
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
@@ -139,6 +140,8 @@ def main(argv: Sequence[str] = None) -> None:
     parser.add_argument("--budget", type=float, default=None, help="AbS budget in seconds (overrides)")
     parser.add_argument("--eval-every", type=int, default=10)
     parser.add_argument("--quick", action="store_true", help="the evaluation's quick config (48 px, 12 x 12)")
+    parser.add_argument("--grid", type=int, nargs=2, metavar=("N_T", "N_S"), default=None,
+                        help="the st grid of both routes (AbS's table and the linear route's; default: the config's)")
     parser.add_argument("--out", default=str(ROOT / "out" / "abs"))
     parser.add_argument("--figure", default=str(ROOT / "docs" / "figures" / "abs_vs_solve.png"))
     parser.add_argument("--replot", action="store_true", help="only redraw the figure from --out's records")
@@ -161,6 +164,9 @@ def main(argv: Sequence[str] = None) -> None:
     else:
         print(f"Machine: {machine()}")
         config = ev.EvalConfig.quick(shared_data=True) if args.quick else ev.EvalConfig()
+        if args.grid is not None:
+            config = dataclasses.replace(config, grid=tuple(args.grid))
+        print(f"Grid of both routes: {config.grid[0]} x {config.grid[1]}")
         out.mkdir(parents=True, exist_ok=True)
         for material in args.materials:
             r = synthesis.analysis_by_synthesis(material, "grace_latlong_1k", config=config, novel_probe=NOVEL,
