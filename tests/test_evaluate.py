@@ -518,3 +518,25 @@ def test_a_merl_file_named_as_a_shared_material_is_said_to_be_seen_by_the_packag
     with warnings.catch_warnings():
         warnings.simplefilter("error", InputWarning)
         choose_priors(other)
+
+
+def test_quick_says_a_shared_material_is_scored_by_priors_that_saw_it(tmp_path):
+    """``--quick`` (``leave_one_out=False``) scores a shared MERL-NBRDF material with the packaged priors,
+    which learnt from it: the evaluation says so per material, as for a MERL file of a shared name (it
+    said nothing); with leave-one-out priors, or for a material they did not see, nothing is said."""
+    import warnings
+
+    from mi_bivariate import prior as pr
+    from mi_bivariate.errors import InputWarning
+    from mi_bivariate.evaluate.protocol import MaterialTask, choose_priors
+    from mi_bivariate.sources import MaterialSpec
+
+    seen = pr.default_prior().provenance["materials"][0]
+    quick = ev.EvalConfig.quick(shared_data=True)
+    assert not quick.leave_one_out
+    with pytest.warns(InputWarning, match=f"{seen}: the packaged priors were learnt from this material.*not leave"):
+        assert choose_priors(MaterialTask(MaterialSpec(seen, "nbrdf", seen), quick))[2].startswith("packaged")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", InputWarning)
+        choose_priors(MaterialTask(MaterialSpec("not-shared", "nbrdf", "not-shared"), quick))
+        choose_priors(MaterialTask(MaterialSpec("ggx:alpha=0.2", "analytic", "ggx:alpha=0.2"), quick))

@@ -153,10 +153,12 @@ def choose_priors(task: MaterialTask) -> Tuple[Optional[Prior], Any, str]:
         prior, basis_prior = training_set.leave_one_out_priors(task.material.spec, *cfg.grid, data_dir=task.data_dir)
         return prior, basis_prior, f"leave-one-out: the other {len(basis_prior.materials)} shared MERL-NBRDF materials"
     name = _shared_name(task.material)
-    if task.material.kind == "merl" and name in _packaged_materials():
+    if name is not None and name in _packaged_materials():
+        cure = (f"evaluate it by its shared name, {name}, for leave-one-out priors" if task.material.kind == "merl"
+                else "leave-one-out priors are the full configuration's; --quick and leave_one_out=False use "
+                     "the packaged ones")
         warnings.warn(f"{task.material.label}: the packaged priors were learnt from {_this(task.material)}: its "
-                      f"scores are not leave-one-out (evaluate it by its shared name, {name}, for leave-one-out "
-                      "priors)", InputWarning, stacklevel=2)
+                      f"scores are not leave-one-out ({cure})", InputWarning, stacklevel=2)
     return None, "default", "packaged (73 shared MERL-NBRDF materials)"
 
 
