@@ -25,8 +25,10 @@ are checked against central finite differences in ``tests/test_gradients.py``.
 
 The linear route is measured at the configuration's sizes and on a ladder
 of cheaper ones (:data:`LINEAR_LADDER`: fractions of the configuration's
-sampled normals ``M`` and lighting directions ``K``, the same for every
-material), so that both routes have a curve of error against wall time and
+sampled normals ``M`` and lighting directions ``K``; :data:`LADDER_GRIDS`:
+the same and the configuration's own sizes on a coarser st grid, with priors
+chosen on it; fixed in advance, the same for every material), so that both
+routes have a curve of error against wall time and
 "time to equal error" means, for each route, the least time at which it
 reached that error (:func:`time_to_error`).
 
