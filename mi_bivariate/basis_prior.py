@@ -44,7 +44,7 @@ from mi_bivariate.common import PathLike
 from .atomic import atomic_path
 from .errors import InputError
 from .npzio import provenance_dict, read_npz
-from .prior import check_grid, interpolation_matrix
+from .prior import _table_array, check_grid, interpolation_matrix
 
 FORMAT = "mi_bivariate.basis_prior"
 FORMAT_VERSION = 1
@@ -118,21 +118,19 @@ class BasisPrior:
     @classmethod
     def learn(cls, tables: Mapping[str, np.ndarray], components: int = DEFAULT_COMPONENTS,
               exclude: Sequence[str] = (), provenance: Optional[dict] = None) -> "BasisPrior":
-        """Learn from ``{name: (n_t, n_s, C) table}`` (1/sr) on a common grid.
+        """Learn from ``{name: (n_t, n_s, C) table}`` (1/sr; a ``(n_t, n_s)`` array is one channel, a
+        BivariateBRDF its ``.table``, as :meth:`mi_bivariate.prior.Prior.learn`) on a common grid.
 
         Args:
             exclude: names left out (leave-one-out scoring).
         """
-        tables = {k: np.asarray(v, dtype=np.float64) for k, v in tables.items() if k not in set(exclude)}
+        tables = {k: _table_array(v, k) for k, v in tables.items() if k not in set(exclude)}
         if not tables:
             raise InputError("basis prior training set", "is empty")
         shapes = {t.shape[:2] for t in tables.values()}
         if len(shapes) != 1:
             raise InputError("basis prior training set", f"tables have different grids {sorted(shapes)}")
         n_t, n_s = next(iter(shapes))
-        for name, t in tables.items():
-            if not np.all(np.isfinite(t)):
-                raise InputError(name, "table has non-finite values")
         samples, owner = _shape_samples(tables)
         mu, basis, variances = _pca(samples, components)
         # Leave-one-material-out reconstruction error per node: what the basis misses.

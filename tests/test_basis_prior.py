@@ -192,3 +192,19 @@ def test_predict_with_data_is_the_gaussian_posterior_in_data_space():
         var = np.einsum("nk,kl,nl->n", u, cov, u) + tau**2
         np.testing.assert_allclose(mean[..., c].ravel(), level * np.maximum(np.exp(g_hat) - EPS, 0.0), rtol=1e-9)
         np.testing.assert_allclose(std[..., c].ravel(), level * np.exp(g_hat) * np.sqrt(var), rtol=1e-9)
+
+
+def test_learn_takes_one_channel_tables_as_the_smoothness_prior_does():
+    """A ``(n_t, n_s)`` table is one channel (as ``Prior.learn`` reads it): the prior equals the one learnt
+    from the same tables with a channel axis. It was read as ``n_s`` channels of ``n_t`` nodes, a mean of
+    ``n_t`` values that ``predict`` then failed on with a numpy ValueError; a table of another rank is an
+    InputError naming it."""
+    grey = {name: t[..., 0] for name, t in _family(6, 5).items()}
+    flat = BasisPrior.learn(grey, components=3)
+    want = BasisPrior.learn({name: t[..., None] for name, t in grey.items()}, components=3)
+    assert (flat.n_t, flat.n_s) == (N_T, N_S) and flat.mean.shape == (N_T * N_S,)
+    for got, ref in ((flat.mean, want.mean), (flat.basis, want.basis), (flat.variances, want.variances),
+                     (flat.residual, want.residual)):
+        np.testing.assert_array_equal(got, ref)
+    with pytest.raises(InputError, match="m2: expected a bivariate table"):
+        BasisPrior.learn({**grey, "m2": np.ones(N_T * N_S)})
