@@ -122,8 +122,9 @@ class BasisPrior:
         BivariateBRDF its ``.table``, as :meth:`mi_bivariate.prior.Prior.learn`) on a common grid.
 
         Args:
-            exclude: names left out (leave-one-out scoring).
+            exclude: names left out (leave-one-out scoring); one name may be given as a string.
         """
+        exclude = (exclude,) if isinstance(exclude, str) else exclude
         tables = {k: _table_array(v, k) for k, v in tables.items() if k not in set(exclude)}
         if not tables:
             raise InputError("basis prior training set", "is empty")

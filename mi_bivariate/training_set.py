@@ -95,7 +95,8 @@ def _cached_tables(path: Path, shape: Tuple[int, int, int]) -> Dict[str, np.ndar
 
 def learn_priors(tables: Dict[str, np.ndarray], exclude: Sequence[str] = (),
                  provenance: Optional[dict] = None) -> Tuple[Prior, BasisPrior]:
-    """Both priors from ``tables`` without the materials in ``exclude``."""
+    """Both priors from ``tables`` without the materials in ``exclude`` (one name may be a string)."""
+    exclude = (exclude,) if isinstance(exclude, str) else exclude
     kept = {k: v for k, v in tables.items() if k not in set(exclude)}
     if len(kept) < 3:
         raise InputError("prior training set", f"has {len(kept)} materials", "give at least 3")

@@ -208,3 +208,16 @@ def test_learn_takes_one_channel_tables_as_the_smoothness_prior_does():
         np.testing.assert_array_equal(got, ref)
     with pytest.raises(InputError, match="m2: expected a bivariate table"):
         BasisPrior.learn({**grey, "m2": np.ones(N_T * N_S)})
+
+
+def test_one_material_to_exclude_may_be_given_as_a_string():
+    """``exclude="m3"`` leaves m3 out of both priors, as ``exclude=["m3"]`` does: it was read as the
+    characters {"m", "3"}, so the material silently stayed in the leave-one-out priors."""
+    tables = _family(6, 7)
+    tables["m1"] = tables["m1"] * np.exp(-((np.linspace(0, 1, N_T)[:, None, None] / 0.05) ** 2)) * 1e3 + 0.01
+    basis = BasisPrior.learn(tables, components=3, exclude="m3")
+    assert "m3" not in basis.materials
+    np.testing.assert_array_equal(basis.mean, BasisPrior.learn(tables, components=3, exclude=["m3"]).mean)
+    smooth, basis = training_set.learn_priors(tables, exclude="m3")
+    assert "m3" not in smooth.provenance["materials"] and "m3" not in basis.materials
+    assert basis.provenance["excluded"] == ["m3"]
