@@ -293,3 +293,40 @@ def test_samples_are_normalised_by_their_median_and_resampling_follows_s_too():
     coarse = prior.resampled(n, 5)
     np.testing.assert_allclose(coarse.pairs["gloss"][0][:, :-1],
                                np.exp(0.5 + 2.0 * (np.arange(4) + 0.5) / 4)[None, :] * np.ones((n, 1)), rtol=1e-12)
+
+
+def test_resampling_follows_t_at_the_t_differences_midpoints():
+    """sigma_t belongs to the difference it -> it + 1, at t = (it + 1/2) / (n_t - 1): log-linear there along t,
+    it is resampled exactly onto another n_t's midpoints (finer and coarser; clamped beyond the outer old
+    midpoints); sigma_s, on the t nodes, exactly onto the new nodes."""
+    n = 9
+    mids, nodes = (np.arange(n - 1) + 0.5) / (n - 1), np.linspace(0, 1, n)
+    edge_t = np.exp(-0.5 + 3.0 * mids)[:, None] * np.ones((1, 6))
+    sigma_t = np.concatenate([edge_t, edge_t[-1:]], axis=0)
+    sigma_s = np.exp(0.3 - 2.0 * nodes)[:, None] * np.ones((1, 6))
+    prior = Prior({p: (sigma_s, sigma_t) for p in PAIRS})
+    for n_t in (5, 17):
+        new_mids, new_nodes = (np.arange(n_t - 1) + 0.5) / (n_t - 1), np.linspace(0, 1, n_t)
+        got_s, got_t = prior.resampled(n_t, 4).pairs["diffuse"]
+        np.testing.assert_allclose(got_t[:-1], np.exp(-0.5 + 3.0 * np.clip(new_mids, mids[0], mids[-1]))[:, None] * np.ones((1, 4)), rtol=1e-12)
+        np.testing.assert_allclose(got_s[:, :-1], np.exp(0.3 - 2.0 * new_nodes)[:, None] * np.ones((1, 3)), rtol=1e-12)
+
+
+def test_specular_ratio_counts_theta_d_of_45_degrees_on_an_odd_grid():
+    """On 9 columns s = 4/8 is theta_d = 45 deg exactly: it is in both means (theta_d <= 45 deg)."""
+    grey = np.ones((11, 9))
+    grey[0, :4], grey[0, 4] = 10.0, 60.0  # peak row mean over columns 0..4: 20
+    grey[7, :5] = 2.0
+    assert specular_ratio(grey) == pytest.approx(10.0, rel=1e-12)
+
+
+def test_a_channel_with_median_zero_is_normalised_by_its_mean_and_a_black_one_is_left_out():
+    from mi_bivariate.prior import _normalised_samples
+
+    table = np.zeros((4, 5, 3))
+    table[0, :3, 0] = [4.0, 2.0, 2.0]  # median 0, mean 8 / 20
+    table[..., 1] = 3.0
+    got = _normalised_samples({"m": table})  # channel 2 is black: no shape, not a sample
+    assert got.shape == (2, 4, 5)
+    np.testing.assert_allclose(got[0], table[..., 0] / 0.4, rtol=1e-12)
+    np.testing.assert_allclose(got[1], np.ones((4, 5)), rtol=1e-12)
