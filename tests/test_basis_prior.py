@@ -221,3 +221,57 @@ def test_one_material_to_exclude_may_be_given_as_a_string():
     smooth, basis = training_set.learn_priors(tables, exclude="m3")
     assert "m3" not in smooth.provenance["materials"] and "m3" not in basis.materials
     assert basis.provenance["excluded"] == ["m3"]
+
+
+def _log_shapes(table: np.ndarray) -> np.ndarray:
+    """``(C, N)``: each channel over its median, ``log(x + EPS)`` (the model's map), written out here."""
+    from mi_bivariate.basis_prior import EPS
+
+    return np.array([np.log(table[..., c].ravel() / np.median(table[..., c]) + EPS) for c in range(table.shape[-1])])
+
+
+def test_residual_is_the_leave_one_material_out_error_of_a_pca_by_eigendecomposition():
+    """``residual`` per node, against a second implementation: for each material, the top eigenvectors of
+    the other materials' sample covariance (``np.cov``, ``eigh``), the material's centred log shapes minus
+    their projection, the RMS over all materials' channels; floored at 1e-3. The training set's tables all
+    equal their median at node 0 (a node every shape shares: residual 0 there, so the floor)."""
+    rng = np.random.default_rng(8)
+    n_t, n_s, k = 5, 5, 3
+    tables = {}
+    for i in range(5):
+        f = np.exp(rng.normal(0.0, 1.0, (n_t * n_s, 3)))
+        f[0] = np.median(f[1:], axis=0)  # 25 nodes: node 0 is the 13th value, the median
+        tables[f"m{i}"] = f.reshape(n_t, n_s, 3)
+    prior = BasisPrior.learn(tables, components=k)
+    shapes = {name: _log_shapes(t) for name, t in tables.items()}
+    errors = []
+    for name in tables:
+        others = np.concatenate([s for n, s in shapes.items() if n != name])
+        _, vec = np.linalg.eigh(np.cov(others.T))
+        top = vec[:, ::-1][:, :k]
+        centred = shapes[name] - others.mean(axis=0)
+        errors.append(centred - centred @ top @ top.T)
+    want = np.sqrt(np.mean(np.concatenate(errors) ** 2, axis=0))
+    assert want[0] < 1e-12 and want[1:].min() > 1e-2
+    np.testing.assert_allclose(prior.residual, np.maximum(want, 1e-3), rtol=1e-8)
+
+
+def test_components_are_at_most_the_rank_of_the_centred_samples():
+    """Two materials of three channels: six centred log shapes span five directions, so five components
+    (the sample covariance's nonzero eigenvalues), however many were asked for."""
+    rng = np.random.default_rng(9)
+    tables = {name: np.exp(rng.normal(0.0, 1.0, (N_T, N_S, 3))) for name in ("a", "b")}  # six distinct shapes
+    prior = BasisPrior.learn(tables, components=12)
+    samples = np.concatenate([_log_shapes(t) for t in tables.values()])
+    eig = np.sort(np.linalg.eigvalsh(np.cov(samples.T)))[::-1]
+    assert prior.basis.shape == (N_T * N_S, 5)
+    np.testing.assert_allclose(prior.variances, eig[:5], rtol=1e-8)
+
+
+def test_save_load_keeps_every_field_on_a_non_square_grid(tmp_path):
+    prior = BasisPrior.learn(_family(5, 10), components=4, provenance={"note": "x"})
+    prior.save(tmp_path / "b.npz")
+    back = BasisPrior.load(tmp_path / "b.npz")
+    assert (back.n_t, back.n_s) == (N_T, N_S) and back.provenance == prior.provenance
+    for name in ("mean", "basis", "variances", "residual"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(prior, name))
