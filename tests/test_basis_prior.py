@@ -275,3 +275,28 @@ def test_save_load_keeps_every_field_on_a_non_square_grid(tmp_path):
     assert (back.n_t, back.n_s) == (N_T, N_S) and back.provenance == prior.provenance
     for name in ("mean", "basis", "variances", "residual"):
         np.testing.assert_array_equal(getattr(back, name), getattr(prior, name))
+
+
+@pytest.mark.parametrize("module", ["prior", "basis_prior", "training_set"])
+def test_leave_one_out_priors_are_learnt_again_when_the_code_that_learns_them_changes(tmp_path, monkeypatch, module):
+    """The cache key holds the source of both priors' modules and of ``learn_priors``: an edited copy of any
+    of them (its ``__file__`` pointing at other bytes) is a new entry, learnt again."""
+    import importlib
+    import pathlib
+
+    names = list(nbrdf.ALL_NBRDF_MATERIALS[:6])
+    rng, t = np.random.default_rng(3), np.linspace(0, 1, 6)[:, None, None]
+    tables = {name: (0.1 + (1000.0 * np.exp(-(t / 0.1) ** 2) if k % 2 else 0.0))
+              * np.exp(rng.normal(0.0, 0.1, (6, 6, 3))) for k, name in enumerate(names)}
+    cache = tmp_path / "cache"
+    monkeypatch.setenv("MI_BIVARIATE_CACHE", str(cache))
+    monkeypatch.setattr(training_set, "reduced_tables", lambda n_t, n_s, data_dir=None: tables)
+    training_set.leave_one_out_priors(names[0], 6, 6)
+    training_set.leave_one_out_priors(names[0], 6, 6)
+    assert len(list(cache.glob("loo_priors_*.npz"))) == 2  # one entry: the smoothness and the basis prior
+    mod = importlib.import_module(f"mi_bivariate.{module}")
+    edited = tmp_path / f"{module}.py"
+    edited.write_bytes(pathlib.Path(mod.__file__).read_bytes() + b"\n# edited\n")
+    monkeypatch.setattr(mod, "__file__", str(edited))
+    training_set.leave_one_out_priors(names[0], 6, 6)
+    assert len(list(cache.glob("loo_priors_*.npz"))) == 4
