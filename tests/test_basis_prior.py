@@ -300,3 +300,43 @@ def test_leave_one_out_priors_are_learnt_again_when_the_code_that_learns_them_ch
     monkeypatch.setattr(mod, "__file__", str(edited))
     training_set.leave_one_out_priors(names[0], 6, 6)
     assert len(list(cache.glob("loo_priors_*.npz"))) == 4
+
+
+@pytest.mark.parametrize("change", ["grid", "dev file", "train file", "bivariate", "merl", "coordinates"])
+def test_reductions_are_made_again_when_the_data_the_grid_or_the_reduction_code_changes(tmp_path, monkeypatch, change):
+    """The reductions cache (``reduced_tables``) is keyed by both shared files' bytes, the grid and the
+    reduction's code: any one of them changed, the materials are reduced again (a fake reduction counts)."""
+    import importlib
+    import pathlib
+
+    root = tmp_path / "data"
+    (root / "merl_nbrdf").mkdir(parents=True)
+    for rel in (nbrdf.NBRDF_FILE, nbrdf.NBRDF_TRAIN_FILE):
+        (root / rel).write_bytes(str(rel).encode())
+    monkeypatch.setenv("MI_BIVARIATE_CACHE", str(tmp_path / "cache"))
+    reduced = []
+
+    class Reduced:
+        def __init__(self, n_t, n_s):
+            self.table = np.ones((n_t, n_s, 3))
+
+    monkeypatch.setattr(training_set, "nbrdf_merl", lambda name, data_root: name)
+    monkeypatch.setattr(training_set.BivariateBRDF, "reduce",
+                        lambda merl, n_t, n_s: reduced.append(merl) or Reduced(n_t, n_s))
+    names = ["brass", "black-fabric"]
+    training_set.reduced_tables(4, 5, names, root)
+    training_set.reduced_tables(4, 5, names, root)
+    assert reduced == names
+    grid = (4, 5)
+    if change == "grid":
+        grid = (5, 4)
+    elif change.endswith("file"):
+        rel = nbrdf.NBRDF_FILE if change == "dev file" else nbrdf.NBRDF_TRAIN_FILE
+        (root / rel).write_bytes(b"new data")
+    else:
+        mod = importlib.import_module(f"mi_bivariate.{change}")
+        edited = tmp_path / f"{change}.py"
+        edited.write_bytes(pathlib.Path(mod.__file__).read_bytes() + b"\n# edited\n")
+        monkeypatch.setattr(mod, "__file__", str(edited))
+    training_set.reduced_tables(*grid, names, root)
+    assert reduced == names * 2
