@@ -294,14 +294,19 @@ class MERLBRDF:
                 it is NaN only where all its neighbours are missing.
 
         Returns:
-            ``(..., 3)`` float64, 1/sr (NaN where missing).
+            ``(..., 3)`` float64, 1/sr (NaN where missing, and where an angle is NaN or infinite).
         """
+        if interpolation not in ("nearest", "linear"):
+            raise ValueError(f"interpolation must be 'nearest' or 'linear', got {interpolation!r}")
+        angles = np.broadcast_arrays(*(np.asarray(a, np.float64) for a in (theta_h, theta_d, phi_d)))
+        known = np.isfinite(angles[0]) & np.isfinite(angles[1]) & np.isfinite(angles[2])  # NaN in, NaN out
+        theta_h, theta_d, phi_d = (np.where(known, a, 0.0) for a in angles)
         if interpolation == "nearest":
             i_h, i_d, i_p = merl_indices(theta_h, theta_d, phi_d)
-            return np.asarray(self.table[i_h, i_d, i_p], np.float64)
-        if interpolation != "linear":
-            raise ValueError(f"interpolation must be 'nearest' or 'linear', got {interpolation!r}")
-        return self._eval_linear(theta_h, theta_d, phi_d)
+            value = np.asarray(self.table[i_h, i_d, i_p], np.float64)
+        else:
+            value = self._eval_linear(theta_h, theta_d, phi_d)
+        return np.where(known[..., None], value, np.nan)
 
     def _eval_linear(self, theta_h, theta_d, phi_d) -> np.ndarray:
         n_h, n_d, n_p = MERL_SHAPE

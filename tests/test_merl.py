@@ -134,6 +134,23 @@ def test_lookups_at_nodes_return_nodes(raw_file):
     np.testing.assert_array_equal(merl.eval(th, td, pd - math.pi), expected)
 
 
+@pytest.mark.parametrize("interpolation", ["nearest", "linear"])
+def test_lookups_at_non_finite_angles_give_nan(raw_file, interpolation):
+    """Before, a NaN or infinite phi_d read a real sample (index 172 of 180, from the integer cast of NaN) and
+    a NaN theta raised IndexError; now NaN in gives NaN out, as BivariateBRDF.eval, and the finite angles
+    of the same call still read MERL's reference index."""
+    merl = MERLBRDF.read(raw_file[0])
+    theta_h = np.array([0.3, np.nan, 0.3, 0.3, np.inf, 0.3])
+    theta_d = np.array([0.4, 0.4, np.nan, 0.4, 0.4, 0.4])
+    phi_d = np.array([1.0, 1.0, 1.0, np.nan, 1.0, -np.inf])
+    got = merl.eval(theta_h, theta_d, phi_d, interpolation)
+    assert got.shape == (6, 3) and np.all(np.isnan(got[1:]))
+    if interpolation == "nearest":
+        np.testing.assert_array_equal(got[0], merl.table[reference_index(0.3, 0.4, 1.0)])
+    np.testing.assert_array_equal(got[0], merl.eval(0.3, 0.4, 1.0, interpolation))
+    assert np.all(np.isnan(merl.eval(0.3, 0.4, np.nan, interpolation)))
+
+
 def test_linear_is_trilinear():
     # A function linear in the node indices (t, s, phi_d index) is reproduced exactly.
     i, j, k = np.meshgrid(np.arange(90), np.arange(90), np.arange(180), indexing="ij")
