@@ -14,7 +14,7 @@ from mi_bivariate.analytic import BivariateLobe, CookTorranceGGX, Lambertian, to
 from mi_bivariate.bivariate import BivariateBRDF, phi_d_average, reduction_error, reduction_error_per_channel
 from mi_bivariate.coordinates import grid_nodes, half_diff_from_st
 from mi_bivariate.errors import InputError
-from mi_bivariate.merl import MERL_SHAPE, MERLBRDF, node_angles
+from mi_bivariate.merl import MERL_SHAPE, MERLBRDF, geometric_mask, node_angles
 
 LOBE = BivariateLobe([0.1, 0.2, 0.3], [4.0, 5.0, 6.0], width=0.1, f0=0.2)
 
@@ -63,6 +63,67 @@ def test_direct_reduction_matches_closed_form():
     limit = (89 / 90) ** 2 * 0.5 * math.pi, 89 / 90 * 0.5 * math.pi  # sampled up to MERL's last nodes
     truth = LOBE.eval_half_diff(np.minimum(theta_h, limit[0])[:, None], np.minimum(theta_d, limit[1])[None, :])
     np.testing.assert_allclose(biv.table, truth, rtol=1e-6)
+
+
+class _AngleBRDF:
+    """f = (theta_h, theta_d, 1) 1/sr: reduces to its own angles wherever a phi_d is valid."""
+
+    name = "angles"
+
+    def eval(self, theta_h, theta_d, phi_d):
+        return np.stack(np.broadcast_arrays(theta_h, theta_d, np.ones_like(phi_d)), -1)
+
+
+def test_direct_reduction_stops_at_merls_last_nodes():
+    """The last row and column (t, s = 1) are sampled at MERL's last nodes, 89/90, not at pi/2, where almost
+    no configuration is above the horizon."""
+    biv = BivariateBRDF.reduce(_AngleBRDF(), n_t=4, n_s=4)
+    limit_h, limit_d = (89 / 90) ** 2 * 0.5 * math.pi, 89 / 90 * 0.5 * math.pi
+    theta_h, theta_d = (grid_nodes(4) ** 2 * 0.5 * math.pi), grid_nodes(4) * 0.5 * math.pi
+    np.testing.assert_allclose(biv.table[..., 0], np.broadcast_to(np.minimum(theta_h, limit_h)[:, None], (4, 4)),
+                               rtol=1e-6)
+    np.testing.assert_allclose(biv.table[..., 1], np.broadcast_to(np.minimum(theta_d, limit_d)[None, :], (4, 4)),
+                               rtol=1e-6)
+
+
+class _MissingChannelBRDF(_AngleBRDF):
+    """As _AngleBRDF, with the red channel missing (NaN) at theta_h = 0 for every phi_d."""
+
+    def eval(self, theta_h, theta_d, phi_d):
+        value = super().eval(theta_h, theta_d, phi_d)
+        value[..., 0] = np.where(theta_h == 0.0, np.nan, value[..., 0])
+        return value
+
+
+def test_direct_reduction_fills_a_node_missing_in_one_channel():
+    """A node with no valid sample in one channel takes all three channels of the nearest complete node."""
+    biv = BivariateBRDF.reduce(_MissingChannelBRDF(), n_t=4, n_s=4)
+    reference = BivariateBRDF.reduce(_AngleBRDF(), n_t=4, n_s=4)
+    np.testing.assert_array_equal(biv.table[1:], reference.table[1:])
+    np.testing.assert_array_equal(biv.table[0], reference.table[1])
+
+
+def test_merl_reduction_on_a_grid_that_is_not_square(lobe_merl):
+    """n_t != n_s: the t nodes i/90 and the s nodes j/45 = 2j/90 are MERL nodes, so the table holds the
+    lobe's closed form there, in the (n_t, n_s, 3) layout."""
+    biv = BivariateBRDF.reduce(lobe_merl, n_t=91, n_s=46)
+    assert biv.table.shape == (91, 46, 3)
+    theta_h, theta_d, _ = node_angles()
+    np.testing.assert_allclose(biv.table[:90, :45], LOBE.eval_half_diff(theta_h[:, None], theta_d[None, ::2]),
+                               rtol=1e-6)
+
+
+def test_reduction_ignores_values_below_the_horizon(lobe_merl):
+    """Eq. 1 averages the configurations above the horizon only: finite values stored below it (as
+    to_merl writes, and as a MERL file may hold) do not count."""
+    table = np.array(lobe_merl.table)
+    table[~geometric_mask()] = 1e3
+    merl = MERLBRDF(table)
+    biv = BivariateBRDF.reduce(merl, n_t=91, n_s=91)
+    theta_h, theta_d, _ = node_angles()
+    np.testing.assert_allclose(biv.table[:90, :90], LOBE.eval_half_diff(theta_h[:, None], theta_d[None, :]),
+                               rtol=1e-6)
+    assert reduction_error(merl) < 1e-12
 
 
 def test_ggx_is_not_bivariate(ggx_merl, lobe_merl):
@@ -136,6 +197,20 @@ def test_eval_st_is_bilinear():
     np.testing.assert_array_equal(BivariateBRDF.reduce(biv, biv.n_t, biv.n_s).table, biv.table)
 
 
+def test_eval_clamps_and_passes_nan_as_documented():
+    """eval: a negative theta_h reads as 0, angles beyond pi/2 as the last node; NaN in gives NaN out
+    (eval_st too), instead of the value at the clamped edge."""
+    biv = BivariateBRDF(random_table())
+    theta_d = np.array([0.0, 0.4, 1.2])
+    np.testing.assert_array_equal(biv.eval(-0.3, theta_d), biv.eval(0.0, theta_d))
+    np.testing.assert_allclose(biv.eval(2.0, 1.2), biv.eval(0.5 * math.pi, 1.2), rtol=1e-12)
+    np.testing.assert_allclose(biv.eval(3.0, 3.0), biv.table[-1, -1], rtol=1e-7)
+    np.testing.assert_allclose(biv.eval(0.0, -0.5), biv.table[0, 0], rtol=1e-7)
+    assert np.all(np.isnan(biv.eval_st(np.nan, 0.5))) and np.all(np.isnan(biv.eval_st(0.5, np.nan)))
+    assert np.all(np.isnan(biv.eval(np.nan, 0.3))) and np.all(np.isnan(biv.eval(0.3, np.nan)))
+    assert np.all(np.isfinite(biv.eval_st(0.5, 0.5)))
+
+
 # ---------------------------------------------------------------- files, I/O
 
 
@@ -152,6 +227,17 @@ def test_save_load_round_trip(tmp_path):
         np.testing.assert_array_equal(npz["s_nodes"], grid_nodes(7))
         meta = json.loads(str(npz["meta"]))
     assert meta["units"] == "1/sr" and "theta_h" in meta["layout"] and meta["n_t"] == 5
+
+
+def test_save_load_keeps_confidence_maps(tmp_path):
+    rng = np.random.default_rng(4)
+    maps = {"resolution": rng.uniform(0, 1, (5, 7, 3)), "posterior_std": rng.uniform(0, 2, (5, 7, 3))}
+    biv = BivariateBRDF(random_table(5, 7), confidence=maps)
+    biv.save(tmp_path / "brdf.npz")
+    back = BivariateBRDF.load(tmp_path / "brdf.npz")
+    assert sorted(back.confidence) == ["posterior_std", "resolution"]
+    for name, value in maps.items():
+        np.testing.assert_array_equal(back.confidence[name], value.astype(np.float32))
 
 
 def save_npz(path, **arrays):
