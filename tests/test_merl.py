@@ -48,6 +48,22 @@ def test_read_layout_and_scales(raw_file):
         np.testing.assert_array_equal(merl.table[..., c], expected)
 
 
+def test_read_uses_merls_published_scales_and_keeps_zeros(tmp_path):
+    """MERL's BRDFRead scales the channels by 1/1500, 1.15/1500 and 1.66/1500 (written out here, not taken
+    from the module); a raw 0 is a black sample (0 1/sr), only a negative raw value is missing."""
+    raw = np.full((3,) + MERL_SHAPE, 1500.0)
+    raw[:, 5, 6, 7] = 0.0
+    raw[:, 5, 6, 8] = -1.0
+    path = tmp_path / "scales.binary"
+    with open(path, "wb") as f:
+        np.array(MERL_SHAPE, "<i4").tofile(f)
+        raw.astype("<f8").tofile(f)
+    table = MERLBRDF.read(path).table
+    np.testing.assert_allclose(table[0, 0, 0], [1.0, 1.15, 1.66], rtol=1e-15)
+    np.testing.assert_array_equal(table[5, 6, 7], [0.0, 0.0, 0.0])
+    assert np.all(np.isnan(table[5, 6, 8]))
+
+
 def test_write_read_round_trip(raw_file, tmp_path):
     merl = MERLBRDF.read(raw_file[0])
     out = tmp_path / "copy.binary"
@@ -86,6 +102,16 @@ def test_write_refuses_a_table_read_would_refuse(tmp_path, values):
 
         with pytest.raises(InputError, match="no positive value"):
             BivariateBRDF(np.zeros((8, 8, 3), np.float32)).to_merl().write(tmp_path / "bad.binary")
+
+
+def test_light_only_below_the_horizon_is_refused(tmp_path):
+    """Only the nodes above the horizon are ever lit: a table whose positive values all lie below it
+    reflects no light and is refused, before anything is written."""
+    table = np.zeros(MERL_SHAPE + (3,))
+    table[~geometric_mask()] = 1.0
+    with pytest.raises(InputError, match="no positive value above the horizon"):
+        MERLBRDF(table).write(tmp_path / "below.binary")
+    assert list(tmp_path.iterdir()) == []
 
 
 @pytest.mark.parametrize("case", ["truncated", "trailing", "foreign", "tiny", "missing", "directory"])
@@ -151,6 +177,27 @@ def test_lookups_at_non_finite_angles_give_nan(raw_file, interpolation):
     assert np.all(np.isnan(merl.eval(0.3, 0.4, np.nan, interpolation)))
 
 
+def test_nearest_clamps_at_and_beyond_ninety_degrees(raw_file):
+    """theta_h, theta_d = pi/2 (and beyond) index MERL's last nodes, 89, as the reference clamps."""
+    merl = MERLBRDF.read(raw_file[0])
+    edge = np.array([0.5 * math.pi, 0.5 * math.pi + 1e-12, 1.7, 3.0])
+    for th, td in [(edge, 0.3), (0.3, edge), (edge, edge)]:
+        th, td = np.broadcast_arrays(th, td)
+        idx = np.array([reference_index(a, b, 0.5) for a, b in zip(th, td)])
+        np.testing.assert_array_equal(merl.eval(th, td, 0.5), merl.table[idx[:, 0], idx[:, 1], idx[:, 2]])
+
+
+def test_linear_renormalises_over_finite_neighbours():
+    """Next to a missing sample a linear lookup of a constant table is that constant (weights renormalised
+    over the finite neighbours), not the constant times the finite neighbours' share of the weight."""
+    table = np.broadcast_to(np.array([0.5, 1.0, 2.0]), MERL_SHAPE + (3,)).copy()
+    table[10, 10, 10] = np.nan
+    table[11, 11, 11] = np.nan
+    value = MERLBRDF(table).eval(theta_h=(10.25 / 90) ** 2 * 0.5 * math.pi, theta_d=10.5 / 90 * 0.5 * math.pi,
+                                 phi_d=10.75 / 180 * math.pi, interpolation="linear")
+    np.testing.assert_allclose(value, [0.5, 1.0, 2.0], rtol=1e-12)
+
+
 def test_linear_is_trilinear():
     # A function linear in the node indices (t, s, phi_d index) is reproduced exactly.
     i, j, k = np.meshgrid(np.arange(90), np.arange(90), np.arange(180), indexing="ij")
@@ -189,6 +236,16 @@ def test_geometric_mask_and_from_function():
     np.testing.assert_array_equal(merl.valid_mask(), expected)
     np.testing.assert_array_equal(merl.table[expected], np.stack([th, td, pd], axis=-1)[expected])
     assert np.all(np.isnan(merl.table[~expected]))
+
+
+def test_from_function_clamps_negative_values():
+    merl = MERLBRDF.from_function(lambda a, b, c: np.stack([np.full_like(a, -0.2), 0 * a + 0.3, np.cos(c)], -1),
+                                  name="negative")
+    valid = geometric_mask()
+    _, _, phi_d = node_angles()
+    np.testing.assert_array_equal(merl.table[valid][:, :2], np.broadcast_to([0.0, 0.3], (int(valid.sum()), 2)))
+    np.testing.assert_array_equal(merl.table[..., 2][valid], np.maximum(np.cos(phi_d), 0.0)[np.nonzero(valid)[2]])
+    assert np.all(np.isnan(merl.table[~valid]))
 
 
 def test_to_bitmap_layout(raw_file):
@@ -241,6 +298,17 @@ def test_nbrdf_matches_direct_formula(data_dir):
     node = (40, 30, 77)
     np.testing.assert_allclose(merl.table[node], nbrdf.load_nbrdf("brass", data_dir).eval(
         theta_h[node[0]], theta_d[node[1]], phi_d[node[2]]), rtol=1e-6)
+
+
+def test_nbrdf_cached_table_is_read_only(data_dir):
+    """nbrdf_merl hands every caller the same cached table: writing into it must fail, not change the
+    truth that later callers in the process score against."""
+    from mi_bivariate import nbrdf
+
+    merl = nbrdf.nbrdf_merl("brass", data_dir)
+    with pytest.raises(ValueError, match="read-only"):
+        merl.table[40, 30, 77] = 0.0
+    assert nbrdf.nbrdf_merl("brass", data_dir) is merl
 
 
 def _fixed_order_decode(weights: dict, x: np.ndarray) -> np.ndarray:
