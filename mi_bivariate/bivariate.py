@@ -17,6 +17,7 @@ from __future__ import annotations
 import json
 import math
 import os
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Optional
 
@@ -65,8 +66,15 @@ def validate_table(table: Any, source: str) -> np.ndarray:
 
 
 def _checked_confidence(value: Any, name: str, shape: tuple, source: str) -> np.ndarray:
-    """A confidence map as a float32 copy, refused unless finite and shaped as the table."""
-    value = np.array(value, np.float32, copy=True)
+    """A confidence map as a float32 copy, refused unless real, finite and shaped as the table."""
+    kind = getattr(getattr(value, "dtype", None), "kind", "f")
+    if kind not in "biuf":
+        raise InputError(source, f"confidence map {name!r} holds {getattr(value, 'dtype')} values",
+                         "expected real numbers")
+    try:
+        value = np.array(value, np.float32, copy=True)
+    except (TypeError, ValueError):
+        raise InputError(source, f"confidence map {name!r} is not a numeric array") from None
     if value.shape != shape or not np.all(np.isfinite(value)):
         raise InputError(source, f"confidence map {name!r} must be finite and shaped {shape}")
     return value
@@ -95,6 +103,9 @@ class BivariateBRDF:
         self.table = validate_table(table, source)
         self.provenance = provenance_dict(provenance, source)
         self.confidence = {}
+        if confidence is not None and not isinstance(confidence, Mapping):
+            raise InputError(source, "confidence must map names to (n_t, n_s, 3) arrays, "
+                             f"got a {type(confidence).__name__}")
         for name, value in (confidence or {}).items():
             self.confidence[str(name)] = _checked_confidence(value, name, self.table.shape, source)
 

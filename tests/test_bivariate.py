@@ -274,6 +274,16 @@ def test_constructor_validates(table):
         BivariateBRDF.from_array(table, source="my-source")
 
 
+@pytest.mark.parametrize("confidence", [{"m": "abc"}, {"m": {"a": 1}}, {"m": np.full((4, 4, 3), 1 + 2j)}, "abc",
+                                        [("m", np.ones((4, 4, 3)))]],
+                         ids=["text", "dict", "complex", "a string", "a list"])
+def test_constructor_validates_confidence_maps(confidence):
+    """Before: ValueError (could not convert string to float), TypeError or AttributeError naming nothing,
+    and a complex map silently lost its imaginary part; now an InputError naming the source."""
+    with pytest.raises(InputError, match="my-source: confidence"):
+        BivariateBRDF(np.ones((4, 4, 3)), source="my-source", confidence=confidence)
+
+
 def test_bitmap_round_trip_and_exr(tmp_path):
     biv = BivariateBRDF(random_table(6, 9))
     bitmap = biv.to_bitmap()
