@@ -228,7 +228,7 @@ class BivariateBRDF:
             table = _fill_nearest(table, source=getattr(brdf, "name", repr(brdf)))
             method = f"Eq. 1: phi_d average of {n_phi} samples at the st nodes"
         prov = {"source": getattr(brdf, "name", type(brdf).__name__), "reduction": method}
-        prov.update(provenance or {})
+        prov.update(provenance_dict(provenance, "provenance"))
         return cls(np.maximum(table, 0.0), provenance=prov, source=prov["source"])
 
     # ------------------------------------------------------------------ I/O

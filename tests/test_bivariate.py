@@ -350,6 +350,16 @@ def test_reduce_names_a_brdf_it_cannot_evaluate(brdf):
     assert info.value.source == "brdf" and "MERLBRDF.read(path)" in info.value.hint
 
 
+@pytest.mark.parametrize("provenance", ["abc", [1, 2], {"materials": "brass"}])
+def test_reduce_checks_provenance(provenance):
+    """Before, reduce merged it into its own record first: a string or a list raised a bare ValueError or
+    TypeError; now an InputError naming it, as BivariateBRDF(..., provenance=) gives."""
+    with pytest.raises(InputError, match="provenance") as info:
+        BivariateBRDF.reduce(Lambertian(0.5), 8, 8, provenance=provenance)
+    assert info.value.source == "provenance"
+    assert BivariateBRDF.reduce(Lambertian(0.5), 8, 8, provenance={"note": "x"}).provenance["note"] == "x"
+
+
 @pytest.mark.parametrize("n_phi, problem", [(0, "must be at least 1"), (-3, "must be at least 1"),
                                             (2.5, "must be a whole number"), ("180", "must be a whole number"),
                                             (10**9, "evaluations is over the limit")])
