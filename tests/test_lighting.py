@@ -25,6 +25,7 @@ from mi_bivariate.capture import Observations
 from mi_bivariate.coordinates import grid_nodes, half_diff_from_dirs, half_diff_from_st
 from mi_bivariate.errors import InputError
 from mi_bivariate.geometry import SphereGeometry
+from mi_bivariate.limits import MAX_SEED
 from mi_bivariate.probes import Probe
 from mi_bivariate.threads import jit_threads
 
@@ -641,6 +642,22 @@ def test_footprint_rows_are_means_of_their_sub_rows_in_both_quadratures():
     assert np.abs(L[fp] - plain[fp]).max() > 1e-3 * np.abs(plain[fp]).max()   # footprints change them
     L_mis = lighting.lighting_matrix(obs, probe, n_t=8, n_s=8, n_dirs=2000)
     assert np.all(np.isfinite(L_mis)) and np.all(L_mis >= 0)
+
+
+@pytest.mark.parametrize("seed", [MAX_SEED - 1, MAX_SEED])
+def test_footprint_rows_take_any_valid_seed(seed):
+    """The footprint blocks draw their directions from seed + 1 + block, wrapped into the seeds' range: a
+    valid seed near MAX_SEED is taken (it was refused as "seed: must be an integer from 0 to 4294967295,
+    got 4294967296"), and every row, footprint ones included, still integrates the furnace: a Lambertian
+    table rho / pi under constant radiance 1 gives rho."""
+    geo = SphereGeometry(20.0, 20.0, 17.0)
+    obs = capture.observations_from_sphere(np.full((40, 40, 3), 0.5, np.float32), geo, n_normals=800,
+                                           max_view_angle_deg=85.0, footprint=6.0)
+    assert len(np.unique(obs.footprint_rows)) > 10
+    rho = np.array([0.2, 0.5, 0.9])
+    L = lighting.lighting_matrix(obs, Probe.constant(1.0, 16), n_t=8, n_s=8, n_dirs=2000, seed=seed, chunk=8,
+                                 sampling="uniform")
+    assert np.abs(apply(L, np.broadcast_to(rho / np.pi, (8, 8, 3))) / rho - 1.0).max() < 1e-3
 
 
 def test_mis_masked_lookups_change_no_bit(monkeypatch):

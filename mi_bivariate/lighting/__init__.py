@@ -79,8 +79,8 @@ import numpy as np
 
 from mi_bivariate.capture import Observations
 from mi_bivariate.errors import InputError
-from mi_bivariate.limits import (MAX_DIRS, MAX_KERNEL_LANES, MAX_LIGHTING_BYTES, check_grid, check_max, check_seed,
-                                 whole_number)
+from mi_bivariate.limits import (MAX_DIRS, MAX_KERNEL_LANES, MAX_LIGHTING_BYTES, MAX_SEED, check_grid, check_max,
+                                 check_seed, whole_number)
 from mi_bivariate.lighting.directions import direction_pairs, hemisphere_offsets, light_directions, row_frames
 from mi_bivariate.lighting.kernels import (_lighting_target, _rgb_rows, _row_packets, _spatial_order, _texel_target,
                                           lane_per_row)
@@ -317,9 +317,10 @@ def lighting_matrix(obs: Observations, probes: Union[Any, Sequence[Any]], n_t: i
     L = np.empty((m_total, n_nodes, 3), dtype=np.float32)
     _fill(L, chunks())
     if obs.has_footprints:
+        # Block b's seed: seed + 1 + b, wrapped into the seeds' range (a seed near MAX_SEED is valid too).
         _footprint_rows(L, obs, n_nodes, chunk, lambda sub, b: lighting_matrix(
-            sub, probes, n_t=n_t, n_s=n_s, n_dirs=n_dirs, seed=seed + 1 + b, chunk=chunk, progress=False,
-            sampling=sampling))
+            sub, probes, n_t=n_t, n_s=n_s, n_dirs=n_dirs, seed=(seed + 1 + b) % (MAX_SEED + 1), chunk=chunk,
+            progress=False, sampling=sampling))
     return L
 
 
