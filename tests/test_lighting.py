@@ -561,6 +561,57 @@ def test_model_agreement_with_mitsuba(data_dir_optional):
     assert err_without > 5 * err_with
 
 
+def _sphere_scene(centre, radius):
+    return mi.load_dict({"type": "scene", "ball": {"type": "sphere", "center": list(centre), "radius": radius}})
+
+
+@pytest.mark.parametrize("sampling", ["mis", "uniform"])
+def test_occluders_follow_their_images_and_skip_rows_without_positions(sampling):
+    """Closed forms of visibility: a tiny ball far away blocks (essentially) nothing, a ball that encloses
+    the surface points blocks every shadow ray. With the occluders [far, enclosing, far] per image, the
+    rows of images 0 and 2 equal the unoccluded rows, those of image 1 are 0, except image 1's rows
+    without a surface position (NaN), which trace no shadow rays and equal their unoccluded rows."""
+    rng = np.random.default_rng(11)
+    base = random_observations(24, seed=6)
+    positions = rng.uniform(-0.5, 0.5, size=(24, 3))
+    positions[[9, 13]] = np.nan
+    obs = dataclasses.replace(base, image_index=np.repeat(np.arange(3, dtype=np.int32), 8), positions=positions)
+    far, enclosing = _sphere_scene((100.0, 100.0, 100.0), 0.01), _sphere_scene((0.0, 0.0, 0.0), 5.0)
+    probe = synthetic_probe()
+    kwargs = dict(n_t=8, n_s=8, n_dirs=400, seed=1, sampling=sampling)
+    free = lighting.lighting_matrix(obs, probe, **kwargs)
+    L = lighting.lighting_matrix(obs, probe, occluder=[far, enclosing, far], **kwargs)
+    assert free.max() > 0.0
+    lit = np.r_[np.arange(8), 9, 13, np.arange(16, 24)]
+    np.testing.assert_allclose(L[lit], free[lit], rtol=1e-6, atol=1e-7 * free.max())
+    shadowed = np.setdiff1d(np.arange(8, 16), [9, 13])
+    assert np.all(L[shadowed] == 0.0)
+
+
+def test_shadow_rays_leave_from_the_geometric_normal_side():
+    """A plane cannot shadow a point on itself: each shadow ray leaves from the side of the face its
+    direction points to (offset along the geometric normal, as Mitsuba's spawn_ray), so rows on a
+    rectangle whose shading normals lean 40 degrees from its face are not darkened by it. Offset along the
+    shading normal, the rays of the wedge between the two horizons would start above the face and hit it."""
+    rng = np.random.default_rng(12)
+    m = 16
+    lean = np.radians(40.0)
+    azimuth = rng.uniform(0.0, 2.0 * np.pi, m)
+    normals = np.stack([np.sin(lean) * np.cos(azimuth), np.sin(lean) * np.sin(azimuth), np.full(m, np.cos(lean))], -1)
+    positions = np.c_[rng.uniform(-0.5, 0.5, size=(m, 2)), np.zeros(m)]
+    geometric = np.tile([0.0, 0.0, 1.0], (m, 1))
+    obs = Observations(normals, normals.copy(), np.zeros((m, 3), np.float32), np.zeros(m, np.int32),
+                       positions=positions, geometric_normals=geometric)
+    plane = mi.load_dict({"type": "scene", "face": {"type": "rectangle",
+                                                    "to_world": mi.ScalarTransform4f().scale([10.0, 10.0, 1.0])}})
+    probe = synthetic_probe()
+    kwargs = dict(n_t=8, n_s=8, n_dirs=400, seed=2, sampling="uniform")
+    free = lighting.lighting_matrix(obs, probe, **kwargs)
+    L = lighting.lighting_matrix(obs, probe, occluder=plane, **kwargs)
+    assert free.max() > 0.0
+    np.testing.assert_allclose(L, free, rtol=1e-6, atol=1e-7 * free.max())
+
+
 @pytest.fixture(scope="module")
 def data_dir_optional():
     """The shared data folder when MI_BIVARIATE_DATA is set, else None (synthetic probe)."""
