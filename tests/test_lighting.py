@@ -142,6 +142,29 @@ def test_texel_matrix_chunking_invariant():
     assert a.max() > 0.0 and np.allclose(a, b, rtol=1e-5, atol=1e-6 * a.max())
 
 
+def test_texel_matrix_uses_each_rows_probe_and_the_documented_downsampling():
+    """Stacked images under constant probes 1 and 3: L is linear in the radiance, so the second image's
+    rows are 3 times the first's, and both integrate the furnace (rho / pi gives rho times the radiance).
+    ``downsample`` takes the largest factor up to it that divides the width: 8 and 6 on a 128-wide map
+    are the map area-downsampled by 8 and by 4 (Probe.downsampled) at one texel per light."""
+    base = random_observations(30, seed=2)
+    stacked = capture.stack([base, base], probe_index=[0, 1])
+    L = lighting.texel_lighting_matrix(stacked, [Probe.constant(1.0, 32), Probe.constant(3.0, 32)], n_t=8, n_s=8,
+                                       downsample=1)
+    np.testing.assert_allclose(L[30:], 3.0 * L[:30], rtol=1e-5, atol=1e-6 * L.max())
+    rho = np.array([0.2, 0.5, 0.9])
+    predicted = apply(L, np.broadcast_to(rho / np.pi, (8, 8, 3)))
+    assert np.abs(predicted[:30] / rho - 1.0).max() < 3e-2  # a 32 x 64 map: coarse hemisphere edge
+    probe = synthetic_probe()
+    assert probe.width == 128
+    for downsample, factor in ((8, 8), (6, 4)):
+        got = lighting.texel_lighting_matrix(base, probe, n_t=8, n_s=8, downsample=downsample)
+        expected = lighting.texel_lighting_matrix(base, probe.downsampled(factor), n_t=8, n_s=8, downsample=1)
+        np.testing.assert_allclose(got, expected, rtol=1e-6, atol=1e-7 * expected.max())
+    assert not np.allclose(got, lighting.texel_lighting_matrix(base, probe, n_t=8, n_s=8, downsample=1),
+                           rtol=1e-3, atol=0)
+
+
 def test_chunk_rows_keep_the_target_within_budget_for_any_thread_count():
     # One copy of a chunk's scatter target on either backend (a lane per row on LLVM, atomics on
     # CUDA), so the rows per chunk do not depend on Dr.Jit's threads.
