@@ -306,15 +306,15 @@ def ladder_rungs(n_normals: int, n_dirs: int, grid: Tuple[int, int], fractions: 
 def linear_run(shot: Any, probe: Any, config: EvalConfig, n_normals: int, n_dirs: int,
                repeats: int, quiet: bool = False, priors: Tuple[Any, Any] = (None, "default")
                ) -> Tuple[Recovery, dict]:
-    """The linear route (:func:`~mi_bivariate.recover.recover`) at ``n_normals`` x ``n_dirs`` on ``config.grid``, timed
-    ``repeats`` times in this process (``quiet``: without its input warnings, e.g. a ladder rung's
+    """The linear route (:func:`~mi_bivariate.recover.recover`) at ``n_normals`` x ``n_dirs`` on
+    ``config.grid``, timed ``repeats`` times in this process (``quiet``: without its input warnings, e.g. a ladder rung's
     "few usable observations", which is the benchmark's choice, not the user's input), with
     ``priors`` = ``(prior, basis_prior)`` as :func:`~mi_bivariate.recover.recover` takes them.
 
     Returns:
         The last :class:`~mi_bivariate.recover.Recovery` and a point: ``n_normals``, ``n_dirs``,
-        ``grid`` (``[n_t, n_s]``), ``time_s`` (median over the runs of the :data:`LINEAR_STAGES` summed, s), ``times_s``
-        (those sums, one per run), ``stage_runs`` (each run's stages, s) and ``stages`` (median of
+        ``grid`` (``[n_t, n_s]``), ``time_s`` (median over the runs of the :data:`LINEAR_STAGES` summed,
+        s), ``times_s`` (those sums, one per run), ``stage_runs`` (each run's stages, s) and ``stages`` (median of
         each stage over the runs, s; their sum need not be ``time_s`` on a loaded machine).
     """
     runs: List[Dict[str, float]] = []
