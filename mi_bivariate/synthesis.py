@@ -307,8 +307,8 @@ def linear_run(shot: Any, probe: Any, config: EvalConfig, n_normals: int, n_dirs
                repeats: int, quiet: bool = False, priors: Tuple[Any, Any] = (None, "default")
                ) -> Tuple[Recovery, dict]:
     """The linear route (:func:`~mi_bivariate.recover.recover`) at ``n_normals`` x ``n_dirs`` on
-    ``config.grid``, timed ``repeats`` times in this process (``quiet``: without its input warnings, e.g. a ladder rung's
-    "few usable observations", which is the benchmark's choice, not the user's input), with
+    ``config.grid``, timed ``repeats`` times in this process (``quiet``: without its input warnings,
+    e.g. a ladder rung's "few usable observations", which is the benchmark's choice, not the user's input), with
     ``priors`` = ``(prior, basis_prior)`` as :func:`~mi_bivariate.recover.recover` takes them.
 
     Returns:
