@@ -928,3 +928,17 @@ def test_both_lane_layouts_give_the_same_matrix(monkeypatch, sampling):
     per_direction = matrix()
     assert per_row.max() > 0.0
     np.testing.assert_allclose(per_direction, per_row, rtol=0.0, atol=2e-6 * per_row.max())
+
+
+def test_strategy_counts_round_each_share_and_top_up_the_first():
+    """As documented: each share of n_dirs rounded (at least 1), the first strategy topped up; the total
+    is n_dirs or one more (two more for n_dirs = 1)."""
+    from mi_bivariate.lighting.mis import MIS_FRACTIONS, strategy_counts
+
+    assert strategy_counts(8000) == {"uniform": 2000, "environment": 4000, "peak": 2000}
+    for n in range(1, 3000):
+        counts = strategy_counts(n)
+        assert list(counts) == [k for k in ("uniform", "environment", "peak") if MIS_FRACTIONS[k] > 0]
+        assert all(c >= 1 for c in counts.values())
+        assert counts["environment"] == max(1, round(n * MIS_FRACTIONS["environment"]))
+        assert 0 <= sum(counts.values()) - n <= (2 if n == 1 else 1)

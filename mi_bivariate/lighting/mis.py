@@ -140,7 +140,9 @@ def _pooled_sample(pool: Any, r: RowInputs, k: Any, n_points: int) -> Tuple[Any,
 
 
 def strategy_counts(n_dirs: int, fractions: Optional[dict] = None) -> dict:
-    """Directions per strategy of the ``"mis"`` sampling (they add up to ``n_dirs``)."""
+    """Directions per strategy of the ``"mis"`` sampling: each strategy's share of ``n_dirs`` rounded
+    (at least 1), the first strategy topped up to ``n_dirs``. Rounding can give one more than ``n_dirs``
+    in total (3 of 8 values of ``n_dirs``; two more for ``n_dirs`` = 1); the estimator stays unbiased."""
     fractions = MIS_FRACTIONS if fractions is None else fractions
     names = [k for k in ("uniform", "environment", "peak") if fractions.get(k, 0.0) > 0.0]
     total = sum(fractions[k] for k in names)
