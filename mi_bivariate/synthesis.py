@@ -448,9 +448,13 @@ def analysis_by_synthesis(material: Any, input_probe: str = "grace_latlong_1k", 
     relight_floor = relight(BivariateBRDF.reduce(truth, n_t=n_t, n_s=n_s))
 
     # The evaluation's priors (leave-one-out for a shared material): no score from a prior that saw it.
+    own_grid = tuple(config.grid)
+
+    def on_grid(grid: Tuple[int, int]) -> EvalConfig:
+        return config if tuple(grid) == own_grid else replace(config, grid=tuple(grid))
+
     def grid_priors(grid: Tuple[int, int]) -> Tuple[Any, Any, str]:
-        cfg = config if tuple(grid) == tuple(config.grid) else replace(config, grid=tuple(grid))
-        chosen = choose_priors(MaterialTask(spec, cfg, None if data_dir is None else str(data_dir)))
+        chosen = choose_priors(MaterialTask(spec, on_grid(grid), None if data_dir is None else str(data_dir)))
         basis = chosen[1]
         if isinstance(basis, BasisPrior) and (basis.n_t, basis.n_s) != tuple(grid):
             basis = basis.resampled(*grid)      # a prior file learnt on the configuration's grid
@@ -473,18 +477,16 @@ def analysis_by_synthesis(material: Any, input_probe: str = "grace_latlong_1k", 
     del rec
 
     ladder: List[dict] = []
-    rung_priors = {tuple(config.grid): (priors, prior_source)}
+    rung_priors = {own_grid: (prior, basis_prior, prior_source)}
     for m, k, grid in ladder_rungs(config.n_normals, config.n_dirs, config.grid, linear_ladder,
                                    ladder_grid_fractions):
         if grid not in rung_priors:
-            chosen = grid_priors(grid)
-            rung_priors[grid] = (chosen[:2], chosen[2])
+            rung_priors[grid] = grid_priors(grid)
             # A warm-up on each new grid (its kernels compiled), as at the configuration's sizes.
-            linear_run(shot, probe, replace(config, grid=grid), m, k, 1, quiet=True, priors=chosen[:2])
-        cfg = config if grid == tuple(config.grid) else replace(config, grid=grid)
-        rung, point = linear_run(shot, probe, cfg, m, k, ladder_repeats, quiet=True, priors=rung_priors[grid][0])
-        ladder.append({**point, "relight": relight(rung.brdf),
-                       **({"prior": rung_priors[grid][1]} if grid != tuple(config.grid) else {})})
+            linear_run(shot, probe, on_grid(grid), m, k, 1, quiet=True, priors=rung_priors[grid][:2])
+        chosen = rung_priors[grid]
+        rung, point = linear_run(shot, probe, on_grid(grid), m, k, ladder_repeats, quiet=True, priors=chosen[:2])
+        ladder.append({**point, "relight": relight(rung.brdf), **({"prior": chosen[2]} if grid != own_grid else {})})
         del rung
 
     trace: List[dict] = []

@@ -263,10 +263,10 @@ def test_analysis_by_synthesis_times_every_linear_point_alike_and_scores_at_the_
     real, calls, chosen, used = synthesis.recover, [], [], []
 
     def recover(*args, **kwargs):
-        rec = real(*args, **kwargs)
         i = len(calls)
         calls.append((kwargs["n_normals"], kwargs["n_dirs"], tuple(kwargs["grid"])))
         used.append((kwargs["prior"], kwargs["basis_prior"]))
+        rec = real(*args, **{**kwargs, "prior": None})      # the stand-in priors below are markers only
         rec.timings = {stage: (i + 1) * (j + 1) * 1e-3 for j, stage in enumerate(synthesis.LINEAR_STAGES)}
         return rec
 
@@ -274,7 +274,8 @@ def test_analysis_by_synthesis_times_every_linear_point_alike_and_scores_at_the_
         assert task.material.label.startswith("ggx:")
         # The configuration itself, or (for the ladder's coarser grid) it on that grid.
         assert task.config is config or task.config == dataclasses.replace(config, grid=(4, 4))
-        chosen.append((None, None, f"test: no basis prior, {task.config.grid}"))   # recover's default: "default"
+        # A marker per grid as the smoothness prior (recover gets None), no basis prior (recover's default: "default").
+        chosen.append((object(), None, f"test: no basis prior, {task.config.grid}"))
         return chosen[-1]
 
     monkeypatch.setattr(synthesis, "recover", recover)
@@ -294,7 +295,8 @@ def test_analysis_by_synthesis_times_every_linear_point_alike_and_scores_at_the_
                      + [coarse[0]] + [rung for rung in coarse for _ in range(3)])
     # Every linear run used the priors chosen for this material, on its grid, as the evaluation chooses them.
     assert [c[2] for c in chosen] == ["test: no basis prior, (8, 8)", "test: no basis prior, (4, 4)"]
-    assert all(u == (None, None) for u in used)
+    for call, (prior, basis_prior) in zip(calls, used, strict=True):   # each run got its own grid's priors
+        assert prior is chosen[0 if call[2] == (8, 8) else 1][0] and basis_prior is None
     assert r["linear"]["prior"] == chosen[0][2]
     assert [p.get("prior") for p in r["linear_ladder"]] == [None] * len(fine) + [chosen[1][2]] * len(coarse)
     # The config's sizes: calls 1-3 (call 0 is the warm-up); the median of (2, 3, 4) x each stage's unit.
