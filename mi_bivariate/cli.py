@@ -437,8 +437,9 @@ def _stop_on_signals() -> Dict[int, object]:
 
 
 def run() -> int:
-    """The console script ``mi-bivariate`` (and ``python -m mi_bivariate.cli``): :func:`main` with
-    ``sys.argv`` in a process of its own.
+    """What the console script ``mi-bivariate`` runs (behind :func:`mi_bivariate.__main__.main`'s guard for
+    a Ctrl-C while this module loads), and ``python -m mi_bivariate.cli``: :func:`main` with ``sys.argv``
+    in a process of its own.
 
     While the command runs, SIGTERM stops it as Ctrl-C does (:class:`~mi_bivariate.errors.Terminated`; exit
     status 143) instead of ending the process where it stands, which left an output's temporary file

@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 import mi_bivariate as mb
 
@@ -134,7 +135,7 @@ def test_console_script_freezes_the_imports_and_main_leaves_the_collector_alone(
     out = _fresh_python(code, ROOT)
     assert out.returncode == 0 and "during True after True" in out.stdout, out.stdout[-2000:] + out.stderr[-2000:]
     scripts = re.search(r"\[project\.scripts\]\s*\nmi-bivariate = \"([^\"]+)\"", (ROOT / "pyproject.toml").read_text())
-    assert scripts and scripts.group(1) == "mi_bivariate.cli:run"
+    assert scripts and scripts.group(1) == "mi_bivariate.__main__:main"  # run, behind the early Ctrl-C guard
 
 
 def test_console_script_exit_status_on_bad_input(tmp_path):
@@ -146,6 +147,35 @@ def test_console_script_exit_status_on_bad_input(tmp_path):
     lines = out.stderr.strip().splitlines()
     assert out.returncode == 2 and len(lines) == 1 and lines[0].startswith("mi-bivariate: error: "), out.stderr
     assert str(missing) in lines[0] and not (tmp_path / "o.npz").exists()
+
+
+def test_ctrl_c_while_the_command_line_loads_ends_in_one_line(tmp_path):
+    """A Ctrl-C while the command loads numpy (before the command sets up its own stop) ends as a later
+    one does: ``mi-bivariate: interrupted``, status 130, no traceback. The signal is sent as soon as
+    numpy's core library is mapped into the process (``/proc/PID/maps``), inside the imports."""
+    import signal
+    import time
+
+    maps = Path("/proc/self/maps")
+    if not maps.is_file():
+        pytest.skip("needs /proc/PID/maps (Linux)")
+    proc = subprocess.Popen([sys.executable, "-m", "mi_bivariate", "info"], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True, cwd=ROOT, env=dict(os.environ, PYTHONPATH=str(ROOT)))
+    try:
+        deadline = time.monotonic() + 60
+        while proc.poll() is None and time.monotonic() < deadline:
+            try:
+                if "_multiarray_umath" in Path(f"/proc/{proc.pid}/maps").read_text():
+                    proc.send_signal(signal.SIGINT)
+                    break
+            except OSError:  # not started yet, or ended
+                pass
+            time.sleep(0.0005)
+        err = proc.communicate(timeout=120)[1]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130 and err.strip() == "mi-bivariate: interrupted", (proc.returncode, err[-2000:])
 
 
 def test_python_dash_m_package_runs_the_command():
