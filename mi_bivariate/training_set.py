@@ -115,11 +115,12 @@ def _code_digest(*objects: Any) -> str:
 
 
 def _tables_digest(tables: Dict[str, np.ndarray]) -> str:
-    """A digest of training tables (names and values): what the priors are learnt from."""
+    """A digest of training tables (names, shapes and values): what the priors are learnt from."""
     h = hashlib.sha256()
     for name in sorted(tables):
-        h.update(name.encode())
-        h.update(np.ascontiguousarray(tables[name], np.float64).tobytes())
+        table = np.ascontiguousarray(tables[name], np.float64)
+        h.update(name.encode() + b"\0" + repr(table.shape).encode() + b"\0")  # same bytes on another grid differ
+        h.update(table.tobytes())
     return h.hexdigest()[:16]
 
 

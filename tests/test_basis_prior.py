@@ -137,6 +137,26 @@ def test_leave_one_out_priors_are_cached_per_training_set_and_learnt_again_when_
     assert learnt[-1] == () and sorted(outside[1].materials) == sorted(names)
 
 
+def test_leave_one_out_priors_cache_tells_grids_with_the_same_bytes_apart(tmp_path, monkeypatch):
+    """Two training sets holding the same numbers on different grids (4 x 16 and 8 x 8 here) are different
+    training sets: each learns its own priors, and each call gets priors on its own grid (the cache key
+    once hashed names and values only, so the second grid was handed the first grid's priors)."""
+    names = list(nbrdf.ALL_NBRDF_MATERIALS[:6])
+    rng = np.random.default_rng(3)
+    peak = np.where(np.arange(4 * 16 * 3) < 16 * 3, 1000.0, 0.0)  # row t = 0 of 4 x 16, rows 0-1 of 8 x 8
+    flat = {name: (0.1 + (peak if k % 2 else 0.0)) * np.exp(rng.normal(0.0, 0.1, 4 * 16 * 3))
+            for k, name in enumerate(names)}  # diffuse and glossy on both grids
+    by_grid = {4: {n: v.reshape(4, 16, 3) for n, v in flat.items()},
+               8: {n: v.reshape(8, 8, 3) for n, v in flat.items()}}
+    monkeypatch.setenv("MI_BIVARIATE_CACHE", str(tmp_path))
+    monkeypatch.setattr(training_set, "reduced_tables", lambda n_t, n_s, data_dir=None: by_grid[n_t])
+    wide = training_set.leave_one_out_priors(names[0], 4, 16)
+    square = training_set.leave_one_out_priors(names[0], 8, 8)
+    assert (wide[1].n_t, wide[1].n_s) == (4, 16)
+    assert (square[1].n_t, square[1].n_s) == (8, 8)
+    assert training_set._tables_digest(by_grid[4]) != training_set._tables_digest(by_grid[8])
+
+
 def test_predict_without_data_is_the_prior_itself():
     """With no node resolved the prediction is the prior, in closed form: per channel, the mean
     ``level max(exp(mu) - EPS, 0)`` and the std ``level exp(mu) sqrt(diag(U diag(lambda) U^T) + tau^2)``,
