@@ -170,7 +170,10 @@ def _named_tables(tables: Union[Mapping[str, Any], Sequence[Any]]) -> Dict[str, 
         items = []
         for i, obj in enumerate(tables):
             prov = getattr(obj, "provenance", None) or {}
-            items.append((str(prov.get("name", getattr(obj, "name", f"table{i}"))), obj))
+            name = str(prov.get("name", getattr(obj, "name", f"table{i}")))
+            if any(name == seen for seen, _ in items):  # (a dict would keep the later table only)
+                raise InputError("prior training set", f"material {name!r} given twice", "give each material once")
+            items.append((name, obj))
     if not items:
         raise InputError("prior training set", "is empty")
     named = {name: _table_array(obj, name) for name, obj in items}

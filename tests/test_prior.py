@@ -88,6 +88,21 @@ def test_specular_ratio_and_split_errors():
         Prior.learn({})
 
 
+def test_a_sequence_naming_a_material_twice_is_refused():
+    """Tables given as a sequence are named by their provenance; a later table of an earlier one's name
+    is refused as the CLI refuses it (it once replaced the earlier table silently)."""
+    from mi_bivariate.bivariate import BivariateBRDF
+
+    peaked = np.full((8, 8, 3), 0.2)
+    peaked[0] *= 50
+    tables = [BivariateBRDF(np.full((8, 8, 3), 0.2), provenance={"name": "gold"}),
+              BivariateBRDF(peaked, provenance={"name": "gold"}), BivariateBRDF(peaked, provenance={"name": "tin"})]
+    with pytest.raises(InputError, match=r"^prior training set: material 'gold' given twice \(give each material once\)$"):
+        Prior.learn(tables)
+    tables[1] = BivariateBRDF(peaked, provenance={"name": "brass"})
+    assert Prior.learn(tables).provenance["materials"] == ["brass", "gold", "tin"]
+
+
 def test_learning_twice_writes_the_same_bytes(tmp_path):
     """A prior is a function of its training tables: learnt again, its file is byte for byte the same
     (no date in it), so a configuration keyed by the file's digest sees the same prior."""
