@@ -235,7 +235,8 @@ class MERLBRDF:
         """
         table = np.asarray(self.table, np.float64)
         if np.any(table < 0.0):
-            raise ValueError(f"{self.name}: MERL table has negative values; they would read back as missing")
+            raise InputError(path, f"MERL table {self.name!r} has negative values (min {np.nanmin(table):g} 1/sr); "
+                                   "they would read back as missing", "clip them at 0, or write NaN for a missing sample")
         if validate:  # as read() would
             check_values(table, path, "a MERL reader would refuse it: check the table's values")
         raw = np.empty((3,) + MERL_SHAPE, np.float64)

@@ -79,9 +79,11 @@ def test_write_read_round_trip(raw_file, tmp_path):
 
 
 def test_write_is_atomic(tmp_path):
+    """A negative value (it would read back as missing) is refused with an InputError naming the file,
+    before anything is written."""
     table = np.ones(MERL_SHAPE + (3,))
     table[0, 0, 0, 0] = -0.5
-    with pytest.raises(ValueError):
+    with pytest.raises(InputError, match=r"bad\.binary: MERL table .* has negative values \(min -0\.5 1/sr\)"):
         MERLBRDF(table).write(tmp_path / "bad.binary")
     assert list(tmp_path.iterdir()) == []
 
