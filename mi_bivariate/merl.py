@@ -83,7 +83,8 @@ def check_reflects(table: np.ndarray, source: Any, hint: str = "give a material 
 def check_values(table: np.ndarray, source: Any, hint: Optional[str] = None) -> None:
     """Raise :class:`InputError` naming ``source`` unless a MERL ``(90, 90, 180, 3)`` float64 table (1/sr, NaN
     for a missing sample) is one :meth:`MERLBRDF.read` accepts: no infinite value, some light above the
-    horizon, a valid sample in every channel and in all three at one node, values within float32's range.
+    horizon, a valid sample in every channel and in all three at one node (a positive value at one such node),
+    values within float32's range.
     ``hint`` replaces the hints, which speak of a file read."""
     table = np.asarray(table, np.float64)
     path = source
@@ -95,9 +96,15 @@ def check_values(table: np.ndarray, source: Any, hint: Optional[str] = None) -> 
     if missing:  # the others hold light, but no sample is valid in every channel
         raise InputError(path, f"channel {'/'.join(missing)} has no valid sample (every value there is "
                                "negative, MERL's mark of a missing sample)", hint or "check the file")
-    if not np.any(np.all(np.isfinite(table), axis=-1) & geometric_mask()):
+    valid = np.all(np.isfinite(table), axis=-1) & geometric_mask()
+    if not np.any(valid):
         raise InputError(path, "no sample above the horizon is valid in all three colour channels (the "
                                "channels' valid samples do not overlap)", hint or "check the file")
+    if not np.any(table[valid] > 0.0):  # only these samples are reduced and rendered: the material is black
+        raise InputError(path, "no sample above the horizon that is valid in all three colour channels has a "
+                               "positive value (each channel's light lies where another channel is missing, and "
+                               "only samples valid in all three are used): the material is black and the "
+                               "relative error of a reduction is undefined", hint or "check the file")
     if finite.max() > np.finfo(np.float32).max:  # renders, reductions and the solve run in float32
         raise InputError(path, f"MERL file holds values up to {finite.max():.3g} 1/sr, beyond float32",
                          hint or "check the file")

@@ -953,15 +953,20 @@ def test_npz_writers_refuse_another_suffix(tmp_path, capsys, files, command):
 
 
 @pytest.mark.parametrize("command", ["reduce", "demo", "learn-prior", "render"])
-@pytest.mark.parametrize("content", ["zero", "missing", "beyond float32", "below float32"])
+@pytest.mark.parametrize("content", ["zero", "missing", "beyond float32", "below float32", "channels apart"])
 def test_unusable_merl_is_refused_naming_the_file(tmp_path, capsys, command, content):
     """A MERL file of zeros, of missing values only, or with values float32 cannot hold (too large, or all
-    too small: the table became all zeros without a word): one line naming the file, whichever command reads
-    it (demo and learn-prior blamed the rendered image or the file's stem)."""
+    too small: the table became all zeros without a word), or whose channels hold light only where another
+    channel is missing (reduce printed floors of nan and wrote a black table): one line naming the file,
+    whichever command reads it (demo and learn-prior blamed the rendered image or the file's stem)."""
     bad = tmp_path / f"{content.replace(' ', '_')}.binary"
+    apart = np.full(MERL_SHAPE + (3,), np.nan)  # channel c lit on the phi_d slices k = c (mod 3), the others missing
+    for c in range(3):
+        apart[:, :, c::3, c] = 0.5
+    apart[:, :, -1, :] = 0.0                    # valid in all three channels, but black
     table = {"zero": np.zeros(MERL_SHAPE + (3,)), "missing": np.full(MERL_SHAPE + (3,), np.nan),
              "beyond float32": np.full(MERL_SHAPE + (3,), 1e300),
-             "below float32": np.full(MERL_SHAPE + (3,), 1e-300)}[content]
+             "below float32": np.full(MERL_SHAPE + (3,), 1e-300), "channels apart": apart}[content]
     MERLBRDF(table, name=content).write(bad, validate=False)
     args = {"reduce": [str(bad), "--out", str(tmp_path / "z.npz")],
             "demo": ["--material", str(bad), "--out", str(tmp_path / "d"), "--resolution", "8", "--spp", "1"],
@@ -969,7 +974,8 @@ def test_unusable_merl_is_refused_naming_the_file(tmp_path, capsys, command, con
             "render": [str(bad), "--probe", "synthetic:1", "--out", str(tmp_path / "r.exr"), "--resolution", "8",
                        "--spp", "1"]}[command]
     line = _cli([command, *args], capsys)
-    expected = content if "float32" in content else "no positive value"
+    expected = (content if "float32" in content else "valid in all three colour channels has a positive value"
+                if content == "channels apart" else "no positive value")
     assert line.startswith(f"mi-bivariate: error: {bad}: ") and expected in line, line
     assert sorted(p.name for p in tmp_path.iterdir()) == [bad.name]
 

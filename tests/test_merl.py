@@ -116,6 +116,27 @@ def test_light_only_below_the_horizon_is_refused(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
+def test_channels_lit_only_where_another_is_missing_are_refused(tmp_path):
+    """Each channel positive only on phi_d slices where the other two are missing (raw -1), the nodes valid in
+    all three black: every reader keeps only the samples valid in all three channels, so the material is black
+    and Eq. 1's relative error undefined (reduce printed floors of nan). Read and write refuse it by name."""
+    raw = np.full((3,) + MERL_SHAPE, -1.0)
+    for c in range(3):
+        raw[c][:, :, c::3] = 1000.0
+    raw[:, :, :, -1] = 0.0
+    path = tmp_path / "apart.binary"
+    with open(path, "wb") as f:
+        np.array(MERL_SHAPE, np.int32).tofile(f)
+        raw.tofile(f)
+    problem = "no sample above the horizon that is valid in all three colour channels has a positive value"
+    with pytest.raises(InputError, match=f"^{path}: {problem}"):
+        MERLBRDF.read(path)
+    table = np.moveaxis(np.where(raw < 0.0, np.nan, raw / 1000.0), 0, -1)
+    with pytest.raises(InputError, match=f"out.binary: {problem}"):
+        MERLBRDF(table).write(tmp_path / "out.binary")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["apart.binary"]
+
+
 @pytest.mark.parametrize("case", ["truncated", "trailing", "foreign", "tiny", "missing", "directory"])
 def test_bad_files_raise_input_error(raw_file, tmp_path, case):
     data = raw_file[0].read_bytes()
