@@ -882,6 +882,33 @@ def test_kernel_lane_limit_follows_the_layout(monkeypatch):
     lighting.check_kernel_lanes(8000, too_many, 32 * 32, "--dirs")
 
 
+def test_texel_kernel_lane_limit_follows_the_layout(monkeypatch):
+    """The texel quadrature runs a lane per (row, texel) on CUDA: a 2k probe (2048 x 1024 texels) at
+    downsample=1 with a chunk of 2048 rows makes 2^32 lanes, refused naming downsample before any kernel
+    (it once launched them); downsample=2 (2^30 lanes) goes ahead. A lane per row (the CPU) makes a chunk's
+    rows, whatever the texels."""
+    from mi_bivariate.lighting import kernels
+
+    class Launched(Exception):
+        pass
+
+    def launched(packets, texels, n_t, n_s):
+        raise Launched(len(packets) * texels[2])
+
+    obs = random_observations(2 * lighting._chunk_rows(32 * 32, None), seed=1)
+    probe = Probe.constant(1.0, 2048)
+    monkeypatch.setattr(lighting, "_texel_target", launched)
+    monkeypatch.setattr(kernels, "lane_per_row", lambda: False)
+    monkeypatch.setattr(lighting, "lane_per_row", lambda: False)
+    with pytest.raises(InputError, match=r"^downsample: 2097152 texels with 1024 grid nodes make a lighting kernel "
+                                         r"of 4294967296 lanes, over the limit of 2147483648"):
+        lighting.texel_lighting_matrix(obs, probe, downsample=1)
+    with pytest.raises(Launched, match="^1073741824$"):
+        lighting.texel_lighting_matrix(obs, probe, downsample=2)
+    monkeypatch.setattr(lighting, "lane_per_row", lambda: True)
+    lighting.check_kernel_lanes(len(obs), 2048 * 1024, 32 * 32, "downsample", texels=True)
+
+
 @pytest.mark.parametrize("flag", ["SymbolicLoops", "SymbolicConditionals"])
 def test_lighting_loops_stay_symbolic_whatever_the_jit_flag(flag):
     """A lane per row loops over its directions symbolically (one kernel per chunk), and skips the

@@ -125,16 +125,18 @@ def _as_probe_list(probes: Any) -> List[Any]:
 
 
 def check_kernel_lanes(n_rows: int, n_dirs: int, n_nodes: int, name: str = "n_dirs",
-                       chunk: Optional[int] = None) -> None:
+                       chunk: Optional[int] = None, texels: bool = False) -> None:
     """Refuse a lighting kernel of more than :data:`~mi_bivariate.limits.MAX_KERNEL_LANES` lanes
     (Dr.Jit indexes them with 32 bits), naming ``name``: rows of a chunk x direction pairs where a
     lane runs per (row, direction) (CUDA); a chunk's rows where a lane loops over its row's
-    directions (:func:`~mi_bivariate.lighting.kernels.lane_per_row`, the CPU)."""
-    per_row = 1 if lane_per_row() else direction_pairs(n_dirs)
+    directions (:func:`~mi_bivariate.lighting.kernels.lane_per_row`, the CPU). With ``texels``,
+    ``n_dirs`` counts a probe's texels (:func:`texel_lighting_matrix`: a lane per (row, texel))."""
+    per_row = 1 if lane_per_row() else (int(n_dirs) if texels else direction_pairs(n_dirs))
     lanes = min(int(n_rows), _chunk_rows(n_nodes, chunk)) * per_row
     if lanes > MAX_KERNEL_LANES:
-        raise InputError(name, f"{n_dirs} directions with {n_nodes} grid nodes make a lighting kernel of "
-                         f"{lanes} lanes, over the limit of {MAX_KERNEL_LANES}", "use fewer directions")
+        raise InputError(name, f"{n_dirs} {'texels' if texels else 'directions'} with {n_nodes} grid nodes make a "
+                         f"lighting kernel of {lanes} lanes, over the limit of {MAX_KERNEL_LANES}",
+                         "downsample the probe more" if texels else "use fewer directions")
 
 
 def _check_inputs(obs: Observations, probes: List[Any], n_t: Any, n_s: Any, n_dirs: Any = 2, seed: Any = 0,
@@ -385,12 +387,17 @@ def texel_lighting_matrix(obs: Observations, probes: Union[Any, Sequence[Any]], 
     rows_per_chunk = _chunk_rows(n_nodes, chunk)
     order = _spatial_order(obs.normals)
     order = order[np.isin(order, _centre_rows(obs))] if obs.has_footprints else order
+    coarse_of = {}
+    for p in np.unique(obs.probe_index):  # every probe's kernels checked before the first runs
+        probe = probes[int(p)]
+        factor = max(f for f in range(1, downsample + 1) if probe.width % f == 0)
+        coarse_of[int(p)] = coarse = probe.downsampled(factor)
+        check_kernel_lanes(int(np.count_nonzero(obs.probe_index == p)), coarse.width * coarse.height, n_nodes,
+                           "downsample", chunk, texels=True)
 
     def chunks():
         for p in np.unique(obs.probe_index):
-            probe = probes[int(p)]
-            factor = max(f for f in range(1, downsample + 1) if probe.width % f == 0)
-            coarse = probe.downsampled(factor)
+            coarse = coarse_of[int(p)]
             directions, solid_angle = coarse.texel_directions()
             radiance = coarse.data.reshape(-1, 3).astype(np.float64) * solid_angle[:, None]
             texels = (mi.Vector3f(*directions.astype(np.float32).T),
