@@ -379,6 +379,43 @@ def _png_size(path: Path) -> None:
     _check_size(path, int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big"))
 
 
+#: JPEG start-of-frame markers (SOF0-SOF15 less DHT, JPG and DAC), whose segment holds the image size.
+JPEG_SOF_MARKERS = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}
+
+
+def _jpeg_size(path: Path) -> None:
+    """Check a JPEG's size (its start-of-frame segment, found by walking the marker segments) before
+    Mitsuba decodes it (libjpeg allocates the whole image first)."""
+    def corrupt() -> InputError:
+        return InputError(path, "cannot be read as an image: corrupt JPEG file, no frame header",
+                          "the file is truncated or corrupt")
+
+    with open(path, "rb") as f:
+        f.seek(2)  # past SOI
+        while True:
+            if f.read(1) != b"\xff":
+                raise corrupt()
+            marker = f.read(1)
+            while marker == b"\xff":  # fill bytes
+                marker = f.read(1)
+            if not marker:
+                raise corrupt()
+            if marker[0] == 0x01 or 0xD0 <= marker[0] <= 0xD8:  # standalone markers: no length
+                continue
+            if marker[0] in (0xD9, 0xDA):  # end of image, or a scan before any frame header
+                raise corrupt()
+            length = int.from_bytes(f.read(2), "big")
+            if marker[0] in JPEG_SOF_MARKERS:
+                body = f.read(5)  # precision, height, width
+                if length < 7 or len(body) < 5:
+                    raise corrupt()
+                _check_size(path, int.from_bytes(body[3:5], "big"), int.from_bytes(body[1:3], "big"))
+                return
+            if length < 2:
+                raise corrupt()
+            f.seek(length - 2, os.SEEK_CUR)
+
+
 def _read_with_mitsuba(path: Path, fmt: str, keep_alpha: bool = False) -> np.ndarray:
     """RGBE, PFM, PNG or JPEG through ``mi.Bitmap`` after the structural checks (PNG and JPEG as
     linear RGB, or RGBA when ``keep_alpha`` and the file has alpha)."""
@@ -389,6 +426,8 @@ def _read_with_mitsuba(path: Path, fmt: str, keep_alpha: bool = False) -> np.nda
         _check_pfm(path)
     elif fmt == "png":
         _png_size(path)
+    elif fmt == "jpeg":
+        _jpeg_size(path)
     try:
         bitmap = mi.Bitmap(str(path))
         if fmt in ("png", "jpeg"):

@@ -1608,3 +1608,30 @@ def test_an_exr_is_read_in_its_display_window(tmp_path):
     np.testing.assert_array_equal(images.load_image(path), pixels[3:103, 5:105])
     path, _ = write("outside.exr", (200, 200), (210, 210))
     _raises(lambda: images.load_image(path), "outside its display window")
+
+
+@pytest.mark.parametrize("suffix", [".exr", ".hdr", ".pfm", ".png", ".jpg"])
+def test_every_format_is_refused_over_the_pixel_limit_before_decoding(tmp_path, monkeypatch, suffix):
+    """The size limit holds for every format read (a JPEG went to Mitsuba unchecked: one whose header claims
+    60000 x 60000 pixels made libjpeg allocate 10 GB before anything was said). With the limit lowered, a
+    4 x 8 image of each format, written by another writer, is refused at 31 pixels and read at 32."""
+    import mitsuba as mi
+    import OpenEXR
+    from PIL import Image
+
+    pixels = np.random.default_rng(5).uniform(0.1, 1.0, (4, 8, 3)).astype(np.float32)
+    path = tmp_path / f"small{suffix}"
+    if suffix == ".exr":
+        OpenEXR.File({"type": OpenEXR.scanlineimage}, {"RGB": pixels}).write(str(path))
+    elif suffix == ".hdr":
+        mi.Bitmap(pixels).write(str(path))
+    elif suffix == ".pfm":
+        path.write_bytes(b"PF\n8 4\n-1.0\n" + np.ascontiguousarray(pixels[::-1], "<f4").tobytes())
+    else:
+        Image.fromarray((pixels * 255).astype(np.uint8)).save(path)
+    monkeypatch.setattr(images, "MAX_IMAGE_PIXELS", 31)
+    _raises(lambda: images.load_image(path), r"small\.\w+: image is 8x4 pixels, over the limit of 31 pixels")
+    monkeypatch.setattr(images, "MAX_IMAGE_PIXELS", 32)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", InputWarning)
+        assert images.load_image(path).shape == (4, 8, 3)
