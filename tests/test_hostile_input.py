@@ -1635,3 +1635,28 @@ def test_every_format_is_refused_over_the_pixel_limit_before_decoding(tmp_path, 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", InputWarning)
         assert images.load_image(path).shape == (4, 8, 3)
+
+
+def test_an_8_bit_png_is_linearised_by_the_srgb_curve(tmp_path):
+    """Every 8-bit code of a PNG written by Pillow reads back as the sRGB decoding curve's value (IEC 61966-2-1);
+    the gamma-encoded codes themselves (a reader that forgot to linearise) are 2-5x too bright in the mid-tones."""
+    from PIL import Image
+
+    codes = np.arange(256, dtype=np.uint8).reshape(16, 16)
+    Image.fromarray(np.stack([codes, codes[::-1], codes.T], axis=-1)).save(tmp_path / "ramp.png")
+    with pytest.warns(InputWarning, match="8-bit PNG image is not radiometric"):
+        got = images.load_image(tmp_path / "ramp.png")
+    c = np.stack([codes, codes[::-1], codes.T], axis=-1) / 255.0
+    expected = np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+    np.testing.assert_allclose(got, expected, rtol=1e-5, atol=1e-7)
+
+
+def test_a_pfm_whose_data_disagrees_with_its_header_or_whose_scale_is_zero_is_refused(tmp_path):
+    """A PFM is exactly header + W x H x 3 floats: a header one column short of its data (which a reader would
+    decode with every row shifted) and a zero scale (which Mitsuba multiplies the pixels by) are refused."""
+    data = np.random.default_rng(1).uniform(0.1, 1.0, (8, 16, 3)).astype("<f4").tobytes()
+    (tmp_path / "narrow.pfm").write_bytes(b"PF\n15 8\n-1.0\n" + data)
+    _raises(lambda: images.load_image(tmp_path / "narrow.pfm"),
+            r"narrow.pfm: cannot be read as an image: corrupt PFM file, 1549 bytes where its header implies 1453")
+    (tmp_path / "zero.pfm").write_bytes(b"PF\n16 8\n-0.0\n" + data)
+    _raises(lambda: images.load_image(tmp_path / "zero.pfm"), r"zero.pfm: .*corrupt PFM file, bad scale")
