@@ -1660,3 +1660,18 @@ def test_a_pfm_whose_data_disagrees_with_its_header_or_whose_scale_is_zero_is_re
             r"narrow.pfm: cannot be read as an image: corrupt PFM file, 1549 bytes where its header implies 1453")
     (tmp_path / "zero.pfm").write_bytes(b"PF\n16 8\n-0.0\n" + data)
     _raises(lambda: images.load_image(tmp_path / "zero.pfm"), r"zero.pfm: .*corrupt PFM file, bad scale")
+
+
+def test_a_radiance_file_that_turns_flat_after_its_first_scanline_is_refused(tmp_path):
+    """Run-length scanlines then flat pixels (with bytes enough for a whole flat image, so no size check
+    catches it): Mitsuba's reader switching modes mid-image reads past its buffer. Refused in one line."""
+    good = _write_bitmap(tmp_path / "src.hdr", np.random.default_rng(2).uniform(0.1, 2.0, (4, 16, 3))).read_bytes()
+    start = good.index(b"+X 16\n") + len(b"+X 16\n")
+    second = good.index(b"\x02\x02\x00\x10", start + 4)   # the second scanline's run-length marker
+    flat = good[:second] + bytes([200, 100, 50, 128]) * (16 * 4)
+    (tmp_path / "mixed.hdr").write_bytes(flat)
+    proc = subprocess.run([sys.executable, "-c", _CONFUSION_SCRIPT, str(tmp_path / "mixed.hdr")], capture_output=True,
+                          text=True, timeout=120, env=dict(os.environ, MALLOC_CHECK_="3"))
+    assert proc.returncode == 0 and proc.stdout.rstrip().endswith("done"), proc.stderr[-2000:]
+    lines = proc.stdout.splitlines()[:-1]
+    assert len(lines) == 2 and all("scanline 1 lacks its run-length marker" in line for line in lines), proc.stdout
