@@ -330,3 +330,22 @@ def test_render_sphere_requires_a_finite_camera(kwargs, name):
     with pytest.raises(InputError) as info:
         render_sphere(DIFFUSE, Probe.constant(1.0, 16), resolution=16, spp=1, **kwargs)
     assert info.value.source == name, str(info.value)
+
+
+def test_png_previews_are_srgb_encoded_and_rounded(tmp_path):
+    """write_png's codes at exposure 1, read back by Pillow: the sRGB standard's rounded codes at a few
+    radiances (linear segment below 0.0031308, the 1/2.4 power above it, clipped at 1), and within one
+    code of Mitsuba's own sRGB conversion over a ramp (Mitsuba's rounding differs by one code)."""
+    from PIL import Image
+
+    radiance = np.array([0.0, 0.002, 0.02, 0.18, 0.5, 0.9, 1.0, 4.0], np.float32)
+    write_png(tmp_path / "points.png", np.repeat(radiance.reshape(1, -1, 1), 3, axis=2), exposure=1.0)
+    codes = np.asarray(Image.open(tmp_path / "points.png").convert("RGB"))
+    np.testing.assert_array_equal(codes[0, :, 0], [0, 7, 39, 118, 188, 243, 255, 255])
+
+    ramp = np.linspace(0.0, 1.0, 4096, dtype=np.float32).reshape(64, 64, 1) * np.array([1.0, 0.5, 0.25], np.float32)
+    write_png(tmp_path / "ramp.png", ramp, exposure=1.0)
+    mitsuba_codes = np.array(mi.Bitmap(ramp, pixel_format=mi.Bitmap.PixelFormat.RGB).convert(
+        mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.UInt8, srgb_gamma=True)).astype(int)
+    ours = np.asarray(Image.open(tmp_path / "ramp.png").convert("RGB")).astype(int)
+    assert np.abs(ours - mitsuba_codes).max() <= 1
