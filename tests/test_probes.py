@@ -437,3 +437,57 @@ def test_a_probe_array_of_any_sampling_is_accepted_a_file_must_be_two_to_one(tmp
         Probe.load(tmp_path / "square.exr")
     assert "any lat-long sampling" in Probe.__doc__ and "2H x H" in Probe.__doc__
     assert "read as it is stored" in Probe.load.__doc__ and "sources.load_probe" in Probe.load.__doc__
+
+
+def test_eval_normalises_directions_and_chunks_without_gaps(monkeypatch):
+    """``eval`` takes directions of any length (normalised inside) and splits long batches into chunks: every
+    direction gets Mitsuba's lookup (the numpy transcription), with chunks of 7 as with one chunk."""
+    import mi_bivariate.probes as probes
+
+    data = np.random.default_rng(12).random((9, 14, 3)).astype(np.float32) * 4
+    d = random_directions(40, seed=13)
+    expected = latlong_lookup_reference(data, d)
+    lengths = np.random.default_rng(14).uniform(0.05, 20.0, (40, 1))
+    probe = Probe(data)
+    np.testing.assert_allclose(probe.eval(d * lengths), expected, rtol=2e-5, atol=2e-5)
+    whole = probe.eval(d)
+    monkeypatch.setattr(probes, "_EVAL_CHUNK", 7)
+    np.testing.assert_array_equal(probe.eval(d), whole)
+
+
+def test_content_digest_tells_apart_what_makes_probes_differ():
+    """Equal digests mean equal probes: the same texels turned, or the same bytes in another shape, differ."""
+    data = np.random.default_rng(15).random((6, 8, 3)).astype(np.float32)
+    probe = Probe(data)
+    assert Probe(data.copy()).content_digest() == probe.content_digest()
+    assert probe.rotated(euler_deg=(0, 90, 0)).content_digest() != probe.content_digest()
+    assert Probe(data.reshape(8, 6, 3)).content_digest() != probe.content_digest()
+
+
+def test_a_probe_evaluated_under_another_variant_uses_that_variants_emitter():
+    """The loaded emitter is kept per Mitsuba variant: after one was made under scalar_rgb, a lookup under
+    the suite's wide variant still matches Mitsuba's lookup (the numpy transcription)."""
+    import mitsuba as mi
+
+    from mi_bivariate.variants import ensure_variant
+
+    data = np.random.default_rng(16).random((9, 14, 3)).astype(np.float32)
+    probe = Probe(data)
+    wide = mi.variant()
+    try:
+        ensure_variant("scalar_rgb")
+        probe.emitter()
+    finally:
+        ensure_variant(wide)
+    d = random_directions(20, seed=17)
+    np.testing.assert_allclose(probe.eval(d), latlong_lookup_reference(data, d), rtol=2e-5, atol=2e-5)
+
+
+def test_a_grey_disk_image_converts_like_its_rgb_copy():
+    """An (S, S) or (S, S, 1) grey angular map or mirror ball is its RGB copy with three equal channels."""
+    grey = np.random.default_rng(18).uniform(0.1, 2.0, (32, 32)).astype(np.float32)
+    rgb = np.repeat(grey[..., None], 3, axis=2)
+    for convert in (Probe.from_angular_map, Probe.from_mirror_ball):
+        expected = convert(rgb).data
+        np.testing.assert_array_equal(convert(grey[..., None]).data, expected)
+        np.testing.assert_array_equal(convert(grey).data, expected)
