@@ -427,7 +427,8 @@ class Probe:
         Args:
             image: square ``(S, S, 3)`` array (row 0 at the top) or a file;
                 the circle inscribed in the square is the whole sphere.
-            width: lat-long width W (height W // 2); defaults to S.
+            width: lat-long width W, a whole number from 2 to :data:`~mi_bivariate.limits.MAX_RESOLUTION`
+                (height ``max(3, W // 2)``); defaults to S.
         """
         return cls._from_disk_image(image, width, source, "angular map")
 
@@ -440,7 +441,8 @@ class Probe:
             image: square ``(S, S, 3)`` crop whose inscribed circle is the
                 ball's silhouette (row 0 at the top), or a file. Directions
                 near -z (behind the ball) come from the unreliable rim.
-            width: lat-long width W (height W // 2); defaults to S.
+            width: lat-long width W, a whole number from 2 to :data:`~mi_bivariate.limits.MAX_RESOLUTION`
+                (height ``max(3, W // 2)``); defaults to S.
         """
         return cls._from_disk_image(image, width, source, "mirror ball")
 
@@ -451,7 +453,14 @@ class Probe:
         if pixels.shape[1] != size:
             raise InputError(source, f"{kind} image is {pixels.shape[1]}x{size}; expected a square crop "
                              "whose inscribed circle is the sphere")
-        width = width or size
+        if width is None:
+            width = size
+        else:
+            width = whole_number("width", width)
+            if width < 2:
+                raise InputError("width", f"must be at least 2 (the lat-long width W; the height is max(3, W // 2)), "
+                                 f"got {width}")
+            check_max("width", width, MAX_RESOLUTION)
         d = latlong_directions(max(3, width // 2), width)
         theta = np.arctan2(np.hypot(d[..., 0], d[..., 1]), d[..., 2])  # angle from +z
         radius = theta / math.pi if kind == "angular map" else np.sin(0.5 * theta)

@@ -491,3 +491,19 @@ def test_a_grey_disk_image_converts_like_its_rgb_copy():
         expected = convert(rgb).data
         np.testing.assert_array_equal(convert(grey[..., None]).data, expected)
         np.testing.assert_array_equal(convert(grey).data, expected)
+
+
+@pytest.mark.parametrize("width, problem", [
+    (64.5, "must be a whole number"),     # before: a 65-column probe whose columns were placed 64.5 to the turn
+    ("64", "must be a whole number"),     # before: TypeError
+    (1, "must be at least 2"),
+    (10**6, "over the limit"),            # before: MemoryError (3.6 TiB of directions)
+])
+def test_a_disk_conversion_names_a_bad_width(width, problem):
+    image = np.random.default_rng(19).uniform(0.1, 1.0, (16, 16, 3))
+    for convert in (Probe.from_angular_map, Probe.from_mirror_ball):
+        with pytest.raises(InputError) as info:
+            convert(image, width=width)
+        assert info.value.source == "width" and problem in info.value.problem, str(info.value)
+    np.testing.assert_array_equal(Probe.from_angular_map(image, width=64.0).data,
+                                  Probe.from_angular_map(image, width=64).data)
