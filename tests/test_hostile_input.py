@@ -1675,3 +1675,31 @@ def test_a_radiance_file_that_turns_flat_after_its_first_scanline_is_refused(tmp
     assert proc.returncode == 0 and proc.stdout.rstrip().endswith("done"), proc.stderr[-2000:]
     lines = proc.stdout.splitlines()[:-1]
     assert len(lines) == 2 and all("scanline 1 lacks its run-length marker" in line for line in lines), proc.stdout
+
+
+def test_an_exr_display_window_over_the_pixel_limit_is_refused(tmp_path, monkeypatch):
+    """The pixels are placed in the display window, so its size is what gets allocated: a 2 x 2 data window
+    in an 8 x 4 display window is refused with the limit at 31 pixels (a tiny file claiming a 10^5 x 10^5
+    display window would otherwise allocate 120 GB)."""
+    import OpenEXR
+
+    header = {"dataWindow": (np.array([0, 0], np.int32), np.array([1, 1], np.int32)),
+              "displayWindow": (np.array([0, 0], np.int32), np.array([7, 3], np.int32))}
+    OpenEXR.File(header, {"RGB": np.ones((2, 2, 3), np.float32)}).write(str(tmp_path / "wide.exr"))
+    monkeypatch.setattr(images, "MAX_IMAGE_PIXELS", 31)
+    _raises(lambda: images.load_image(tmp_path / "wide.exr"), r"wide\.exr: image is 8x4 pixels, over the limit")
+
+
+def test_exr_colour_channels_are_found_whatever_their_case_and_rgb_comes_before_y(tmp_path):
+    """Lower-case r, g, b are the colour (OpenEXR names are case-sensitive, writers differ); a file with both
+    R, G, B and a luminance Y is read as its RGB, not as grey."""
+    import OpenEXR
+
+    rgb = np.random.default_rng(3).uniform(0.1, 1.0, (4, 6, 3)).astype(np.float32)
+    planes = {name: np.ascontiguousarray(rgb[..., i]) for i, name in enumerate("rgb")}
+    OpenEXR.File({"type": OpenEXR.scanlineimage}, planes).write(str(tmp_path / "lower.exr"))
+    np.testing.assert_array_equal(images.load_image(tmp_path / "lower.exr"), rgb)
+    planes = {name.upper(): plane for name, plane in planes.items()}
+    planes["Y"] = np.zeros((4, 6), np.float32)
+    OpenEXR.File({"type": OpenEXR.scanlineimage}, planes).write(str(tmp_path / "rgby.exr"))
+    np.testing.assert_array_equal(images.load_image(tmp_path / "rgby.exr"), rgb)
