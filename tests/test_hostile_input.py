@@ -1703,3 +1703,19 @@ def test_exr_colour_channels_are_found_whatever_their_case_and_rgb_comes_before_
     planes["Y"] = np.zeros((4, 6), np.float32)
     OpenEXR.File({"type": OpenEXR.scanlineimage}, planes).write(str(tmp_path / "rgby.exr"))
     np.testing.assert_array_equal(images.load_image(tmp_path / "rgby.exr"), rgb)
+
+
+def test_outputs_get_the_permissions_a_plain_open_gives(tmp_path):
+    """Outputs are written through mkstemp temporaries (mode 0600): renamed into place, they get what
+    ``open()`` under the process's umask gives (0644 under umask 022, 0660 under 007), not 0600."""
+    import stat
+
+    for umask, mode in ((0o022, 0o644), (0o007, 0o660)):
+        old = os.umask(umask)
+        try:
+            images.write_exr(tmp_path / f"{umask:o}.exr", np.ones((2, 2, 3), np.float32))
+            images.write_png(tmp_path / f"{umask:o}.png", np.ones((2, 2, 3), np.float32))
+        finally:
+            os.umask(old)
+        for suffix in (".exr", ".png"):
+            assert stat.S_IMODE((tmp_path / f"{umask:o}{suffix}").stat().st_mode) == mode, (umask, suffix)
