@@ -1741,3 +1741,9 @@ def test_read_npz_itself_refuses_complex_values(tmp_path):
 
     np.savez(tmp_path / "complex.npz", weights=np.array([1.0 + 2.0j, 3.0]))
     _raises(lambda: npzio.read_npz(tmp_path / "complex.npz"), r"member 'weights.npy' holds complex values")
+
+
+def test_an_npz_without_a_required_member_is_named_not_a_key_error(tmp_path):
+    """An archive holding numbers but not the table: one line naming the file and the missing members."""
+    np.savez(tmp_path / "other.npz", weights=np.ones(4))
+    _raises(lambda: BivariateBRDF.load(tmp_path / "other.npz"), r"other\.npz: not a .*: missing table")
