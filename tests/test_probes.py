@@ -401,8 +401,14 @@ def test_downsampled_matches_its_definition():
     (lambda: Probe.constant(1.0, res=8.5), "res", "must be a whole number"),
     (lambda: Probe.constant(1.0, res=10**6), "res", "over the limit"),
     (lambda: Probe.constant([1, 2, 3, 4]), "radiance", "one number or three"),  # numpy's broadcast error
+    (lambda: Probe(np.ones((8, 16, 3)), to_world=np.array([[1, 0, 0, 2], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])),
+     "to_world", "must be a pure rotation"),
+    (lambda: Probe(np.ones((2, 4, 3))), "<array>", "expected (H >= 3, W >= 2, 3)"),
+    (lambda: Probe(np.where(np.arange(128).reshape(8, 16, 1) == 5, -1.0, np.ones(3))), "<array>",
+     "1 of 128 pixels are not valid radiance (1 negative)"),                # all finite: the quick path
 ], ids=["path as data", "string to_world", "no rotation", "two rotations", "two angles", "NaN angle",
-        "negative res", "one-element res", "two rows", "fractional res", "huge res", "four channels"])
+        "negative res", "one-element res", "two rows", "fractional res", "huge res", "four channels",
+        "translated to_world", "two-row data", "negative data"])
 def test_probe_mistakes_are_input_errors_naming_the_argument(call, name, problem):
     with pytest.raises(InputError) as info:
         call()
