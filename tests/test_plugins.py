@@ -193,6 +193,26 @@ def test_merl_eval_matches_merl_module_on_a_table_without_symmetry(interpolation
     assert np.mean(~close[ok]) <= (0.002 if interpolation == "nearest" else 0.0)
 
 
+@pytest.mark.parametrize("plugin", ["bivariate", "merl"])
+def test_a_context_without_reflection_gets_nothing(plugin):
+    """A ``BSDFContext`` whose type mask leaves out diffuse and glossy reflection (an integrator asking for
+    delta lobes only) gets zero value, pdf and sample weight, as from Mitsuba's own ``diffuse``."""
+    table = lambertian_table()
+    props = bsdf_dict(table) if plugin == "bivariate" else merl_dict(table.to_merl(), "nearest")
+    ctx = mi.BSDFContext()
+    ctx.type_mask = +mi.BSDFFlags.DeltaReflection
+    wi, wo = random_pairs(100, seed=12, min_cos=0.2)
+    si = dr.zeros(mi.SurfaceInteraction3f, len(wi))
+    si.wi = mi.Vector3f(*(mi.Float(wi[:, k].astype(np.float32)) for k in range(3)))
+    wo_dr = mi.Vector3f(*(mi.Float(wo[:, k].astype(np.float32)) for k in range(3)))
+    rng = np.random.default_rng(12)
+    for bsdf in (mi.load_dict({"type": "diffuse"}), mi.load_dict(props)):
+        value, pdf = bsdf.eval_pdf(ctx, si, wo_dr)
+        bs, weight = bsdf.sample(ctx, si, mi.Float(rng.random(len(wi))), mi.Point2f(rng.random((2, len(wi)))))
+        for result in (bsdf.eval(ctx, si, wo_dr), bsdf.pdf(ctx, si, wo_dr), value, pdf, weight, bs.pdf):
+            assert np.all(np.array(result) == 0.0), str(bsdf)
+
+
 # ---------------------------------------------------------- sampling (chi2)
 
 @pytest.fixture(scope="module")
