@@ -8,6 +8,7 @@ from pathlib import Path
 import mitsuba as mi
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from mi_bivariate.analytic import CookTorranceGGX, Lambertian
 from mi_bivariate.bivariate import BivariateBRDF
@@ -290,6 +291,19 @@ def test_cli_render_probe_rotation_renders_the_turned_probe(tmp_path):
     scale = float(np.abs(expected).max())
     np.testing.assert_allclose(images[True], expected, atol=1e-5 * scale)
     assert float(np.abs(images[False] - expected).mean()) > 0.05 * float(np.abs(expected).mean())
+
+
+def test_render_like_puts_the_sphere_where_the_geometry_says():
+    """An off-centre sphere in a non-square image seen by a turned camera (what a photo's fitted geometry
+    is): the render is lit exactly inside the geometry's silhouette and black outside it, up to the rim's
+    partly covered pixels. A centre offset with a flipped axis, or not turned with the camera, moves the disc."""
+    turned = Rotation.from_euler("xyz", [30.0, -50.0, 20.0], degrees=True).as_matrix()
+    geometry = SphereGeometry(20.0, 27.0, 9.0, camera_to_world=turned)
+    image = render_like(DIFFUSE, Probe.constant(1.0, 16), geometry, 48, 36, spp=4).image
+    yy, xx = np.mgrid[0:36, 0:48] + 0.5
+    distance = np.hypot(xx - geometry.cx, yy - geometry.cy)
+    lit = image.sum(axis=-1) > 0.0
+    assert np.all(lit[distance < geometry.radius - 0.75]) and not np.any(lit[distance > geometry.radius + 0.75])
 
 
 @pytest.mark.parametrize("geometry, problem", [
