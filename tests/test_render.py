@@ -56,6 +56,7 @@ def test_orthographic_normals_follow_geometry_convention(kwargs):
     # Normals are averaged over random positions in the pixel (16 spp): a few
     # tenths of a degree from the centre normal; a mirrored axis would be tens.
     assert np.median(err) < 0.5 and err.max() < 3.0
+    assert np.all(r.normals[~r.mask] == 0.0)  # the rim's partly covered pixels too (documented: 0 outside)
     np.testing.assert_allclose(r.geometry.view_direction(), np.asarray(r.camera.camera_to_world) @ [0, 0, 1])
 
 
