@@ -382,16 +382,18 @@ def test_filename_properties(tmp_path):
 
 
 def test_merl_plugin_fills_below_horizon_and_partly_missing_nodes():
-    """What a MERL file may hold where nothing was measured: values at configurations below the horizon, and
-    a node missing in one channel only (-1 in green). Both are filled from the phi_d mean of the valid
-    nodes, so a bivariate table stored that way still renders as the ``bivariate`` plugin does down to the
-    horizon, and no lookup is negative. Kept as data, the below-horizon 50 / sr put lookups near the horizon
-    up to 400x off (measured); the one-channel gaps gave negative values."""
+    """What a MERL file may hold where nothing was measured: values at configurations below the horizon,
+    missing samples (NaN, as MERLBRDF keeps them) and a node missing in one channel only (-1 in green). All are
+    filled from the phi_d mean of the valid nodes, so a bivariate table stored that way still renders as the
+    ``bivariate`` plugin does down to the horizon, and no lookup is negative. Kept as data, the below-horizon
+    50 / sr put lookups near the horizon up to 400x off (measured); the one-channel gaps gave negative values;
+    NaN turned into 0 on its way to the plugin would be read as a measured 0."""
     biv = lobe_table(width=0.2, diffuse=0.3, specular=2.0, n=8)
     table = np.array(biv.to_merl().table, np.float32)
     table[~geometric_mask()] = 50.0
     rng = np.random.default_rng(10)
     table[rng.integers(0, 90, 2000), rng.integers(0, 90, 2000), rng.integers(0, 180, 2000), 1] = -1.0
+    table[rng.integers(0, 90, 2000), rng.integers(0, 90, 2000), rng.integers(0, 180, 2000)] = np.nan
     merl = mi.load_dict(merl_dict(MERLBRDF(table), "linear"))
     reference = mi.load_dict(bsdf_dict(biv))
     wi, wo = random_pairs(5000, seed=11, min_cos=0.0)
