@@ -205,7 +205,9 @@ class MeshShape:
                 # The area-weighted normals of the faces as placed, turned outwards (faces wound inwards
                 # have a negative volume; the shading normals of such a file may still point out).
                 outward = np.asarray(mesh.vertex_normals) * (-1.0 if float(mesh.volume) < 0.0 else 1.0)
-                angle = np.degrees(np.arccos(np.clip(np.sum(stored * outward, axis=1), -1.0, 1.0)))
+                # Directions only: a file's normals need not be unit length (MeshShape normalises them).
+                unit = stored / np.maximum(np.linalg.norm(stored, axis=1, keepdims=True), 1e-300)
+                angle = np.degrees(np.arccos(np.clip(np.sum(unit * outward, axis=1), -1.0, 1.0)))
                 if float(np.median(angle)) > MAX_NORMAL_DISAGREEMENT_DEG:
                     raise InputError(name, f"the file's vertex normals are {np.median(angle):.0f} deg (median) "
                                      "from the outward normals of its faces", "fix or drop them, or load it with "

@@ -242,3 +242,18 @@ def test_an_off_centre_orthographic_camera_renders_where_its_rays_go():
     assert grey.sum() / np.median(grey[covered]) == pytest.approx(np.pi * scale ** 2, rel=0.01)  # area, px^2
     origins, directions = cam.rays(np.array([cx]), np.array([cy]))
     assert np.linalg.norm(np.cross(origins[0], directions[0])) < 1e-9   # that ray passes through the centre
+
+
+def test_file_vertex_normals_of_any_length_are_judged_by_direction(tmp_path):
+    """A PLY may store vertex normals that are not unit length (area-weighted sums, scaled exports). Their
+    direction is what counts: an icosphere whose file normals are the exact radial directions times 0.2 loads
+    with exactly those (unit) normals, with ``normals="vertex"`` as with ``"auto"`` and from a Trimesh object,
+    not trimesh's own (angle-weighted, up to ~1 degree off radial)."""
+    ico = trimesh.creation.icosphere(subdivisions=2)
+    radial = ico.vertices / np.linalg.norm(ico.vertices, axis=1, keepdims=True)
+    trimesh.Trimesh(ico.vertices, ico.faces, vertex_normals=0.2 * radial, process=False).export(tmp_path / "s.ply")
+    for normals in ("auto", "vertex"):
+        shape = mesh.MeshShape.load(tmp_path / "s.ply", normals=normals)
+        np.testing.assert_allclose(shape.vertex_normals, radial, atol=1e-6)
+    given = trimesh.Trimesh(ico.vertices, ico.faces, vertex_normals=radial, process=False)
+    np.testing.assert_allclose(mesh.MeshShape.load(given, normals="vertex").vertex_normals, radial, atol=1e-12)
