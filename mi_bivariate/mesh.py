@@ -42,6 +42,7 @@ import numpy as np
 from mi_bivariate.common import PathLike
 from mi_bivariate.errors import InputError, InputWarning
 from mi_bivariate.geometry import Camera, Geometry, SurfaceMaps
+from mi_bivariate.variants import ensure_variant
 
 #: Mesh file types read through trimesh.
 MESH_SUFFIXES = (".obj", ".ply", ".stl", ".glb", ".gltf", ".off")
@@ -251,6 +252,7 @@ class MeshShape:
 
     def mitsuba_mesh(self, bsdf: Optional[dict] = None) -> Any:
         """The mesh as a ``mi.Mesh`` (with ``bsdf``, a BSDF dictionary, when given)."""
+        ensure_variant()  # a user's script may reach here before anything chose a variant
         props = mi.Properties()
         if bsdf is not None:
             props["bsdf"] = mi.load_dict(bsdf)
@@ -267,7 +269,7 @@ class MeshShape:
 
     def scene(self) -> Any:
         """A ``mi.Scene`` holding only this mesh (for ray casts and shadow rays), cached per variant."""
-        variant = mi.variant()
+        variant = ensure_variant(vectorised=True)  # the ray casts are vectorised over pixels
         if variant not in self._scenes:
             self._scenes[variant] = mi.load_dict({"type": "scene", "shape": self.mitsuba_mesh()})
         return self._scenes[variant]

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
+import textwrap
 import warnings
 
 import numpy as np
@@ -257,3 +260,19 @@ def test_file_vertex_normals_of_any_length_are_judged_by_direction(tmp_path):
         np.testing.assert_allclose(shape.vertex_normals, radial, atol=1e-6)
     given = trimesh.Trimesh(ico.vertices, ico.faces, vertex_normals=radial, process=False)
     np.testing.assert_allclose(mesh.MeshShape.load(given, normals="vertex").vertex_normals, radial, atol=1e-12)
+
+
+def test_a_mesh_view_works_before_any_variant_is_chosen():
+    """Observations of a mesh view as the first Mitsuba work of a process (no variant selected yet, as in a
+    user's script) ray-cast the mesh; they raised Mitsuba's AttributeError 'Cannot access Mesh'."""
+    code = textwrap.dedent("""
+        import numpy as np, trimesh
+        from mi_bivariate import capture, mesh
+        from mi_bivariate.geometry import Camera
+        shape = mesh.MeshShape.load(trimesh.creation.icosphere(), normals="vertex")
+        view = mesh.MeshView(shape, Camera.look_at((0, 0, 4.0), (0, 0, 0), width=32, fov_deg=35))
+        obs = capture.image_observations(np.ones((32, 32, 3), np.float32), view, n_normals=50)
+        print("rows", len(obs) > 10, np.isfinite(obs.normals).all())
+    """)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0 and "rows True True" in out.stdout, out.stdout + out.stderr[-2000:]
