@@ -260,6 +260,9 @@ def test_file_vertex_normals_of_any_length_are_judged_by_direction(tmp_path):
         np.testing.assert_allclose(shape.vertex_normals, radial, atol=1e-6)
     given = trimesh.Trimesh(ico.vertices, ico.faces, vertex_normals=radial, process=False)
     np.testing.assert_allclose(mesh.MeshShape.load(given, normals="vertex").vertex_normals, radial, atol=1e-12)
+    with warnings.catch_warnings():                   # "auto" keeps a Trimesh object's own normals too
+        warnings.simplefilter("error", InputWarning)
+        np.testing.assert_allclose(mesh.MeshShape.load(given).vertex_normals, radial, atol=1e-12)
 
 
 def test_a_mesh_view_works_before_any_variant_is_chosen():
@@ -276,3 +279,136 @@ def test_a_mesh_view_works_before_any_variant_is_chosen():
     """)
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0 and "rows True True" in out.stdout, out.stdout + out.stderr[-2000:]
+
+
+def _clean_pixels(lo: float, hi: float, n: int) -> np.ndarray:
+    """Pixels ``i`` of ``n`` whose span ``[i, i + 1]`` lies inside ``[lo, hi]`` (pixel coordinates)."""
+    i = np.arange(n)
+    return (i >= lo) & (i + 1 <= hi)
+
+
+def test_flat_shaded_cube_pixels_match_the_closed_form():
+    """Closed form, flat shading: an axis-aligned cube (half size 1) seen orthographically along (1, 0, 1)
+    shows its +x and +z faces as two rectangles meeting at image column cx. A pixel is used exactly when its
+    square lies inside one face's rectangle; its shading and geometric normal is that face's outward normal,
+    its view the camera's axis, its position on the face; NaN positions where the centre ray misses."""
+    s, cx, cy = 12.0, 24.3, 20.3                              # px per world unit, optical axis (px)
+    z_axis = np.array([1.0, 0.0, 1.0]) / np.sqrt(2.0)
+    rot = np.stack([np.cross([0.0, 1.0, 0.0], z_axis), [0.0, 1.0, 0.0], z_axis], axis=1)
+    cam = Camera(48, 40, (s, s, cx, cy), rot, 5.0 * z_axis, orthographic=True)
+    shape = mesh.MeshShape.load(trimesh.creation.box(extents=(2.0, 2.0, 2.0)), normals="face")
+    maps = mesh.surface_maps(shape, cam)
+    half = np.sqrt(2.0) * s                                   # each face is sqrt(2) wide on the image
+    rows = _clean_pixels(cy - s, cy + s, 40)[:, None]
+    face_z = rows & _clean_pixels(cx - half, cx, 48)[None, :]
+    face_x = rows & _clean_pixels(cx, cx + half, 48)[None, :]
+    np.testing.assert_array_equal(maps.mask, face_z | face_x)
+    for face, normal in ((face_z, [0.0, 0.0, 1.0]), (face_x, [1.0, 0.0, 0.0])):
+        np.testing.assert_allclose(maps.normals[face], np.broadcast_to(normal, (face.sum(), 3)), atol=1e-6)
+        np.testing.assert_allclose(maps.geometric_normals[face], np.broadcast_to(normal, (face.sum(), 3)), atol=1e-6)
+        np.testing.assert_allclose(maps.positions[face] @ normal, 1.0, atol=1e-5)
+    np.testing.assert_allclose(maps.views[maps.mask], np.broadcast_to(z_axis, (maps.mask.sum(), 3)), atol=1e-6)
+    assert np.all(np.isnan(maps.positions[~maps.hit]))
+    # Smooth shading (vertex normals averaged over a corner's faces): the geometric normal is still the face's.
+    smooth = mesh.surface_maps(mesh.MeshShape.load(trimesh.creation.box(extents=(2.0, 2.0, 2.0)), normals="vertex"), cam)
+    assert np.all(smooth.hit[face_z])
+    np.testing.assert_allclose(smooth.geometric_normals[face_z], np.broadcast_to([0.0, 0.0, 1.0], (face_z.sum(), 3)),
+                               atol=1e-6)
+    assert np.abs(smooth.normals[face_z] - [0.0, 0.0, 1.0]).max() > 0.1
+
+
+def test_a_pixel_across_a_depth_step_is_not_used():
+    """Closed form: a small box floating in front of a big one, seen orthographically along -z. Both front
+    faces face the camera (one normal), so only the patch test keeps out the pixels whose square crosses the
+    near face's outline (part near surface, part far): the used pixels lie wholly inside the near face or
+    wholly inside the far face and off the near one."""
+    s, cx, cy = 10.0, 20.3, 18.6
+    cam = Camera(40, 36, (s, s, cx, cy), np.eye(3), [0.0, 0.0, 10.0], orthographic=True)
+    far = trimesh.creation.box(extents=(3.0, 3.0, 2.0))                     # front face at z = 1
+    near = trimesh.creation.box(extents=(1.0, 1.2, 1.0))
+    near.apply_translation([0.33, -0.27, 3.0])                              # front face at z = 3.5
+    shape = mesh.MeshShape.load(trimesh.util.concatenate([far, near]), normals="face")
+    maps = mesh.surface_maps(shape, cam)
+
+    def inside(x0, x1, y0, y1, cols, rows):                 # world box -> pixels wholly inside / touching it
+        u0, u1, v0, v1 = cx + s * x0, cx + s * x1, cy - s * y1, cy - s * y0
+        whole = _clean_pixels(v0, v1, rows)[:, None] & _clean_pixels(u0, u1, cols)[None, :]
+        i, j = np.arange(cols), np.arange(rows)
+        touch = ((j + 1 > v0) & (j < v1))[:, None] & ((i + 1 > u0) & (i < u1))[None, :]
+        return whole, touch
+
+    near_whole, near_touch = inside(-0.17, 0.83, -0.87, 0.33, 40, 36)
+    far_whole, _ = inside(-1.5, 1.5, -1.5, 1.5, 40, 36)
+    expected = near_whole | (far_whole & ~near_touch)
+    assert (near_touch & ~near_whole).sum() > 30                       # pixels across the step exist
+    np.testing.assert_array_equal(maps.mask, expected)
+    np.testing.assert_allclose(maps.positions[near_whole][:, 2], 3.5, atol=1e-5)
+    np.testing.assert_allclose(maps.positions[far_whole & ~near_touch][:, 2], 1.0, atol=1e-5)
+
+
+def test_a_pixel_across_a_crease_or_a_slit_is_not_used():
+    """Closed form: a roof (two faces tilted +-20 degrees about a ridge along y, normals 40 degrees apart)
+    seen from above. A pixel whose square crosses the ridge has its corners close to its centre's tangent
+    plane (the crease is shallow), so only the normal-angle test keeps it out. Beside the roof, two boxes
+    with a slit narrower than a pixel between them: a pixel whose centre looks through the slit (its corners
+    on the boxes) is not used either."""
+    s, cx, cy = 10.0, 15.3, 18.6
+    cam = Camera(64, 36, (s, s, cx, cy), np.eye(3), [0.0, 0.0, 10.0], orthographic=True)
+    rise = np.tan(np.radians(20.0))
+    roof = trimesh.convex.convex_hull([[x, y, z] for y in (-1.0, 1.0) for x, z in ((-1.0, 0.0), (1.0, 0.0), (0.0, rise))])
+    gap = (45.5 - cx) / s                                                # world x of pixel column 45's centre
+    left = trimesh.creation.box(bounds=[[2.0, -1.0, -1.0], [gap - 0.02, 1.0, 0.0]])
+    right = trimesh.creation.box(bounds=[[gap + 0.02, -1.0, -1.0], [gap + 1.5, 1.0, 0.0]])
+    shape = mesh.MeshShape.load(trimesh.util.concatenate([roof, left, right]), normals="face")
+    maps = mesh.surface_maps(shape, cam)
+    rows = _clean_pixels(cy - s, cy + s, 36)[:, None]
+    sides = [rows & _clean_pixels(*span, 64)[None, :] for span in
+             ((cx - s, cx), (cx, cx + s), (cx + 2.0 * s, cx + s * (gap - 0.02)), (cx + s * (gap + 0.02), cx + s * (gap + 1.5)))]
+    np.testing.assert_array_equal(maps.mask, np.logical_or.reduce(sides))
+    tilt = np.array([np.sin(np.radians(20.0)), 0.0, np.cos(np.radians(20.0))])
+    for side, normal in zip(sides, (tilt * [-1, 1, 1], tilt, [0.0, 0.0, 1.0], [0.0, 0.0, 1.0])):
+        np.testing.assert_allclose(maps.normals[side], np.broadcast_to(normal, (side.sum(), 3)), atol=1e-6)
+    assert not maps.hit[rows[:, 0], 45].any() and maps.hit[rows[:, 0], 44].all()   # the slit: seen through
+
+
+def test_a_glb_node_that_stretches_the_mesh_turns_its_normals_by_the_inverse_transpose(tmp_path):
+    """Closed form: a unit icosphere with exact radial file normals, stretched into an ellipsoid by its glTF
+    node (diag(2, 1, 0.5), turned), loads with the ellipsoid's normals A^-T n (the gradient of its implicit
+    equation), not A n."""
+    from trimesh.transformations import rotation_matrix
+
+    ico = trimesh.creation.icosphere(subdivisions=2)
+    radial = ico.vertices / np.linalg.norm(ico.vertices, axis=1, keepdims=True)
+    node = rotation_matrix(0.7, [0.3, 1.0, 0.2]) @ np.diag([2.0, 1.0, 0.5, 1.0])
+    scene = trimesh.Scene()
+    scene.add_geometry(trimesh.Trimesh(ico.vertices, ico.faces, vertex_normals=radial, process=False), transform=node)
+    scene.export(tmp_path / "ellipsoid.glb")
+    shape = mesh.MeshShape.load(tmp_path / "ellipsoid.glb")
+    np.testing.assert_allclose(shape.vertices, ico.vertices @ node[:3, :3].T, atol=1e-5)
+    truth = radial @ np.linalg.inv(node[:3, :3])                   # rows (A^-T n)^T
+    truth /= np.linalg.norm(truth, axis=1, keepdims=True)
+    np.testing.assert_allclose(shape.vertex_normals, truth, atol=1e-5)
+
+
+def test_a_mesh_with_split_vertices_is_closed(tmp_path):
+    """A flat-shaded cube stored with its own vertices per face (24, each with its face's normal, as
+    exporters write hard edges) is one closed surface: no 'not watertight' warning."""
+    box = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
+    box.unmerge_vertices()
+    corner_normals = np.repeat(box.face_normals, 3, axis=0)
+    trimesh.Trimesh(box.vertices, box.faces, vertex_normals=corner_normals, process=False).export(tmp_path / "c.ply")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", InputWarning)
+        shape = mesh.MeshShape.load(tmp_path / "c.ply")
+    assert shape.watertight and len(shape.vertices) == 36 and shape.vertex_normals is not None
+
+
+def test_mesh_shapes_and_views_refuse_bad_sizes_and_indices():
+    """A negative face index, and an image whose width and height are the camera's swapped, are InputErrors."""
+    with pytest.raises(InputError, match=r"face indices must be integers in \[0, V\)"):
+        mesh.MeshShape(np.eye(3), np.array([[0, 1, -1]]))
+    shape = mesh.MeshShape.load(trimesh.creation.icosphere(subdivisions=1), normals="vertex")
+    view = mesh.MeshView(shape, Camera.look_at((0, 0, 4.0), (0, 0, 0), width=24, height=16))
+    with pytest.raises(InputError, match="image is 16x24 but the camera is 24x16"):
+        view.surface_maps(16, 24)
+    assert view.surface_maps(24, 16).mask.shape == (16, 24)
