@@ -44,3 +44,17 @@ def test_known_material_and_search_interval(turned_render):
     assert abs(est.yaw_deg - 5.0) < 2.0, est.summary()
     with pytest.raises(InputError):
         alignment.estimate_yaw(render.image, probe, render.geometry, search_deg=(10.0, -10.0))
+
+
+def test_search_interval_is_kept_and_the_estimate_wrapped(turned_render):
+    """The estimate stays inside ``search_deg`` even when the best yaw lies beyond it (the truth, 25
+    degrees, is outside (-15, 15): the estimate is the interval's end), and is reported in (-180, 180]
+    when the interval crosses 180 degrees (the probe given turned by -170: the truth is 195 = -165)."""
+    probe, brdf, render = turned_render
+    known = dict(brdf=BivariateBRDF(0.5 * brdf.table), n_normals=400, grid=(16, 16), coarse_step_deg=5.0)
+    est = alignment.estimate_yaw(render.image, probe, render.geometry, search_deg=(-15.0, 15.0), **known)
+    assert 14.0 <= est.yaw_deg <= 15.0, est.summary()
+    assert est.angles_deg.min() >= -15.0 and est.angles_deg.max() <= 15.0
+    est = alignment.estimate_yaw(render.image, probe.rotated(euler_deg=(0, -170, 0)), render.geometry,
+                                 search_deg=(175.0, 215.0), **known)
+    assert abs(est.yaw_deg - (-165.0)) < 2.0, est.summary()
