@@ -576,3 +576,83 @@ def test_a_grey_photo_under_a_coloured_probe_warns():
         said = [str(w.message) for w in seen
                 if issubclass(w.category, InputWarning) and "photo is grey" in str(w.message)]
         assert bool(said) == expected, (probe.source, said)
+
+
+@pytest.fixture(scope="module")
+def two_photos():
+    """A small two-image recovery (32 px spheres, 300 normals, 1000 directions, 8 x 8 nodes): an RGB photo
+    under a grey probe and a grey (R = G = B) photo under a warm one, with the wall time it took and its
+    warnings."""
+    import time
+    import warnings
+
+    grey = probes.Probe(np.full((16, 32, 3), 0.8, np.float32), source="grey")
+    warm = probes.Probe(np.full((16, 32, 3), (1.0, 0.8, 0.5), np.float32), source="warm")
+    merl = analytic.to_merl(analytic.Lambertian(np.array([0.7, 0.45, 0.2])))
+    under_grey = render.render_sphere(render.bsdf_dict(merl), grey, resolution=32, spp=16, seed=3)
+    under_warm = render.render_sphere(render.bsdf_dict(merl), warm, resolution=32, spp=16, seed=4)
+    luminance = under_warm.image.mean(axis=-1, keepdims=True).repeat(3, axis=-1)
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        start = time.perf_counter()
+        result = recover([under_grey.image, luminance], [grey, warm], [under_grey.geometry, under_warm.geometry],
+                         n_normals=300, n_dirs=1000, grid=(8, 8), noise=None)
+        wall = time.perf_counter() - start
+    return result, wall, [str(w.message) for w in seen if issubclass(w.category, InputWarning)]
+
+
+def test_each_images_grey_photo_check_uses_its_own_probe(two_photos):
+    """Image 1 is grey under the warm probe (warned); image 0 is RGB under the grey probe (not)."""
+    said = [m for m in two_photos[2] if "photo is grey" in m]
+    assert len(said) == 1 and said[0].startswith("image 1:"), said
+
+
+def test_the_timings_add_up_to_no_more_than_the_recovery_took(two_photos):
+    """Each stage is timed once: the stages' sum is at most the wall time around recover()."""
+    result, wall, _ = two_photos
+    assert {"observations", "lighting matrix", "solve"} <= set(result.timings), result.timings
+    assert min(result.timings.values()) >= 0.0 and sum(result.timings.values()) <= wall, (result.timings, wall)
+
+
+def test_the_provenance_and_summary_say_what_was_computed(two_photos):
+    """Rows, probes and the summary's numbers, recomputed from the recovery's arrays (prediction = L f)."""
+    import re
+
+    result = two_photos[0]
+    obs, provenance = result.observations, result.brdf.provenance
+    assert provenance["normals"] == len(obs.values) == len(result.predicted)
+    assert provenance["probes"] == ["grey", "warm"]
+    predicted = np.einsum("mnc,nc->mc", result.lighting_matrix.astype(np.float64),
+                          result.brdf.table.reshape(-1, 3).astype(np.float64))
+    values = np.asarray(obs.values, np.float64)
+    overall = np.linalg.norm(values - predicted) / np.linalg.norm(values)
+    summary = result.summary()
+    assert float(re.search(r"relative residual (\S+) \(per image", summary).group(1)) == pytest.approx(overall, abs=2e-4)
+    measured = np.asarray(result.brdf.confidence["measured"])
+    percent = 100.0 * np.mean(np.all(measured > 0.5, axis=-1))
+    assert f"measured {percent:.0f}% of the nodes" in summary, summary
+
+
+def test_the_saved_image_factors_and_observation_weight_are_those_of_the_solve(two_photos):
+    """The rows' sigma (the model error for noise=None, times the image factor the provenance records) gives
+    the table again, and the saved observation weight is diag(L^T W L) times the table level squared, with
+    W = 1 / (M sigma^2) and the level the weighted best constant fit (closed form, per channel)."""
+    from mi_bivariate import solve
+    from mi_bivariate.basis_prior import default_basis_prior
+    from mi_bivariate.prior import default_prior
+
+    result = two_photos[0]
+    obs, L = result.observations, result.lighting_matrix.astype(np.float64)
+    factors = np.asarray(result.brdf.provenance["image_sigma_factors"])
+    assert factors.shape == (2,) and factors.max() > 1.0, factors  # the two images do not weigh alike
+    sigma = solve.row_sigma(obs.values, obs.image_index, noise=None) * factors[obs.image_index][:, None]
+    basis = default_basis_prior()
+    again = solve.solve_stages(solve.prepare_data_term(result.lighting_matrix, obs.values, sigma),
+                               default_prior().resampled(8, 8), None,
+                               None if basis is None else basis.resampled(8, 8))
+    np.testing.assert_array_equal(again.table, result.brdf.table)
+    w = 1.0 / (len(obs.values) * sigma ** 2)                           # (M, 3)
+    constant = L.sum(axis=1)                                           # (M, 3): L f for f = 1
+    level = np.sum(constant * obs.values * w, 0) / np.sum(constant ** 2 * w, 0)
+    truth = np.einsum("mnc,mc->nc", L ** 2, w) * level ** 2
+    np.testing.assert_allclose(result.brdf.confidence["observation_weight"], truth.reshape(8, 8, 3), rtol=1e-6)
