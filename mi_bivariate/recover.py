@@ -302,7 +302,8 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
     _check_angle("max_view_angle_deg", max_view_angle_deg)
     if footprint is not None:
         _check_angle("footprint", footprint)
-    if saturation is not None and not (isinstance(saturation, numbers.Real) and saturation > 0.0):
+    if saturation is not None and not (isinstance(saturation, numbers.Real) and not isinstance(saturation, bool)
+                                       and saturation > 0.0):
         raise InputError("saturation", f"must be a positive number or None, got {saturation!r}")
     given = solve_mod.check_alpha(alpha)  # fail before the lighting matrix
     if not isinstance(given, str) and np.any(given == 0.0):

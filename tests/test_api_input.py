@@ -116,6 +116,7 @@ def test_plugins_refuse_a_scalar_variant_in_one_line(tmp_path):
     (dict(max_view_angle_deg=95.0), "max_view_angle_deg", "must be an angle in (0, 90]"),
     (dict(footprint=-1.0), "footprint", "must be an angle in (0, 90]"),
     (dict(saturation=float("nan")), "saturation", "must be a positive number"),
+    (dict(saturation=True), "saturation", "must be a positive number"),  # not read as 1.0
     (dict(pair_rule="bad"), "pair_rule", "unknown rule 'bad'"),      # before: after the lighting matrix
     (dict(basis_prior="x"), "basis_prior", "must be 'default', None or a BasisPrior"),  # the same
 ], ids=lambda v: v if isinstance(v, str) else None)
