@@ -656,3 +656,19 @@ def test_the_saved_image_factors_and_observation_weight_are_those_of_the_solve(t
     level = np.sum(constant * obs.values * w, 0) / np.sum(constant ** 2 * w, 0)
     truth = np.einsum("mnc,mc->nc", L ** 2, w) * level ** 2
     np.testing.assert_allclose(result.brdf.confidence["observation_weight"], truth.reshape(8, 8, 3), rtol=1e-6)
+
+
+@pytest.mark.parametrize("report_render", [False, True])
+def test_write_outputs_passes_report_render_to_the_report(tmp_path, two_photos, monkeypatch, report_render):
+    """``report_render`` asks the report for a path-traced re-render (``--report-render``)."""
+    from mi_bivariate import export
+
+    asked = []
+
+    def report(result, path, path_trace=False):
+        asked.append(path_trace)
+        Path(path).write_bytes(b"png")
+
+    monkeypatch.setattr(export, "write_recovery_report", report)
+    write_outputs(two_photos[0], tmp_path / "t.npz", report_render=report_render)
+    assert asked == [report_render]
