@@ -495,3 +495,12 @@ def test_a_variant_that_cannot_start_names_where_it_came_from(monkeypatch, env):
     with pytest.raises(InputError, match="cannot start on this machine") as info:
         variants.ensure_variant(vectorised=True)
     assert info.value.source == ("default variant" if env is None else "MI_BIVARIATE_VARIANT")
+
+
+@pytest.mark.parametrize("kwargs", [dict(max_view_angle_deg=90.0), dict(footprint=90.0), dict(saturation=1e-30)],
+                         ids=lambda v: next(iter(v)))
+def test_recover_accepts_the_ends_of_its_documented_ranges(probe, no_work, kwargs):
+    """``max_view_angle_deg`` and ``footprint`` in (0, 90] (90 included), ``saturation`` any positive level:
+    the recovery gets as far as reading the pixels."""
+    with pytest.raises(AssertionError, match="started work"):
+        recover(IMAGE, probe, SPHERE, **{**SMALL, **kwargs})
