@@ -117,6 +117,7 @@ def test_plugins_refuse_a_scalar_variant_in_one_line(tmp_path):
     (dict(footprint=-1.0), "footprint", "must be an angle in (0, 90]"),
     (dict(saturation=float("nan")), "saturation", "must be a positive number"),
     (dict(saturation=True), "saturation", "must be a positive number"),  # not read as 1.0
+    (dict(saturation=0.0), "saturation", "must be a positive number"),
     (dict(pair_rule="bad"), "pair_rule", "unknown rule 'bad'"),      # before: after the lighting matrix
     (dict(basis_prior="x"), "basis_prior", "must be 'default', None or a BasisPrior"),  # the same
 ], ids=lambda v: v if isinstance(v, str) else None)
