@@ -505,3 +505,15 @@ def test_recover_accepts_the_ends_of_its_documented_ranges(probe, no_work, kwarg
     the recovery gets as far as reading the pixels."""
     with pytest.raises(AssertionError, match="started work"):
         recover(IMAGE, probe, SPHERE, **{**SMALL, **kwargs})
+
+
+def test_one_noise_model_applies_to_every_image(probe):
+    """``noise=(a, b)`` with two images is each image's model: recorded for both, and the same table as
+    giving it once per image."""
+    second = np.full((48, 48, 3), 0.25, np.float32)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", InputWarning)
+        shared = recover([IMAGE, second], probe, SPHERE, **{**SMALL, "noise": (1e-4, 1e-6)})
+        each = recover([IMAGE, second], probe, SPHERE, **{**SMALL, "noise": [(1e-4, 1e-6), (1e-4, 1e-6)]})
+    assert shared.brdf.provenance["noise"] == [[1e-4, 1e-6], [1e-4, 1e-6]]
+    np.testing.assert_array_equal(shared.brdf.table, each.brdf.table)
