@@ -686,3 +686,24 @@ def test_a_fit_within_its_noise_is_not_told_the_probe_may_not_match():
         warnings.simplefilter("always")
         recover(shot.image, uniform, shot.geometry, n_normals=300, n_dirs=1000, grid=(8, 8))
     assert not [w for w in seen if "table explains" in str(w.message)], [str(w.message) for w in seen]
+
+
+def test_auto_saturation_drops_a_clipped_plateau_but_not_an_unclipped_peak():
+    """``recover_from_photo(saturation="auto")``: a render's own brightest pixel is no clipping level (no
+    pixel dropped); the same render clipped at its 99th percentile drops the pixels at that level."""
+    import warnings
+
+    from mi_bivariate.recover import recover_from_photo
+
+    probe = probes.Probe(np.full((16, 32, 3), (1.0, 0.8, 0.5), np.float32), source="warm")
+    merl = analytic.to_merl(analytic.Lambertian(np.array([0.7, 0.45, 0.2])))
+    shot = render.render_sphere(render.bsdf_dict(merl), probe, resolution=32, spp=64, seed=3)
+    level = np.float32(np.quantile(shot.image[shot.mask], 0.99))
+    clipped = np.minimum(shot.image, level)
+    # n_normals above the sphere's ~800 pixels: every pixel is sampled, the brightest included
+    small = dict(sphere=(shot.geometry.cx, shot.geometry.cy, shot.geometry.radius), n_normals=3000, n_dirs=1000,
+                 grid=(8, 8), noise=None)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", InputWarning)
+        assert recover_from_photo(shot.image, probe, **small).observations.dropped["saturated"] == 0
+        assert recover_from_photo(clipped, probe, **small).observations.dropped["saturated"] > 0
