@@ -4,7 +4,9 @@
 from __future__ import annotations
 
 import os
-from typing import Tuple
+import subprocess
+import time
+from typing import Callable, Sequence, Tuple
 
 import numpy as np
 
@@ -39,6 +41,26 @@ def assert_same_sums(actual: np.ndarray, desired: np.ndarray, rel: float = 1e-5,
     else:
         scale = float(np.max(np.abs(desired))) if np.size(desired) else 0.0
         np.testing.assert_allclose(actual, desired, rtol=0.0, atol=rel * scale, err_msg=err_msg)
+
+
+def signal_when(argv: Sequence[str], ready: Callable[[subprocess.Popen], bool], signum: int, timeout: float = 60.0,
+                poll: float = 0.005, **popen) -> Tuple[int, str]:
+    """Start ``argv``, send it ``signum`` as soon as ``ready(process)`` holds (asked every ``poll`` s, for at
+    most ``timeout`` s, while it runs) and wait for it to end: its exit status and standard error. The
+    process is killed if it outlives the wait."""
+    proc = subprocess.Popen(list(argv), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, **popen)
+    try:
+        deadline = time.monotonic() + timeout
+        while proc.poll() is None and time.monotonic() < deadline:
+            if ready(proc):
+                proc.send_signal(signum)
+                break
+            time.sleep(poll)
+        err = proc.communicate(timeout=120)[1]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    return proc.returncode, err
 
 
 def sun_sky_probe() -> Probe:

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import assert_same_sums, sums_in_fixed_order
+from helpers import assert_same_sums, signal_when, sums_in_fixed_order
 
 from mi_bivariate import capture, cli, images, lighting, render, solve, spherefit
 from mi_bivariate.bivariate import BivariateBRDF
@@ -1073,25 +1073,14 @@ def test_sigterm_stops_a_command_and_leaves_no_temporary_files(files, tmp_path):
     """SIGTERM (``timeout``, a job scheduler) while ``recover --merl`` writes its outputs: the command stops
     as after Ctrl-C (exit 143, one line), its temporary files are removed and no output is published."""
     import signal
-    import time
 
     out = tmp_path / "out"
     out.mkdir()
     argv = _recover_args(files) + ["--merl", "--out", str(out / "k.npz")]
-    proc = subprocess.Popen([sys.executable, "-m", "mi_bivariate.cli", *argv], stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE, text=True)
-    try:
-        deadline = time.monotonic() + 240
-        while proc.poll() is None and time.monotonic() < deadline:
-            if any(p.name.startswith(".") for p in out.iterdir()):  # a temporary: it is writing
-                proc.send_signal(signal.SIGTERM)
-                break
-            time.sleep(0.005)
-        err = proc.communicate(timeout=120)[1]
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-    assert proc.returncode == 128 + signal.SIGTERM, (proc.returncode, err[-2000:])  # not ended before the writes
+    status, err = signal_when([sys.executable, "-m", "mi_bivariate.cli", *argv],  # a temporary: it is writing
+                              lambda proc: any(p.name.startswith(".") for p in out.iterdir()), signal.SIGTERM,
+                              timeout=240)
+    assert status == 128 + signal.SIGTERM, (status, err[-2000:])  # not ended before the writes
     assert err.strip().splitlines()[-1] == "mi-bivariate: terminated" and "Traceback" not in err, err
     assert list(out.iterdir()) == []
 

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import signal_when
 
 import mi_bivariate as mb
 
@@ -154,28 +155,19 @@ def test_ctrl_c_while_the_command_line_loads_ends_in_one_line(tmp_path):
     one does: ``mi-bivariate: interrupted``, status 130, no traceback. The signal is sent as soon as
     numpy's core library is mapped into the process (``/proc/PID/maps``), inside the imports."""
     import signal
-    import time
 
     maps = Path("/proc/self/maps")
     if not maps.is_file():
         pytest.skip("needs /proc/PID/maps (Linux)")
-    proc = subprocess.Popen([sys.executable, "-m", "mi_bivariate", "info"], stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE, text=True, cwd=ROOT, env=dict(os.environ, PYTHONPATH=str(ROOT)))
-    try:
-        deadline = time.monotonic() + 60
-        while proc.poll() is None and time.monotonic() < deadline:
-            try:
-                if "_multiarray_umath" in Path(f"/proc/{proc.pid}/maps").read_text():
-                    proc.send_signal(signal.SIGINT)
-                    break
-            except OSError:  # not started yet, or ended
-                pass
-            time.sleep(0.0005)
-        err = proc.communicate(timeout=120)[1]
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-    assert proc.returncode == 130 and err.strip() == "mi-bivariate: interrupted", (proc.returncode, err[-2000:])
+    def numpy_loading(proc: subprocess.Popen) -> bool:
+        try:
+            return "_multiarray_umath" in Path(f"/proc/{proc.pid}/maps").read_text()
+        except OSError:  # not started yet, or ended
+            return False
+
+    status, err = signal_when([sys.executable, "-m", "mi_bivariate", "info"], numpy_loading, signal.SIGINT,
+                              poll=0.0005, cwd=ROOT, env=dict(os.environ, PYTHONPATH=str(ROOT)))
+    assert status == 130 and err.strip() == "mi-bivariate: interrupted", (status, err[-2000:])
 
 
 def test_python_dash_m_package_runs_the_command():
