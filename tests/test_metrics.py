@@ -226,3 +226,72 @@ def test_an_unobserved_interior_node_unobserves_the_cells_around_it():
     theta_h, theta_d = half_diff_from_st(s, t)
     want = (s <= 0.0) | (s >= 1.0) | (t <= 0.0) | (t >= 1.0)  # off the four cells around node (1, 1)
     np.testing.assert_array_equal(metrics.observed_cells(nodes, theta_h, theta_d), want)
+
+
+# ------------------------------------------------ mutation review: guards and second routes
+
+def test_image_metrics_refuse_bad_masks_and_a_black_reference_is_no_perfect_score():
+    """A 0/1 integer mask would index rows 0 and 1 (numpy's fancy indexing) and score the wrong pixels, a
+    mask of another shape or one selecting no pixel has no number: all three are refused. Against a black
+    reference the relative error is infinite (0 would read as a perfect relight) and the PSNR -inf."""
+    ref = np.ones((4, 4, 3))
+    img = 1.5 * ref
+    img[0] = 9.0                                           # rows 0 and 1 differ from the lit square below
+    as_int = np.zeros((4, 4), np.uint8)
+    as_int[2:, 2:] = 1
+    for bad in (as_int, np.ones((3, 4), bool), np.zeros((4, 4), bool)):
+        for metric in (metrics.image_relative_rmse, metrics.image_psnr):
+            with pytest.raises(ValueError):
+                metric(img, ref, bad)
+    with pytest.raises(ValueError):
+        metrics.image_relative_rmse(img, ref[:3])
+    assert metrics.image_relative_rmse(img, np.zeros_like(ref)) == math.inf
+    assert metrics.image_psnr(img, np.zeros_like(ref)) == -math.inf
+
+
+def test_seed_noise_by_hand():
+    """Two renders of independent seeds differ by sqrt 2 times one render's noise, relative to the first."""
+    a = np.full((2, 2, 3), 2.0)
+    b = a.copy()
+    b[0, 0] = 2.4                                          # one pixel of four off by 0.4 (20 %)
+    # RMS difference sqrt(0.16 / 4) = 0.2 over the first image's RMS 2: 0.1, over sqrt 2.
+    assert metrics.seed_noise(a, b) == pytest.approx(0.1 / math.sqrt(2.0), rel=1e-12)
+
+
+def test_log_rms_leaves_out_missing_truth():
+    """A NaN truth (a below-horizon MERL value) is no cell of the log error, as of Eq. 1."""
+    truth = np.array([math.e - 1.0, np.nan])
+    assert metrics.log_rms(truth, np.array([0.0, 1.0]), np.ones(2, bool)) == pytest.approx(1.0, rel=1e-12)
+
+
+def test_merl_cell_weights_integrate_cosine_moments():
+    """The weights spread the measure ``cos(theta_i) cos(theta_o) dw_i dw_o`` over (theta_h, theta_d, phi_d)
+    as the closed forms say: int (cos_i + cos_o) cos_i cos_o = 2 (2 pi / 3) pi and int cos_i^2 cos_o^2 =
+    (2 pi / 3)^2 over both hemispheres (cos_i, cos_o of each node written out here, phi_h = 0)."""
+    from mi_bivariate.merl import node_angles
+
+    w = metrics.merl_cell_weights()
+    theta_h, theta_d, phi_d = np.meshgrid(*node_angles(), indexing="ij")
+    wi_z = np.cos(theta_d) * np.cos(theta_h) - np.sin(theta_d) * np.sin(theta_h) * np.cos(phi_d)
+    wo_z = np.cos(theta_d) * np.cos(theta_h) + np.sin(theta_d) * np.sin(theta_h) * np.cos(phi_d)
+    assert np.sum(w * (wi_z + wo_z)) == pytest.approx(4.0 * math.pi ** 2 / 3.0, rel=2e-3)
+    assert np.sum(w * wi_z * wo_z) == pytest.approx(4.0 * math.pi ** 2 / 9.0, rel=2e-3)
+
+
+def test_a_bivariate_array_estimate_is_read_as_theta_h_by_theta_d():
+    """An estimate given as a ``(90, 90, 3)`` array (the exact phi_d average, as the evaluation scores it) holds
+    theta_h along its first axis and theta_d along its second, MERL's nodes (theta_h = 90 deg (i / 90)^2,
+    theta_d = 90 deg j / 90), and is constant along phi_d."""
+    from mi_bivariate.merl import node_angles
+
+    i, j = np.meshgrid(np.arange(90), np.arange(90), indexing="ij")
+    theta_h, theta_d = np.radians(90.0 * (i / 90.0) ** 2), np.radians(90.0 * j / 90.0)
+    merl_h, merl_d, _ = node_angles()
+    np.testing.assert_allclose(theta_h[:, 0], merl_h, rtol=1e-12)
+    np.testing.assert_allclose(theta_d[0], merl_d, rtol=1e-12)
+    values = np.stack([theta_h, theta_d, theta_h + 2.0 * theta_d], axis=-1)
+    grid = metrics.estimate_on_merl_grid(values)
+    assert grid.shape == (90, 90, 1, 3) and grid.dtype == np.float64
+    np.testing.assert_array_equal(grid[:, :, 0], values)
+    with pytest.raises(ValueError):
+        metrics.estimate_on_merl_grid(values[:, :45])
