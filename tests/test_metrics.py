@@ -295,3 +295,13 @@ def test_a_bivariate_array_estimate_is_read_as_theta_h_by_theta_d():
     np.testing.assert_array_equal(grid[:, :, 0], values)
     with pytest.raises(ValueError):
         metrics.estimate_on_merl_grid(values[:, :45])
+
+
+def test_a_cell_on_a_node_row_needs_only_that_row():
+    """A cell whose t sits exactly on a node row uses that row alone, not the next: unobserving the last row of a
+    3 x 3 grid (t = 1) keeps every cell with t = i / 90 <= 1/2 (rows i <= 45) observed and drops the others."""
+    nodes = np.ones((3, 3), bool)
+    nodes[2, :] = False
+    expected = np.zeros((90, 90), bool)
+    expected[:46] = True
+    np.testing.assert_array_equal(metrics.observed_cells(nodes), expected)
