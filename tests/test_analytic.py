@@ -191,8 +191,26 @@ def test_spec_parser():
 @pytest.mark.parametrize("spec", ["phong:n=10", "ggx:beta=0.1", "ggx:alpha=fast", "lambertian:albedo=0.1,0.2",
                                   "ggx:alpha=-1", "ggx:0.1", "ggx:alpha=0.1,alpha=0.2", "ggx:ior=0.5",
                                   # absurd sizes overflowed float32 downstream and were blamed on "mean"
-                                  "ggx:diffuse=1e38", "lambertian:albedo=nan", "ggx:alpha=inf"])
+                                  "ggx:diffuse=1e38", "lambertian:albedo=nan", "ggx:alpha=inf",
+                                  # negative reflectances, an index of 1 and a zero-width or f0 > 1 lobe
+                                  "lambertian:albedo=-0.5", "ggx:specular=0.1,-0.2,0.3", "ggx:ior=1",
+                                  "bivariate-lobe:width=0", "bivariate-lobe:f0=1.5"])
 def test_spec_parser_errors(spec):
     with pytest.raises(InputError) as info:
         analytic_from_spec(spec)
     assert spec in str(info.value)
+
+
+def test_bivariate_lobe_closed_form_at_chosen_angles():
+    """The lobe's documented formula, written out here, at pairs built from (theta_h, theta_d) by hand:
+    h tilted by theta_h about y, wi and wo at theta_d either side of h in the plane of h and y."""
+    lobe = BivariateLobe([0.1, 0.2, 0.3], [4.0, 5.0, 6.0], width=0.15, f0=0.2)
+    theta_h = np.array([0.0, 0.1, 0.2, 0.05])
+    theta_d = np.array([0.3, 0.9, 0.5, 1.2])
+    h = np.stack([np.sin(theta_h), 0.0 * theta_h, np.cos(theta_h)], -1)
+    y = np.array([0.0, 1.0, 0.0])
+    wi = np.cos(theta_d)[:, None] * h + np.sin(theta_d)[:, None] * y
+    wo = np.cos(theta_d)[:, None] * h - np.sin(theta_d)[:, None] * y
+    shape = np.exp(-(theta_h / 0.15) ** 2) * (0.2 + 0.8 * (1.0 - np.cos(theta_d)) ** 5)
+    want = np.array([0.1, 0.2, 0.3]) / math.pi + shape[:, None] * np.array([4.0, 5.0, 6.0])
+    np.testing.assert_allclose(lobe.eval_dirs(wi, wo), want, rtol=1e-9)
