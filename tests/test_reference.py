@@ -11,6 +11,7 @@ import pytest
 from mi_bivariate import analytic, metrics, noise, probes, reference, render
 from mi_bivariate.bivariate import BivariateBRDF, exact_floor, grid_floor
 from mi_bivariate.cli import main as cli_main
+from mi_bivariate.errors import InputError
 from mi_bivariate.merl import MERLBRDF
 from mi_bivariate.sources import synthetic_environment
 
@@ -45,7 +46,7 @@ def test_lambertian_under_constant_light_is_exact():
 def test_reference_noise_below_its_bound(glossy_merl, sky):
     # Two seeds are two independent quadratures; their difference / sqrt 2 is the per-image noise.
     q = reference.quadrature_noise(glossy_merl, sky, resolution=16, directions=SMALL, reference_factor=2.0)
-    assert q["seed_rms"] < 0.005, q
+    assert 0.0 < q["seed_rms"] < 0.005, q                  # two seeds are two quadratures: they differ
     assert q["vs_large"] < 0.005 * 1.5, q                 # no bias the two seeds share
     # The renderer is deterministic for a seed.
     a = reference.render_reference(glossy_merl, sky, resolution=12, seed=5, directions=(64, 128, 64))
@@ -68,6 +69,20 @@ def test_reference_agrees_with_mitsuba(glossy_merl, sky):
     ratio = ref.image[mask].sum(axis=0) / mean[mask].sum(axis=0)
     np.testing.assert_allclose(ratio, 1.0, atol=0.01)
     assert np.all(np.abs(1.03 * ratio - 1.0) > 0.01)
+
+
+def test_bad_quadrature_settings_are_refused_and_directions_scale_by_hand():
+    """No strategy, a negative count, a one-pixel image or no sub-pixel: InputError before any render.
+    ``scaled_directions`` rounds, keeps a strategy that is on at 1 direction at least and one that is off at 0."""
+    table = BivariateBRDF(np.full((4, 4, 3), 0.1))
+    light = probes.Probe.constant(1.0)
+    for kwargs in (dict(directions=(0, 0, 0)), dict(directions=(8, -1, 8)), dict(directions=(8, 8)),
+                   dict(resolution=1), dict(subpixels=0)):
+        with pytest.raises(InputError):
+            reference.render_reference(table, light, **{"resolution": 4, "directions": (4, 4, 4), **kwargs})
+    assert reference.scaled_directions(1e-4) == (1, 1, 1)
+    assert reference.scaled_directions(0.3, (10, 0, 5)) == (3, 0, 2)   # 1.5 rounds to 2; off stays off
+    assert reference.scaled_directions(2.0) == tuple(2 * k for k in reference.DEFAULT_DIRECTIONS)
 
 
 def test_camera_noise_model():
