@@ -285,3 +285,24 @@ def test_results_tables_by_hand(tmp_path):
     assert relight == "| uffizi_256 | 0.080 / 0.020 / 1.000 | 0.020 / 0.005 / 2.000 | 0.200 / 0.010 / 10.000 |", text
     baselines = [line for line in lines if line.startswith("| grace_latlong_1k | Eq. 1, observed cells |")]
     assert baselines == ["| grace_latlong_1k | Eq. 1, observed cells | 0.300 | 0.250 | nan | nan |"], text
+
+
+def test_summary_rows_skip_null_ratios_and_infinite_psnrs():
+    """A novel probe whose floor is below the references' noise has a null ratio (read back as NaN), and a relit
+    image equal to the truth an infinite PSNR: the row's median ratio is over the other probes, its mean PSNR
+    over the finite ones, not NaN or inf."""
+    import json
+
+    from mi_bivariate.common import finite_json
+
+    record = _record("a")
+    images = record["inputs"]["in"]["images"]
+    images["p1"]["ratio"] = float("nan")                   # floor 0.02 below the references' noise
+    images["p2"]["psnr"] = float("inf")
+    stored = json.loads(json.dumps(finite_json(record)))  # as results.jsonl holds it
+    assert stored["inputs"]["in"]["images"]["p1"]["ratio"] is None
+    (row,) = ev.summary_rows([stored])
+    assert row["relight_ratio_median"] == pytest.approx(6.0)          # median of 2 and 10
+    assert row["image_psnr_mean"] == pytest.approx(28.0)              # mean of 30 and 26
+    assert row["relight_rmse_median"] == pytest.approx(0.04)          # every probe's error still counts
+
