@@ -305,4 +305,10 @@ def test_summary_rows_skip_null_ratios_and_infinite_psnrs():
     assert row["relight_ratio_median"] == pytest.approx(6.0)          # median of 2 and 10
     assert row["image_psnr_mean"] == pytest.approx(28.0)              # mean of 30 and 26
     assert row["relight_rmse_median"] == pytest.approx(0.04)          # every probe's error still counts
+    # Over materials: a material without any finite ratio is left out of the median, and said to be.
+    none = json.loads(json.dumps(finite_json(_record("b"))))
+    for v in none["inputs"]["in"]["images"].values():
+        v["ratio"] = None
+    text = ev.format_summary([stored, none, _record("c")])
+    assert "relight/floor 4.000 (over 2 of 3 materials" in text, text   # median of 6 and 2
 

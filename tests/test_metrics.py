@@ -305,3 +305,13 @@ def test_a_cell_on_a_node_row_needs_only_that_row():
     expected = np.zeros((90, 90), bool)
     expected[:46] = True
     np.testing.assert_array_equal(metrics.observed_cells(nodes), expected)
+
+
+def test_relight_errors_noise_rule_and_psnr_by_hand():
+    """The ratio needs a floor of at least the larger of MIN_RELIGHT_FLOOR and twice the reference's noise (not
+    their sum), and the PSNR is the recovery's, not the floor's: 10 log10(peak^2 / mse) with peak 1, mse 0.01."""
+    truth = np.ones((2, 2, 3))
+    mask = np.ones((2, 2), bool)
+    got = metrics.relight_errors(1.1 * truth, 1.05 * truth, truth, mask, reference_noise=0.0245)
+    assert got["ratio"] == pytest.approx(2.0)              # 2 x 0.0245 = 0.049 <= 0.05 < 0.049 + 0.002
+    assert got["psnr"] == pytest.approx(20.0)
