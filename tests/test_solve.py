@@ -686,3 +686,36 @@ def test_discrepancy_alpha_with_a_table_prior_against_direct_solves():
         choice = discrepancy_alpha(data, penalty, target=target, alphas=grid, extra=(precision, precision * mean))
         assert choice.bounded == ""
         assert rho(choice.alpha) == pytest.approx(target, rel=0.02)
+
+
+def test_every_input_check_of_the_solve_names_its_problem():
+    """Each check of ``validate_problem`` and ``grid_shape`` on its own: more observations than lighting rows
+    (the check compared the counts one way only), no columns, a dtype that is not a number (complex, text),
+    and a column count that is no square grid without ``n_t, n_s``: an InputError, never a traceback."""
+    L = _lighting(20, 0)
+    I = np.ones((20, 3))
+    prior = Prior.uniform(N_T, N_S)
+    with pytest.raises(InputError, match="10 rows but there are 20 observations"):
+        solve(L[:10], I, prior, 0.1)
+    with pytest.raises(InputError, match="no columns"):
+        solve(L[:, :0], I, prior, 0.1)
+    with pytest.raises(InputError, match="non-numeric dtype complex"):
+        solve(L.astype(np.complex128), I, prior, 0.1)
+    with pytest.raises(InputError, match="observations I: has non-numeric dtype"):
+        solve(L, I.astype(str), prior, 0.1)
+    for n in (24, 15):  # 24 = 5 x 5 - 1, 15 = 4 x 4 - 1: no square
+        with pytest.raises(InputError, match=f"{n} columns is not a square grid"):
+            solve(L[:, :n], I, prior, 0.1)
+
+
+def test_grid_is_the_priors_own_when_it_is_not_square():
+    """Without ``n_t, n_s`` a prior of ``N`` nodes gives its own grid, rows ``n_t`` and columns ``n_s``
+    (column ``it * n_s + is``): a 6 x 5 prior and a 5 x 6 one read the same columns as different tables."""
+    L = _lighting(150, 14)
+    truth = _truth(15)
+    I = np.einsum("mnk,nk->mk", L.astype(np.float64), truth.reshape(N, 3))
+    tall = solve(L, I, Prior.uniform(N_T, N_S), 0.0)
+    wide = solve(L, I, Prior.uniform(N_S, N_T), 0.0)
+    assert tall.table.shape == (N_T, N_S, 3) and wide.table.shape == (N_S, N_T, 3)
+    np.testing.assert_allclose(tall.table, truth, atol=1e-6)  # column it * n_s + is is node (it, is)
+    np.testing.assert_array_equal(wide.table.reshape(N, 3), tall.table.reshape(N, 3))
