@@ -719,3 +719,27 @@ def test_grid_is_the_priors_own_when_it_is_not_square():
     assert tall.table.shape == (N_T, N_S, 3) and wide.table.shape == (N_S, N_T, 3)
     np.testing.assert_allclose(tall.table, truth, atol=1e-6)  # column it * n_s + is is node (it, is)
     np.testing.assert_array_equal(wide.table.reshape(N, 3), tall.table.reshape(N, 3))
+
+
+def test_a_black_channel_gives_a_zero_table_and_no_nan():
+    """An image with nothing in one channel (a pure-colour material): that channel's best constant level is
+    0, its table is 0 and explains the image exactly (relative residual 0, not NaN or infinity), and the
+    other channels are solved as without it, every number finite."""
+    L = _lighting(150, 16)
+    truth = _truth(17)
+    I = np.einsum("mnk,nk->mk", L.astype(np.float64), truth.reshape(N, 3))
+    I *= 1 + 0.03 * np.random.default_rng(18).standard_normal(I.shape)
+    I[:, 2] = 0.0
+    sigma = 0.03 * np.abs(I) + 1e-3 * np.abs(I).mean(axis=0).max()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        result = solve(L, I, _prior(), 0.3, n_t=N_T, n_s=N_S, sigma=sigma)
+        colour = solve(L[:, :, :2].repeat([1, 2], axis=2), I[:, [0, 1, 1]], _prior(), 0.3, n_t=N_T, n_s=N_S,
+                       sigma=sigma[:, [0, 1, 1]])
+    assert result.lambertian[2] == 0.0
+    np.testing.assert_array_equal(result.table[:, :, 2], 0.0)
+    for sol in result.pairs.values():
+        assert sol.relative_residual[2] == 0.0 and sol.data_term[2] == 0.0
+        for name in ("data_term", "prior_term", "relative_residual", "log_evidence", "kkt_violation"):
+            assert np.all(np.isfinite(getattr(sol, name))), name
+    np.testing.assert_array_equal(result.table[:, :, :2], colour.table[:, :, :2])
