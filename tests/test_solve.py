@@ -743,3 +743,57 @@ def test_a_black_channel_gives_a_zero_table_and_no_nan():
         for name in ("data_term", "prior_term", "relative_residual", "log_evidence", "kkt_violation"):
             assert np.all(np.isfinite(getattr(sol, name))), name
     np.testing.assert_array_equal(result.table[:, :, :2], colour.table[:, :, :2])
+
+
+def test_kkt_violation_is_relative_to_the_scales_of_x_and_the_gradient():
+    """The documented natural residual by hand: ``x = 0`` where ``b`` asks for a positive value violates by
+    exactly 1 whatever ``b``'s size (``g / g_scale = -b / max|b|``), and scaling ``b`` and ``x`` together
+    changes nothing (``x / max|x|``)."""
+    G = np.eye(2)
+    for c in (1e-3, 1.0, 4.0, 1e6):
+        assert kkt_violation(G, c * np.array([1.0, -1.0]), np.zeros(2)) == pytest.approx(1.0, rel=1e-15)
+        # x = c (-0.5, 1), b = c (1, 1): g = c (-1.5, 0), x_scale = c, g_scale = 2 c: |min(-0.5, -0.75)| = 0.75
+        assert kkt_violation(G, c * np.array([1.0, 1.0]), c * np.array([-0.5, 1.0])) == pytest.approx(0.75, rel=1e-15)
+
+
+def test_nnls_fixes_the_nodes_no_pixel_sees_at_zero():
+    """Columns of ``A`` that are zero (an st node no pixel sees, no prior): ``G``'s row and column and ``b``'s
+    entry vanish there; the solve sets them to 0 and the rest is ``scipy.optimize.nnls`` on the seen columns,
+    from either start."""
+    a_mat, rhs = _problem("active", 3)
+    unseen = [0, 7, 8, 39]
+    a_mat[:, unseen] = 0.0
+    seen = np.setdiff1d(np.arange(a_mat.shape[1]), unseen)
+    expected = np.zeros(a_mat.shape[1])
+    expected[seen] = sopt.nnls(a_mat[:, seen], rhs, maxiter=100 * a_mat.shape[1])[0]
+    g, b = a_mat.T @ a_mat, a_mat.T @ rhs
+    for start in (False, True):
+        res = nnls_gram(g, b, passive=np.full(b.size, start))
+        assert res.method == "bpp" and res.kkt_violation < 1e-12
+        np.testing.assert_array_equal(res.x[unseen], 0.0)
+        np.testing.assert_allclose(res.x, expected, rtol=0, atol=1e-9 * np.abs(expected).max())
+    # The seen columns' pivoting stopped after one solve: their fallback's answer, and the result says so.
+    res = nnls_gram(g, b, passive=np.ones(b.size, bool), max_iter=1)
+    assert res.method == "bpp+nnls-fallback" and res.kkt_violation < KKT_TOLERANCE
+    np.testing.assert_allclose(res.x, expected, rtol=0, atol=1e-9 * np.abs(expected).max())
+
+
+def test_solve_with_a_node_no_pixel_sees():
+    """A lighting matrix whose column is zero in every channel (a node the image does not reach) is no
+    error: the smoothness prior fills that node in from its neighbours, as the stacked NNLS does."""
+    L = _lighting(150, 19)
+    L[:, 12] = 0.0
+    I = np.einsum("mnk,nk->mk", L.astype(np.float64), _truth(20).reshape(N, 3))
+    prior, alpha = _prior(), 0.3
+    result = solve(L, I, prior, alpha, n_t=N_T, n_s=N_S, pairs=("gloss",))
+    sigma = row_sigma(I)
+    w = 1.0 / (sigma * np.sqrt(len(I)))
+    for k in range(3):
+        a_k = L[:, :, k].astype(np.float64) * w[:, k, None]
+        y_k = I[:, k] * w[:, k]
+        ones = np.ones(N)
+        level = (ones @ a_k.T @ y_k) / (ones @ a_k.T @ a_k @ ones)
+        reg = np.sqrt(alpha / (N * level**2)) * prior.regulariser("gloss").toarray()
+        expected = sopt.nnls(np.vstack([a_k, reg]), np.r_[y_k, np.zeros(reg.shape[0])], maxiter=100 * N)[0]
+        np.testing.assert_allclose(result.table[:, :, k].ravel(), expected, rtol=1e-5, atol=1e-6 * expected.max())
+    assert np.all(result.table.reshape(N, 3)[12] > 0)
