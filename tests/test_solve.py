@@ -797,3 +797,68 @@ def test_solve_with_a_node_no_pixel_sees():
         expected = sopt.nnls(np.vstack([a_k, reg]), np.r_[y_k, np.zeros(reg.shape[0])], maxiter=100 * N)[0]
         np.testing.assert_allclose(result.table[:, :, k].ravel(), expected, rtol=1e-5, atol=1e-6 * expected.max())
     assert np.all(result.table.reshape(N, 3)[12] > 0)
+
+
+@pytest.mark.parametrize("table_prior", [False, True])
+def test_gcv_curve_of_a_diagonal_problem_in_closed_form(table_prior):
+    """Each pixel lit by one node and a diagonal penalty: every matrix is diagonal, so the solution, the
+    data term and ``tr(H) = sum_i g_i / (g_i + lambda p_i + d_i)`` have closed forms (Hutchinson's estimate
+    with +-1 probes is exact on a diagonal), and so does ``GCV = rho / (1 - tr(H) / M)^2`` at every alpha,
+    with the basis prior's fixed diagonal ``d`` and shift ``s`` in the system and the right-hand side."""
+    rng = np.random.default_rng(5)
+    n, per = 6, 3
+    m = n * per
+    node = np.repeat(np.arange(n), per)
+    L = np.zeros((m, n, 3), np.float32)
+    L[np.arange(m), node] = rng.uniform(0.5, 2.0, (m, 3))
+    I = np.einsum("mnk,nk->mk", L.astype(np.float64), rng.uniform(0.2, 1.0, (n, 3))) * rng.uniform(0.8, 1.2, (m, 3))
+    sigma = rng.uniform(0.05, 0.2, (m, 3))
+    data = prepare_data_term(L, I, sigma)
+    p = rng.uniform(0.5, 2.0, n)
+    alphas = 10.0 ** np.arange(-3.0, 2.01, 1.0)
+    for k in range(3):
+        a = L[np.arange(m), node, k].astype(np.float64) / (sigma[:, k] * np.sqrt(m))
+        y = I[:, k] / (sigma[:, k] * np.sqrt(m))
+        g = np.bincount(node, a * a, n)
+        b = np.bincount(node, a * y, n)
+        level = b.sum() / g.sum()
+        d, s = (rng.uniform(0.5, 2.0, n) * g.mean(), rng.uniform(0.0, 1.0, n) * b.mean()) if table_prior else \
+            (np.zeros(n), np.zeros(n))
+        for probes in (1, 16):
+            curve = gcv_curve(data, np.diag(p), k, alphas=alphas, probes=probes,
+                              extra=(d, s) if table_prior else None)
+            for alpha, score, dof in zip(curve.alphas, curve.scores, curve.dof):
+                x = g + alpha / (n * level**2) * p + d
+                f = (b + s) / x
+                rho = y @ y - 2 * f @ b + g @ f**2
+                trace = np.sum(g / x)
+                assert dof == pytest.approx(trace, rel=1e-12)
+                assert score == pytest.approx(rho / (1 - trace / m) ** 2, rel=1e-10)
+
+
+def test_gcv_refuses_a_prior_it_cannot_factorise_at_any_alpha():
+    """Where ``gram + lambda P`` fails to factorise at every scanned alpha (here an indefinite ``P``), GCV has
+    no candidate: an InputError that says so, not the first alpha of the scan with an infinite score."""
+    from mi_bivariate.errors import InputError
+
+    L, I, sigma = _noisy_problem(0.05)
+    data = prepare_data_term(L, I, sigma)
+    scale = float(np.mean(np.diag(data.gram[0]))) * N * data.level[0] ** 2
+    with pytest.raises(InputError, match="cannot be factorised at any alpha"):
+        gcv_curve(data, -1e6 * scale * np.eye(N), 0, alphas=(1e-2, 1.0))
+
+
+def test_gcv_minimum_is_the_vertex_of_the_parabola_in_log10_alpha():
+    """Scores that are exactly ``exp(c (log10 alpha - v)^2 + e)`` about their smallest grid point: the
+    refined minimum is the vertex ``10^v`` with score ``exp(e)``; a minimum at either end of the grid is
+    that grid point, unrefined."""
+    from mi_bivariate.solve.gcv import _minimum
+
+    alphas = 10.0 ** np.arange(-4.0, 1.01, 1.0)
+    x = np.log10(alphas)
+    for vertex, c in ((-1.3, 0.7), (-2.8, 2.0), (-2.0, 0.1)):
+        alpha, score = _minimum(alphas, np.exp(c * (x - vertex) ** 2 + 0.4))
+        assert alpha == pytest.approx(10.0**vertex, rel=1e-9) and score == pytest.approx(np.exp(0.4), rel=1e-9)
+    rising = np.exp(np.arange(6.0))
+    assert _minimum(alphas, rising) == (1e-4, 1.0)
+    assert _minimum(alphas, rising[::-1]) == pytest.approx((10.0, 1.0), rel=1e-12)
