@@ -146,3 +146,27 @@ def test_a_call_does_not_stall_other_python_threads():
         if max(gaps) < 0.25 * call:
             return
     pytest.fail(f"a spinning thread stalled {max(gaps) * 1e3:.0f} ms during a {call * 1e3:.0f} ms factorisation")
+
+
+def test_overwrite_never_writes_into_an_array_lapack_cannot_take_as_it_is():
+    """``overwrite=True`` factorises in place only a writeable, contiguous, native float64 array: a read-only
+    one, a float32 one and a big-endian one are copied (the input unchanged) and factorised right, as are
+    such factors given to ``cho_solve``."""
+    g = _spd(12, 4)
+    b = np.random.default_rng(5).standard_normal(12)
+    exact = np.linalg.cholesky(g)
+    read_only = g.copy()
+    read_only.flags.writeable = False
+    for a in (read_only, g.astype(np.float32), g.astype(">f8")):
+        kept = a.copy()
+        c, lower = lapack.cho_factor(a, overwrite=True)
+        assert c is not a and lower
+        np.testing.assert_array_equal(a, kept)
+        rtol = 1e-5 if a.dtype == np.float32 else 1e-12
+        np.testing.assert_allclose(np.tril(c), np.linalg.cholesky(kept.astype(np.float64)), rtol=rtol, atol=rtol)
+    for c in (exact.astype(np.float32), exact.astype(">f8")):
+        factor = (c, True)
+        want = np.linalg.solve(c.astype(np.float64) @ c.astype(np.float64).T, b)
+        np.testing.assert_allclose(lapack.cho_solve(factor, b), want, rtol=1e-9)
+        np.testing.assert_allclose(np.tril(lapack.potri(factor)), np.tril(np.linalg.inv(
+            c.astype(np.float64) @ c.astype(np.float64).T)), rtol=1e-9, atol=1e-12)
