@@ -307,3 +307,22 @@ def test_second_stage_is_the_stacked_nnls_with_the_basis_prediction(alpha):
         rhs = np.concatenate([y, np.zeros(stacked.shape[0] - len(y) - N), mean[:, :, k].ravel() * w])
         expected, _ = sopt.nnls(stacked, rhs, maxiter=100 * N)
         np.testing.assert_allclose(both.table[:, :, k].ravel(), expected, rtol=1e-5, atol=1e-6 * expected.max())
+
+
+def test_solve_prepared_refuses_each_bad_argument():
+    """Each check of ``solve_prepared``'s arguments on its own, an InputError naming the argument: a winner
+    for two channels, no pair, a table-prior mean without its std (or the std alone), a std of 0, an unknown
+    confidence map, and ``alpha_sweep``'s truth on another grid."""
+    L, I = _problem(5)
+    prior = default_prior().resampled(N_T, N_S)
+    data = solve.prepare_data_term(L, I)
+    mean = np.full((N_T, N_S, 3), 1.0)
+    for kwargs, name in ((dict(winner=("gloss", "diffuse")), "winner"), (dict(pairs=()), "pairs"),
+                         (dict(mean=mean), "mean"), (dict(mean_std=mean), "mean"),
+                         (dict(mean=mean, mean_std=np.where(np.arange(N) == 7, 0.0, 1.0).reshape(N_T, N_S, 1)
+                               * mean), "std > 0"),
+                         (dict(maps=("resolution", "sharpness")), "maps")):
+        with pytest.raises(InputError, match=name):
+            solve.solve_prepared(data, prior, 1e-2, **kwargs)
+    with pytest.raises(InputError, match="truth"):
+        solve.alpha_sweep(L, I, [1e-2], prior, truth=np.zeros((N_T, N_S + 1, 3)))
