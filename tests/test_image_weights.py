@@ -7,7 +7,7 @@ import pytest
 
 from mi_bivariate import solve
 from mi_bivariate.prior import default_prior
-from mi_bivariate.solve import IMAGE_WEIGHTS, cross_image_factors, solve_stages
+from mi_bivariate.solve import CROSS_FLOOR, IMAGE_WEIGHTS, cross_image_factors, solve_stages
 
 N_T = N_S = 8
 N = N_T * N_S
@@ -125,3 +125,47 @@ def test_images_that_agree_keep_their_weight():
     prior = default_prior().resampled(N_T, N_S)
     factors = cross_image_factors(L, I, index, solve.row_sigma(I, index), prior, 1e-6)
     np.testing.assert_array_equal(factors, 1.0)
+
+
+def _documented_factors(L, I, index, sigma, prior, alpha):
+    """The docstring's rule written out (as in the test above), for any image indices: ``{image: factor}``."""
+    images = np.unique(index)
+    tables, own = {}, {}
+    for i in images:
+        rows = index == i
+        result = solve_stages(solve.prepare_data_term(L[rows], I[rows], sigma[rows]), prior, alpha)
+        tables[i] = result.table.reshape(-1, 3).astype(np.float32).astype(np.float64)
+        dof = result.resolution.reshape(-1, 3).sum(axis=0)
+        rss = np.sum((np.einsum("mnc,nc->mc", L[rows].astype(np.float64), tables[i]) - I[rows]) ** 2, axis=0)
+        own[i] = float(np.sum(rss * rows.sum() / (rows.sum() - dof)))
+    d = {}
+    for i in images:
+        excess = []
+        for j in images[images != i]:
+            rows = index == j
+            rss = np.sum((np.einsum("mnc,nc->mc", L[rows].astype(np.float64), tables[i]) - I[rows]) ** 2)
+            excess.append(max(rss - own[j], 0.0) / np.sum(I[rows] ** 2))
+        d[i] = np.sqrt(np.mean(excess))
+    low = max(min(d.values()), CROSS_FLOOR)
+    return {i: max(d[i] / low, 1.0) for i in images}, d
+
+
+def test_factors_divide_by_the_floor_when_one_table_predicts_the_others_exactly():
+    """Two noise-free images of one table: image 0 lit from everywhere (its table is the truth and predicts
+    image 1 to rounding, ``d_0`` far below :data:`CROSS_FLOOR`), image 1 lit from a few nodes (its table
+    guesses the rest). Image 1's factor is ``d_1 / CROSS_FLOOR``, not ``d_1 / d_0``; image indices with a gap
+    (0 and 2) give the image without rows a factor of 1 and the others their own."""
+    f = _truth()
+    rich = _lighting(20, 200)
+    sparse = _lighting(21, 200) * (np.arange(N) % 4 == 0)[None, :, None]
+    L = np.concatenate([rich, sparse])
+    I = np.einsum("mnc,nc->mc", L.astype(np.float64), f)
+    index = np.repeat([0, 2], 200)
+    prior = default_prior().resampled(N_T, N_S)
+    sigma = solve.row_sigma(I, index)
+    factors = cross_image_factors(L, I, index, sigma, prior, 1e-6)
+    expected, d = _documented_factors(L, I, index, sigma, prior, 1e-6)
+    assert d[0] < 0.1 * CROSS_FLOOR < d[2], d
+    assert factors.shape == (3,) and factors[1] == 1.0
+    np.testing.assert_allclose(factors[[0, 2]], [expected[0], expected[2]], rtol=1e-5)
+    assert factors[2] == pytest.approx(d[2] / CROSS_FLOOR, rel=1e-5)
