@@ -862,3 +862,33 @@ def test_gcv_minimum_is_the_vertex_of_the_parabola_in_log10_alpha():
     rising = np.exp(np.arange(6.0))
     assert _minimum(alphas, rising) == (1e-4, 1.0)
     assert _minimum(alphas, rising[::-1]) == pytest.approx((10.0, 1.0), rel=1e-12)
+
+
+def test_entry_helpers_add_repeated_entries_and_leave_a_given_factor_alone():
+    """``add_entries`` and ``quadratic_form`` against the dense matrix their entries stand for, repeated
+    entries adding up as documented; ``inverse_diagonals`` given a factor without ``overwrite_factor`` leaves
+    it as it was (the caller may still need it), by either route."""
+    import scipy.linalg as sla
+
+    from mi_bivariate.solve.common import add_entries, inverse_diagonals, quadratic_form, sparse_entries
+
+    rng = np.random.default_rng(6)
+    n = 12
+    rows, cols = np.r_[0, 3, 3, 5, 0, 11], np.r_[0, 4, 4, 5, 0, 2]
+    values = rng.uniform(0.5, 2.0, rows.size)
+    dense = np.zeros((n, n))
+    for r, c, v in zip(rows, cols, values):
+        dense[r, c] += v
+    base = rng.standard_normal((n, n))
+    np.testing.assert_allclose(add_entries(base.copy(), (rows, cols, values), 0.3), base + 0.3 * dense, rtol=1e-15)
+    f = rng.standard_normal(n)
+    assert quadratic_form((rows, cols, values), f) == pytest.approx(f @ dense @ f, rel=1e-14)
+    b_mat = rng.standard_normal((40, n))
+    gram = b_mat.T @ b_mat
+    prior = 0.5 * np.diag(np.r_[2.0, np.ones(n - 1)]) + 0.1 * (np.eye(n, k=1) + np.eye(n, k=-1))
+    x = gram + prior
+    for entries in (sparse_entries(prior), None):
+        factor = sla.cho_factor(x, lower=True)
+        kept = factor[0].copy()
+        inverse_diagonals(x, gram, factor, prior=entries)
+        np.testing.assert_array_equal(factor[0], kept)
