@@ -326,3 +326,37 @@ def test_solve_prepared_refuses_each_bad_argument():
             solve.solve_prepared(data, prior, 1e-2, **kwargs)
     with pytest.raises(InputError, match="truth"):
         solve.alpha_sweep(L, I, [1e-2], prior, truth=np.zeros((N_T, N_S + 1, 3)))
+
+
+def test_stages_take_the_pair_rule_and_report_the_first_stage_alpha_choice():
+    """``solve_stages(pair_rule="residual")`` keeps per channel the pair with the lower data term of stage 1
+    (here "diffuse" where the evidence keeps "gloss"), and its result reports stage 1's discrepancy choice."""
+    L, I = _problem(6)
+    prior = default_prior().resampled(N_T, N_S)
+    data = solve.prepare_data_term(L, I)
+    first = solve.solve_prepared(data, prior)
+    both = solve_stages(data, prior, None, _toy_basis(), pair_rule="residual")
+    residual = tuple(min(first.pairs, key=lambda p: first.pairs[p].data_term[k]) for k in range(3))
+    assert both.winner == residual != first.winner and both.pair_rule == "residual"
+    assert both.alpha_choice is not None and both.alpha_choice.alpha == first.alpha_choice.alpha
+    np.testing.assert_array_equal(both.alpha_choice.data_terms, first.alpha_choice.data_terms)
+
+
+def test_evidence_without_a_prior_is_the_fit_and_the_data_terms_determinant():
+    """alpha = 0 and no table prior (a flat prior): ``log p(y) = -(M/2) Phi - 1/2 log det G`` per channel, with
+    ``Phi`` the data term and ``G = A^T A`` written out; finite, with no warning from ``log(0)``."""
+    import warnings
+
+    L, I = _problem(9)
+    prior = default_prior().resampled(N_T, N_S)
+    data = solve.prepare_data_term(L, I)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        result = solve.solve_prepared(data, prior, 0.0)
+    for k in range(3):
+        A, y = _weighted(data, k)
+        for sol in result.pairs.values():
+            f = sol.table[:, :, k].ravel().astype(np.float64)
+            phi = np.sum((y - A @ f) ** 2)
+            expected = -0.5 * data.n_rows * phi - 0.5 * np.linalg.slogdet(A.T @ A)[1]
+            assert sol.log_evidence[k] == pytest.approx(expected, rel=1e-6)
