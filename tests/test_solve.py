@@ -892,3 +892,25 @@ def test_entry_helpers_add_repeated_entries_and_leave_a_given_factor_alone():
         kept = factor[0].copy()
         inverse_diagonals(x, gram, factor, prior=entries)
         np.testing.assert_array_equal(factor[0], kept)
+
+
+def test_nnls_hands_back_only_a_factor_of_the_whole_system():
+    """From an empty start the passive-set solves factorise ``G_FF`` only: where constraints end active, the
+    result carries no factor (the confidence would read ``G_FF``'s as ``G``'s) and factorises ``G`` itself."""
+    for kind, seed in (("active", 2), ("well", 3)):
+        a_mat, rhs = _problem(kind, seed)
+        res = nnls_gram(a_mat.T @ a_mat, a_mat.T @ rhs)
+        assert np.any(res.x == 0) and res.factor is None
+
+
+def test_prepare_data_term_refuses_bad_row_sigmas():
+    """Given row sigmas must be finite, > 0 and shaped like I: a zero (an infinite weight), a NaN and a
+    (M, 1) column each give an InputError."""
+    from mi_bivariate.errors import InputError
+
+    L = _lighting(20, 0)
+    I = np.ones((20, 3))
+    for sigma in (np.where(np.arange(60).reshape(20, 3) == 7, 0.0, 0.1), np.where(np.arange(60).reshape(20, 3) == 7,
+                                                                                   np.nan, 0.1), np.full((20, 1), 0.1)):
+        with pytest.raises(InputError, match="row sigmas"):
+            prepare_data_term(L, I, sigma)
