@@ -532,6 +532,38 @@ def test_bad_input():
         lighting.lighting_matrix(obs, synthetic_probe(), n_t=1)
 
 
+def _edge_on(obs: Observations) -> Observations:
+    """``obs`` with row 2 seen exactly edge-on (n . v = 0: a view along a tangent)."""
+    normals, views = obs.normals.copy(), obs.views.copy()
+    normals[2], views[2] = (0.0, 0.0, 1.0), (0.6, 0.8, 0.0)
+    return dataclasses.replace(obs, normals=normals, views=views)
+
+
+def _with_nan(obs: Observations, name: str) -> Observations:
+    value = getattr(obs, name).copy()
+    value[3, 1] = np.nan
+    return dataclasses.replace(obs, **{name: value})
+
+
+@pytest.mark.parametrize("front_door", ["lighting_matrix", "texel_lighting_matrix"])
+@pytest.mark.parametrize("make, match", [
+    (lambda o: dataclasses.replace(o, probe_index=np.array([0, 0, -1, 1, 0], np.int32)),
+     r"^probes: the observations refer to probe -1 but 2 probe\(s\) were given"),
+    (lambda o: _with_nan(o, "normals"), "^obs: the observations have non-finite normals or views"),
+    (lambda o: _with_nan(o, "views"), "^obs: the observations have non-finite normals or views"),
+    (_edge_on, r"^obs: some observed normals face away from their view \(n \. v <= 0\)"),
+], ids=["negative probe index", "NaN normal", "NaN view", "edge-on view"])
+def test_front_doors_refuse_rows_they_cannot_light(front_door, make, match):
+    """Rows no lighting matrix can hold are refused, each with its one InputError, before any kernel: a
+    negative probe index (numpy would silently light the row with the last probe; the message named the
+    largest index, a valid one), a NaN normal or view (a NaN row, then a NaN table), a view at n . v = 0
+    exactly (documented as refused: <= 0)."""
+    obs = random_observations(5, seed=0)
+    probes = [synthetic_probe(), Probe.constant(1.0, 16)]
+    with pytest.raises(InputError, match=match):
+        getattr(lighting, front_door)(make(obs), probes, n_t=4, n_s=4)
+
+
 @pytest.mark.parametrize("kwargs, named", [
     ({"seed": -1}, "seed"), ({"seed": 1.5}, "seed"), ({"seed": 2**40}, "seed"),
     ({"n_t": 32.5}, "n_t"), ({"n_s": "8"}, "n_s"), ({"n_dirs": 300.7}, "n_dirs"), ({"n_dirs": 1}, "n_dirs"),

@@ -167,9 +167,10 @@ def _check_inputs(obs: Observations, probes: List[Any], n_t: Any, n_s: Any, n_di
         raise InputError("probes", "no probe given")
     for k, probe in enumerate(probes):
         check_probe(probe, "probes" if len(probes) == 1 else f"probes[{k}]")
-    top = int(obs.probe_index.max())
-    if top >= len(probes) or int(obs.probe_index.min()) < 0:
-        raise InputError("probes", f"the observations refer to probe {top} but {len(probes)} probe(s) were given")
+    low, top = int(obs.probe_index.min()), int(obs.probe_index.max())
+    if top >= len(probes) or low < 0:
+        bad = low if low < 0 else top  # the index out of range, not a valid largest one
+        raise InputError("probes", f"the observations refer to probe {bad} but {len(probes)} probe(s) were given")
     if not (np.all(np.isfinite(obs.normals)) and np.all(np.isfinite(obs.views))):
         raise InputError("obs", "the observations have non-finite normals or views")
     if np.any(np.sum(obs.normals * obs.views, axis=1) <= 0.0):
