@@ -564,6 +564,20 @@ def test_front_doors_refuse_rows_they_cannot_light(front_door, make, match):
         getattr(lighting, front_door)(make(obs), probes, n_t=4, n_s=4)
 
 
+def test_lighting_matrix_size_limit_is_the_matrix_it_would_allocate(monkeypatch):
+    """The refusal of a too-big lighting matrix counts the bytes of the (M, N, 3) float32 it returns:
+    a limit of exactly L.nbytes is met, one byte less is refused (a limit counted at 2 bytes a value
+    would let twice the memory through)."""
+    obs = random_observations(5, seed=0)
+    L = lighting.texel_lighting_matrix(obs, Probe.constant(1.0, 16), n_t=4, n_s=4)
+    for front_door in (lighting.lighting_matrix, lighting.texel_lighting_matrix):
+        monkeypatch.setattr(lighting, "MAX_LIGHTING_BYTES", L.nbytes)
+        assert front_door(obs, Probe.constant(1.0, 16), n_t=4, n_s=4).nbytes == L.nbytes
+        monkeypatch.setattr(lighting, "MAX_LIGHTING_BYTES", L.nbytes - 1)
+        with pytest.raises(InputError, match=r"^obs: the lighting matrix of 5 rows x 16 nodes would take"):
+            front_door(obs, Probe.constant(1.0, 16), n_t=4, n_s=4)
+
+
 @pytest.mark.parametrize("kwargs, named", [
     ({"seed": -1}, "seed"), ({"seed": 1.5}, "seed"), ({"seed": 2**40}, "seed"),
     ({"n_t": 32.5}, "n_t"), ({"n_s": "8"}, "n_s"), ({"n_dirs": 300.7}, "n_dirs"), ({"n_dirs": 1}, "n_dirs"),
