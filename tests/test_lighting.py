@@ -928,6 +928,22 @@ def test_kernel_lane_limit_follows_the_layout(monkeypatch):
     lighting.check_kernel_lanes(8000, too_many, 32 * 32, "--dirs")
 
 
+def test_occluders_refuse_what_they_cannot_shadow():
+    """An occluder list shorter than the images, or an occluder for observations without surface positions
+    (no shadow ray can start: the occluder would be ignored without a word), is refused naming it."""
+    obs = dataclasses.replace(random_observations(6, seed=0), image_index=np.repeat(np.arange(2, dtype=np.int32), 3),
+                              positions=np.zeros((6, 3)))
+    ball = _sphere_scene((0.0, 0.0, 0.0), 5.0)
+    with pytest.raises(InputError, match=r"^occluder: the observations come from image 1 but 1 occluder\(s\) were "
+                                         r"given"):
+        lighting.lighting_matrix(obs, synthetic_probe(), n_t=4, n_s=4, n_dirs=50, occluder=[ball])
+    no_positions = dataclasses.replace(obs, positions=None)
+    for occluder in (ball, [ball, None]):
+        with pytest.raises(InputError, match="^occluder: an occluder was given but the observations have no "
+                                             "surface positions"):
+            lighting.lighting_matrix(no_positions, synthetic_probe(), n_t=4, n_s=4, n_dirs=50, occluder=occluder)
+
+
 def test_texel_kernel_lane_limit_follows_the_layout(monkeypatch):
     """The texel quadrature runs a lane per (row, texel) on CUDA: a 2k probe (2048 x 1024 texels) at
     downsample=1 with a chunk of 2048 rows makes 2^32 lanes, refused naming downsample before any kernel
