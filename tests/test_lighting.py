@@ -928,6 +928,22 @@ def test_kernel_lane_limit_follows_the_layout(monkeypatch):
     lighting.check_kernel_lanes(8000, too_many, 32 * 32, "--dirs")
 
 
+def test_kernel_lane_limit_counts_the_rows_a_small_job_has(monkeypatch):
+    """With a lane per (row, direction) (CUDA), a job of fewer rows than a chunk makes rows x pairs lanes:
+    100 rows at the most directions allowed (MAX_DIRS: 5 * 10^6 pairs, 5 * 10^8 lanes) go ahead, 1000
+    rows (5 * 10^9) are refused. Counting a whole chunk's rows refused the small job too."""
+    from mi_bivariate.lighting import kernels
+    from mi_bivariate.limits import MAX_DIRS, MAX_KERNEL_LANES
+
+    monkeypatch.setattr(kernels, "lane_per_row", lambda: False)
+    monkeypatch.setattr(lighting, "lane_per_row", lambda: False)
+    assert lighting._chunk_rows(32 * 32, None) * lighting.direction_pairs(MAX_DIRS) > MAX_KERNEL_LANES
+    lighting.check_kernel_lanes(100, MAX_DIRS, 32 * 32)
+    with pytest.raises(InputError, match="^n_dirs: 10000000 directions with 1024 grid nodes make a lighting kernel "
+                                         "of 5000000000 lanes"):
+        lighting.check_kernel_lanes(1000, MAX_DIRS, 32 * 32)
+
+
 def test_occluders_refuse_what_they_cannot_shadow():
     """An occluder list shorter than the images, or an occluder for observations without surface positions
     (no shadow ray can start: the occluder would be ignored without a word), is refused naming it."""
