@@ -183,6 +183,24 @@ def test_views_near_the_normal_match_the_numpy_reference():
     assert np.abs(fast - slow).max() <= 1e-5 * np.abs(slow).max()
 
 
+@pytest.mark.parametrize("sampling", ["mis", "uniform", "texel"])
+def test_rows_depend_on_the_directions_of_normals_and_views_only(sampling):
+    """Normals and views are directions: scaled by 0.5 and 3 (as a user's unnormalised vectors) they give
+    the same matrix (the row frames normalise both; a view left unnormalised moved its st points)."""
+    obs = random_observations(12, seed=13)
+    scaled = dataclasses.replace(obs, normals=0.5 * obs.normals, views=3.0 * obs.views)
+    probe = synthetic_probe()
+
+    def matrix(o):
+        if sampling == "texel":
+            return lighting.texel_lighting_matrix(o, probe, n_t=8, n_s=8, downsample=4)
+        return lighting.lighting_matrix(o, probe, n_t=8, n_s=8, n_dirs=400, seed=2, sampling=sampling)
+
+    expected = matrix(obs)
+    assert expected.max() > 0.0
+    np.testing.assert_allclose(matrix(scaled), expected, rtol=0, atol=1e-5 * expected.max())
+
+
 def test_chunk_rows_keep_the_target_within_budget_for_any_thread_count():
     # One copy of a chunk's scatter target on either backend (a lane per row on LLVM, atomics on
     # CUDA), so the rows per chunk do not depend on Dr.Jit's threads.
