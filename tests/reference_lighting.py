@@ -119,10 +119,11 @@ def _peak_density(wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
 
 def mis_lighting_matrix_reference(obs: Observations, probe: Any, n_t: int = 32, n_s: int = 32,
                                   n_dirs: int = 8000, seed: int = 0, rows: Any = None,
-                                  block: int = 8) -> np.ndarray:
+                                  block: int = 8, stream: int = 0) -> np.ndarray:
     """Eq. 4 row by row with the default ``"mis"`` sampling: ``(len(rows), n_t * n_s, 3) float64``.
 
-    One probe for every row (as one ``lighting_matrix`` job: its pool is stream 0). Per row: the
+    One probe for the rows computed, whose pool is ``stream`` (a ``lighting_matrix`` job draws probe
+    ``p``'s pool from stream ``p``: pass ``rows`` with ``obs.probe_index == p``). Per row: the
     three strategies' directions (the environment's from the pool entry of the row's slot), every direction
     weighted by ``cos theta / sum_j K_j q_j(d)`` with ``q_j`` the uniform density
     ``1 / (2 pi)``, the peak density (:func:`_peak_density`) and the environment proxy
@@ -133,7 +134,7 @@ def mis_lighting_matrix_reference(obs: Observations, probe: Any, n_t: int = 32, 
     offsets = hemisphere_offsets(len(obs), seed)
     counts = strategy_counts(n_dirs)
     n_env = counts["environment"]
-    pool = np.array(environment_pool(probe, n_env, seed, stream=0)).reshape(ENV_SHIFTS, n_env, 8)
+    pool = np.array(environment_pool(probe, n_env, seed, stream=stream)).reshape(ENV_SHIFTS, n_env, 8)
     env = environment_proxy(probe)
     z = float(np.sum(luminance(probe.data) * probe.solid_angles()))
     axis = np.asarray(env.axis)

@@ -104,6 +104,22 @@ def test_mis_matches_numpy_reference():
     assert np.abs(other - slow).max() > 1e-2 * np.abs(slow).max()
 
 
+def test_mis_rows_of_each_probe_match_the_numpy_reference():
+    """A job of two images under two probes (a map and a turned copy of it): each image's rows equal the
+    numpy reference with that probe and that probe's pooled environment directions (stream p for probe
+    p, so that the two images do not share their lattices), and not the other probe's stream."""
+    base = random_observations(10, seed=3)
+    stacked = capture.stack([base, base], probe_index=[0, 1])
+    probes = [synthetic_probe(), synthetic_probe().rotated(euler_deg=(0.0, 70.0, 0.0))]
+    L = lighting.lighting_matrix(stacked, probes, n_t=8, n_s=8, n_dirs=600, seed=7)
+    for p, rows in enumerate((np.arange(10), np.arange(10, 20))):
+        slow = mis_lighting_matrix_reference(stacked, probes[p], n_t=8, n_s=8, n_dirs=600, seed=7, rows=rows,
+                                             stream=p)
+        assert np.abs(L[rows] - slow).max() <= 1e-5 * np.abs(slow).max(), p
+    other = mis_lighting_matrix_reference(stacked, probes[1], n_t=8, n_s=8, n_dirs=600, seed=7, rows=rows, stream=0)
+    assert np.abs(L[rows] - other).max() > 1e-2 * np.abs(other).max()
+
+
 def test_light_directions_are_uniform_hemisphere_pairs():
     obs = random_observations(3, seed=1)
     offsets = lighting.hemisphere_offsets(3, seed=0)
