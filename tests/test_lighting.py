@@ -944,6 +944,24 @@ def test_weighted_gram_by_row_blocks_matches_dense_product():
     np.testing.assert_array_equal(gram.touched_columns(L[100:140]), [])
 
 
+def test_touched_columns_of_rgb_rows_include_columns_lit_in_one_channel():
+    """A column is touched where any of its entries, in any channel, is non-zero (a node that a
+    coloured source reaches in red only still enters the luminance Gram matrix; a mutant asking for
+    every channel dropped it), also through the adequacy's blocked statistics."""
+    from mi_bivariate import adequacy
+    from mi_bivariate.lighting import gram
+
+    rng = np.random.default_rng(4)
+    block = rng.random((6, 40, 3)) * (rng.random((6, 40, 3)) < 0.15)
+    expected = np.flatnonzero(np.any(block != 0.0, axis=(0, 2)))
+    assert np.any(np.sum(np.any(block != 0.0, axis=0), axis=1) == 1)  # columns lit in a single channel
+    np.testing.assert_array_equal(gram.touched_columns(block), expected)
+    np.testing.assert_array_equal(gram.touched_columns(block[..., 0]), np.flatnonzero(np.any(block[..., 0], axis=0)))
+    lum = block @ np.asarray(adequacy.LUMINANCE_WEIGHTS, np.float64)
+    got, _ = adequacy._luminance_statistics(block.astype(np.float32), block_rows=4)
+    np.testing.assert_allclose(got, lum.T @ lum, rtol=1e-6, atol=1e-12)
+
+
 def test_kernel_lane_limit_follows_the_layout(monkeypatch):
     """Dr.Jit indexes a kernel's lanes with 32 bits. A lane per (row, direction) (CUDA) makes
     rows x direction pairs lanes, refused above MAX_KERNEL_LANES before any work; a lane per row
