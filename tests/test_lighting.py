@@ -733,6 +733,27 @@ def test_shadow_rays_leave_from_the_geometric_normal_side():
     np.testing.assert_allclose(L, free, rtol=1e-6, atol=1e-7 * free.max())
 
 
+@pytest.mark.parametrize("sampling", ["mis", "uniform"])
+def test_a_convex_object_does_not_shadow_itself(sampling):
+    """Rows on the surface of the occluder itself, a ball, with positions and no geometric normals (their
+    shading normals stand in): no light direction of a normal's hemisphere re-enters a convex object, so
+    the matrix equals the unoccluded one. Shadow rays that left the surface without spawn_ray's offset
+    hit the ball they start on."""
+    rng = np.random.default_rng(15)
+    n = rng.normal(size=(16, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    v = n + 0.8 * rng.normal(size=(16, 3))
+    v = np.where(np.sum(n * v, axis=1, keepdims=True) < 0.1, n, v)
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    obs = Observations(n, v, np.zeros((16, 3), np.float32), np.zeros(16, np.int32), positions=0.7 * n)
+    probe = synthetic_probe()
+    kwargs = dict(n_t=8, n_s=8, n_dirs=400, seed=3, sampling=sampling)
+    free = lighting.lighting_matrix(obs, probe, **kwargs)
+    L = lighting.lighting_matrix(obs, probe, occluder=_sphere_scene((0.0, 0.0, 0.0), 0.7), **kwargs)
+    assert free.max() > 0.0
+    np.testing.assert_allclose(L, free, rtol=1e-6, atol=1e-7 * free.max())
+
+
 @pytest.fixture(scope="module")
 def data_dir_optional():
     """The shared data folder when MI_BIVARIATE_DATA is set, else None (synthetic probe)."""
