@@ -138,6 +138,21 @@ def test_light_directions_are_uniform_hemisphere_pairs():
     assert np.allclose(td[:, :2000], td[:, 2000:], atol=1e-9)
 
 
+def test_an_odd_number_of_directions_is_rounded_up_to_mirrored_pairs():
+    """As documented (light_directions): K is rounded up to even, K = 2 P mirrored pairs, so 399 directions
+    are the 400 of the uniform lattice, bit for bit, and not the 398 that rounding down would give."""
+    obs = random_observations(6, seed=2)
+    offsets = lighting.hemisphere_offsets(6, seed=0)
+    assert lighting.light_directions(obs.normals, obs.views, 399, offsets)[0].shape == (6, 400, 3)
+    probe = synthetic_probe()
+    odd, even = (lighting.lighting_matrix(obs, probe, n_t=8, n_s=8, n_dirs=k, seed=1, sampling="uniform")
+                 for k in (399, 400))
+    assert odd.max() > 0.0
+    assert_same_sums(odd, even)
+    below = lighting.lighting_matrix(obs, probe, n_t=8, n_s=8, n_dirs=398, seed=1, sampling="uniform")
+    assert not np.array_equal(below, even)
+
+
 @pytest.mark.parametrize("sampling", ["mis", "uniform"])
 def test_deterministic_and_chunking_invariant(sampling):
     # chunk=7: eight chunks, each copied into L while the next one's kernel runs (lighting._fill)
