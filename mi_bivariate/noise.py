@@ -40,6 +40,8 @@ from mi_bivariate.errors import InputError
 
 #: Intensity bins of the estimate (quantiles of the masked image).
 BINS = 12
+#: Fewest second differences a bin needs to count (fewer: too few for its quantile).
+MIN_BIN_PIXELS = 20
 #: Quantile of ``d^2`` per bin that estimates the noise: low, so that the few pixels
 #: whose second difference holds the signal's own curvature (the edges of sharp
 #: highlights) do not count as noise.
@@ -68,10 +70,12 @@ def estimate_camera_noise(image: np.ndarray, mask: Optional[np.ndarray] = None,
 
     Args:
         image: ``(H, W)`` or ``(H, W, 3)`` linear values (channels are averaged).
-        mask: ``(H, W) bool`` pixels of the object (default: every finite pixel).
+        mask: ``(H, W) bool`` pixels of the object (default: every finite pixel); non-finite pixels in it
+            are left out.
 
     Raises:
-        InputError: fewer than 100 usable pixels.
+        InputError: too few usable pixels: fewer than 100 second differences, or fewer than
+            :data:`MIN_BIN_PIXELS` in each intensity bin.
     """
     img = np.asarray(image, dtype=np.float64)
     if img.ndim == 3:
@@ -89,15 +93,16 @@ def estimate_camera_noise(image: np.ndarray, mask: Optional[np.ndarray] = None,
     centres, variances, counts = [], [], []
     for lo, hi in zip(edges[:-1], edges[1:]):
         sel = (level >= lo) & (level <= hi)
-        if sel.sum() < 20:
+        if sel.sum() < MIN_BIN_PIXELS:
             continue
         centres.append(float(np.median(level[sel])))
         variances.append(float(np.quantile(d[sel] ** 2, QUANTILE)) / _CHI2_QUANTILE / 6.0)
         counts.append(int(sel.sum()))
     if len(centres) == 1:  # a uniform image: no signal dependence to fit
         return 0.0, float(variances[0])
-    if not centres:
-        raise InputError(source, "the image is too uniform to estimate its noise", "give (a, b) explicitly")
+    if not centres:  # quantile bins: only when there are fewer than BINS * MIN_BIN_PIXELS pixels
+        raise InputError(source, f"only {level.size} usable pixels to estimate the noise from (fewer than "
+                         f"{MIN_BIN_PIXELS} in each of its intensity bins)", "give the noise model (a, b) explicitly")
     x = np.asarray(centres)
     w = np.sqrt(np.asarray(counts, np.float64)) / np.maximum(np.asarray(variances), 1e-300)
     design = np.stack([np.maximum(x, 0.0), np.ones_like(x)], axis=1) * w[:, None]

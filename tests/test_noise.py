@@ -137,6 +137,20 @@ def test_a_flat_noise_free_image_has_no_noise():
     assert estimate_camera_noise(np.full((40, 40), 0.7)) == (0.0, 0.0)
 
 
+def test_too_few_pixels_are_refused_with_their_count():
+    """Fewer than 100 second differences, or fewer than 20 in each intensity bin (up to ~240), is too few pixels
+    for a per-intensity estimate, and says so (not that a varied image is "too uniform")."""
+    rng = np.random.default_rng(0)
+    ramp = np.linspace(1.0, 2.0, 300)[None, :] + 0.01 * rng.standard_normal((1, 300))
+    with pytest.raises(InputError) as caught:
+        estimate_camera_noise(ramp[:, :101])                 # a one-row strip: 99 triplets
+    assert caught.value.problem == "only 99 usable pixels to estimate the noise from"
+    with pytest.raises(InputError, match="only 198 usable pixels to estimate the noise from"):
+        estimate_camera_noise(ramp[:, :200])                 # 12 bins of 16 or 17
+    a_hat, b_hat = estimate_camera_noise(ramp)               # 298: bins of 24 or 25
+    assert a_hat * 1.5 + b_hat == pytest.approx(1e-4, rel=0.5)
+
+
 def test_non_finite_pixels_inside_the_mask_are_left_out():
     """A NaN or an infinity inside the given mask counts as outside it: the same estimate as with those
     pixels masked out by the caller."""
