@@ -74,11 +74,11 @@ def estimate_camera_noise(image: np.ndarray, mask: Optional[np.ndarray] = None,
             are left out.
 
     Raises:
-        InputError: too few usable pixels: fewer than 100 second differences, or fewer than
-            :data:`MIN_BIN_PIXELS` in each intensity bin.
+        InputError: another shape, or too few usable pixels: fewer than 100 second differences, or fewer
+            than :data:`MIN_BIN_PIXELS` in each intensity bin.
     """
     img = np.asarray(image, dtype=np.float64)
-    if img.ndim == 3:
+    if img.ndim == 3 and img.shape[2] == 3:
         img = img.mean(axis=2)
     if img.ndim != 2:
         raise InputError(source, f"expected an (H, W) or (H, W, 3) image, got shape {np.shape(image)}")

@@ -151,6 +151,14 @@ def test_too_few_pixels_are_refused_with_their_count():
     assert a_hat * 1.5 + b_hat == pytest.approx(1e-4, rel=0.5)
 
 
+@pytest.mark.parametrize("shape", [(500,), (4, 20, 20), (20, 20, 4), (20, 20, 1, 3)])
+def test_an_image_of_another_shape_is_refused(shape):
+    """(H, W) or (H, W, 3) only: a 1-D row of values or an RGBA image (whose alpha would be averaged into the
+    signal) is an InputError, not a numpy traceback or a wrong estimate."""
+    with pytest.raises(InputError, match="expected an \\(H, W\\) or \\(H, W, 3\\) image"):
+        estimate_camera_noise(np.ones(shape))
+
+
 def test_non_finite_pixels_inside_the_mask_are_left_out():
     """A NaN or an infinity inside the given mask counts as outside it: the same estimate as with those
     pixels masked out by the caller."""
