@@ -210,3 +210,79 @@ def test_detail_matches_the_calibration_table(data_dir, name, detail):
     from mi_bivariate.probes import shared_probe
 
     assert adequacy.environment_detail(shared_probe(name, data_dir)) == pytest.approx(detail, abs=0.006)
+
+
+def test_a_node_at_either_threshold_counts_as_observed():
+    """``effective_rows >= min_effective`` and ``signal >= min_signal``, both inclusive (closed forms): a node
+    holding half of each of 8 rows has exactly 8 effective rows and signal 4; one row fewer is too few."""
+    n_t, n_s = 2, 2
+    half = np.zeros((8, n_t * n_s))
+    half[:, 0] = half[:, 1] = 0.5                     # node 0 and node 1 share every row equally
+    effective, signal = adequacy.node_observation_strength(half, n_t, n_s)
+    assert effective.ravel()[0] == 8.0 and signal.ravel()[0] == 4.0
+    assert adequacy.observed_nodes(half, n_t, n_s).ravel().tolist() == [True, True, False, False]
+    assert adequacy.observed_nodes(half, n_t, n_s, min_signal=4.0).ravel()[0]
+    assert not adequacy.observed_nodes(half, n_t, n_s, min_signal=4.0 + 1e-9).ravel()[0]
+    assert not adequacy.observed_nodes(half[:7], n_t, n_s).ravel()[0]
+
+
+def test_a_lighting_matrix_of_another_grid_is_refused():
+    """Every front door that reshapes L's columns to the st grid refuses a mismatch with one InputError."""
+    from mi_bivariate.errors import InputError
+
+    L = np.ones((5, 16))
+    for call in (lambda: adequacy.observation_map(L, 4, 5), lambda: adequacy.node_observation_strength(L, 4, 5),
+                 lambda: adequacy.observed_nodes(L, 4, 5), lambda: adequacy.analyse(L, 4, 5, warn=False)):
+        with pytest.raises(InputError, match="lighting matrix has 16 columns, expected 4x5"):
+            call()
+
+
+def test_region_masks_are_the_closed_form_with_both_ends_included():
+    """On a 4 x 4 grid the nodes sit at theta_h = 90 (i / 3)^2 = 0, 10, 40, 90 and theta_d = 30 j = 0 .. 90
+    degrees: specular (theta_h 0-2) is the first row, retro (theta_d 0-10) the first column, grazing
+    (theta_d 75-90) the last; each interval's two ends belong to it."""
+    masks = adequacy.region_masks(4, 4)
+    first_row, first_col, last_col = (np.zeros((4, 4), bool) for _ in range(3))
+    first_row[0], first_col[:, 0], last_col[:, 3] = True, True, True
+    np.testing.assert_array_equal(masks["specular"], first_row)
+    np.testing.assert_array_equal(masks["retro"], first_col)
+    np.testing.assert_array_equal(masks["grazing"], last_col)
+
+
+def test_region_summaries_by_hand():
+    """A 4 x 4 lighting matrix whose rows put known shares on the specular row's nodes (3, 0.005, 1 and 0
+    pixels' worth): ``observed`` counts the nodes with at least 0.01, ``median_per_node`` is their median,
+    ``share`` their part of all rows."""
+    n = 16
+    L = np.zeros((5, n))
+    L[0:3, 0] = 2.0                         # node 0: three rows of its own
+    L[3, 1], L[3, 5] = 0.005, 0.995          # node 1: 0.005 of a row (the rest on node 5, not specular)
+    L[4, 2] = 7.0                           # node 2: one row; node 3: none
+    report = adequacy.analyse(L, 4, 4, warn=False)
+    np.testing.assert_allclose(report.observation_map[0], [3.0, 0.005, 1.0, 0.0], rtol=1e-12)
+    specular = report.regions["specular"]
+    assert specular["nodes"] == 4 and specular["observed"] == 2
+    assert specular["median_per_node"] == pytest.approx(0.5025, rel=1e-12)
+    assert specular["share"] == pytest.approx(4.005 / 5, rel=1e-12)
+
+
+def test_the_rank_verdict_at_exactly_half_the_nodes_and_its_cause():
+    """Numerical rank half the nodes is adequate, one less is not (closed form: rows of the identity); a rank
+    short although the rows alone could reach half the nodes is the lighting's fault, not the rows'."""
+    n_t = n_s = 4
+    eye = np.eye(n_t * n_s)
+    assert adequacy.analyse(eye[:8], n_t, n_s, warn=False).adequate
+    short = adequacy.analyse(eye[:7], n_t, n_s, warn=False)
+    assert not short.adequate and "numerical rank 7 of 16" in short.summary()
+    assert "only 7 observed normals for 16 nodes" in short.summary()
+    same = adequacy.analyse(np.ones((10, n_t * n_s)), n_t, n_s, warn=False)   # ten rows, all alike: rank 1
+    assert "numerical rank 1 of 16" in same.summary() and "too little variety in the lighting" in same.summary()
+
+
+def test_detail_is_cached_per_number_of_points():
+    """The detail's lattice size is part of its cache key: another ``n_points`` is computed afresh."""
+    rng = np.random.default_rng(6)
+    probe = Probe((rng.random((128, 256, 3)) ** 6 * 10).astype(np.float32), source="points")  # 1.4 degree texels
+    default = adequacy.environment_detail(probe)
+    fewer = adequacy.environment_detail(probe, n_points=2000)
+    assert fewer == adequacy._environment_detail(probe, adequacy.DETAIL_SCALE_DEG, 2000) != default
