@@ -107,3 +107,47 @@ def test_a_shared_probe_by_path_is_the_shared_probe_and_a_copy_is_read_as_is(dat
     link = tmp_path / "my_probe.exr"  # a symbolic link to the shared file, under any name, is that file
     link.symlink_to(path)
     np.testing.assert_array_equal(sources.load_probe(str(link), None).to_world, by_name.to_world)
+
+
+def test_an_uncached_load_is_fresh_after_a_cached_one():
+    """``cache=False`` (the default) never hands out the process's cached probe, before or after one is kept."""
+    cached = sources.load_probe("synthetic:5", cache=True)
+    assert sources.load_probe("synthetic:5") is not cached
+    assert sources.load_probe("synthetic:5", cache=True) is cached
+
+
+def test_an_inputs_label_names_each_of_its_probes():
+    """An evaluation input of several probes joined by ``+`` is labelled probe by probe (file stems)."""
+    assert sources.input_label("/a/b/pisa_256.hdr+grace_latlong_1k+synthetic:3") == "pisa_256+grace_latlong_1k+synthetic:3"
+    assert sources.input_label("/a/b/pisa_256.hdr") == "pisa_256"
+
+
+def test_input_files_are_what_each_spec_reads(data_dir, tmp_path):
+    """The files behind specs, for the check that no output overwrites an input: a file as given, a folder's
+    ``.binary`` files, the shared file behind a shared probe name or a MERL-NBRDF name; nothing for specs that
+    read no file (analytic, synthetic, None, empty)."""
+    from mi_bivariate import probes
+
+    (tmp_path / "m.binary").write_bytes(b"listed, not read")
+    (tmp_path / "notes.txt").write_text("x")
+    got = sources.input_files(str(tmp_path), str(tmp_path / "notes.txt"), "grace_latlong_1k", "blue-acrylic",
+                              GGX, "synthetic:1", None, "", data_dir=data_dir)
+    assert got == [tmp_path / "m.binary", tmp_path / "notes.txt", probes.shared_probe_path("grace_latlong_1k", data_dir),
+                   nbrdf.weights_path("blue-acrylic", data_dir)]
+
+
+def test_the_synthetic_sun_is_a_disc_of_0_06_rad_where_its_docstring_puts_it():
+    """The synthetic probe's sun (adds 160 over the three channels; sky, glow and windows stay below 40): its
+    solid angle is the cap's ``2 pi (1 - cos 0.06)`` and its centre the stated direction (polar angle 0.7 from
+    +y, azimuth 1.0), measured on a 256 x 512 lat-long grid (0.7 degree texels)."""
+    env = sources.synthetic_environment(256, 512, seed=0).astype(np.float64)
+    h, w = env.shape[:2]
+    theta = ((np.arange(h) + 0.5) / h * np.pi)[:, None]
+    phi = ((np.arange(w) + 0.5) / w * 2.0 * np.pi)[None, :]
+    sun = env.sum(axis=2) > 100.0
+    texel = np.sin(theta) * (np.pi / h) * (2.0 * np.pi / w) * sun
+    assert texel.sum() == pytest.approx(2.0 * np.pi * (1.0 - np.cos(0.06)), rel=0.08)
+    dirs = np.stack(np.broadcast_arrays(np.sin(theta) * np.cos(phi), np.cos(theta), np.sin(theta) * np.sin(phi)), -1)
+    centre = (dirs * texel[..., None]).sum(axis=(0, 1))
+    want = [np.sin(0.7) * np.cos(1.0), np.cos(0.7), np.sin(0.7) * np.sin(1.0)]
+    assert np.degrees(np.arccos(np.dot(centre / np.linalg.norm(centre), want))) < 0.2
