@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -253,3 +254,138 @@ def test_stacked_footprints_stay_with_their_rows():
     assert len(s.footprint_rows) == sum(len(p.footprint_rows) for p in parts) > 100
     cos = np.sum(s.footprint_normals * s.normals[s.footprint_rows], axis=1)
     assert np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))).max() < 15.0
+
+
+def test_hemisphere_lattice_is_the_stated_closed_form():
+    """``z_k = 1 - (k + 1/2) / n``, unit vectors, golden-angle azimuth steps (mod 2 pi) after a seeded offset."""
+    n = 50
+    lattice = capture.hemisphere_lattice(n, seed=3)
+    np.testing.assert_allclose(lattice[:, 2], 1.0 - (np.arange(n) + 0.5) / n, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(np.linalg.norm(lattice, axis=1), 1.0, rtol=1e-14)
+    phi = np.arctan2(lattice[:, 1], lattice[:, 0])
+    step = np.mod(np.diff(phi), 2.0 * np.pi)
+    np.testing.assert_allclose(step, np.mod(2.0 * np.pi / ((1.0 + math.sqrt(5.0)) / 2.0), 2.0 * np.pi), atol=1e-12)
+
+
+@pytest.mark.parametrize("axis", [[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [-1.0, 0.0, 0.0], [0.95, 0.3, 0.0],
+                                  [0.3, -0.2, -2.0]])
+def test_frame_about_an_axis_is_a_rotation_onto_it(axis):
+    """Orthonormal, determinant +1 (a rotation, not a reflection), third column the unit axis: also for axes
+    along or near x, where the first helper vector is (nearly) parallel."""
+    from mi_bivariate.capture import _frame_about
+
+    frame = _frame_about(np.array(axis))
+    np.testing.assert_allclose(frame.T @ frame, np.eye(3), atol=1e-12)
+    assert np.linalg.det(frame) == pytest.approx(1.0, abs=1e-12)
+    np.testing.assert_allclose(frame[:, 2], np.array(axis) / np.linalg.norm(axis), atol=1e-15)
+
+
+def test_each_value_is_the_image_at_its_own_normal():
+    """A sphere shaded by its normal's y and x (0.5 + 0.3 n_y + 0.1 n_x: not symmetric top to bottom or left to
+    right): every row's value is that function of its own normal (image y points down, world y up)."""
+    geo = SphereGeometry(64.0, 60.0, 50.0)
+    normals, mask = geo.normals(128, 128)
+    shade = np.where(mask, 0.5 + 0.3 * normals[..., 1] + 0.1 * normals[..., 0], 0.0)
+    obs = capture.observations_from_sphere(np.repeat(shade[..., None], 3, axis=2).astype(np.float32), geo,
+                                           n_normals=1500)
+    assert len(obs) > 1000
+    np.testing.assert_allclose(obs.values[:, 1], 0.5 + 0.3 * obs.normals[:, 1] + 0.1 * obs.normals[:, 0], rtol=1e-6)
+
+
+def test_a_sphere_past_the_bottom_right_edges_drops_the_normals_beyond_them():
+    """Lattice normals that project beyond the last row or column are counted as ``outside_image`` (the
+    orthographic projection ``x = cx + r n_x``, ``y = cy - r n_y``, by hand), never indexed into the image."""
+    image, _ = sphere_image()
+    geo = SphereGeometry(100.0, 110.0, 40.0)
+    with pytest.warns(InputWarning, match="beyond the"):
+        obs = capture.observations_from_sphere(image, geo, n_normals=3000)
+    lattice = capture.hemisphere_lattice(3000, 0)
+    lattice = lattice[lattice[:, 2] >= math.cos(math.radians(80.0))]
+    cols, rows = np.floor(100.0 + 40.0 * lattice[:, 0]), np.floor(110.0 - 40.0 * lattice[:, 1])
+    assert obs.dropped["outside_image"] == np.count_nonzero((cols >= 128) | (rows >= 128)) > 100
+    assert obs.pixels[:, 0].max() < 128 and obs.pixels[:, 1].max() < 128
+
+
+@pytest.mark.parametrize("centre", [(64.0, -30.0), (64.0, 160.0), (-30.0, 64.0), (160.0, 64.0)])
+def test_a_sphere_wholly_off_any_side_is_refused_and_one_across_any_side_warns(centre):
+    image, _ = sphere_image()
+    with pytest.raises(InputError, match="lies outside the 128x128 image"):
+        capture.observations_from_sphere(image, SphereGeometry(*centre, 20.0))
+    across = [c if abs(c - 64.0) < 1 else (0.0 if c < 0 else 128.0) for c in centre]   # centre on that edge
+    with pytest.warns(InputWarning, match="extends beyond the 128x128 image"):
+        capture.observations_from_sphere(image, SphereGeometry(*across, 20.0), n_normals=2000)
+
+
+def test_pixel_value_limits_are_inclusive():
+    """The largest accepted value is MAX_PIXEL itself and the smallest largest value MIN_PIXEL itself (float64
+    input, compared before the float32 cast); twice the one and half the other are refused."""
+    image = np.zeros((4, 4, 3))
+    for top, ok in ((capture.MAX_PIXEL, True), (2.0 * capture.MAX_PIXEL, False), (capture.MIN_PIXEL, True),
+                    (0.5 * capture.MIN_PIXEL, False)):
+        image[1, 1, 1] = top
+        if ok:
+            capture.check_image(image)
+        else:
+            with pytest.raises(InputError, match="too (large|small) for float32"):
+                capture.check_image(image)
+
+
+def test_clipping_warnings_count_pixels_clipped_in_any_channel():
+    """16 sphere pixels at the image maximum warn that it looks clipped (15 do not; a sphere of ~5000 pixels,
+    whose 0.2% is fewer), also when only the red channel reaches it (a red highlight)."""
+    image, geo = sphere_image(radius=40.0)
+    _, mask = geo.normals(128, 128)
+    rows, cols = np.nonzero(mask)
+    for count, warns in ((16, True), (15, False)):
+        clipped = image.copy()
+        clipped[rows[:count], cols[:count], 0] = 5.0             # red only; green and blue stay below
+        with warnings.catch_warnings(record=True) as seen:
+            warnings.simplefilter("always")
+            capture.observations_from_sphere(clipped, geo, n_normals=1000)
+        assert any("looks clipped" in str(w.message) for w in seen) is warns, count
+
+
+def test_unusable_values_warn_above_five_percent_and_few_rows_below_256():
+    """Of the sampled sphere pixels: 10% non-finite warn (more than 5%), 4% do not; fewer than 256 usable rows
+    warn, 256 or more do not."""
+    image, geo = sphere_image()
+    clean = capture.observations_from_sphere(image, geo, n_normals=3000)
+    rows, cols = clean.pixels.T
+    for share, warns in ((0.10, True), (0.04, False)):
+        bad = image.copy()
+        k = int(share * len(clean))
+        bad[rows[:k], cols[:k], 2] = np.nan
+        with warnings.catch_warnings(record=True) as seen:
+            warnings.simplefilter("always")
+            capture.observations_from_sphere(bad, geo, n_normals=3000)
+        assert any("unusable values" in str(w.message) for w in seen) is warns, share
+    sizes = []
+    for n_normals in (300, 400):                           # 241 and 329 usable rows
+        with warnings.catch_warnings(record=True) as seen:
+            warnings.simplefilter("always")
+            sizes.append(len(capture.observations_from_sphere(image, geo, n_normals=n_normals)))
+        assert any("usable observations" in str(w.message) for w in seen) is (sizes[-1] < 256), sizes
+    assert sizes[0] < 256 <= sizes[1]
+
+
+def test_a_sphere_whose_only_light_is_in_dropped_pixels_is_black():
+    """Positive values only in pixels that are dropped (saturated) leave a black sphere: refused."""
+    image, geo = sphere_image()
+    obs = capture.observations_from_sphere(image, geo, n_normals=1000)
+    dark = np.zeros_like(image)
+    dark[obs.pixels[::2, 0], obs.pixels[::2, 1]] = 10.0
+    with pytest.raises(InputError, match="black on the object"):
+        capture.observations_from_sphere(dark, geo, n_normals=1000, saturation=5.0)
+
+
+def test_a_subset_in_another_order_keeps_each_footprint_with_its_row():
+    """``subset`` with rows in another order (a permutation): the footprint normals follow their rows and stay
+    ascending by row."""
+    image, geo = sphere_image()
+    obs = capture.observations_from_sphere(image, geo, n_normals=600, max_view_angle_deg=88.0, footprint=1.0)
+    order = np.random.default_rng(1).permutation(len(obs))
+    sub = obs.subset(order)
+    assert len(sub.footprint_rows) == len(obs.footprint_rows) > 50 and np.all(np.diff(sub.footprint_rows) >= 0)
+    for new in np.unique(sub.footprint_rows)[:20]:
+        np.testing.assert_array_equal(sub.footprint_normals[sub.footprint_rows == new],
+                                      obs.footprint_normals[obs.footprint_rows == order[new]])
