@@ -360,3 +360,86 @@ def test_reductions_are_made_again_when_the_data_the_grid_or_the_reduction_code_
         monkeypatch.setattr(mod, "__file__", str(edited))
     training_set.reduced_tables(*grid, names, root)
     assert reduced == names * 2
+
+
+def test_a_cached_reduction_that_is_not_finite_or_of_another_shape_is_made_again(tmp_path, monkeypatch):
+    """A reductions cache entry holding NaN, or a table of another shape, is not used: that material is
+    reduced again (a fake reduction counts) and the tables returned are the fresh ones, those asked for."""
+    root = tmp_path / "data"
+    (root / "merl_nbrdf").mkdir(parents=True)
+    for rel in (nbrdf.NBRDF_FILE, nbrdf.NBRDF_TRAIN_FILE):
+        (root / rel).write_bytes(str(rel).encode())
+    monkeypatch.setenv("MI_BIVARIATE_CACHE", str(tmp_path / "cache"))
+    reduced = []
+
+    class Reduced:
+        def __init__(self, n_t, n_s):
+            self.table = np.ones((n_t, n_s, 3))
+
+    monkeypatch.setattr(training_set, "nbrdf_merl", lambda name, data_root: name)
+    monkeypatch.setattr(training_set.BivariateBRDF, "reduce",
+                        lambda merl, n_t, n_s: reduced.append(merl) or Reduced(n_t, n_s))
+    names = ["brass", "black-fabric", "gold-paint"]
+    training_set.reduced_tables(4, 5, names, root)
+    (path,) = (tmp_path / "cache").glob("nbrdf_reductions_*.npz")
+    stored = dict(np.load(path))
+    stored["brass"] = np.full((4, 5, 3), np.nan)
+    stored["black-fabric"] = np.ones((5, 4, 3))
+    np.savez(path, **stored)
+    tables = training_set.reduced_tables(4, 5, names, root)
+    assert reduced == names + ["brass", "black-fabric"]
+    for name in names:
+        np.testing.assert_array_equal(tables[name], np.ones((4, 5, 3)))
+    assert list(training_set.reduced_tables(4, 5, names[1:], root)) == names[1:]   # the names asked, no more
+
+
+def test_priors_are_learnt_from_three_materials_at_least():
+    """Fewer than 3 training tables (after the exclusions) is refused naming the training set."""
+    tables = _family(3, seed=2)
+    with pytest.raises(InputError, match=r"^prior training set: has 2 materials \(give at least 3\)$"):
+        training_set.learn_priors(tables, exclude="m0")
+    with pytest.raises(InputError, match="has 2 materials"):
+        training_set.learn_priors({k: tables[k] for k in ("m0", "m1")})
+
+
+def test_two_merl_files_of_one_material_name_or_none_are_refused(tmp_path, monkeypatch):
+    """``tables_from_sources`` (learn-prior's inputs): two files that hold the same material name (two
+    ``m.binary`` in two folders) are refused, not one silently replaced by the other; so is no source."""
+    for folder in ("a", "b"):
+        (tmp_path / folder).mkdir()
+        (tmp_path / folder / "m.binary").write_bytes(b"read by the stand-in")
+
+    class Read:
+        name = None
+
+    monkeypatch.setattr(training_set.MERLBRDF, "read", staticmethod(lambda path: Read()))
+    monkeypatch.setattr(training_set.BivariateBRDF, "reduce",
+                        lambda merl, n_t, n_s: type("Reduced", (), {"table": np.ones((n_t, n_s, 3))})())
+    tables, origin = training_set.tables_from_sources([tmp_path / "a"], 4, 4)
+    assert list(tables) == ["m"] and origin["m"] == "MERL file m.binary"
+    with pytest.raises(InputError, match="material 'm' given twice"):
+        training_set.tables_from_sources([tmp_path / "a", tmp_path / "b"], 4, 4)
+    with pytest.raises(InputError, match=r"^prior training set: is empty$"):
+        training_set.tables_from_sources([], 4, 4)
+    Read.name = "gold"                                     # a file that names its material is read as that
+    assert list(training_set.tables_from_sources([tmp_path / "a" / "m.binary"], 4, 4)[0]) == ["gold"]
+
+
+def test_the_basis_prior_file_sits_beside_the_smoothness_prior_and_is_read_when_asked(tmp_path):
+    """``learn-prior --out P.npz`` writes the basis prior to ``P_basis.npz``; ``load_prior_files`` reads it
+    back unless told not to (``--no-basis-prior``), and gives ``None`` where there is none. A path without a
+    file name is refused."""
+    rng, t = np.random.default_rng(0), np.linspace(0, 1, 8)[:, None, None]
+    tables = {f"m{k}": (0.1 + (1000.0 * np.exp(-(t / 0.1) ** 2) if k % 2 else 0.0))   # diffuse and glossy
+              * np.exp(rng.normal(0.0, 0.1, (8, 8, 3))) for k in range(6)}
+    smooth, basis = training_set.learn_priors(tables)
+    path = tmp_path / "mine.npz"
+    assert training_set.basis_path_for(path) == tmp_path / "mine_basis.npz"
+    with pytest.raises(InputError, match="not a file"):
+        training_set.basis_path_for("/")                     # a folder has no name to put "_basis" after
+    smooth.save(path)
+    assert training_set.load_prior_files(path)[1] is None
+    basis.save(training_set.basis_path_for(path))
+    loaded = training_set.load_prior_files(path)
+    assert isinstance(loaded[1], BasisPrior) and loaded[1].materials == basis.materials
+    assert training_set.load_prior_files(path, basis=False)[1] is None
