@@ -215,3 +215,32 @@ def test_camera_noise_level_must_be_finite():
     for level in (np.inf, np.nan, -0.01):
         with pytest.raises(InputError, match="noise level must be a finite number >= 0"):
             camera_noise(np.ones((8, 8, 3)), level)
+
+
+def _antialiased_sphere(size, cx, cy, r, ss=4):
+    """A shaded sphere as a camera sees it: each pixel the mean of ``ss x ss`` samples (so rim pixels mix
+    with the black background), ``(size, size)``."""
+    o = (np.arange(size * ss) + 0.5) / ss
+    x, y = np.meshgrid(o, o)
+    r2 = ((x - cx) ** 2 + (y - cy) ** 2) / r**2
+    shade = np.where(r2 < 1, 0.3 + 2.0 * (1 - r2) + 0.3 * (x - cx) / r, 0.0)
+    return shade.reshape(size, ss, size, ss).mean(axis=(1, 3))
+
+
+def test_recover_auto_noise_is_each_channels_own_also_on_a_sphere_the_frame_cuts():
+    """``recover(noise="auto")``'s per-channel estimate (recover._estimate_noise: lit pixels eroded by 2) on an
+    antialiased sphere that the image frame cuts on two sides (the erosion leaves the frame's own rows and
+    columns alone; there the sphere is cut, not mixed with the background): each channel's fitted
+    ``a I + b`` against its own added noise at the lit pixels' median and 95% quantile."""
+    from mi_bivariate.recover import _estimate_noise
+
+    shade = _antialiased_sphere(128, cx=40.0, cy=50.0, r=70.0)
+    lit = shade > 0
+    assert lit[0].any() and lit[:, 0].any()                    # the sphere reaches the frame
+    clean = shade[..., None] * np.array([1.0, 0.7, 0.4])
+    a, b = np.array([0.02, 0.005, 0.01]), np.array([1e-5, 4e-4, 1e-4])
+    noisy = np.where(lit[..., None], add_camera_noise(clean, a, b, seed=3), 0.0)
+    a_hat, b_hat = _estimate_noise(noisy, "image")
+    for q in (0.5, 0.95):
+        level = np.quantile(clean[lit], q, axis=0)
+        np.testing.assert_allclose(a_hat * level + b_hat, a * level + b, rtol=0.25, err_msg=str(q))
