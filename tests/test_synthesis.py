@@ -81,6 +81,47 @@ def test_optimise_table_refuses_or_drops_what_it_cannot_fit():
             run(**kwargs)
 
 
+def _sky_shot():
+    """A 16 px render of a constant table under a sky with a gradient (so that each seed's render differs), the
+    sizes of test_optimise_table_refuses_or_drops_what_it_cannot_fit's (its compiled kernels serve)."""
+    from mi_bivariate.variants import ensure_variant
+
+    ensure_variant()
+    theta = (np.arange(8) + 0.5)[:, None, None] / 8
+    probe = Probe((0.2 + 2.0 * (1.0 - theta) * np.ones((8, 16, 3))).astype(np.float32), source="sky")
+    truth = np.broadcast_to(np.array([0.5, 0.3, 0.2]) / np.pi, (4, 4, 3)).astype(np.float32)
+    return probe, truth, render.render_sphere(render.bsdf_dict(BivariateBRDF(truth)), probe, resolution=16,
+                                              spp=64, seed=0)
+
+
+def test_optimise_table_loss_is_relative_each_iteration_has_its_seed_and_the_last_is_checked():
+    """Closed form: twice the true table renders twice the image, so the first loss (mean squared error over
+    the image's mean square) is ~1 (plus the renders' own noise). With a step too small to move the table, each iteration's render still
+    differs (its own seed); ``on_checkpoint`` sees every ``eval_every``-th iteration and the last. A sphere
+    pixel that is 0 is a pixel like any other."""
+    probe, truth, shot = _sky_shot()
+    image = shot.image.copy()
+    image[8, 8] = 0.0
+    assert shot.mask[8, 8]
+    seen = []
+    settings = synthesis.SynthesisSettings(spp=4, learning_rate=1e-9, smoothness=0.0, seed=3)
+    run = synthesis.optimise_table(image, shot.mask, probe, 2.0 * truth, settings, budget_s=1e9, max_iterations=3,
+                                   eval_every=2, on_checkpoint=lambda it, clock, loss, table: seen.append(it))
+    assert seen == [2, 3]
+    assert 0.9 < run["losses"][0] < 1.4                  # 1 plus the 4 spp renders' own noise (1.21 measured)
+    assert len(set(run["losses"])) == 3
+
+
+def test_optimise_table_keeps_log_f_within_its_bounds():
+    """A start above ``exp(log_bounds[1])`` is brought down to it after the first step."""
+    probe, truth, shot = _sky_shot()
+    hi = float(np.log(0.2))
+    settings = synthesis.SynthesisSettings(spp=4, seed=3, log_bounds=(-14.0, hi))
+    run = synthesis.optimise_table(shot.image, shot.mask, probe, 2.0 * truth, settings, budget_s=1e9,
+                                   max_iterations=1)
+    assert 2.0 * truth.max() > 0.3 and run["table"].max() <= 0.2 * (1 + 1e-6)
+
+
 @pytest.mark.parametrize("field, value, message", [
     ("spp", 0, "spp"), ("spp", 2.5, "spp"), ("learning_rate", -0.05, "learning_rate"),
     ("learning_rate", float("nan"), "learning_rate"), ("smoothness", -1e-3, "smoothness"),
@@ -312,3 +353,53 @@ def test_analysis_by_synthesis_times_every_linear_point_alike_and_scores_at_the_
     assert abs(floors[0] - floors[1]) > 1e-6 * floors[0]   # the seed shows in the floor ...
     assert r["relight_floor"] == pytest.approx(floors[0], rel=1e-7)   # ... and it is the evaluation's
     assert r["abs"]["best_relight"] == min(t["relight"] for t in r["trace"])
+
+
+def test_synthesis_settings_accept_the_edges_of_what_the_optimiser_can_use():
+    """No smoothness (0), unlimited depth (-1) are settings; infinite steps, weights or bounds and bounds that
+    are not numbers are not."""
+    synthesis.SynthesisSettings(smoothness=0.0, max_depth=-1, spp=1)
+    for field, value in [("learning_rate", float("inf")), ("smoothness", float("inf")),
+                         ("log_bounds", (-float("inf"), 9.0)), ("log_bounds", ("a", "b")), ("max_depth", -2)]:
+        with pytest.raises(InputError, match=field):
+            synthesis.SynthesisSettings(**{field: value})
+
+
+def test_lambertian_start_is_never_negative():
+    """An image anti-correlated with the all-ones prediction has a negative least-squares constant: the start
+    is 0 there (a BRDF is >= 0), the least-squares value elsewhere."""
+    L = np.random.default_rng(2).uniform(0.0, 1.0, (40, 9, 3))
+    y = L.sum(axis=1) * np.array([0.3, 0.2, 0.1])
+    y[:, 1] *= -1.0
+    np.testing.assert_allclose(synthesis.lambertian_start(L, y), [0.3, 0.0, 0.1], rtol=1e-12, atol=0)
+
+
+def test_a_linear_points_time_is_the_median_of_its_runs(monkeypatch):
+    """``linear_run``'s time is the median of its runs' stage sums (a slow outlier run does not move it)."""
+    sums = iter([1.0, 2.0, 10.0])
+
+    def recover(*args, **kwargs):
+        total = next(sums)
+        return type("Rec", (), {"timings": {stage: total / len(synthesis.LINEAR_STAGES)
+                                            for stage in synthesis.LINEAR_STAGES}})()
+
+    monkeypatch.setattr(synthesis, "recover", recover)
+    shot = type("Shot", (), {"image": None, "geometry": None})()
+    config = type("Config", (), {"grid": (8, 8), "alpha": None, "seed": 0})()
+    _, point = synthesis.linear_run(shot, None, config, 300, 1000, 3)
+    assert point["times_s"] == pytest.approx([1.0, 2.0, 10.0]) and point["time_s"] == pytest.approx(2.0)
+
+
+def test_linear_reaches_gives_no_ratio_for_a_linear_run_of_no_time():
+    """A linear run timed at 0 s reaches AbS's best but gives no speed ratio (not a division by zero)."""
+    point = {"time_s": 0.0, "relight": 0.05}
+    assert synthesis.linear_reaches([point], 0.1, 3.0) == (point, None)
+
+
+def test_scored_tables_are_cleaned_of_nan_and_negative_values():
+    """``bivariate_brdf`` (what AbS's checkpoints are scored as): NaN and negative nodes become 0."""
+    table = np.full((4, 4, 3), 0.2)
+    table[0, 0, 0], table[1, 2, 1] = np.nan, -0.5
+    got = synthesis.bivariate_brdf(table).table
+    assert np.all(np.isfinite(got)) and got.min() == 0.0 and got[0, 0, 0] == 0.0 and got[1, 2, 1] == 0.0
+    assert np.count_nonzero(got == 0.2) == table.size - 2
