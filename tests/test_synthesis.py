@@ -403,3 +403,9 @@ def test_scored_tables_are_cleaned_of_nan_and_negative_values():
     got = synthesis.bivariate_brdf(table).table
     assert np.all(np.isfinite(got)) and got.min() == 0.0 and got[0, 0, 0] == 0.0 and got[1, 2, 1] == 0.0
     assert np.count_nonzero(got == 0.2) == table.size - 2
+
+
+def test_ladder_sizes_never_exceed_the_configurations_directions():
+    """Rungs floored at LADDER_MIN directions above the configuration's own are dropped (as for normals)."""
+    assert synthesis.ladder_sizes(8000, 100) == []
+    assert synthesis.ladder_sizes(8000, 300) == [(1000, 250), (2000, 250), (4000, 250)]
