@@ -151,3 +151,15 @@ def test_the_synthetic_sun_is_a_disc_of_0_06_rad_where_its_docstring_puts_it():
     centre = (dirs * texel[..., None]).sum(axis=(0, 1))
     want = [np.sin(0.7) * np.cos(1.0), np.cos(0.7), np.sin(0.7) * np.sin(1.0)]
     assert np.degrees(np.arccos(np.dot(centre / np.linalg.norm(centre), want))) < 0.2
+
+
+def test_material_slugs_of_different_labels_differ():
+    """Artifacts are named by slug: a label with characters a file name cannot hold gets a hashed slug, so
+    that it never takes the file of a label that is already safe ('a b' is not 'a_b'); a safe label is its
+    own slug, a long one is cut and hashed."""
+    def slug(label):
+        return sources.MaterialSpec(label, "analytic", "x").slug
+
+    assert slug("gold-paint") == "gold-paint" and slug("a_b") == "a_b"
+    assert slug("a b") != slug("a_b") and slug("a b").startswith("a_b-")
+    assert len(slug("x" * 70)) == 57 and slug("x" * 70) != slug("x" * 71)
