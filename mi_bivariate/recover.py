@@ -264,7 +264,8 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
             prediction, which then joins Eq. 6 as a per-node Gaussian.
         noise: the camera's noise, variance ``a I + b`` in each image's units:
             ``(a, b)`` for every image (``a`` and ``b`` each a number or three, R, G, B),
-            a list with one ``(a, b)`` or ``None`` per image, ``"auto"`` (default: estimated from each image,
+            a list with one ``(a, b)`` or ``None`` per image, ``"auto"`` (default: estimated from each image's
+            object, its lit pixels that ``geometry`` puts on the object less a 2 px rim, by
             :func:`noise.estimate_camera_noise`; ~0 for a clean rendering), or
             ``None`` (clean input; only the model error counts, see
             :func:`solve.row_sigma`). Measured on a 256-spp Mitsuba render of a
@@ -317,7 +318,7 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
     for k, item in enumerate(probe_list):  # before any work: a wrong object or a black probe
         source = "probe" if n == 1 else f"probe {k}"
         check_lit(check_probe(item, source), source)
-    noise_models = _noise_list(noise, images)  # its form checked (and "auto" estimated) before any work
+    noise_models = _noise_list(noise, images, geometries)  # its form checked ("auto" estimated) before any work
 
     timings: Dict[str, float] = {}
     t0 = time.perf_counter()
@@ -414,6 +415,10 @@ def _basis_prior(value: Union[BasisPrior, None, str], n_t: int, n_s: int) -> Opt
     return None if packaged is None else packaged.resampled(n_t, n_s)
 
 
+#: How far (4-neighbour pixel steps) the noise estimate reaches beyond the pixels on the object: its
+#: antialiased rim (a render's pixel filter spreads it ~1-2 px), not the background.
+NOISE_MARGIN_PX = 2
+
 #: The largest median ratio of a row's noise to its value that a recovery accepts: beyond it the
 #: image says nothing the priors do not (and the normal equations lose the data term).
 MAX_NOISE_TO_SIGNAL = 10.0
@@ -499,15 +504,17 @@ def _check_grey_photo(values: np.ndarray, probe: Probe, source: str) -> None:
                   InputWarning, stacklevel=3)
 
 
-def _noise_list(noise: Any, images: Sequence[np.ndarray]) -> Optional[list]:
-    """Per-image ``(a, b)`` (or None) from ``"auto"``, one pair, a list, or None."""
+def _noise_list(noise: Any, images: Sequence[np.ndarray], geometries: Sequence[Geometry]) -> Optional[list]:
+    """Per-image ``(a, b)`` (or None) from ``"auto"`` (estimated on each image's object), one pair, a list,
+    or None."""
     n = len(images)
     if noise is None:
         return None
     if isinstance(noise, str):
         if noise != "auto":
             raise InputError("noise", f"must be 'auto', (a, b), a list or None, got {noise!r}")
-        return [_estimate_noise(img, f"image {k}" if n > 1 else "image") for k, img in enumerate(images)]
+        return [_estimate_noise(img, geo, f"image {k}" if n > 1 else "image")
+                for k, (img, geo) in enumerate(zip(images, geometries))]
     if isinstance(noise, numbers.Real) or (isinstance(noise, np.ndarray) and noise.ndim == 0):
         raise InputError("noise", f"got one number ({float(noise):g}); give the pair (a, b) of the variance a I + b",
                          "e.g. noise=(0, sigma**2) for a constant sigma")
@@ -536,10 +543,14 @@ def _one_noise_model(noise: Sequence) -> bool:
     return len(noise) == 2 and all(entry(v) for v in noise)
 
 
-def _estimate_noise(image: np.ndarray, source: str) -> Tuple[np.ndarray, np.ndarray]:
-    """Per-channel ``(a, b)`` of one image, over its lit pixels eroded by 2 (see :mod:`noise`)."""
+def _estimate_noise(image: np.ndarray, geometry: Geometry, source: str) -> Tuple[np.ndarray, np.ndarray]:
+    """Per-channel ``(a, b)`` of one image (see :mod:`noise`) over the object's lit interior: the lit pixels
+    within :data:`NOISE_MARGIN_PX` of the pixels ``geometry`` puts on the object (so its antialiased rim, but
+    no lit or textured background, whose own detail would read as noise), eroded by 2 px (the rim's pixels
+    mix object and background)."""
     lit = np.all(np.isfinite(image), axis=2) & np.all(image > 0, axis=2)
-    inner = lit.copy()
+    on_object = geometry.surface_maps(image.shape[1], image.shape[0], source).mask
+    inner = lit & _grown(on_object, NOISE_MARGIN_PX)
     for _ in range(2):
         inner[1:-1, 1:-1] &= inner[:-2, 1:-1] & inner[2:, 1:-1] & inner[1:-1, :-2] & inner[1:-1, 2:]
     try:
@@ -549,6 +560,19 @@ def _estimate_noise(image: np.ndarray, source: str) -> Tuple[np.ndarray, np.ndar
                       InputWarning, stacklevel=3)
         return None
     return np.array([p[0] for p in pairs]), np.array([p[1] for p in pairs])
+
+
+def _grown(mask: np.ndarray, steps: int) -> np.ndarray:
+    """``mask`` ``(H, W) bool`` grown by ``steps`` 4-neighbour steps (a diamond of that radius)."""
+    grown = mask.copy()
+    for _ in range(steps):
+        step = grown.copy()
+        step[1:] |= grown[:-1]
+        step[:-1] |= grown[1:]
+        step[:, 1:] |= grown[:, :-1]
+        step[:, :-1] |= grown[:, 1:]
+        grown = step
+    return grown
 
 
 def _auto_saturation(image: np.ndarray, region: Optional[np.ndarray]) -> Optional[float]:

@@ -6,7 +6,9 @@ import numpy as np
 import pytest
 
 from mi_bivariate.errors import InputError
+from mi_bivariate.geometry import SphereGeometry
 from mi_bivariate.noise import estimate_camera_noise
+from mi_bivariate.recover import _estimate_noise
 
 
 def add_camera_noise(image, a, b, seed):
@@ -217,13 +219,15 @@ def test_camera_noise_level_must_be_finite():
             camera_noise(np.ones((8, 8, 3)), level)
 
 
-def _antialiased_sphere(size, cx, cy, r, ss=4):
+def _antialiased_sphere(size, cx, cy, r, ss=4, background=None):
     """A shaded sphere as a camera sees it: each pixel the mean of ``ss x ss`` samples (so rim pixels mix
-    with the black background), ``(size, size)``."""
+    with the background: black, or ``background`` ``(size, size)`` constant over each pixel),
+    ``(size, size)``."""
     o = (np.arange(size * ss) + 0.5) / ss
     x, y = np.meshgrid(o, o)
     r2 = ((x - cx) ** 2 + (y - cy) ** 2) / r**2
-    shade = np.where(r2 < 1, 0.3 + 2.0 * (1 - r2) + 0.3 * (x - cx) / r, 0.0)
+    behind = 0.0 if background is None else np.repeat(np.repeat(background, ss, axis=0), ss, axis=1)
+    shade = np.where(r2 < 1, 0.3 + 2.0 * (1 - r2) + 0.3 * (x - cx) / r, behind)
     return shade.reshape(size, ss, size, ss).mean(axis=(1, 3))
 
 
@@ -232,15 +236,31 @@ def test_recover_auto_noise_is_each_channels_own_also_on_a_sphere_the_frame_cuts
     antialiased sphere that the image frame cuts on two sides (the erosion leaves the frame's own rows and
     columns alone; there the sphere is cut, not mixed with the background): each channel's fitted
     ``a I + b`` against its own added noise at the lit pixels' median and 95% quantile."""
-    from mi_bivariate.recover import _estimate_noise
-
     shade = _antialiased_sphere(128, cx=40.0, cy=50.0, r=70.0)
     lit = shade > 0
     assert lit[0].any() and lit[:, 0].any()                    # the sphere reaches the frame
     clean = shade[..., None] * np.array([1.0, 0.7, 0.4])
     a, b = np.array([0.02, 0.005, 0.01]), np.array([1e-5, 4e-4, 1e-4])
     noisy = np.where(lit[..., None], add_camera_noise(clean, a, b, seed=3), 0.0)
-    a_hat, b_hat = _estimate_noise(noisy, "image")
+    a_hat, b_hat = _estimate_noise(noisy, SphereGeometry(40.0, 50.0, 70.0), "image")
+    for q in (0.5, 0.95):
+        level = np.quantile(clean[lit], q, axis=0)
+        np.testing.assert_allclose(a_hat * level + b_hat, a * level + b, rtol=0.25, err_msg=str(q))
+
+
+def test_recover_auto_noise_leaves_a_lit_textured_background_out():
+    """A photo's background is lit and has detail of its own (here a random texture of 0.2-2.2, as bright as
+    the sphere), which the second differences would read as noise: ``recover(noise="auto")`` estimates over
+    the pixels the geometry puts on the object (and their antialiased rim), so each channel's ``a I + b`` is
+    the one a black background gives, its own added noise. Over the whole frame it was 5-6x too high."""
+    shade = _antialiased_sphere(128, cx=64.0, cy=60.0, r=40.0)
+    lit = shade > 0
+    colour = np.array([1.0, 0.7, 0.4])
+    clean = shade[..., None] * colour
+    texture = np.random.default_rng(4).uniform(0.2, 2.2, (128, 128))
+    photo = _antialiased_sphere(128, cx=64.0, cy=60.0, r=40.0, background=texture)[..., None] * colour
+    a, b = np.array([0.02, 0.005, 0.01]), np.array([1e-5, 4e-4, 1e-4])
+    a_hat, b_hat = _estimate_noise(add_camera_noise(photo, a, b, seed=5), SphereGeometry(64.0, 60.0, 40.0), "image")
     for q in (0.5, 0.95):
         level = np.quantile(clean[lit], q, axis=0)
         np.testing.assert_allclose(a_hat * level + b_hat, a * level + b, rtol=0.25, err_msg=str(q))
