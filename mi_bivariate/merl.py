@@ -351,13 +351,13 @@ class MERLBRDF:
 
 
 def merl_files_in(folder: Union[str, os.PathLike]) -> List[Path]:
-    """The MERL ``.binary`` files of a folder, sorted by name.
+    """The MERL ``.binary`` files of a folder (the suffix in any case), sorted by name.
 
     Raises:
         InputError: the folder holds none.
     """
     folder = Path(folder)
-    files = sorted(folder.glob("*.binary"))
+    files = sorted(f for f in folder.iterdir() if f.suffix.lower() == ".binary" and f.is_file())
     if not files:
         raise InputError(folder, "folder holds no MERL .binary files",
                          "give a folder of MERL .binary files, or the files")

@@ -150,7 +150,7 @@ def resolve_materials(items: Sequence[str], data_dir: Optional[PathLike] = None)
         path = Path(item)
         if path.is_dir():
             out += [MaterialSpec(f.stem, "merl", str(f)) for f in merl.merl_files_in(path)]
-        elif path.suffix == ".binary":
+        elif path.suffix.lower() == ".binary":  # as load_brdf and render read it
             if not path.is_file():
                 raise InputError(path, "MERL file not found")
             out.append(MaterialSpec(path.stem, "merl", str(path)))

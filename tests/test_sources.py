@@ -163,3 +163,17 @@ def test_material_slugs_of_different_labels_differ():
     assert slug("gold-paint") == "gold-paint" and slug("a_b") == "a_b"
     assert slug("a b") != slug("a_b") and slug("a b").startswith("a_b-")
     assert len(slug("x" * 70)) == 57 and slug("x" * 70) != slug("x" * 71)
+
+
+def test_merl_files_are_named_by_their_suffix_in_any_case(tmp_path):
+    """``X.BINARY`` is a MERL file to ``render`` and ``load_brdf`` (they lower-case the suffix); the evaluation's
+    ``resolve_materials`` and a folder's listing (``merl.merl_files_in``, also ``learn-prior``'s) took only
+    ``.binary`` and refused it, or called the folder empty."""
+    table = analytic.to_merl(analytic.Lambertian([0.5] * 3))
+    for name in ("a.BINARY", "b.Binary", "c.binary"):
+        table.write(tmp_path / name)
+    (tmp_path / "d.binary.txt").write_text("not a table")
+    (tmp_path / "e.BINARY").mkdir()
+    specs = sources.resolve_materials([str(tmp_path / "a.BINARY")])
+    assert [(s.label, s.kind, s.spec) for s in specs] == [("a", "merl", str(tmp_path / "a.BINARY"))]
+    assert [s.label for s in sources.resolve_materials([str(tmp_path)])] == ["a", "b", "c"]
