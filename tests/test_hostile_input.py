@@ -1069,19 +1069,61 @@ def test_recover_is_bit_identical_for_any_thread_count(files, tmp_path):
             assert_same_sums(tables[1][key], value, rel=1e-4, err_msg=key)
 
 
+#: ``python -c`` source: ``python -m mi_bivariate.cli ARGS`` (:func:`mi_bivariate.cli.run`) whose MERL writer,
+#: once its temporary ``.binary`` is complete and before it is renamed, touches the file named by the first
+#: argument and waits there (up to 120 s) for a signal, so that the signal lands inside the writes.
+_RUN_CLI_HELD_IN_WRITES = textwrap.dedent("""
+    import contextlib, sys, time
+    from pathlib import Path
+    from mi_bivariate import merl
+
+    marker, atomic_path = Path(sys.argv.pop(1)), merl.atomic_path
+
+    @contextlib.contextmanager
+    def held(path, suffix=""):
+        with atomic_path(path, suffix) as tmp:
+            yield tmp
+            marker.touch()
+            deadline = time.monotonic() + 120.0
+            while time.monotonic() < deadline:
+                time.sleep(0.01)
+
+    merl.atomic_path = held
+    from mi_bivariate.cli import run
+    sys.exit(run())
+""")
+
+
 def test_sigterm_stops_a_command_and_leaves_no_temporary_files(files, tmp_path):
     """SIGTERM (``timeout``, a job scheduler) while ``recover --merl`` writes its outputs: the command stops
-    as after Ctrl-C (exit 143, one line), its temporary files are removed and no output is published."""
+    as after Ctrl-C (exit 143, one line), its temporary files are removed and no output is published.
+
+    The command waits inside its writes (its ``.binary`` written to its temporary, the table's and the EXR's
+    temporaries beside it, nothing renamed) until the signal comes: before, the signal was sent when a
+    temporary was seen, and on a loaded machine the command could publish its outputs and end (exit 0)
+    between the look and the signal, or before the look."""
     import signal
 
     out = tmp_path / "out"
     out.mkdir()
+    marker = tmp_path / "writing"  # outside out/, which must end empty
+    seen = []
+
+    def writing(proc) -> bool:
+        if not marker.exists():
+            return False
+        seen.extend(sorted(p.name for p in out.iterdir()))
+        return True
+
     argv = _recover_args(files) + ["--merl", "--out", str(out / "k.npz")]
-    status, err = signal_when([sys.executable, "-m", "mi_bivariate.cli", *argv],  # a temporary: it is writing
-                              lambda proc: any(p.name.startswith(".") for p in out.iterdir()), signal.SIGTERM,
-                              timeout=240)
+    status, err = signal_when([sys.executable, "-c", _RUN_CLI_HELD_IN_WRITES, str(marker), *argv], writing,
+                              signal.SIGTERM, timeout=240)
     assert status == 128 + signal.SIGTERM, (status, err[-2000:])  # not ended before the writes
     assert err.strip().splitlines()[-1] == "mi-bivariate: terminated" and "Traceback" not in err, err
+    # signalled while writing: a temporary for each output (and the MERL writer's own), nothing published
+    assert all(name.startswith(".") for name in seen), seen
+    assert all(any(name.startswith(f".k.{ext}.") for name in seen) for ext in ("npz", "exr", "binary")), seen
+    assert any(name.startswith("..k.binary.") for name in seen), seen
     assert list(out.iterdir()) == []
 
 
