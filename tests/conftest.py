@@ -42,3 +42,18 @@ def probe_path(data_dir: Path):
         return matches[0]
 
     return _probe_path
+
+
+@pytest.fixture(scope="session")
+def loo_reductions() -> None:
+    """The shared MERL-NBRDF materials reduced on the 32 x 32 grid, in the reductions cache
+    (:func:`mi_bivariate.training_set.reduced_tables`, ``~/.cache/mi_bivariate``), before the tests whose
+    run learns leave-one-out priors from them (``demo``, the quickstart notebook). With a cold cache this is
+    the 73 materials' network evaluations (~2.5 s each on 2 cores, several minutes under load): made here
+    once, outside the notebook's per-cell time limit, which it used to exceed (and then the next test made
+    them again). Nothing without the shared data (those runs use the packaged priors)."""
+    from mi_bivariate import training_set
+    from mi_bivariate.sources import have_shared_data
+
+    if have_shared_data():
+        training_set.reduced_tables(32, 32)

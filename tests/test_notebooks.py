@@ -12,9 +12,11 @@ NOTEBOOKS = Path(__file__).resolve().parent.parent / "notebooks"
 
 
 @pytest.mark.parametrize("name", ["quickstart.ipynb", "evaluation.ipynb"])
-def test_notebook_runs(name, tmp_path, monkeypatch):
+def test_notebook_runs(name, tmp_path, monkeypatch, request):
     nbformat = pytest.importorskip("nbformat")
     nbclient = pytest.importorskip("nbclient")
+    if name == "quickstart.ipynb":  # its leave-one-out priors' training reductions, made before its cells' clock runs
+        request.getfixturevalue("loo_reductions")
     monkeypatch.setenv("MI_BIVARIATE_QUICK", "1")        # the kernel inherits the environment
     # The notebooks' temporary folders (the quickstart's 34 MB export, the quick evaluation) go with the
     # test's: before, every run left them in the system's temporary folder.
@@ -40,7 +42,8 @@ def test_notebook_runs(name, tmp_path, monkeypatch):
 def _execute(nbformat, nbclient, name: str, folder: Path) -> str:
     """Run a notebook top to bottom in ``folder``; fail on an error output; return its text outputs."""
     nb = nbformat.read(NOTEBOOKS / name, as_version=4)
-    # 300 s a cell: with a cold cache the quickstart's leave-one-out priors reduce 73 materials first
+    # 300 s a cell: the quickstart's leave-one-out priors find the 73 materials' reductions made (conftest's
+    # loo_reductions) and learn from them; before, a cold cache made them inside the cell (> 300 s under load)
     client = nbclient.NotebookClient(nb, timeout=300, kernel_name="python3",
                                      resources={"metadata": {"path": str(folder)}})
     client.execute()

@@ -313,8 +313,9 @@ def test_write_outputs_refuses_a_folder_as_out(tmp_path):
         assert info.value.source == "out", str(info.value)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["outputs"] and not any(folder.iterdir())
 
-def test_demo_runs_small(tmp_path, capsys):
-    """The README's main command, at a small size."""
+def test_demo_runs_small(tmp_path, capsys, loo_reductions):
+    """The README's main command, at a small size (its leave-one-out priors' training reductions made by the
+    session's fixture, shared with the quickstart notebook's test)."""
     code = cli_main(["demo", "--out", str(tmp_path), "--resolution", "64", "--spp", "16"])
     assert code == 0
     for name in ("demo.png", "recovered.npz", "metrics.json", "novel_truth.exr", "novel_recovered.exr"):
