@@ -322,13 +322,9 @@ def test_leave_one_out_priors_are_learnt_again_when_the_code_that_learns_them_ch
     assert len(list(cache.glob("loo_priors_*.npz"))) == 4
 
 
-@pytest.mark.parametrize("change", ["grid", "dev file", "train file", "bivariate", "merl", "coordinates"])
-def test_reductions_are_made_again_when_the_data_the_grid_or_the_reduction_code_changes(tmp_path, monkeypatch, change):
-    """The reductions cache (``reduced_tables``) is keyed by both shared files' bytes, the grid and the
-    reduction's code: any one of them changed, the materials are reduced again (a fake reduction counts)."""
-    import importlib
-    import pathlib
-
+def _fake_reductions(tmp_path, monkeypatch):
+    """A data folder whose two shared files hold their own names, an empty cache, and a fake reduction
+    (a table of ones) that records each material it reduces: ``(root, reduced)``."""
     root = tmp_path / "data"
     (root / "merl_nbrdf").mkdir(parents=True)
     for rel in (nbrdf.NBRDF_FILE, nbrdf.NBRDF_TRAIN_FILE):
@@ -343,6 +339,17 @@ def test_reductions_are_made_again_when_the_data_the_grid_or_the_reduction_code_
     monkeypatch.setattr(training_set, "nbrdf_merl", lambda name, data_root: name)
     monkeypatch.setattr(training_set.BivariateBRDF, "reduce",
                         lambda merl, n_t, n_s: reduced.append(merl) or Reduced(n_t, n_s))
+    return root, reduced
+
+
+@pytest.mark.parametrize("change", ["grid", "dev file", "train file", "bivariate", "merl", "coordinates"])
+def test_reductions_are_made_again_when_the_data_the_grid_or_the_reduction_code_changes(tmp_path, monkeypatch, change):
+    """The reductions cache (``reduced_tables``) is keyed by both shared files' bytes, the grid and the
+    reduction's code: any one of them changed, the materials are reduced again (a fake reduction counts)."""
+    import importlib
+    import pathlib
+
+    root, reduced = _fake_reductions(tmp_path, monkeypatch)
     names = ["brass", "black-fabric"]
     training_set.reduced_tables(4, 5, names, root)
     training_set.reduced_tables(4, 5, names, root)
@@ -365,20 +372,7 @@ def test_reductions_are_made_again_when_the_data_the_grid_or_the_reduction_code_
 def test_a_cached_reduction_that_is_not_finite_or_of_another_shape_is_made_again(tmp_path, monkeypatch):
     """A reductions cache entry holding NaN, or a table of another shape, is not used: that material is
     reduced again (a fake reduction counts) and the tables returned are the fresh ones, those asked for."""
-    root = tmp_path / "data"
-    (root / "merl_nbrdf").mkdir(parents=True)
-    for rel in (nbrdf.NBRDF_FILE, nbrdf.NBRDF_TRAIN_FILE):
-        (root / rel).write_bytes(str(rel).encode())
-    monkeypatch.setenv("MI_BIVARIATE_CACHE", str(tmp_path / "cache"))
-    reduced = []
-
-    class Reduced:
-        def __init__(self, n_t, n_s):
-            self.table = np.ones((n_t, n_s, 3))
-
-    monkeypatch.setattr(training_set, "nbrdf_merl", lambda name, data_root: name)
-    monkeypatch.setattr(training_set.BivariateBRDF, "reduce",
-                        lambda merl, n_t, n_s: reduced.append(merl) or Reduced(n_t, n_s))
+    root, reduced = _fake_reductions(tmp_path, monkeypatch)
     names = ["brass", "black-fabric", "gold-paint"]
     training_set.reduced_tables(4, 5, names, root)
     (path,) = (tmp_path / "cache").glob("nbrdf_reductions_*.npz")
