@@ -548,11 +548,15 @@ def _estimate_noise(image: np.ndarray, geometry: Geometry, source: str) -> Tuple
     within :data:`NOISE_MARGIN_PX` of the pixels ``geometry`` puts on the object (so its antialiased rim, but
     no lit or textured background, whose own detail would read as noise), eroded by 2 px (the rim's pixels
     mix object and background)."""
+    from scipy import ndimage  # as the sphere fit, which a recovery from a photo has run already
+
     lit = np.all(np.isfinite(image), axis=2) & np.all(image > 0, axis=2)
     on_object = geometry.surface_maps(image.shape[1], image.shape[0], source).mask
-    inner = lit & _grown(on_object, NOISE_MARGIN_PX)
-    for _ in range(2):
-        inner[1:-1, 1:-1] &= inner[:-2, 1:-1] & inner[2:, 1:-1] & inner[1:-1, :-2] & inner[1:-1, 2:]
+    near = ndimage.binary_dilation(on_object, iterations=NOISE_MARGIN_PX)  # 4-neighbour steps
+    # The frame's own rows and columns are left as they are: there the object is cut, not mixed.
+    interior = np.zeros_like(lit)
+    interior[1:-1, 1:-1] = True
+    inner = ndimage.binary_erosion(lit & near, iterations=2, border_value=1, mask=interior)
     try:
         pairs = [estimate_camera_noise(image[..., c], inner, source) for c in range(3)]
     except InputError as exc:
@@ -560,19 +564,6 @@ def _estimate_noise(image: np.ndarray, geometry: Geometry, source: str) -> Tuple
                       InputWarning, stacklevel=3)
         return None
     return np.array([p[0] for p in pairs]), np.array([p[1] for p in pairs])
-
-
-def _grown(mask: np.ndarray, steps: int) -> np.ndarray:
-    """``mask`` ``(H, W) bool`` grown by ``steps`` 4-neighbour steps (a diamond of that radius)."""
-    grown = mask.copy()
-    for _ in range(steps):
-        step = grown.copy()
-        step[1:] |= grown[:-1]
-        step[:-1] |= grown[1:]
-        step[:, 1:] |= grown[:, :-1]
-        step[:, :-1] |= grown[:, 1:]
-        grown = step
-    return grown
 
 
 def _auto_saturation(image: np.ndarray, region: Optional[np.ndarray]) -> Optional[float]:
