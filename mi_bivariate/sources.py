@@ -248,7 +248,8 @@ def _io_threads() -> Iterator[None]:
             dr.set_thread_count(n)
 
 
-_PROBE_CACHE: Dict[Tuple[str, str], "probes.Probe"] = {}
+#: Probes kept by :func:`load_probe` with ``cache``, by :func:`_probe_key`.
+_PROBE_CACHE: Dict[Tuple[Any, ...], "probes.Probe"] = {}
 
 
 def input_files(*specs: Optional[PathLike], data_dir: Optional[PathLike] = None) -> List[Path]:
@@ -284,32 +285,52 @@ def load_probe(spec: str, data_dir: Optional[PathLike] = None, cache: bool = Fal
     (``grace_latlong_1k``: :data:`~mi_bivariate.probes.GRACE_LATLONG_ROTATION`); any other file is
     read as is. ``synthetic:SEED`` is :func:`synthetic_environment` (a 128 x 256 sky with
     sun and windows), for runs without the shared data. With ``cache`` the
-    probe is kept for the rest of the process (keyed by spec and data folder):
-    batch runs load each probe once.
+    probe is kept for the rest of the process, keyed by the spec and the file it resolves to (its real
+    path, size and modification time, and the shared probe it is): batch runs load each probe once, and
+    another data folder (``data_dir`` or ``$MI_BIVARIATE_DATA``) or a file rewritten since is read afresh.
 
     Raises:
         InputError: an unreadable file, an unknown shared name, a bad seed.
     """
-    key = (spec, str(data_dir))
-    if cache and key in _PROBE_CACHE:
+    seed: Optional[int] = None
+    path: Optional[Path] = None
+    name: Optional[str] = None
+    if spec.startswith(SYNTHETIC_PREFIX):
+        try:
+            seed = int(spec[len(SYNTHETIC_PREFIX):])
+        except ValueError:
+            seed = None
+        if seed is None or not 0 <= seed <= limits.MAX_SEED:  # numpy refuses a negative seed with a traceback
+            raise InputError(spec, f"synthetic probe seed must be an integer from 0 to {limits.MAX_SEED}")
+    elif Path(spec).suffix:
+        path = Path(spec)
+        name = _shared_probe_name(path, data_dir)
+    else:
+        path, name = probes.shared_probe_path(spec, data_dir), spec
+    key = _probe_key(spec, path, name) if cache else None
+    if key is not None and key in _PROBE_CACHE:
         return _PROBE_CACHE[key]
     with _io_threads():
-        if spec.startswith(SYNTHETIC_PREFIX):
-            try:
-                seed = int(spec[len(SYNTHETIC_PREFIX):])
-            except ValueError:
-                seed = None
-            if seed is None or not 0 <= seed <= limits.MAX_SEED:  # numpy refuses a negative seed with a traceback
-                raise InputError(spec, f"synthetic probe seed must be an integer from 0 to {limits.MAX_SEED}")
+        if path is None:
             probe = probes.Probe(synthetic_environment(seed=seed), source=spec)
-        elif Path(spec).suffix:
-            name = _shared_probe_name(Path(spec), data_dir)
-            probe = probes.Probe.load(Path(spec), rotation=None if name is None else probes.shared_rotation(name))
         else:
-            probe = probes.shared_probe(spec, data_dir=data_dir)
-    if cache:
+            probe = probes.Probe.load(path, rotation=None if name is None else probes.shared_rotation(name))
+    if key is not None:
         _PROBE_CACHE[key] = probe
     return probe
+
+
+def _probe_key(spec: str, path: Optional[Path], name: Optional[str]) -> Optional[Tuple[Any, ...]]:
+    """The cache key of a probe: the spec, and for a file its real path, size and modification time (ns)
+    and the shared probe it is (which sets its rotation); ``None`` (not cached) for a file that cannot be
+    seen (its load reports it)."""
+    if path is None:
+        return (spec,)
+    try:
+        stat = os.stat(path)
+    except OSError:
+        return None
+    return (spec, os.path.realpath(path), stat.st_size, stat.st_mtime_ns, name)
 
 
 def _shared_probe_name(path: Path, data_dir: Optional[PathLike]) -> Optional[str]:

@@ -116,6 +116,34 @@ def test_an_uncached_load_is_fresh_after_a_cached_one():
     assert sources.load_probe("synthetic:5", cache=True) is cached
 
 
+def test_the_probe_cache_follows_the_data_folder_and_the_file(tmp_path, monkeypatch):
+    """Before, a cached probe was keyed by its spec and the ``data_dir`` argument only: after
+    ``$MI_BIVARIATE_DATA`` moved to another data folder, ``load_probe("pisa_256", cache=True)`` handed back the
+    first folder's probe, and a probe file rewritten since was not read again. The truth: each folder's own
+    file, as read uncached."""
+    import os
+
+    from mi_bivariate import images
+
+    folders = [tmp_path / "data_a", tmp_path / "data_b"]
+    for folder, level in zip(folders, (1.0, 2.0)):
+        (folder / "probes").mkdir(parents=True)
+        images.write_exr(folder / "probes" / "pisa_256.exr", np.full((8, 16, 3), level, np.float32))
+    for folder, level in zip(folders, (1.0, 2.0)):
+        monkeypatch.setenv("MI_BIVARIATE_DATA", str(folder))
+        probe = sources.load_probe("pisa_256", cache=True)
+        np.testing.assert_array_equal(probe.data[..., :3], sources.load_probe("pisa_256").data[..., :3])
+        assert np.all(probe.data[..., :3] == level)
+        assert sources.load_probe("pisa_256", cache=True) is probe        # still kept for its folder
+    path = folders[0] / "probes" / "pisa_256.exr"
+    kept = sources.load_probe(str(path), cache=True)
+    images.write_exr(path, np.full((8, 16, 3), 3.0, np.float32))          # rewritten in place
+    stat = os.stat(path)
+    os.utime(path, ns=(stat.st_atime_ns, stat.st_mtime_ns + 10**9))      # a later time, on any file system
+    assert np.all(kept.data[..., :3] == 1.0)
+    assert np.all(sources.load_probe(str(path), cache=True).data[..., :3] == 3.0)
+
+
 def test_an_inputs_label_names_each_of_its_probes():
     """An evaluation input of several probes joined by ``+`` is labelled probe by probe (file stems)."""
     assert sources.input_label("/a/b/pisa_256.hdr+grace_latlong_1k+synthetic:3") == "pisa_256+grace_latlong_1k+synthetic:3"
