@@ -222,7 +222,9 @@ def check_image(image: np.ndarray, source: str = "image") -> np.ndarray:
     return image.astype(np.float32, copy=False)
 
 
-def _check_mask(mask: Optional[np.ndarray], shape: Tuple[int, int], source: str) -> Optional[np.ndarray]:
+def check_mask(mask: Optional[np.ndarray], shape: Tuple[int, int], source: str) -> Optional[np.ndarray]:
+    """A user's usable-pixel ``mask`` as an ``(H, W) bool`` array (``None`` stays ``None``: every pixel),
+    else :class:`InputError` naming ``source``: a mask not of the image's ``shape`` ``(H, W)``."""
     if mask is None:
         return None
     mask = np.asarray(mask)
@@ -335,7 +337,7 @@ def observations_from_sphere(image: np.ndarray, geometry: SphereGeometry, n_norm
     if footprint is not None and not (math.isfinite(footprint) and footprint > 0.0):
         raise InputError(source, f"footprint must be a positive angle in degrees, got {footprint!r}")
     height, width = image.shape[:2]
-    mask = _check_mask(mask, (height, width), source)
+    mask = check_mask(mask, (height, width), source)
     rot = check_rotation(check_sphere(geometry, source).camera_to_world, source)
     cx, cy, radius = float(geometry.cx), float(geometry.cy), float(geometry.radius)
     if cx + radius <= 0 or cy + radius <= 0 or cx - radius >= width or cy - radius >= height:
@@ -462,7 +464,7 @@ def observations_from_normal_map(image: np.ndarray, normals: np.ndarray, mask: n
     normals = np.asarray(normals, dtype=np.float64)
     if normals.shape != (height, width, 3):
         raise InputError(source, f"normal map has shape {normals.shape} but the image is {height}x{width}x3")
-    mask = _check_mask(mask, (height, width), source)
+    mask = check_mask(mask, (height, width), source)
     view = np.asarray(view, dtype=np.float64)
     if view.shape not in ((3,), (height, width, 3)):
         raise InputError(source, f"view must be (3,) or ({height}, {width}, 3), got {view.shape}")

@@ -236,7 +236,8 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
             a sphere (:class:`SphereGeometry`, :class:`PerspectiveSphereGeometry`,
             pixels and camera pose) or a known mesh with its camera
             (:class:`mi_bivariate.mesh.MeshView`). Poses may differ per image.
-        masks: optional ``(H, W) bool`` usable-pixel masks.
+        masks: optional ``(H, W) bool`` usable-pixel masks (one for all images, or one or ``None`` per
+            image): the rows and the ``"auto"`` noise estimate use only their pixels.
         n_normals: normals M per image (uniform over the visible hemisphere).
         n_dirs: light directions K per normal (:data:`lighting.DEFAULT_DIRS`).
         grid: st grid ``(n_t, n_s)``.
@@ -265,7 +266,7 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
         noise: the camera's noise, variance ``a I + b`` in each image's units:
             ``(a, b)`` for every image (``a`` and ``b`` each a number or three, R, G, B),
             a list with one ``(a, b)`` or ``None`` per image, ``"auto"`` (default: estimated from each image's
-            object, its lit pixels that ``geometry`` puts on the object less a 2 px rim, by
+            object, its lit pixels that ``geometry`` puts on the object and its mask keeps, less a 2 px rim, by
             :func:`noise.estimate_camera_noise`; ~0 for a clean rendering), or
             ``None`` (clean input; only the model error counts, see
             :func:`solve.row_sigma`). Measured on a 256-spp Mitsuba render of a
@@ -293,6 +294,9 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
     probe_list = _as_list(probe, n, "probes", "probe")
     geometries = _geometry_list(geometry, n)
     mask_list = _as_list(masks, n, "masks", "masks")
+    # their shapes before the noise estimate reads them
+    mask_list = [capture.check_mask(mask, image.shape[:2], f"image {k}" if n > 1 else "image")
+                 for k, (mask, image) in enumerate(zip(mask_list, images))]
     _refuse_repeated_images(images, geometries, mask_list)
     n_t, n_s = limits.check_grid(grid)
     limits.check_recovery_sizes(n_normals, n_dirs, (n_t, n_s))
@@ -318,7 +322,7 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
     for k, item in enumerate(probe_list):  # before any work: a wrong object or a black probe
         source = "probe" if n == 1 else f"probe {k}"
         check_lit(check_probe(item, source), source)
-    noise_models = _noise_list(noise, images, geometries)  # its form checked ("auto" estimated) before any work
+    noise_models = _noise_list(noise, images, geometries, mask_list)  # its form checked, "auto" estimated, before work
 
     timings: Dict[str, float] = {}
     t0 = time.perf_counter()
@@ -504,17 +508,18 @@ def _check_grey_photo(values: np.ndarray, probe: Probe, source: str) -> None:
                   InputWarning, stacklevel=3)
 
 
-def _noise_list(noise: Any, images: Sequence[np.ndarray], geometries: Sequence[Geometry]) -> Optional[list]:
-    """Per-image ``(a, b)`` (or None) from ``"auto"`` (estimated on each image's object), one pair, a list,
-    or None."""
+def _noise_list(noise: Any, images: Sequence[np.ndarray], geometries: Sequence[Geometry],
+                masks: Sequence[Optional[np.ndarray]]) -> Optional[list]:
+    """Per-image ``(a, b)`` (or None) from ``"auto"`` (estimated on each image's object, within its checked
+    ``(H, W) bool`` mask or ``None``), one pair, a list, or None."""
     n = len(images)
     if noise is None:
         return None
     if isinstance(noise, str):
         if noise != "auto":
             raise InputError("noise", f"must be 'auto', (a, b), a list or None, got {noise!r}")
-        return [_estimate_noise(img, geo, f"image {k}" if n > 1 else "image")
-                for k, (img, geo) in enumerate(zip(images, geometries))]
+        return [_estimate_noise(img, geo, f"image {k}" if n > 1 else "image", mask)
+                for k, (img, geo, mask) in enumerate(zip(images, geometries, masks))]
     if isinstance(noise, numbers.Real) or (isinstance(noise, np.ndarray) and noise.ndim == 0):
         raise InputError("noise", f"got one number ({float(noise):g}); give the pair (a, b) of the variance a I + b",
                          "e.g. noise=(0, sigma**2) for a constant sigma")
@@ -543,11 +548,14 @@ def _one_noise_model(noise: Sequence) -> bool:
     return len(noise) == 2 and all(entry(v) for v in noise)
 
 
-def _estimate_noise(image: np.ndarray, geometry: Geometry, source: str) -> Tuple[np.ndarray, np.ndarray]:
+def _estimate_noise(image: np.ndarray, geometry: Geometry, source: str,
+                    mask: Optional[np.ndarray] = None) -> Tuple[np.ndarray, np.ndarray]:
     """Per-channel ``(a, b)`` of one image (see :mod:`noise`) over the object's lit interior: the lit pixels
     within :data:`NOISE_MARGIN_PX` of the pixels ``geometry`` puts on the object (so its antialiased rim, but
-    no lit or textured background, whose own detail would read as noise), eroded by 2 px (the rim's pixels
-    mix object and background)."""
+    no lit or textured background, whose own detail would read as noise) and inside the user's ``mask``
+    (``(H, W) bool``, checked; ``None``: every pixel), eroded by 2 px (the rim's pixels mix object and
+    background, and the mask's edge pixels may mix in what it leaves out: a label, another object's
+    highlight)."""
     from scipy import ndimage  # as the sphere fit, which a recovery from a photo has run already
 
     lit = np.all(np.isfinite(image), axis=2) & np.all(image > 0, axis=2)
@@ -556,7 +564,8 @@ def _estimate_noise(image: np.ndarray, geometry: Geometry, source: str) -> Tuple
     # The frame's own rows and columns are left as they are: there the object is cut, not mixed.
     interior = np.zeros_like(lit)
     interior[1:-1, 1:-1] = True
-    inner = ndimage.binary_erosion(lit & near, iterations=2, border_value=1, mask=interior)
+    region = lit & near if mask is None else lit & near & mask
+    inner = ndimage.binary_erosion(region, iterations=2, border_value=1, mask=interior)
     try:
         pairs = [estimate_camera_noise(image[..., c], inner, source) for c in range(3)]
     except InputError as exc:

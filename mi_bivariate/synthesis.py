@@ -244,7 +244,7 @@ def _checked_image_mask(image: Any, mask: Any) -> Tuple[np.ndarray, np.ndarray]:
     if mask is None:
         raise InputError("mask", "a mask of the sphere's pixels is needed",
                          "e.g. the mask of render.render_sphere's shot")
-    mask = capture._check_mask(mask, image.shape[:2], "mask")
+    mask = capture.check_mask(mask, image.shape[:2], "mask")
     finite = np.all(np.isfinite(image), axis=-1)
     dropped = int(np.count_nonzero(mask & ~finite))
     if dropped:

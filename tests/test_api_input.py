@@ -145,6 +145,21 @@ def test_a_grey_two_dimensional_image_is_named_as_one_image(probe):
     assert info.value.source == "image"
 
 
+@pytest.mark.parametrize("masks, source", [(np.ones((10, 10), bool), "image"),
+                                           ([None, np.ones((48, 47), bool)], "image 1")], ids=["one", "second"])
+def test_a_mask_of_another_size_is_refused_before_the_noise_estimate(probe, no_work, monkeypatch, masks, source):
+    """``noise="auto"`` reads each image's mask; its shape is checked before (before, the estimate ran on the
+    whole image and the mask was refused only when the observations were built)."""
+    def refuse(*args, **kwargs):
+        raise AssertionError("the noise estimate ran before the masks were checked")
+
+    monkeypatch.setattr(recover_mod, "_estimate_noise", refuse)
+    images = IMAGE if source == "image" else [IMAGE, 2.0 * IMAGE]
+    with pytest.raises(InputError, match=r"mask has shape \(\d+, \d+\) but the image is 48x48") as info:
+        recover(images, probe, SPHERE, **{**SMALL, "noise": "auto", "masks": masks})
+    assert info.value.source == source
+
+
 @pytest.mark.parametrize("image", [IMAGE[..., 0], IMAGE[..., :2]], ids=["grey", "two-channel"])
 def test_an_image_that_is_not_rgb_is_refused_before_the_noise_estimate(probe, no_work, image):
     """Before, the default ``noise="auto"`` estimated the noise on the raw array first and crashed in numpy

@@ -264,3 +264,31 @@ def test_recover_auto_noise_leaves_a_lit_textured_background_out():
     for q in (0.5, 0.95):
         level = np.quantile(clean[lit], q, axis=0)
         np.testing.assert_allclose(a_hat * level + b_hat, a * level + b, rtol=0.25, err_msg=str(q))
+
+
+def test_recover_auto_noise_leaves_out_what_the_users_mask_leaves_out():
+    """A label on the sphere (a random texture of 0.2-2.2, as bright as the sphere), masked out by the user:
+    ``recover(noise="auto")`` estimated the noise over every pixel the geometry puts on the object, mask or
+    not, so the label's own detail read as noise (1.5-1.8x the added noise at the median level). Now the
+    estimate keeps to the mask: each channel's ``a I + b`` is its own added noise."""
+    from mi_bivariate.probes import Probe
+    from mi_bivariate.recover import recover
+
+    shade = _antialiased_sphere(96, cx=48.0, cy=48.0, r=40.0)
+    mask = np.ones(shade.shape, bool)
+    mask[20:60, 45:80] = False                                   # the label, wholly on the sphere
+    photo = np.where(mask, shade, np.random.default_rng(6).uniform(0.2, 2.2, shade.shape))
+    colour = np.array([1.0, 0.7, 0.4])
+    a, b = np.array([0.02, 0.005, 0.01]), np.array([1e-5, 4e-4, 1e-4])
+    noisy = add_camera_noise(photo[..., None] * colour, a, b, seed=7).astype(np.float32)
+    sphere = SphereGeometry(48.0, 48.0, 40.0)
+    result = recover(noisy, Probe.constant([1.0, 0.9, 0.8], res=16), sphere, masks=mask, noise="auto",
+                     n_normals=200, n_dirs=400, grid=(8, 8), basis_prior=None)
+    a_hat, b_hat = (np.asarray(v) for v in result.brdf.provenance["noise"][0])
+    unmasked_a, unmasked_b = _estimate_noise(noisy, sphere, "image")  # the texture counted: the old estimate
+    clean = shade[..., None] * colour
+    for q in (0.5, 0.95):
+        level = np.quantile(clean[(shade > 0) & mask], q, axis=0)
+        np.testing.assert_allclose(a_hat * level + b_hat, a * level + b, rtol=0.25, err_msg=str(q))
+    level = np.quantile(clean[(shade > 0) & mask], 0.5, axis=0)
+    assert np.all(unmasked_a * level + unmasked_b > 1.4 * (a * level + b))  # the label does read as noise
