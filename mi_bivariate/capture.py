@@ -444,9 +444,17 @@ def observations_from_normal_map(image: np.ndarray, normals: np.ndarray, mask: n
     normal takes the pixel whose normal is nearest to it, so the selection
     is uniform over the normals the object shows.
 
+    Pixels of the mask without usable surface data are dropped with one
+    :class:`InputWarning` that counts them per cause (none at all usable: an
+    :class:`InputError`), never passed on as NaN or zero vectors: a normal
+    that is not finite or shorter than 0.5 (a zero, or the average of a
+    pixel's disagreeing normals), a per-pixel view likewise, a position that
+    is not finite, or a geometric normal that is not finite or zero.
+
     Args:
         image: ``(H, W, 3)`` linear RGB.
-        normals: ``(H, W, 3)`` world normals (need not be exactly unit).
+        normals: ``(H, W, 3)`` world normals (need not be exactly unit:
+            lengths above 0.5 are normalised).
         mask: ``(H, W) bool``, True on the object.
         view: ``(3,)`` world direction towards an orthographic camera, or
             ``(H, W, 3)`` per-pixel directions towards the camera.
@@ -455,7 +463,8 @@ def observations_from_normal_map(image: np.ndarray, normals: np.ndarray, mask: n
         positions: optional ``(H, W, 3)`` world positions of the surface seen
             by each pixel (e.g. ray-cast from a mesh); kept per row for
             visibility (shadow rays) in the lighting matrix.
-        geometric_normals: optional ``(H, W, 3)`` geometric normals there.
+        geometric_normals: optional ``(H, W, 3)`` geometric normals there (any
+            non-zero length: normalised).
     """
     from scipy.spatial import cKDTree
 
@@ -479,14 +488,28 @@ def observations_from_normal_map(image: np.ndarray, normals: np.ndarray, mask: n
             surface[name] = value
 
     length = np.linalg.norm(normals, axis=-1)
-    usable = mask & np.all(np.isfinite(normals), axis=-1) & (length > 0.5)
-    for value in surface.values():
-        usable &= np.all(np.isfinite(value), axis=-1)
+    unusable = {"normal (not finite, or shorter than 0.5)": ~(np.all(np.isfinite(normals), axis=-1) & (length > 0.5))}
     if view.ndim == 3:
         view_len = np.linalg.norm(view, axis=-1)
-        usable &= np.all(np.isfinite(view), axis=-1) & (view_len > 0.5)
+        unusable["view (not finite, or shorter than 0.5)"] = ~(np.all(np.isfinite(view), axis=-1) & (view_len > 0.5))
+    if "positions" in surface:
+        unusable["position (not finite)"] = ~np.all(np.isfinite(surface["positions"]), axis=-1)
+    if "geometric_normals" in surface:
+        g = surface["geometric_normals"]
+        unusable["geometric normal (not finite, or zero)"] = ~(np.all(np.isfinite(g), axis=-1)
+                                                               & (np.linalg.norm(g, axis=-1) > 0.0))
+    usable = mask.copy()
+    for bad in unusable.values():
+        usable &= ~bad
     if not np.any(usable):
         raise InputError(source, "the mask selects no pixel with a valid normal")
+    n_left_out = int(np.count_nonzero(mask & ~usable))
+    if n_left_out:
+        causes = ", ".join(f"{int(np.count_nonzero(mask & bad))} without a usable {what}"
+                           for what, bad in unusable.items() if np.any(mask & bad))
+        warnings.warn(f"{source}: {n_left_out} of {int(np.count_nonzero(mask))} pixels in the mask are not used: "
+                      f"{causes} (check the normal map, or leave such pixels out of the mask)",
+                      InputWarning, stacklevel=2)
     prow, pcol = np.nonzero(usable)
     pnormal = normals[prow, pcol] / length[prow, pcol, None]
     if view.ndim == 3:
@@ -515,7 +538,7 @@ def observations_from_normal_map(image: np.ndarray, normals: np.ndarray, mask: n
         obs.positions = surface["positions"][rows, cols]
     if "geometric_normals" in surface:
         g = surface["geometric_normals"][rows, cols]
-        obs.geometric_normals = g / np.maximum(np.linalg.norm(g, axis=1, keepdims=True), 1e-30)
+        obs.geometric_normals = g / np.linalg.norm(g, axis=1, keepdims=True)  # non-zero: checked above
     return obs
 
 

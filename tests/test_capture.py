@@ -389,3 +389,73 @@ def test_a_subset_in_another_order_keeps_each_footprint_with_its_row():
     for new in np.unique(sub.footprint_rows)[:20]:
         np.testing.assert_array_equal(sub.footprint_normals[sub.footprint_rows == new],
                                       obs.footprint_normals[obs.footprint_rows == order[new]])
+
+
+def _user_normal_map(size: int = 64) -> tuple:
+    """A shaded sphere with a user's normal map of it, broken in three known blocks inside its mask: zero
+    normals (64 pixels), zero geometric normals (16) and unknown positions (8). Returns
+    ``(image, normals, mask, positions, geometric_normals, broken)``, ``broken`` the blocks' ``(H, W) bool``."""
+    image, geo = sphere_image(size, radius=0.45 * size)
+    normals, mask = geo.normals(size, size)
+    positions = np.where(mask[..., None], normals, 0.0)        # a unit sphere at the origin
+    geometric = normals.copy()
+    broken = np.zeros(mask.shape, bool)
+    for (rows, cols), (array, value) in zip(
+            [((28, 36), (28, 36)), ((20, 24), (40, 44)), ((40, 42), (20, 24))],
+            [(normals, 0.0), (geometric, 0.0), (positions, np.nan)]):
+        array[rows[0]:rows[1], cols[0]:cols[1]] = value
+        broken[rows[0]:rows[1], cols[0]:cols[1]] = True
+    assert mask[broken].all()
+    return image, normals, mask, positions, geometric, broken
+
+
+def test_a_normal_maps_unusable_pixels_in_its_mask_are_left_out_with_a_warning():
+    """A user's normal map with zero normals, zero geometric normals or unknown positions inside its mask:
+    those pixels were left out without a word, and a zero geometric normal was kept as the row's (a shadow ray
+    without spawn_ray's offset). Now each such pixel is left out, counted per cause in one InputWarning, and
+    every row's normal and geometric normal is a unit vector at a finite position; a map with no usable
+    normal in its mask is refused."""
+    image, normals, mask, positions, geometric, broken = _user_normal_map()
+    with pytest.warns(InputWarning, match=f"88 of {mask.sum()} pixels in the mask are not used: 64 without a "
+                                          r"usable normal .*, 8 without a usable position .*, 16 without a "
+                                          "usable geometric normal"):
+        obs = capture.observations_from_normal_map(image, normals, mask, [0.0, 0.0, 1.0], n_normals=1000,
+                                                   positions=positions, geometric_normals=geometric)
+    rows, cols = obs.pixels.T
+    assert len(obs) > 300 and mask[rows, cols].all() and not broken[rows, cols].any()
+    np.testing.assert_allclose(np.linalg.norm(obs.normals, axis=1), 1.0, rtol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(obs.geometric_normals, axis=1), 1.0, rtol=1e-12)
+    assert np.all(np.isfinite(obs.positions))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")                               # a sound map says nothing
+        capture.observations_from_normal_map(image, 3.0 * normals, mask & ~broken,
+                                             [0.0, 0.0, 1.0], n_normals=1000, positions=positions,
+                                             geometric_normals=3.0 * geometric)
+    with pytest.raises(InputError, match="the mask selects no pixel with a valid normal"):
+        capture.observations_from_normal_map(image, np.zeros_like(normals), mask, [0.0, 0.0, 1.0])
+
+
+def test_recover_through_a_users_geometry_leaves_its_broken_normals_out():
+    """A normal map reaches a recovery as a user's :class:`Geometry` (its ``surface_maps``): its broken pixels
+    warn and add no row. The command line takes no normal map: its spheres' normals are computed (an
+    orthographic sphere's by the lattice; ``--fov``'s perspective sphere's map, which says nothing)."""
+    from mi_bivariate.geometry import Geometry, SurfaceMaps
+    from mi_bivariate.recover import recover
+
+    image, normals, mask, positions, geometric, broken = _user_normal_map()
+    perspective = PerspectiveSphereGeometry(Intrinsics(60.0, 60.0, 32.0, 32.0), [0.2, 0.1, -3.0], 1.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        capture.image_observations(image, perspective, n_normals=1000)
+
+    class UserNormalMap(Geometry):
+        def surface_maps(self, width, height, source="image"):
+            return SurfaceMaps(normals=normals, views=np.broadcast_to([0.0, 0.0, 1.0], normals.shape).copy(),
+                               mask=mask, positions=positions, geometric_normals=geometric)
+
+    with pytest.warns(InputWarning, match="88 of .* pixels in the mask are not used"):
+        result = recover(image, _constant_probe(), UserNormalMap(), n_normals=400, n_dirs=400, grid=(8, 8),
+                         basis_prior=None, noise="auto")
+    rows, cols = result.observations.pixels.T
+    assert not broken[rows, cols].any() and np.all(np.isfinite(result.observations.normals))
+    assert np.all(np.isfinite(result.brdf.table))
