@@ -769,6 +769,37 @@ def test_a_convex_object_does_not_shadow_itself(sampling):
     np.testing.assert_allclose(L, free, rtol=1e-6, atol=1e-7 * free.max())
 
 
+def test_geometric_normals_are_directions_and_a_zero_or_nan_one_is_refused():
+    """The shadow rays leave a row's position offset along its geometric normal (spawn_ray: the normal times
+    an epsilon), and the kernels took the geometric normals as given while they normalise the shading ones:
+    a zero one left the ray on the ball it starts from (the rows of a convex ball came out shadowed by
+    it), a NaN one started it at NaN. Now such rows are refused, and any other length is a direction: rows
+    on the ball with geometric normals 3 n give the matrix of n, which is the unoccluded one."""
+    rng = np.random.default_rng(16)
+    n = rng.normal(size=(12, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    v = n + 0.5 * rng.normal(size=(12, 3))
+    v = np.where(np.sum(n * v, axis=1, keepdims=True) < 0.1, n, v)
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    ball, probe = _sphere_scene((0.0, 0.0, 0.0), 0.7), synthetic_probe()
+    kwargs = dict(n_t=8, n_s=8, n_dirs=200, seed=4, sampling="uniform")
+
+    def rows(geometric):
+        return Observations(n, v, np.zeros((12, 3), np.float32), np.zeros(12, np.int32), positions=0.7 * n,
+                            geometric_normals=geometric)
+
+    free = lighting.lighting_matrix(rows(n), probe, **kwargs)
+    unit = lighting.lighting_matrix(rows(n), probe, occluder=ball, **kwargs)
+    np.testing.assert_allclose(unit, free, rtol=1e-6, atol=1e-7 * free.max())
+    np.testing.assert_array_equal(lighting.lighting_matrix(rows(3.0 * n), probe, occluder=ball, **kwargs), unit)
+    for bad in (0.0, np.nan):
+        geometric = n.copy()
+        geometric[5] = bad
+        with pytest.raises(InputError, match="zero or non-finite geometric normal") as info:
+            lighting.lighting_matrix(rows(geometric), probe, occluder=ball, **kwargs)
+        assert info.value.source == "obs"
+
+
 @pytest.fixture(scope="module")
 def data_dir_optional():
     """The shared data folder when MI_BIVARIATE_DATA is set, else None (synthetic probe)."""

@@ -175,6 +175,12 @@ def _check_inputs(obs: Observations, probes: List[Any], n_t: Any, n_s: Any, n_di
         raise InputError("obs", "the observations have non-finite normals or views")
     if np.any(np.sum(obs.normals * obs.views, axis=1) <= 0.0):
         raise InputError("obs", "some observed normals face away from their view (n . v <= 0)")
+    if obs.positions is not None and obs.geometric_normals is not None:
+        g = obs.geometric_normals[np.all(np.isfinite(obs.positions), axis=1)]
+        if not (np.all(np.isfinite(g)) and np.all(np.linalg.norm(g, axis=1) > 0.0)):
+            raise InputError("obs", "some rows with a surface position have a zero or non-finite geometric "
+                             "normal (their shadow rays' offset)", "give each such row its face normal, or "
+                             "geometric_normals=None (the shading normals stand in)")
     return n_t, n_s, n_dirs, seed, chunk
 
 

@@ -38,8 +38,9 @@ def _row_packets(normals: np.ndarray, views: np.ndarray, offsets: np.ndarray,
                  geometric_normals: Optional[np.ndarray] = None) -> np.ndarray:
     """Per-row kernel inputs, 20 float32 per row (five 4-wide packets):
     ``[x, sin theta_v | y, cos theta_v | n, shift_1 | shift_2, p | n_g, shadow]``
-    with ``p`` the surface position, ``n_g`` the geometric normal and
-    ``shadow`` 1 where the row traces shadow rays (finite position), else 0."""
+    with ``p`` the surface position, ``n_g`` the unit geometric normal (``geometric_normals`` normalised,
+    as the shading ``normals`` are: spawn_ray's offset scales with its length) and ``shadow`` 1 where the
+    row traces shadow rays (finite position), else 0."""
     x, y, wo = row_frames(normals, views)
     n = normals / np.linalg.norm(normals, axis=1, keepdims=True)
     out = np.zeros((len(n), 4 * _PACKETS), dtype=np.float32)
@@ -53,7 +54,8 @@ def _row_packets(normals: np.ndarray, views: np.ndarray, offsets: np.ndarray,
         out[known, 13:16] = positions[known]
         out[known, 19] = 1.0
         if geometric_normals is not None:
-            out[known, 16:19] = geometric_normals[known]
+            g = geometric_normals[known]
+            out[known, 16:19] = g / np.linalg.norm(g, axis=1, keepdims=True)
     return out
 
 
