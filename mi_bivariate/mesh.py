@@ -68,38 +68,80 @@ def _trimesh_load(path: Path) -> Any:
     return loaded
 
 
-def _file_vertex_normals(path: Path, n_vertices: int) -> Optional[np.ndarray]:
-    """The vertex normals stored in a mesh file, or ``None``.
+def _file_vertex_normals(path: Path, n_vertices: int) -> Tuple[Optional[np.ndarray], int]:
+    """The vertex normals stored in a mesh file, or ``None``, and how many of its parts store none.
 
     trimesh reads them but drops them from the mesh it returns (its cache is
-    invalidated on load), so the format loader is asked directly.
+    invalidated on load), so the format loader is asked directly. A file of
+    several parts (glTF primitives) where only some store normals gives the
+    others' computed from their faces (:func:`_parts_vertex_normals`).
     """
     try:
         from trimesh.exchange.load import mesh_loaders
 
         kind = path.suffix.lower().lstrip(".")
         if kind not in mesh_loaders:
-            return None
+            return None, 0
         with open(path, "rb") as f:
             kwargs = mesh_loaders[kind](f, file_type=kind)
         placed = isinstance(kwargs, dict) and "geometry" in kwargs  # a scene graph (glTF): nodes place it
+        if placed and isinstance(kwargs["geometry"], dict) and len(kwargs["geometry"]) > 1:
+            return _parts_vertex_normals(path, kwargs["geometry"], n_vertices)
         if placed and isinstance(kwargs["geometry"], dict) and len(kwargs["geometry"]) == 1:
             kwargs = next(iter(kwargs["geometry"].values()))
         normals = kwargs.get("vertex_normals") if isinstance(kwargs, dict) else None
         if normals is None:
-            return None
+            return None, 0
         normals = np.asarray(normals, dtype=np.float64)
         if normals.shape != (n_vertices, 3) or not np.all(np.isfinite(normals)):
-            return None
+            return None, 0
         if placed:  # trimesh moved the vertices by the node's transform: the normals follow it
             transform = _node_transform(path)
             if transform is None:
-                return None
-            normals = normals @ np.linalg.inv(transform[:3, :3])  # rows: (M^-T n)^T
-            normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
+                return None, 0
+            normals = _placed_normals(normals, transform)
     except Exception:  # an unreadable normal block is the same as none
-        return None
-    return normals
+        return None, 0
+    return normals, 0
+
+
+def _placed_normals(normals: np.ndarray, transform: np.ndarray) -> np.ndarray:
+    """Unit normals ``(V, 3)`` of vertices moved by the ``(4, 4)`` ``transform``: rows ``(M^-T n)^T``."""
+    normals = normals @ np.linalg.inv(transform[:3, :3])
+    return normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
+
+
+def _parts_vertex_normals(path: Path, parts: Dict[str, Any], n_vertices: int) -> Tuple[Optional[np.ndarray], int]:
+    """The vertex normals of a file of several parts, in the order of the mesh ``trimesh.load(force="mesh")``
+    makes of it (its scene's geometry nodes, each part moved by its node), and the number of parts that
+    store none: those get the smooth normals trimesh computes from their own faces as placed (as
+    ``normals="vertex"`` does for a whole mesh; one Mitsuba mesh has vertex normals everywhere or nowhere). ``(None, 0)`` when no part stores normals, or the parts do not
+    add up to the mesh's ``n_vertices``."""
+    import trimesh
+
+    scene = trimesh.load(str(path), force="scene", process=False)
+    normals, stored, computed = [], 0, 0
+    for node in scene.graph.nodes_geometry:
+        transform, name = scene.graph[node]
+        geometry = scene.geometry[name]
+        if not isinstance(geometry, trimesh.Trimesh):  # as to_mesh: only triangle meshes are kept
+            continue
+        transform = np.asarray(transform, dtype=np.float64)
+        part = parts.get(name)
+        own = part.get("vertex_normals") if isinstance(part, dict) else None
+        own = None if own is None else np.asarray(own, dtype=np.float64)
+        if own is not None and own.shape == (len(geometry.vertices), 3) and np.all(np.isfinite(own)) \
+                and np.all(np.linalg.norm(own, axis=1) > 0.0):
+            normals.append(_placed_normals(own, transform))
+            stored += 1
+        else:
+            placed = geometry.copy()
+            placed.apply_transform(transform)
+            normals.append(np.asarray(placed.vertex_normals, dtype=np.float64))
+            computed += 1
+    if stored == 0 or sum(len(n) for n in normals) != n_vertices:
+        return None, 0
+    return np.concatenate(normals), computed
 
 
 def _node_transform(path: Path) -> Optional[np.ndarray]:
@@ -177,14 +219,19 @@ class MeshShape:
             normals: ``"auto"``: the file's vertex normals when it has them,
                 else face normals with an :class:`InputWarning`; ``"vertex"``:
                 the file's, else smooth angle-weighted ones computed from the
-                faces; ``"face"``: face normals (flat shading).
+                faces; ``"face"``: face normals (flat shading). In a file of
+                several parts (glTF primitives) of which only some store
+                normals, the others' are computed from their faces, with an
+                :class:`InputWarning` (one mesh has vertex normals everywhere
+                or nowhere).
 
         Raises:
             InputError: unreadable file, no triangles, non-finite vertices.
 
         Warns:
-            InputWarning: no vertex normals (``"auto"``), a surface that is
-                not closed (visibility leaks through holes), faces wound inwards.
+            InputWarning: no vertex normals (``"auto"``), parts without them
+                beside parts with them, a surface that is not closed
+                (visibility leaks through holes), faces wound inwards.
         """
         import trimesh
 
@@ -194,6 +241,7 @@ class MeshShape:
             mesh, name = source, "trimesh mesh"
             # A Trimesh whose normals were set explicitly keeps them in its cache.
             stored = np.asarray(mesh._cache["vertex_normals"]) if "vertex_normals" in mesh._cache else None
+            computed_parts = 0
         else:
             path = Path(source)
             if not path.is_file():
@@ -201,7 +249,7 @@ class MeshShape:
             if path.suffix.lower() not in MESH_SUFFIXES:
                 raise InputError(path, f"unknown mesh file type {path.suffix!r}", f"use one of {', '.join(MESH_SUFFIXES)}")
             mesh, name = _trimesh_load(path), str(path)
-            stored = _file_vertex_normals(path, len(mesh.vertices))
+            stored, computed_parts = _file_vertex_normals(path, len(mesh.vertices))
             if stored is not None and normals != "face" and mesh.is_watertight:  # (a closed surface has an outside)
                 # The area-weighted normals of the faces as placed, turned outwards (faces wound inwards
                 # have a negative volume; the shading normals of such a file may still point out).
@@ -229,6 +277,10 @@ class MeshShape:
             raise InputError(name, "every face of the mesh is degenerate (zero area)")
 
         vertex_normals = None
+        if stored is not None and normals != "face" and computed_parts:
+            warnings.warn(f"{name}: {computed_parts} of the file's parts store no vertex normals; theirs are "
+                          "computed from their faces (smooth shading, as the parts with normals)",
+                          InputWarning, stacklevel=2)
         if normals == "vertex":
             vertex_normals = stored if stored is not None else np.asarray(mesh.vertex_normals)
         elif normals == "auto":

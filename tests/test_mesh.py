@@ -390,6 +390,39 @@ def test_a_glb_node_that_stretches_the_mesh_turns_its_normals_by_the_inverse_tra
     np.testing.assert_allclose(shape.vertex_normals, truth, atol=1e-5)
 
 
+def test_a_file_of_parts_with_and_without_normals_keeps_the_stored_ones_and_computes_the_others(tmp_path):
+    """A glTF of two parts: an icosphere with exact radial normals stretched by its node (diag(2, 1, 0.5),
+    turned), and a small ball stored without normals. Before, any file of several parts was read as having no
+    vertex normals at all: flat shading with a warning that the mesh has none (normals='vertex' replaced the
+    stored ones by computed ones). Now the stored part keeps its own, A^-T n (closed form), and the other gets
+    normals computed from its faces (within a degree of the ball's radial directions), with a warning that
+    names it."""
+    from trimesh.transformations import rotation_matrix, translation_matrix
+
+    ico = trimesh.creation.icosphere(subdivisions=2)
+    radial = ico.vertices / np.linalg.norm(ico.vertices, axis=1, keepdims=True)
+    node = rotation_matrix(0.7, [0.3, 1.0, 0.2]) @ np.diag([2.0, 1.0, 0.5, 1.0])
+    centre = np.array([4.0, 0.0, 0.0])
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=0.5)
+    scene = trimesh.Scene()
+    scene.add_geometry(trimesh.Trimesh(ico.vertices, ico.faces, vertex_normals=radial, process=False), transform=node)
+    scene.add_geometry(trimesh.Trimesh(ball.vertices, ball.faces, process=False), transform=translation_matrix(centre))
+    scene.export(tmp_path / "parts.glb")
+    for normals in ("auto", "vertex"):
+        with pytest.warns(InputWarning, match="1 of the file's parts store no vertex normals; theirs are computed"):
+            shape = mesh.MeshShape.load(tmp_path / "parts.glb", normals=normals)
+        on_ball = np.linalg.norm(shape.vertices - centre, axis=1) < 0.6
+        assert shape.vertex_normals is not None
+        assert on_ball.sum() == len(ball.vertices) and (~on_ball).sum() == len(ico.vertices)
+        stretched = np.linalg.solve(node[:3, :3], shape.vertices[~on_ball].T).T   # back on the unit sphere
+        truth = stretched @ np.linalg.inv(node[:3, :3])                             # rows (A^-T n)^T
+        truth /= np.linalg.norm(truth, axis=1, keepdims=True)
+        np.testing.assert_allclose(shape.vertex_normals[~on_ball], truth, atol=1e-5)
+        outward = (shape.vertices[on_ball] - centre) / 0.5
+        angle = np.degrees(np.arccos(np.clip(np.sum(shape.vertex_normals[on_ball] * outward, axis=1), -1.0, 1.0)))
+        assert angle.max() < 1.0, normals
+
+
 def test_a_mesh_with_split_vertices_is_closed(tmp_path):
     """A flat-shaded cube stored with its own vertices per face (24, each with its face's normal, as
     exporters write hard edges) is one closed surface: no 'not watertight' warning."""
