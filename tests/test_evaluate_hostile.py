@@ -469,3 +469,16 @@ def test_missing_shared_data_is_one_line_before_any_material(tmp_path, capsys, m
     assert status == 2 and len(err.splitlines()) == 1 and err.startswith("mi-bivariate: error: "), err
     assert not [w for w in said if issubclass(w.category, InputWarning)], [str(w.message) for w in said]
     assert not out.exists()
+
+
+@pytest.mark.parametrize("prior, said", [("folder", "not a file (give the path of a .npz file, not of a folder)"),
+                                         ("missing.npz", "prior file not found (check the path)")])
+def test_a_prior_that_is_no_file_is_said_as_such(tmp_path, capsys, prior, said):
+    """``evaluate --prior`` naming a folder said "prior file not found" (it exists: ``recover --prior`` says
+    what it is); a missing one said nothing of what to do. Both before any folder is made."""
+    (tmp_path / "folder").mkdir()
+    out = tmp_path / "new" / "eval"
+    status = main(["evaluate", MATERIAL, "--out", str(out), *TINY_ARGS, "--prior", str(tmp_path / prior)])
+    assert _one_line_error(capsys, status) == f"mi-bivariate: error: {tmp_path / prior}: {said}"
+    assert not (tmp_path / "new").exists()
+

@@ -118,8 +118,10 @@ class EvalConfig:
         if not (math.isfinite(self.noise) and 0.0 <= self.noise <= MAX_NOISE):
             raise InputError("--noise", f"noise level must be a number from 0 to {MAX_NOISE:g} (a relative standard "
                                         f"deviation at the mean signal), got {self.noise}")
+        if self.prior is not None and Path(self.prior).is_dir():  # as recover --prior says it
+            raise InputError(self.prior, "not a file", "give the path of a .npz file, not of a folder")
         if self.prior is not None and not Path(self.prior).is_file():
-            raise InputError(self.prior, "prior file not found")
+            raise InputError(self.prior, "prior file not found", "check the path")
         if int(self.novel_resolution) < 4:
             raise InputError("--novel-resolution", f"must be >= 4 pixels, got {self.novel_resolution}")
         if len(self.reference_directions) != 3 or min(self.reference_directions) < 0:
