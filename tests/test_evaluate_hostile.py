@@ -482,3 +482,15 @@ def test_a_prior_that_is_no_file_is_said_as_such(tmp_path, capsys, prior, said):
     assert _one_line_error(capsys, status) == f"mi-bivariate: error: {tmp_path / prior}: {said}"
     assert not (tmp_path / "new").exists()
 
+
+@pytest.mark.parametrize("extra, flag", [(["--abs", "-1"], "--abs"), (["--abs-time-factor", "0"], "--abs-time-factor"),
+                                         (["--abs-time-factor", "nan"], "--abs-time-factor"),
+                                         (["--novel-spp", "0"], "--novel-spp"), (["--jobs", "257"], "--jobs")],
+                         ids=lambda v: " ".join(v) if isinstance(v, list) else v)
+def test_evaluate_counts_are_refused_at_their_ends(tmp_path, capsys, extra, flag):
+    """The ends of evaluate's own ranges, before any folder is made: --abs -1 (sliced "all but the last"),
+    a time factor of 0 or NaN, 0 samples per pixel of the novel renders, more than 256 jobs."""
+    out = tmp_path / "new" / "eval"
+    status = main(["evaluate", MATERIAL, "--out", str(out), *TINY_ARGS, *extra])
+    assert _one_line_error(capsys, status).startswith(f"mi-bivariate: error: {flag}: "), flag
+    assert not (tmp_path / "new").exists()

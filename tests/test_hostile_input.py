@@ -1778,3 +1778,126 @@ def test_an_npz_without_a_required_member_is_named_not_a_key_error(tmp_path):
     """An archive holding numbers but not the table: one line naming the file and the missing members."""
     np.savez(tmp_path / "other.npz", weights=np.ones(4))
     _raises(lambda: BivariateBRDF.load(tmp_path / "other.npz"), r"other\.npz: not a .*: missing table")
+
+
+@pytest.mark.parametrize("option, ok", [
+    ("--max-view-angle=0", False), ("--max-view-angle=90", True), ("--max-view-angle=1e-3", True),
+    ("--footprint=0", False), ("--footprint=-1", False), ("--footprint=90", True), ("--footprint=90.5", False),
+    ("--saturation=0", False), ("--saturation=inf", False), ("--saturation=1e-30", True),
+    ("--fov=1", True), ("--fov=150", True), ("--fov=0.999", False), ("--fov=150.001", False), ("--fov=inf", False),
+    ("--threads=1024", True), ("--threads=1025", False), ("--threads=0", False),
+], ids=lambda v: str(v))
+def test_recover_number_ranges_hold_at_their_ends(monkeypatch, option, ok):
+    """Each range as --help and the messages state it, at its ends: the view and footprint angles in
+    (0, 90], a finite saturation > 0, a field of view in [1, 150] degrees, 1 to 1024 threads (above the CPUs
+    lowered, not refused). Checked before any file is read."""
+    from mi_bivariate import commands
+
+    monkeypatch.setattr(os, "cpu_count", lambda: 2048)
+    args = cli.build_parser().parse_args(["recover", "x.exr", "--probe", "p.exr", option])
+    flag = option.split("=")[0]
+    if ok:
+        commands._check_recover_args(args)
+    else:
+        with pytest.raises(InputError) as info:
+            commands._check_recover_args(args)
+        assert info.value.source == flag and info.value.problem.startswith("must be"), str(info.value)
+
+
+@pytest.mark.parametrize("option", ["--footprint=2", "--report-render", "--refine-sphere"])
+def test_every_orthographic_option_is_refused_with_fov(option):
+    """--footprint, --report-render and --refine-sphere model an orthographic view: with --fov each is
+    refused by name (--refine-sphere was checked by no test)."""
+    from mi_bivariate import commands
+
+    args = cli.build_parser().parse_args(["recover", "x.exr", "--probe", "p.exr", "--fov", "30", option])
+    with pytest.raises(InputError, match="models an orthographic view only") as info:
+        commands._check_recover_args(args)
+    assert info.value.source == option.split("=")[0]
+
+
+def test_threads_are_shared_by_jobs_here_and_left_to_the_cluster_with_dask(monkeypatch):
+    """``evaluate --jobs J --threads T`` on C CPUs lowers T to C // J (each job's share) with a warning; with
+    --dask the threads run on the cluster's machines, whose CPUs this one does not know: left as given."""
+    from mi_bivariate import commands
+
+    monkeypatch.setattr(os, "cpu_count", lambda: 8)
+    parser = cli.build_parser()
+    args = parser.parse_args(["evaluate", "--jobs", "4", "--threads", "3"])
+    with pytest.warns(InputWarning, match=r"--threads: 3 is more than this machine's 8 CPU\(s\) shared by 4 jobs; "
+                                          r"using 2"):
+        commands._check_threads(args, jobs=4)
+    assert args.threads == 2
+    args = parser.parse_args(["evaluate", "--jobs", "4", "--threads", "64", "--dask", "tcp://h:1"])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        commands._check_threads(args, jobs=4, local=False)
+    assert args.threads == 64
+
+
+def test_upper_case_suffixes_are_taken_by_the_commands_too(files, tmp_path, capsys):
+    """``reduce X.BINARY`` reads the file (here a truncated one: its error is the truncation, not "not a MERL
+    .binary file"), and ``--out X.EXR`` is an OpenEXR name, as the readers take upper-case suffixes."""
+    short = tmp_path / "T.BINARY"
+    short.write_bytes(files["truncated_merl"].read_bytes())
+    line = _cli(["reduce", str(short), "--grid", "4", "4", "--out", str(tmp_path / "t.npz")], capsys)
+    assert line.startswith(f"mi-bivariate: error: {short}: MERL file truncated"), line
+    assert cli.main(["render", str(files["npz"]), "--probe", str(files["probe"]), "--resolution", "8", "--spp", "1",
+                     "--out", str(tmp_path / "R.EXR")]) == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["R.EXR", "R.png", "T.BINARY"]
+
+
+def test_evaluate_leaves_the_threads_to_a_dask_cluster(monkeypatch, tmp_path):
+    """``evaluate --dask ADDRESS --threads T`` hands T to the cluster's workers unchanged: this machine's
+    CPU count (here 1) says nothing about theirs, so no lowering and no warning."""
+    from mi_bivariate import commands
+
+    seen = {}
+
+    def stop(materials, out, **kwargs):
+        seen.update(kwargs)
+        raise InputError("--dask", "stopped here by the test")
+
+    monkeypatch.setattr(os, "cpu_count", lambda: 1)
+    monkeypatch.setattr(commands.ev, "run_evaluation", stop)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", InputWarning)
+        assert cli.main(["evaluate", "lambertian", "--quick", "--no-figures", "--no-progress", "--threads", "64",
+                         "--dask", "tcp://127.0.0.1:9", "--out", str(tmp_path / "e")]) == 2
+    assert seen["threads"] == 64 and seen["dask"] == "tcp://127.0.0.1:9"
+
+
+def test_a_mask_that_does_not_fit_one_photo_of_a_batch_fails_that_photo_alone(files, tmp_path, capsys):
+    """``recover-batch --mask M``: a photo whose size M does not fit gets its one-line error naming M, and the
+    photos after it are recovered (exit status 2), as for a photo's own problem."""
+    big = _write_bitmap(tmp_path / "big.exr", np.full((80, 80, 3), 0.1))
+    mask = images.write_exr(tmp_path / "mask.exr", np.ones((64, 64, 3), np.float32))
+    out = tmp_path / "out"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", InputWarning)
+        status = cli.main(["recover-batch", str(big), str(files["image"]), "--probe", str(files["probe"]),
+                           "--sphere", "32,32,28", "--normals", "300", "--dirs", "200", "--grid", "4", "4",
+                           "--no-report", "--mask", str(mask), "--out-dir", str(out)])
+    err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("mi-bivariate: error:")]
+    assert status == 2 and len(err) == 1 and err[0].startswith(f"mi-bivariate: error: {mask}: mask is 64x64"), err
+    assert sorted(p.name for p in out.iterdir()) == ["image.exr", "image.npz"]
+
+
+@pytest.mark.parametrize("option, match", [
+    ("--sphere=32,32,0", "--sphere radius must be positive, got 0.0"),
+    ("--noise=0,-1", "A and B must be finite and >= 0, got '0,-1'"),
+    ("--noise=-1,0", "A and B must be finite and >= 0, got '-1,0'"),
+    ("--probe-rotation=360.001,0,0", "each angle must be in [-360, 360] degrees"),
+], ids=lambda v: str(v))
+def test_parsed_values_are_refused_at_their_ends(capsys, option, match):
+    """A zero radius and a negative noise term, either of the two, are usage errors (one line, status 2)."""
+    with pytest.raises(SystemExit) as info:
+        cli.main(["recover", "x.exr", "--probe", "p.exr", option])
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and match in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_a_whole_turn_of_the_probe_is_a_rotation():
+    """--probe-rotation takes each angle in [-360, 360] degrees, both ends included (a whole turn)."""
+    args = cli.build_parser().parse_args(["recover", "x.exr", "--probe", "p.exr", "--probe-rotation=360,0,-360"])
+    assert args.probe_rotation == (360.0, 0.0, -360.0)
