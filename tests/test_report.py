@@ -304,3 +304,162 @@ def test_evaluation_table_gallery_centres_cells_on_nodes():
         np.testing.assert_allclose(y0 + (np.arange(n_t) + 0.5) * (y1 - y0) / n_t, np.linspace(0, 1, n_t), atol=1e-12)
         assert ax.get_xlim() == (0.0, 1.0) and ax.get_ylim() == (0.0, 1.0)
     figures.pyplot().close(fig)
+
+
+def test_difference_panel_is_the_mean_absolute_difference_in_percent_of_the_objects_mean():
+    """|image - reference| averaged over the colour channels, over the reference's mean on the object (the
+    paper's x100), NaN off the object; its colour scale holds the bulk of the pixels, not an outlier, and its
+    bar says the unit. Known numbers: differences +1, -1, +3 on a reference of 2 are 5/3 / 2 = 83.3%."""
+    plt = report.pyplot()
+    mask = np.zeros((25, 40), bool)
+    mask[5:20, 5:35] = True
+    reference = np.full((25, 40, 3), 2.0)
+    reference[~mask] = 50.0                                  # off the object: not in the mean
+    image = reference.copy()
+    image[mask] += [1.0, -1.0, 3.0]
+    fig, axes = plt.subplots(1, 2)
+    report.show_difference(axes[0], image, reference, mask, "d")
+    shown = np.ma.filled(axes[0].images[0].get_array(), np.nan)
+    np.testing.assert_allclose(shown[mask], 100.0 * (5.0 / 3.0) / 2.0)
+    assert np.isnan(shown[~mask]).all()
+    assert fig.axes[-1].get_ylabel() == "% of the mean pixel"
+    # 450 pixels from 0 to 90% of the mean, and 2 outliers at 10^5 %
+    spread = np.ones((25, 40, 3))
+    spread[mask] += np.append(np.linspace(0.0, 0.9, mask.sum() - 2), [1e3, 1e3])[:, None]
+    report.show_difference(axes[1], spread, np.ones((25, 40, 3)), mask, "d", scale=10.0)
+    shown = np.ma.filled(axes[1].images[0].get_array(), np.nan)[mask]
+    vmax = axes[1].images[0].get_clim()[1]
+    assert np.mean(shown <= vmax) >= 0.98 and vmax < 1e3
+    assert fig.axes[-1].get_ylabel() == "x10 of the mean pixel"
+    plt.close(fig)
+
+
+def test_table_panel_is_log10_of_the_mean_rgb_with_theta_h_zero_at_the_bottom():
+    """The table's panel shows log10 of the channels' mean, theta_h = 0 (the specular peak) at the bottom of
+    the drawn panel, and tick labels in degrees where the paper's st map puts them (s = 2 theta_d / pi,
+    t = sqrt(2 theta_h / pi): mi_bivariate.coordinates)."""
+    import matplotlib
+
+    from mi_bivariate.bivariate import BivariateBRDF
+    from mi_bivariate.coordinates import st_from_half_diff
+
+    plt = report.pyplot()
+    t = np.linspace(0.0, 1.0, 8)[:, None, None]
+    table = 10.0 ** (-3.0 * t) * np.array([0.5, 1.0, 1.5]) * np.ones((8, 8, 3))   # brightest at theta_h = 0
+    fig, ax = plt.subplots(figsize=(3, 3), dpi=50)
+    image = report.plot_table(ax, BivariateBRDF(table), "t")
+    np.testing.assert_allclose(image.get_array(), np.log10(table.mean(axis=2)), rtol=1e-6)
+    fig.canvas.draw()
+    pixels = np.asarray(fig.canvas.buffer_rgba())[..., :3].astype(float)
+    x, y = ax.transData.transform((0.5, 0.02))               # just above the bottom edge: t ~ 0
+    drawn = pixels[int(round(fig.bbox.height - y)), int(round(x))] / 255.0
+    colours = matplotlib.colormaps["viridis"]([1.0, 0.0])[:, :3]   # the scale's top and bottom
+    assert np.argmin(np.abs(colours - drawn).sum(axis=1)) == 0, drawn
+    for tick, label in zip(ax.get_yticks(), ax.get_yticklabels()):
+        assert tick == pytest.approx(st_from_half_diff(np.radians(float(label.get_text())), 0.0)[1])
+    for tick, label in zip(ax.get_xticks(), ax.get_xticklabels()):
+        assert tick == pytest.approx(st_from_half_diff(0.0, np.radians(float(label.get_text())))[0])
+    plt.close(fig)
+
+
+def test_incident_plane_meets_the_mirror_direction_at_minus_the_view_angle():
+    """For a view at v, the light at -v is the mirror direction (theta_h = 0, theta_d = v) and the light at
+    +v the view itself (theta_h = v, theta_d = 0); a plot of one channel draws that channel."""
+    from mi_bivariate.bivariate import BivariateBRDF
+
+    theta_in, theta_h, theta_d, _ = report.incident_plane(40.0, n=180)
+    np.testing.assert_allclose(np.degrees(theta_h), np.abs(theta_in + 40.0) / 2.0, atol=1e-9)
+    np.testing.assert_allclose(np.degrees(theta_d), np.abs(theta_in - 40.0) / 2.0, atol=1e-9)
+    plt = report.pyplot()
+    fig, ax = plt.subplots()
+    report.plot_incident_plane(ax, {"c": BivariateBRDF(np.ones((4, 4, 3)) * [0.1, 0.2, 0.3])}, channel=2)
+    np.testing.assert_allclose(ax.get_lines()[0].get_ydata(), 0.3)
+    assert ax.get_ylabel() == "f (B, 1/sr)"
+    plt.close(fig)
+
+
+def test_report_panels_say_what_the_recovery_measured(tmp_path, recovery, monkeypatch):
+    """The report's numbers against what they claim, on a recovery with a known confidence map and a photo
+    with a bright background:
+
+    - the confidence panel is the worst channel's measured share; its title counts the nodes > 0.5 (here
+      one channel is measured only on the first quarter of the theta_h rows: 25%) and its line is at 0.5;
+    - the fit panel plots log10 of the observed luminance (x) against the predicted (y), with the identity
+      over the observed range;
+    - the difference panel is the fit residual: every sphere pixel shows the residual |L f - I| of an
+      observed row (its nearest), on one scale;
+    - the input is exposed for the sphere, not for the background (its bright pixels reach display white).
+    """
+    import dataclasses
+    import types
+
+    import matplotlib.pyplot as plt
+
+    result = recovery[0]
+    n_t, n_s = result.brdf.table.shape[:2]
+    measured = np.ones((n_t, n_s, 3))
+    measured[:, :, 1] = 0.2
+    measured[: n_t // 4, :, 1] = 0.9
+    image = result.images[0].copy()
+    mask = result.geometries[0].surface_maps(image.shape[1], image.shape[0]).mask
+    image[~mask] = 100.0 * image[mask].max()
+    result = dataclasses.replace(result, solution=types.SimpleNamespace(measured=measured), images=[image])
+    fig = _report_figure((result,), tmp_path, monkeypatch)
+    panels = fig.axes[:6]
+    confidence = panels[4]
+    np.testing.assert_array_equal(confidence.images[0].get_array(), measured.min(axis=-1))
+    assert "\n25% of the nodes > 0.5" in confidence.get_title(), confidence.get_title()
+    assert [list(c.levels) for c in confidence.collections] == [[0.5]]
+    points, identity = panels[5].get_lines()
+    weights = np.array([0.2126, 0.7152, 0.0722])             # Rec. 709
+    seen = np.log10(np.maximum(np.asarray(result.observations.values, np.float64) @ weights, 1e-6))
+    fit = np.log10(np.maximum(np.asarray(result.predicted, np.float64) @ weights, 1e-6))
+    np.testing.assert_allclose(points.get_xdata(), seen, atol=1e-4)
+    np.testing.assert_allclose(points.get_ydata(), fit, atol=1e-4)
+    np.testing.assert_allclose(identity.get_xdata(), [seen.min(), seen.max()], atol=1e-4)
+    shown = np.ma.filled(panels[2].images[0].get_array(), np.nan)
+    rows = np.asarray(result.observations.pixels)
+    residual = np.abs(np.asarray(result.predicted, np.float32) - np.asarray(result.observations.values,
+                                                                            np.float32)).mean(axis=1)
+    scale = np.median(shown[rows[:, 0], rows[:, 1]] / residual)
+    on_sphere = shown[mask] / scale
+    gaps = np.min(np.abs(on_sphere[:, None] - residual[None, :]), axis=1)
+    assert np.all(gaps <= 1e-5 * residual.max()), np.max(gaps)
+    inside = panels[0].images[0].get_array()[mask]
+    assert inside.max() >= 250, inside.max()
+    plt.close(fig)
+
+
+def test_demo_figure_compares_the_novel_render_with_its_truth(tmp_path, monkeypatch):
+    """The demo figure's difference panel is |recovered - truth| under the novel probe (here the recovered
+    render is 1.5 x the truth: 50% of the mean pixel everywhere on the object; to the input photo, 2 x the
+    truth, it would be 25%),
+    and both tables are drawn on the bivariate truth's colour scale, which holds (almost) all its nodes."""
+    import types
+
+    from mi_bivariate.bivariate import BivariateBRDF
+
+    saved = []
+    monkeypatch.setattr(report, "save_figure", lambda fig, path, **kwargs: saved.append(fig) or path)
+    monkeypatch.setattr(report, "plot_incident_plane", lambda *args, **kwargs: None)   # its own test's; slow to lay out
+    mask = np.zeros((8, 8), bool)
+    mask[2:6, 2:6] = True
+    truth_image = np.where(mask[..., None], 0.4, 0.0) * np.ones((8, 8, 3))
+    t = np.linspace(0.0, 1.0, 6)[:, None, None]
+    floor = BivariateBRDF(10.0 ** (-3.0 * t) * np.ones((6, 6, 3)))
+    numbers = {"input_probe": "/p/grace.exr", "novel_probe": "/p/pisa.hdr", "image_relative_rmse_novel": 0.5,
+               "relight_floor": 0.01, "reference": {"noise": 0.001}, "brdf_error_recovered_eq1": 0.2,
+               "exact_floor": 0.05, "grid_floor": 0.06, "material": "m", "priors": "packaged"}
+    report.write_demo_figure(tmp_path / "demo.png", types.SimpleNamespace(image=2.0 * truth_image, mask=mask),
+                             types.SimpleNamespace(image=1.5 * truth_image),
+                             types.SimpleNamespace(image=truth_image, mask=mask),
+                             types.SimpleNamespace(brdf=floor), floor, floor, numbers)
+    fig = saved[0]
+    shown = np.ma.filled(fig.axes[3].images[0].get_array(), np.nan)
+    np.testing.assert_allclose(shown[mask], 50.0)
+    tables = [ax for ax in fig.axes if ax.get_xlabel() == "theta_d (deg)"]
+    logs = np.log10(floor.table.mean(axis=2))
+    for ax in tables:
+        lo, hi = ax.images[0].get_clim()
+        assert np.mean((logs >= lo - 1e-9) & (logs <= hi + 1e-9)) >= 0.95, (lo, hi)
+    report.pyplot().close(fig)
