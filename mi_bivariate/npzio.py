@@ -55,7 +55,7 @@ def read_npz(path: PathLike, what: str = "file", required: Sequence[str] = (),
     """
     path = Path(path)
     if not path.exists():
-        raise InputError(path, f"{what} not found")
+        raise InputError(path, f"{what} not found", "check the path")
     if not path.is_file():
         raise InputError(path, "not a file", "give the path of a .npz file, not of a folder")
     try:

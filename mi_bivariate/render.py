@@ -102,7 +102,7 @@ def bsdf_dict(source: Any, interpolation: str = "linear", sampling: str = "table
         path = Path(source)
         suffix = path.suffix.lower()
         if not path.is_file():
-            raise InputError(path, "BRDF file not found")
+            raise InputError(path, "BRDF file not found", "check the path")
         if suffix == ".npz":
             return {"type": "bivariate", "filename": str(path), "sampling": sampling}
         if suffix == ".binary":

@@ -152,7 +152,7 @@ def resolve_materials(items: Sequence[str], data_dir: Optional[PathLike] = None)
             out += [MaterialSpec(f.stem, "merl", str(f)) for f in merl.merl_files_in(path)]
         elif path.suffix.lower() == ".binary":  # as load_brdf and render read it
             if not path.is_file():
-                raise InputError(path, "MERL file not found")
+                raise InputError(path, "MERL file not found", "check the path")
             out.append(MaterialSpec(path.stem, "merl", str(path)))
         elif item in NBRDF_SETS:
             out += [MaterialSpec(n, "nbrdf", n) for n in NBRDF_SETS[item]]

@@ -1901,3 +1901,16 @@ def test_a_whole_turn_of_the_probe_is_a_rotation():
     """--probe-rotation takes each angle in [-360, 360] degrees, both ends included (a whole turn)."""
     args = cli.build_parser().parse_args(["recover", "x.exr", "--probe", "p.exr", "--probe-rotation=360,0,-360"])
     assert args.probe_rotation == (360.0, 0.0, -360.0)
+
+
+@pytest.mark.parametrize("command", ["render", "recover --prior", "evaluate"])
+def test_a_missing_input_file_says_what_to_do(files, tmp_path, capsys, command):
+    """A missing bivariate table, prior or MERL file named the problem alone ("... file not found"), where a
+    missing photo or probe says "(check the path)": each now says it too, before any work."""
+    missing = tmp_path / ("missing.binary" if command == "evaluate" else "missing.npz")
+    argv = {"render": ["render", str(missing), "--probe", str(files["probe"]), "--out", str(tmp_path / "r.exr")],
+            "recover --prior": _recover_args(files, prior=str(missing), out=str(tmp_path / "x.npz")),
+            "evaluate": ["evaluate", str(missing), "--quick", "--out", str(tmp_path / "e"), "--no-progress"]}[command]
+    line = _cli(argv, capsys)
+    assert line.startswith(f"mi-bivariate: error: {missing}: ") and line.endswith("file not found (check the path)"), line
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
