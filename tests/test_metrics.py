@@ -315,3 +315,45 @@ def test_relight_errors_noise_rule_and_psnr_by_hand():
     got = metrics.relight_errors(1.1 * truth, 1.05 * truth, truth, mask, reference_noise=0.0245)
     assert got["ratio"] == pytest.approx(2.0)              # 2 x 0.0245 = 0.049 <= 0.05 < 0.049 + 0.002
     assert got["psnr"] == pytest.approx(20.0)
+
+
+def test_cosine_error_weighs_each_cell_by_its_projected_solid_angle(lambertian_truth):
+    """A relative error that varies over the cells (50 % at theta_d >= 45 deg, 20 % more at theta_h rows
+    i >= 60, none elsewhere): ``cosine`` is sqrt(sum w (f_hat - f)^2 / sum w f^2) written out here over the
+    full (90, 90, 180) grid with the weights of :func:`merl_cell_weights`, not the unweighted share of cells
+    (a uniform error, as in the scaled-estimate test, cancels the weights)."""
+    f = np.array(lambertian_truth.table, np.float64)
+    i = np.arange(90)[:, None, None, None]
+    j = np.arange(90)[None, :, None, None]
+    rel = 0.5 * (j >= 45) + 0.2 * (i >= 60)
+    estimate = f * (1.0 + rel)
+    e = metrics.brdf_errors(lambertian_truth, estimate)
+    w = np.broadcast_to(metrics.merl_cell_weights()[..., None], f.shape)
+    valid = np.isfinite(f) & (w > 0)
+    want = math.sqrt(np.sum((w * (estimate - f) ** 2)[valid]) / np.sum((w * f ** 2)[valid]))
+    assert e["cosine"] == pytest.approx(want, rel=1e-9)
+    unweighted = math.sqrt(np.sum(((estimate - f) ** 2)[valid]) / np.sum((f ** 2)[valid]))
+    assert abs(want - unweighted) > 0.02, (want, unweighted)    # the weights decide the number
+
+
+def test_log_error_counts_every_cell_even_where_the_truth_is_zero(lambertian_truth):
+    """Eq. 1 leaves out the cells whose truth is 0 (its relative error is undefined there) or at most
+    ``min_value``; the log error, defined everywhere, counts every cell. An estimate wrong only where the truth
+    is exactly 0 (0.1 1/sr there): Eq. 1 is 0, the log error is ln(1.1) times the root share of such cells."""
+    from mi_bivariate.merl import MERLBRDF
+
+    table = np.array(lambertian_truth.table, np.float64)
+    zero = np.zeros(table.shape, bool)
+    zero[:20] = np.isfinite(table[:20])                    # theta_h rows 0..19 exactly 0
+    table[zero] = 0.0
+    truth = MERLBRDF(table, name="zero at the peak")
+    estimate = np.where(zero, 0.1, table)
+    valid = np.isfinite(table)
+    share = zero.sum() / valid.sum()
+    assert 0.05 < share < 0.5
+    e = metrics.brdf_errors(truth, estimate)
+    assert e["eq1"] == pytest.approx(0.0, abs=1e-12) and e["eq1_min"] == pytest.approx(0.0, abs=1e-12)
+    assert e["log"] == pytest.approx(math.log(1.1) * math.sqrt(share), rel=1e-9)
+    # min_value narrows Eq. 1's cells, not the log error's (here every cell is under 1 1/sr: Eq. 1 has none).
+    high = metrics.brdf_errors(truth, estimate, min_value=1.0)
+    assert math.isnan(high["eq1"]) and high["log"] == e["log"]
