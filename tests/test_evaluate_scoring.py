@@ -10,7 +10,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from mi_bivariate import analytic, metrics, prior, training_set
+from mi_bivariate import adequacy, analytic, metrics, prior, training_set
 from mi_bivariate import evaluate as ev
 from mi_bivariate.bivariate import BivariateBRDF
 from mi_bivariate.evaluate import protocol
@@ -91,6 +91,39 @@ def test_a_recovery_is_scored_over_the_observed_and_the_confident_nodes():
     assert got["floor_eq1"] == errors(floor, observed_nodes=confident)["eq1_observed"]
     assert got["exact_floor_eq1"] == errors(exact, observed_nodes=confident)["eq1_observed"]
     assert len({got["eq1"], got["floor_eq1"], got["exact_floor_eq1"], entry["grid_floor_observed"]}) == 4
+
+
+
+def test_a_node_seen_by_many_rows_with_little_signal_is_not_observed():
+    """The observed-node rule needs both criteria: 8 effective rows *and* half a pixel's worth of signal. Node
+    (0, 0) takes most of 60 rows; 20 of them give a share q of their value to node (0, 1) (q = 0.02), 20 to (0, 2)
+    (q = 0.03), 20 to (1, 0) (q = 0.05): each has 20 effective rows and a signal of 20 q (0.4, 0.6, 1.0), so
+    (0, 1) alone is not observed. Node (1, 1) is all of one row (signal 1, but one effective row) and (1, 2) is
+    in none: neither is observed. The recorded node count and the nodes given to the metric follow that rule."""
+    n_t, n_s = 2, 3
+    rows = []
+    for node, q in ((1, 0.02), (2, 0.03), (3, 0.05)):
+        row = np.zeros((n_t * n_s, 3))
+        row[0], row[node] = 1.0 - q, q
+        rows += [row] * 20
+    alone = np.zeros((n_t * n_s, 3))
+    alone[4] = 1.0
+    L = np.stack(rows + [alone])
+    effective, signal = adequacy.node_observation_strength(L, n_t, n_s)
+    np.testing.assert_allclose(signal[0, 1:], [0.4, 0.6], rtol=1e-9)
+    np.testing.assert_allclose(effective[0, 1:], [20.0, 20.0], rtol=1e-9)
+    want = np.array([[True, False, True], [True, False, False]])
+
+    def errors(estimate, observed_nodes):               # stands in for the metric: says which nodes it was given
+        return {"eq1_observed": float(np.flatnonzero(observed_nodes).sum() + 100 * observed_nodes.sum())}
+
+    truth = SimpleNamespace(errors=errors, floor="floor", exact="exact")
+    rec = SimpleNamespace(lighting_matrix=L, brdf="recovered", solution=SimpleNamespace(measured=np.ones((2, 3, 3))))
+    entry, nodes = protocol.score_recovery(rec, truth, (n_t, n_s))
+    np.testing.assert_array_equal(nodes, want)
+    assert entry["observed"]["nodes"] == 3 and entry["observed"]["node_fraction"] == pytest.approx(0.5)
+    assert entry["recovered"]["eq1_observed"] == errors(None, want)["eq1_observed"]
+    assert entry["grid_floor_observed"] == entry["exact_floor_observed"] == errors(None, want)["eq1_observed"]
 
 
 def _image(entry_rmse, psnr, floor, ratio):
