@@ -425,6 +425,38 @@ def test_a_probe_file_changed_is_evaluated_again(tmp_path):
     assert texts and "probe_files_sha256" not in texts[-1]
 
 
+def test_another_shared_data_folder_is_evaluated_again(tmp_path, data_dir, monkeypatch):
+    """A shared probe is named, not given as a file, so its bytes are not in the config hash: a rerun in the same
+    folder with another data folder (``--data``) whose probe of that name holds other bytes reused the first
+    folder's numbers. Each record now keeps the digest of the shared files its evaluation read and is reused only
+    for the same bytes (another folder holding the same bytes is the same data), with artifacts of its own (a run
+    killed between another folder's artifacts and its record leaves the first record's artifacts as they were)."""
+    import copy
+    import shutil
+
+    folders = {}
+    for name, pisa in (("a", "pisa_256.hdr"), ("same", "pisa_256.hdr"), ("other", "uffizi_256.hdr")):
+        (tmp_path / name / "probes").mkdir(parents=True)
+        shutil.copy(data_dir / "probes" / pisa, tmp_path / name / "probes" / "pisa_256.hdr")
+        folders[name] = tmp_path / name
+    config = ev.EvalConfig(**{**TINY.__dict__, "novel_probes": ("pisa_256",), "reference_directions": (64, 128, 64)})
+    evaluated, real = [], runner.evaluate_material
+
+    def evaluate(task):  # the first material evaluated for real, then its result again (only the runner is tested)
+        if not evaluated:
+            evaluated.append(real(task))
+        evaluated.append(task.data_dir)
+        return copy.deepcopy(evaluated[0])
+
+    monkeypatch.setattr(runner, "evaluate_material", evaluate)
+    runs = {name: ev.run_evaluation([MATERIAL], tmp_path / "eval", config=config, data_dir=folders[name],
+                                    progress=False, figures=False)[0] for name in ("a", "same", "other")}
+    assert evaluated[1:] == [str(folders["a"]), str(folders["other"])]
+    assert runs["same"] == runs["a"] and runs["other"]["shared_data_sha256"] != runs["a"]["shared_data_sha256"]
+    paths = {name: ev.artifact_path(tmp_path / "eval", record) for name, record in runs.items()}
+    assert paths["a"].is_file() and paths["other"].is_file() and paths["a"] != paths["other"]
+
+
 def test_every_record_states_its_reference_noise(tmp_path):
     """The truth's renders under the novel probes are the references of every relight error, and their own noise
     was measured once, off-line (results.md), for a few materials, never per record. Each record now holds it per

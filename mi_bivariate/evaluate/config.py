@@ -4,7 +4,10 @@ A finished material is reused on resume only when the hash of its
 configuration (:meth:`EvalConfig.hash`) is unchanged; the hash covers the
 settings, :data:`PROTOCOL_VERSION` and the solver's identity (the packaged
 priors' bytes and the default alpha), so a re-learnt prior or a re-tuned
-alpha never mixes with old results.
+alpha never mixes with old results. The shared probes and MERL-NBRDF weights
+enter it by name only: each record keeps :func:`shared_data_digest` beside it,
+so that another shared data folder (``--data``) holding other bytes under the
+same names is evaluated again.
 """
 
 from __future__ import annotations
@@ -16,12 +19,12 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import List, Optional, Tuple, Union
 
-from mi_bivariate import basis_prior, prior, solve, training_set
+from mi_bivariate import basis_prior, nbrdf, prior, probes, solve, training_set
 from mi_bivariate.baselines import FAMILIES
 from mi_bivariate.common import PathLike, file_digest
 from mi_bivariate.errors import InputError
 from mi_bivariate.lighting import DEFAULT_DIRS
-from mi_bivariate.sources import DEFAULT_ANALYTIC, have_shared_data, input_label
+from mi_bivariate.sources import DEFAULT_ANALYTIC, MaterialSpec, have_shared_data, input_label
 
 #: Bumped when the protocol changes in a way that changes numbers (part of the config hash).
 PROTOCOL_VERSION = 3
@@ -175,6 +178,31 @@ def _solver_identity() -> dict:
             "default_basis_prior_sha256": file_digest(basis_prior.DEFAULT_BASIS_PRIOR_PATH),
             "default_alpha": solve.DEFAULT_ALPHA_RULE, "discrepancy_target": solve.DISCREPANCY_TARGET,
             "solver": "mis+noise-aware+basis v2"}
+
+
+def shared_data_digest(config: EvalConfig, material: MaterialSpec,
+                       data_dir: Optional[PathLike] = None) -> Optional[str]:
+    """16 hex digits of SHA-256 over the bytes of the shared data folder's files that ``material``'s evaluation
+    under ``config`` reads: the shared probes ``config`` names (``pisa_256``: ``<data>/probes/pisa_256.hdr``) and,
+    for a MERL-NBRDF material, the weights files (its own and, for leave-one-out priors, the others').
+
+    The config hash names the probes only (a digest there would change every old folder's hash): a record keeps
+    this digest beside it, and a rerun with another ``--data`` reuses it only for the same bytes. ``None`` where
+    the evaluation reads no shared file (analytic materials and MERL files under synthetic or file probes) or no
+    shared data folder is found.
+    """
+    names = sorted({part for name in (*config.input_probes, *config.novel_probes) for part in name.split("+")
+                    if part in probes.SHARED_PROBES})
+    try:
+        root = nbrdf.data_dir(data_dir)
+        files = {name: file_digest(probes.shared_probe_path(name, root)) for name in names}
+    except InputError:
+        return None
+    if material.kind == "nbrdf":
+        files.update({str(rel): file_digest(root / rel) for rel in (nbrdf.NBRDF_FILE, nbrdf.NBRDF_TRAIN_FILE)})
+    if not files:
+        return None
+    return hashlib.sha256(json.dumps(files, sort_keys=True).encode()).hexdigest()[:16]
 
 
 def quick_materials(data_dir: Optional[PathLike] = None) -> List[str]:

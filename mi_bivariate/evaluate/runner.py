@@ -36,7 +36,7 @@ from mi_bivariate import nbrdf, training_set
 from mi_bivariate.atomic import atomic_path
 from mi_bivariate.common import PathLike
 from mi_bivariate.errors import InputError, InputWarning, Terminated
-from mi_bivariate.evaluate.config import EvalConfig
+from mi_bivariate.evaluate.config import EvalConfig, shared_data_digest
 from mi_bivariate.evaluate.protocol import MaterialTask, evaluate_material
 from mi_bivariate.evaluate.results import (
     RESULTS_FILE,
@@ -292,7 +292,19 @@ def _run_locked(specs: List[MaterialSpec], out: Path, config: EvalConfig, jobs: 
     # file, or by the same file since changed, is evaluated again (its new record, appended, is the one read).
     # Records written before the digest was kept have none: their MERL files are evaluated once more.
     digest = {m.label: m.source_digest() for m in specs}
-    done = {r["material"] for r in read_records(results, h) if r.get("source_sha256") == digest.get(r["material"])}
+    # A shared probe or MERL-NBRDF material counts as done only for the same shared files (another --data folder
+    # may hold other bytes under the same names). Records written before this digest was kept have none: they
+    # are reused, as their config hash is (shared names never entered it).
+    first_of_kind = {m.kind: m for m in reversed(specs)}  # the digest depends on the kind only: read each file once
+    by_kind = {kind: shared_data_digest(config, m, data_dir) for kind, m in first_of_kind.items()}
+    shared = {m.label: by_kind[m.kind] for m in specs}
+
+    def reusable(r: dict) -> bool:
+        label = r["material"]
+        return (r.get("source_sha256") == digest.get(label)
+                and r.get("shared_data_sha256", shared.get(label)) == shared.get(label))
+
+    done = {r["material"] for r in read_records(results, h) if reusable(r)}
     if threads is None and dask is None and jobs > 1:
         threads = threads_per_job(jobs)
     tasks = [MaterialTask(m, config, None if data_dir is None else str(data_dir), threads,
@@ -324,6 +336,9 @@ def _run_locked(specs: List[MaterialSpec], out: Path, config: EvalConfig, jobs: 
                 if digest[task.material.label] is not None:  # a MERL file: its bytes, and artifacts of their own
                     record["source_sha256"] = digest[task.material.label]
                     record["slug"] = f"{record['slug']}-{record['source_sha256'][:8]}"
+                if shared[task.material.label] is not None:  # the shared files' bytes, and artifacts of their own
+                    record["shared_data_sha256"] = shared[task.material.label]
+                    record["slug"] = f"{record['slug']}-{record['shared_data_sha256'][:8]}"
                 # Artifacts before the record: a record on disk always has its artifacts.
                 save_artifacts(artifact_path(out, record), arrays)
                 append_record(results, record)
@@ -333,8 +348,7 @@ def _run_locked(specs: List[MaterialSpec], out: Path, config: EvalConfig, jobs: 
         finally:
             bar.close()
 
-    by_label = {r["material"]: r for r in read_records(results, h)
-                if r.get("source_sha256") == digest.get(r["material"])}
+    by_label = {r["material"]: r for r in read_records(results, h) if reusable(r)}
     records = [by_label[m.label] for m in specs if m.label in by_label]
     write_summary_csv(records, out / SUMMARY_FILE)
     if figures and records:
