@@ -137,6 +137,21 @@ def test_config_validation_and_noise_option():
     assert ev.EvalConfig().noise == 0.0 and ev.EvalConfig().renderer == "reference"    # clean by default
 
 
+def test_config_refuses_what_no_run_can_use(tmp_path):
+    """Novel renders under 4 pixels wide, reference direction counts that are not 3 non-negative numbers, an
+    unknown baseline and an alpha out of range are refused before any work; the smallest allowed values pass. The
+    library's front door refuses fewer than 1 job as the CLI does (it ran them in-process), making no folder."""
+    for bad in (dict(novel_resolution=3), dict(reference_directions=(64, -1, 64)), dict(reference_directions=(64, 64)),
+                dict(baselines=("ggx", "phong")), dict(alpha=-1.0)):
+        with pytest.raises(ev.InputError):
+            ev.EvalConfig(**bad).validate()
+    ev.EvalConfig(novel_resolution=4, reference_directions=(0, 0, 1), baselines=(), noise=1.0).validate()
+    for jobs in (0, -2):
+        with pytest.raises(ev.InputError, match="--jobs"):
+            ev.run_evaluation(["lambertian"], tmp_path / "eval", config=TINY, jobs=jobs, progress=False)
+    assert not (tmp_path / "eval").exists()
+
+
 def test_the_views_of_a_noisy_input_get_independent_noise():
     """With ``--noise``, the views of an input ``"a+b"`` once got the same draws (one seed): their noises were
     perfectly correlated (0.99999), not the independent noise of two photos. Now each view has its own seed;
@@ -465,7 +480,6 @@ def test_warnings_are_named_recorded_and_said_by_the_process_writing_the_records
         warnings.simplefilter("default")
         _say_others([repeat] * 3)
     assert [str(w.message) for w in again] == ["overflow"]
-
 
 
 def test_a_prior_file_that_saw_the_material_is_said(tmp_path):

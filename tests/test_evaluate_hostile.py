@@ -167,6 +167,28 @@ def test_read_records_never_raises_on_garbage(tmp_path):
         runner._connect_dask("not a scheduler address")
 
 
+def test_read_records_of_one_config_are_the_last_of_each_material(tmp_path):
+    """``read_records(path, config_hash)`` reads only that configuration's records (another configuration's,
+    in the same file, are other numbers), the last one of each material, in the order of those last ones."""
+    path = tmp_path / ev.RESULTS_FILE
+    for material, config_hash, n in (("a", "h1", 1), ("b", "h2", 2), ("b", "h1", 3), ("a", "h1", 4), ("c", "h2", 5)):
+        ev.append_record(path, {"material": material, "config_hash": config_hash, "n": n})
+    assert [(r["material"], r["n"]) for r in ev.read_records(path, "h1")] == [("b", 3), ("a", 4)]
+    assert [(r["material"], r["n"]) for r in ev.read_records(path, "h2")] == [("b", 2), ("c", 5)]
+    assert [r["n"] for r in ev.read_records(path)] == [1, 2, 3, 4, 5]
+
+
+def test_each_worker_gets_its_share_of_the_cores(monkeypatch):
+    """Dr.Jit threads per worker process: the cores shared out among the jobs (cores // jobs), at least 1 (8 cores:
+    4 threads each for 2 jobs, 2 for 3, 1 for 16; an unknown core count counts as 1)."""
+    import os
+
+    monkeypatch.setattr(os, "cpu_count", lambda: 8)
+    assert [runner.threads_per_job(jobs) for jobs in (1, 2, 3, 16)] == [8, 4, 2, 1]
+    monkeypatch.setattr(os, "cpu_count", lambda: None)
+    assert runner.threads_per_job(2) == 1
+
+
 def _blas_threads_here() -> list:
     """Threads of every BLAS pool loaded in this process (numpy's and scipy's), after loading scipy's."""
     import importlib
@@ -283,6 +305,40 @@ def test_a_failed_material_still_writes_the_others_then_exits_2(tmp_path, capsys
         images.update(a=dict(scores, ratio=2.0), b=dict(scores, ratio=4.0), c=dict(scores, ratio=None))
     (row,) = ev.summary_rows([record])
     assert row["relight_ratio_median"] == 3.0
+
+
+def test_every_material_failing_removes_only_a_folder_this_run_made(tmp_path, monkeypatch):
+    """When every material fails, a folder the run created is removed (nothing came of it), but an existing one,
+    with the user's earlier results in it, is left as it was; the first failure is raised either way."""
+    def fail(task):
+        raise RuntimeError("no light")
+
+    monkeypatch.setattr(runner, "evaluate_material", fail)
+    old = tmp_path / "old"
+    old.mkdir()
+    (old / ev.RESULTS_FILE).write_text('{"material": "kept", "config_hash": "h"}\n')
+    for out in (tmp_path / "new", old):
+        with pytest.raises(RuntimeError, match="every material failed; first: .*no light"):
+            with pytest.warns(InputWarning, match="evaluation failed"):
+                ev.run_evaluation([MATERIAL], out, config=TINY, progress=False, figures=False)
+    assert not (tmp_path / "new").exists()
+    assert (old / ev.RESULTS_FILE).read_text() == '{"material": "kept", "config_hash": "h"}\n'
+
+
+def test_a_record_goes_to_disk_only_after_its_artifacts(tmp_path, monkeypatch):
+    """Artifacts are saved before the record is appended: a run that cannot save a material's artifacts (a full
+    disk) leaves no record of it, so a rerun evaluates it again rather than read a record without its arrays."""
+    def evaluate(task):
+        return {"material": task.material.label, "slug": task.material.slug, "config_hash": TINY.hash()}, {}
+
+    def no_space(path, arrays):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(runner, "evaluate_material", evaluate)
+    monkeypatch.setattr(runner, "save_artifacts", no_space)
+    with pytest.raises(OSError, match="No space"):
+        ev.run_evaluation([MATERIAL], tmp_path / "eval", config=TINY, progress=False, figures=False)
+    assert ev.read_records(tmp_path / "eval" / ev.RESULTS_FILE) == []
 
 
 def test_results_lines_are_valid_json_without_nan_or_infinity(tmp_path):
