@@ -152,6 +152,44 @@ def test_config_refuses_what_no_run_can_use(tmp_path):
     assert not (tmp_path / "eval").exists()
 
 
+def test_the_render_cache_keys_every_setting_of_a_render(tmp_path, monkeypatch):
+    """A cached render of the truth is reused only for the same seed, resolution, render (``cache_key``), probe
+    values under the probe's name and reference directions; each of them changed renders again (the stand-in
+    renderer returns the seed, the resolution and the directions it was given)."""
+    from types import SimpleNamespace
+
+    from mi_bivariate import reference
+    from mi_bivariate.evaluate.renders import Renderer
+    from mi_bivariate.geometry import SphereGeometry
+    from mi_bivariate.merl import MERLBRDF
+    from mi_bivariate.probes import Probe
+    from mi_bivariate.sources import MaterialSpec
+
+    def stand_in(bsdf, probe, resolution, seed, directions):
+        image = np.full((resolution, resolution, 3), seed + 1000.0 * sum(directions), np.float32)
+        return SimpleNamespace(image=image, mask=np.ones((resolution, resolution), bool),
+                               geometry=SphereGeometry(4.0, 4.0, 3.0, np.eye(4)))
+
+    monkeypatch.setattr(reference, "render_reference", stand_in)
+    truth = MERLBRDF(np.full((90, 90, 180, 3), 0.1, np.float32), name="grey")
+    spec = MaterialSpec("grey", "analytic", "lambert")
+    probes = {1.0: Probe.constant(1.0, 8), 2.0: Probe.constant(2.0, 8)}
+    few, more = (ev.EvalConfig(reference_directions=d) for d in ((4, 8, 4), (4, 8, 5)))
+    settings = [(few, 1.0, 8, 1, "truth"), (few, 1.0, 8, 2, "truth"), (few, 1.0, 12, 1, "truth"),
+                (few, 1.0, 8, 1, "grid"), (few, 2.0, 8, 1, "truth"), (more, 1.0, 8, 1, "truth")]
+    for cached in (0, 1):                                   # each rendered once, then read back
+        renderers = {id(cfg): Renderer(cfg, spec, str(tmp_path), truth=truth) for cfg in (few, more)}
+        for cfg, light, resolution, seed, key in settings:
+            renderer = renderers[id(cfg)]
+            before = (renderer.renders, renderer.cached)
+            shot = renderer.render(None, probes[light], "constant", resolution, seed, 0, cache_key=key)
+            done = (renderer.renders - before[0], renderer.cached - before[1])
+            assert done == (1 - cached, cached), (cfg.reference_directions, light, resolution, seed, key)
+            assert shot.image.shape == (resolution, resolution, 3)
+            assert shot.image[0, 0, 0] == seed + 1000.0 * sum(cfg.reference_directions)
+    assert len(list(tmp_path.glob("*.npz"))) == len(settings)
+
+
 def test_the_views_of_a_noisy_input_get_independent_noise():
     """With ``--noise``, the views of an input ``"a+b"`` once got the same draws (one seed): their noises were
     perfectly correlated (0.99999), not the independent noise of two photos. Now each view has its own seed;
