@@ -93,7 +93,6 @@ def test_a_recovery_is_scored_over_the_observed_and_the_confident_nodes():
     assert len({got["eq1"], got["floor_eq1"], got["exact_floor_eq1"], entry["grid_floor_observed"]}) == 4
 
 
-
 def test_a_node_seen_by_many_rows_with_little_signal_is_not_observed():
     """The observed-node rule needs both criteria: 8 effective rows *and* half a pixel's worth of signal. Node
     (0, 0) takes most of 60 rows; 20 of them give a share q of their value to node (0, 1) (q = 0.02), 20 to (0, 2)
@@ -124,6 +123,64 @@ def test_a_node_seen_by_many_rows_with_little_signal_is_not_observed():
     assert entry["observed"]["nodes"] == 3 and entry["observed"]["node_fraction"] == pytest.approx(0.5)
     assert entry["recovered"]["eq1_observed"] == errors(None, want)["eq1_observed"]
     assert entry["grid_floor_observed"] == entry["exact_floor_observed"] == errors(None, want)["eq1_observed"]
+
+
+def test_relight_scores_each_probe_with_its_own_truth_floor_and_noise(monkeypatch):
+    """``relight`` under two novel probes (a stand-in renderer: the recovery renders 10 % above the truth under the
+    first, 20 % under the second, whose truth is twice as bright; the exact reduction 5 % above under both): each
+    render at that probe's seed (seed + 1 + k), scored against that probe's truth and floor, and the ratio kept
+    only where the floor is at least twice that probe's own reference noise (1 %: ratio 2; 3 %: 0.05 < 0.06,
+    null)."""
+    from mi_bivariate.evaluate.renders import Shot
+
+    truth, mask = np.ones((4, 4, 3)), np.ones((4, 4), bool)
+    brightness, error = {"probe a": 1.0, "probe b": 2.0}, {"probe a": 1.1, "probe b": 1.2}
+    seeds = []
+
+    class StandIn:
+        def render(self, bsdf, probe, name, resolution, seed, spp, cache_key=None):
+            seeds.append((name, seed))
+            return Shot(error[probe] * brightness[probe] * truth, mask, None)
+
+    cfg = ev.EvalConfig(renderer="path", novel_probes=("a", "b"), seed=3)
+    novel = protocol._Novel(truth={"a": Shot(truth, mask, None), "b": Shot(2.0 * truth, mask, None)},
+                            floor={"a": 1.05 * truth, "b": 2.1 * truth}, floor_images={},
+                            noise={"a": 0.01, "b": 0.03})
+    monkeypatch.setattr(protocol, "plugin", lambda source, renderer: source)
+    arrays = {}
+    got = protocol.relight(StandIn(), cfg, SimpleNamespace(brdf="recovered"), ["probe a", "probe b"], novel, "in",
+                           arrays)
+    assert seeds == [("a", 4), ("b", 5)]
+    assert got["a"] == pytest.approx({"rel_rmse": 0.1, "floor": 0.05, "ratio": 2.0, "psnr": 20.0}, rel=1e-9)
+    assert {k: got["b"][k] for k in ("rel_rmse", "floor")} == pytest.approx({"rel_rmse": 0.2, "floor": 0.05})
+    assert math.isnan(got["b"]["ratio"])
+    assert got["b"]["psnr"] == pytest.approx(10.0 * math.log10(2.0 ** 2 / 0.4 ** 2), rel=1e-9)
+    assert sorted(arrays) == ["recovered_render__in__a", "recovered_render__in__b"]
+    np.testing.assert_array_equal(arrays["recovered_render__in__b"], np.float16(2.4))
+
+
+def test_a_baseline_is_scored_as_its_3d_model(monkeypatch):
+    """``fit_baselines`` scores each fit's full 3D model (the results' "GGX fit (3D)"), not its phi_d-averaged
+    table, over the observed nodes, and saves the table (a stand-in fit and metric say what they were given)."""
+    observed = np.eye(3, dtype=bool)
+    fit = SimpleNamespace(summary=lambda: {"cost": 1.5}, brdf="3D model",
+                          table=SimpleNamespace(table=np.full((3, 3, 3), 0.25)))
+    monkeypatch.setattr(protocol.baselines, "fit_baselines", lambda *args, **kwargs: {"ggx": fit})
+    truth = SimpleNamespace(errors=lambda estimate, observed_nodes: {"of": estimate, "nodes": observed_nodes})
+    rec = SimpleNamespace(lighting_matrix=None, observations=SimpleNamespace(values=None))
+    arrays = {}
+    out = protocol.fit_baselines(rec, ev.EvalConfig(grid=(3, 3)), truth, observed, "in", arrays, {})
+    assert out["ggx"]["cost"] == 1.5 and out["ggx"]["errors"]["of"] == "3D model"
+    assert out["ggx"]["errors"]["nodes"] is observed
+    np.testing.assert_array_equal(arrays["baseline__in__ggx"], np.full((3, 3, 3), 0.25))
+
+
+def test_saved_renders_clip_to_the_float16_range():
+    """The artifacts keep renders as float16, whose largest finite value is 65504: a brighter pixel (a sun's
+    mirror image) is saved as 6e4, not as inf, so that a saved render stays finite where it is read back."""
+    got = protocol._f16(np.array([1e5, 7e4, 1.5, 0.0]))
+    assert got.dtype == np.float16
+    np.testing.assert_array_equal(got, np.float16([6e4, 6e4, 1.5, 0.0]))
 
 
 def _image(entry_rmse, psnr, floor, ratio):
