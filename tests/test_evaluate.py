@@ -152,6 +152,15 @@ def test_config_refuses_what_no_run_can_use(tmp_path):
     assert not (tmp_path / "eval").exists()
 
 
+def test_quick_keeps_the_settings_given():
+    """``EvalConfig.quick`` (``evaluate --quick``) takes the small sizes and, without the shared data, synthetic
+    probes, but a setting given with it wins (``--quick --seed 3``)."""
+    cfg = ev.EvalConfig.quick(shared_data=False, seed=3, novel_resolution=16)
+    assert (cfg.seed, cfg.novel_resolution, cfg.grid, cfg.resolution) == (3, 16, (12, 12), 48)
+    assert cfg.input_probes == ("synthetic:1", "synthetic:3") and cfg.novel_probes == ("synthetic:7",)
+    assert ev.EvalConfig.quick(novel_probes=("pisa_256",)).input_probes == ev.DEFAULT_INPUT_PROBES
+
+
 def test_the_render_cache_keys_every_setting_of_a_render(tmp_path, monkeypatch):
     """A cached render of the truth is reused only for the same seed, resolution, render (``cache_key``), probe
     values under the probe's name and reference directions; each of them changed renders again (the stand-in
