@@ -513,6 +513,35 @@ def test_another_shared_data_folder_is_evaluated_again(tmp_path, data_dir, monke
     assert paths["a"].is_file() and paths["other"].is_file() and paths["a"] != paths["other"]
 
 
+def test_the_shared_data_digest_covers_the_files_an_evaluation_reads(tmp_path):
+    """:func:`shared_data_digest` over hand-made data folders: a MERL-NBRDF material's digest changes with either
+    weights file's bytes and a named probe's, an analytic material's with the probe's only; nothing shared read
+    (synthetic probes and an analytic material) or no data folder found gives ``None``."""
+    from mi_bivariate.evaluate.config import shared_data_digest
+
+    def folder(name, dev=b"dev", train=b"train", pisa=b"pisa"):
+        root = tmp_path / name
+        (root / "merl_nbrdf").mkdir(parents=True)
+        (root / "probes").mkdir()
+        (root / "merl_nbrdf" / "merl_nbrdf_dev.npz").write_bytes(dev)
+        (root / "merl_nbrdf" / "merl_nbrdf_train.npz").write_bytes(train)
+        (root / "probes" / "pisa_256.hdr").write_bytes(pisa)
+        return root
+
+    shared = ev.EvalConfig(**{**TINY.__dict__, "novel_probes": ("pisa_256",)})
+    nbrdf_material = ev.MaterialSpec("blue-acrylic", "nbrdf", "blue-acrylic")
+    analytic = ev.resolve_materials([MATERIAL])[0]
+    roots = {name: folder(name, **kw) for name, kw in (("a", {}), ("copy", {}), ("dev", {"dev": b"dev 2"}),
+                                                     ("train", {"train": b"train 2"}), ("pisa", {"pisa": b"pisa 2"}))}
+    digests = {name: (shared_data_digest(shared, nbrdf_material, root), shared_data_digest(shared, analytic, root))
+               for name, root in roots.items()}
+    assert digests["copy"] == digests["a"] and digests["a"][0] != digests["a"][1]
+    assert len({digests[n][0] for n in ("a", "dev", "train", "pisa")}) == 4          # each file counts
+    assert digests["dev"][1] == digests["train"][1] == digests["a"][1] != digests["pisa"][1]
+    assert shared_data_digest(TINY, analytic, roots["a"]) is None                     # reads nothing shared
+    assert shared_data_digest(shared, nbrdf_material, tmp_path / "no such folder") is None
+
+
 def test_every_record_states_its_reference_noise(tmp_path):
     """The truth's renders under the novel probes are the references of every relight error, and their own noise
     was measured once, off-line (results.md), for a few materials, never per record. Each record now holds it per
