@@ -323,37 +323,33 @@ def test_cosine_error_weighs_each_cell_by_its_projected_solid_angle(lambertian_t
     full (90, 90, 180) grid with the weights of :func:`merl_cell_weights`, not the unweighted share of cells
     (a uniform error, as in the scaled-estimate test, cancels the weights)."""
     f = np.array(lambertian_truth.table, np.float64)
-    i = np.arange(90)[:, None, None, None]
-    j = np.arange(90)[None, :, None, None]
-    rel = 0.5 * (j >= 45) + 0.2 * (i >= 60)
-    estimate = f * (1.0 + rel)
+    i, j = np.meshgrid(np.arange(90), np.arange(90), indexing="ij")
+    rel = (0.5 * (j >= 45) + 0.2 * (i >= 60))[:, :, None]
+    estimate = np.array([0.5, 0.3, 0.2]) / math.pi * (1.0 + rel)          # (90, 90, 3): constant along phi_d
     e = metrics.brdf_errors(lambertian_truth, estimate)
     w = np.broadcast_to(metrics.merl_cell_weights()[..., None], f.shape)
     valid = np.isfinite(f) & (w > 0)
-    want = math.sqrt(np.sum((w * (estimate - f) ** 2)[valid]) / np.sum((w * f ** 2)[valid]))
+    diff = estimate[:, :, None, :] - f
+    want = math.sqrt(np.sum((w * diff ** 2)[valid]) / np.sum((w * f ** 2)[valid]))
     assert e["cosine"] == pytest.approx(want, rel=1e-9)
-    unweighted = math.sqrt(np.sum(((estimate - f) ** 2)[valid]) / np.sum((f ** 2)[valid]))
+    unweighted = math.sqrt(np.sum((diff ** 2)[valid]) / np.sum((f ** 2)[valid]))
     assert abs(want - unweighted) > 0.02, (want, unweighted)    # the weights decide the number
 
 
 def test_log_error_counts_every_cell_even_where_the_truth_is_zero(lambertian_truth):
-    """Eq. 1 leaves out the cells whose truth is 0 (its relative error is undefined there) or at most
-    ``min_value``; the log error, defined everywhere, counts every cell. An estimate wrong only where the truth
-    is exactly 0 (0.1 1/sr there): Eq. 1 is 0, the log error is ln(1.1) times the root share of such cells."""
+    """Eq. 1 leaves out the cells whose truth is 0 (its relative error is undefined there); the log error,
+    defined everywhere, counts every cell. An estimate wrong only where the truth is exactly 0 (0.1 1/sr there):
+    Eq. 1 is 0, the log error is ln(1.1) times the root share of such cells."""
     from mi_bivariate.merl import MERLBRDF
 
     table = np.array(lambertian_truth.table, np.float64)
-    zero = np.zeros(table.shape, bool)
-    zero[:20] = np.isfinite(table[:20])                    # theta_h rows 0..19 exactly 0
-    table[zero] = 0.0
+    table[:20] = np.where(np.isfinite(table[:20]), 0.0, np.nan)            # theta_h rows 0..19 exactly 0
     truth = MERLBRDF(table, name="zero at the peak")
-    estimate = np.where(zero, 0.1, table)
+    estimate = np.broadcast_to(np.array([0.5, 0.3, 0.2]) / math.pi, (90, 90, 3)).copy()
+    estimate[:20] = 0.1
     valid = np.isfinite(table)
-    share = zero.sum() / valid.sum()
+    share = valid[:20].sum() / valid.sum()
     assert 0.05 < share < 0.5
     e = metrics.brdf_errors(truth, estimate)
     assert e["eq1"] == pytest.approx(0.0, abs=1e-12) and e["eq1_min"] == pytest.approx(0.0, abs=1e-12)
     assert e["log"] == pytest.approx(math.log(1.1) * math.sqrt(share), rel=1e-9)
-    # min_value narrows Eq. 1's cells, not the log error's (here every cell is under 1 1/sr: Eq. 1 has none).
-    high = metrics.brdf_errors(truth, estimate, min_value=1.0)
-    assert math.isnan(high["eq1"]) and high["log"] == e["log"]
