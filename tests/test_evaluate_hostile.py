@@ -486,31 +486,39 @@ def test_another_shared_data_folder_is_evaluated_again(tmp_path, data_dir, monke
     folder with another data folder (``--data``) whose probe of that name holds other bytes reused the first
     folder's numbers. Each record now keeps the digest of the shared files its evaluation read and is reused only
     for the same bytes (another folder holding the same bytes is the same data), with artifacts of its own (a run
-    killed between another folder's artifacts and its record leaves the first record's artifacts as they were)."""
-    import copy
+    killed between another folder's artifacts and its record leaves the first record's artifacts as they were).
+    The runner alone is tested: a stand-in evaluation says which folder it was given."""
     import shutil
 
     folders = {}
-    for name, pisa in (("a", "pisa_256.hdr"), ("same", "pisa_256.hdr"), ("other", "uffizi_256.hdr")):
+    for name, pisa in (("a", "pisa_256"), ("same", "pisa_256"), ("other", "uffizi_256"), ("third", "grace_256")):
         (tmp_path / name / "probes").mkdir(parents=True)
-        shutil.copy(data_dir / "probes" / pisa, tmp_path / name / "probes" / "pisa_256.hdr")
+        shutil.copy(data_dir / "probes" / f"{pisa}.hdr", tmp_path / name / "probes" / "pisa_256.hdr")
         folders[name] = tmp_path / name
-    config = ev.EvalConfig(**{**TINY.__dict__, "novel_probes": ("pisa_256",), "reference_directions": (64, 128, 64)})
-    evaluated, real = [], runner.evaluate_material
+    config = ev.EvalConfig(**{**TINY.__dict__, "novel_probes": ("pisa_256",)})
+    evaluated = []
 
-    def evaluate(task):  # the first material evaluated for real, then its result again (only the runner is tested)
-        if not evaluated:
-            evaluated.append(real(task))
+    def evaluate(task):
         evaluated.append(task.data_dir)
-        return copy.deepcopy(evaluated[0])
+        if task.data_dir == str(folders["third"]):
+            raise RuntimeError("no light")
+        record = {"material": task.material.label, "slug": task.material.slug, "config_hash": config.hash(),
+                  "data": task.data_dir}
+        return record, {"floor": np.zeros(1)}
 
     monkeypatch.setattr(runner, "evaluate_material", evaluate)
+    monkeypatch.setattr(runner, "write_summary_csv", lambda records, path: None)
     runs = {name: ev.run_evaluation([MATERIAL], tmp_path / "eval", config=config, data_dir=folders[name],
                                     progress=False, figures=False)[0] for name in ("a", "same", "other")}
-    assert evaluated[1:] == [str(folders["a"]), str(folders["other"])]
-    assert runs["same"] == runs["a"] and runs["other"]["shared_data_sha256"] != runs["a"]["shared_data_sha256"]
+    assert evaluated == [str(folders["a"]), str(folders["other"])]
+    assert runs["same"] == runs["a"] and runs["other"]["data"] == str(folders["other"])
+    assert runs["other"]["shared_data_sha256"] != runs["a"]["shared_data_sha256"]
     paths = {name: ev.artifact_path(tmp_path / "eval", record) for name, record in runs.items()}
     assert paths["a"].is_file() and paths["other"].is_file() and paths["a"] != paths["other"]
+    # A third folder's evaluation failing: the others' records are no result of this run (none is returned).
+    with pytest.raises(RuntimeError, match="every material failed"), pytest.warns(InputWarning):
+        ev.run_evaluation([MATERIAL], tmp_path / "eval", config=config, data_dir=folders["third"], progress=False,
+                          figures=False)
 
 
 def test_the_shared_data_digest_covers_the_files_an_evaluation_reads(tmp_path):
