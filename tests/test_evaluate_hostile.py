@@ -323,6 +323,17 @@ def test_every_material_failing_removes_only_a_folder_this_run_made(tmp_path, mo
                 ev.run_evaluation([MATERIAL], out, config=TINY, progress=False, figures=False)
     assert not (tmp_path / "new").exists()
     assert (old / ev.RESULTS_FILE).read_text() == '{"material": "kept", "config_hash": "h"}\n'
+    # Every material failing on its input: that one-line error itself (the CLI's "FILE: problem"), not a
+    # RuntimeError around it.
+    damaged = InputError("brass.binary", "truncated MERL file")
+
+    def fail_on_input(task):
+        raise damaged
+
+    monkeypatch.setattr(runner, "evaluate_material", fail_on_input)
+    with pytest.raises(InputError) as raised, pytest.warns(InputWarning, match="evaluation failed"):
+        ev.run_evaluation([MATERIAL], old, config=TINY, progress=False, figures=False)
+    assert raised.value is damaged
 
 
 def test_a_record_goes_to_disk_only_after_its_artifacts(tmp_path, monkeypatch):
