@@ -39,6 +39,8 @@ from typing import Optional, Tuple
 
 import numpy as np
 import scipy.linalg
+import scipy.sparse
+from scipy.sparse.csgraph import connected_components
 
 from mi_bivariate.errors import InputError
 from mi_bivariate.solve.common import banded_cholesky, bandwidth, cholesky
@@ -82,14 +84,15 @@ def penalty_log_pdet(penalty: np.ndarray, band: Optional[int] = None) -> Tuple[f
     A weighted graph Laplacian (rows summing to 0, as the smoothness prior's ``R^T R`` on a
     connected grid) has the constant table as its only null vector; then ``pdet P = N det
     P'``, ``P'`` being ``P`` without its first row and column (the matrix-tree theorem), a
-    banded matrix factorised in ``O(N b^2)``. Anything else: the eigenvalues above ``N eps max``.
+    banded matrix factorised in ``O(N b^2)``. Anything else (a graph in several pieces included,
+    whose ``P'`` is singular but may factorise by round-off): the eigenvalues above ``N eps max``.
     """
     p = np.asarray(penalty, np.float64)
     n = p.shape[0]
     scale = float(np.abs(p).max(initial=0.0))
     if scale == 0.0:
         return 0.0, 0
-    if n > 1 and float(np.abs(p.sum(axis=1)).max()) <= 1e-10 * scale * n:
+    if n > 1 and float(np.abs(p.sum(axis=1)).max()) <= 1e-10 * scale * n and _connected(p, band):
         sub = p[1:, 1:]
         log_det = log_det_banded(sub, band)
         if np.isfinite(log_det):
@@ -97,6 +100,18 @@ def penalty_log_pdet(penalty: np.ndarray, band: Optional[int] = None) -> Tuple[f
     w = np.linalg.eigvalsh(p)
     keep = w > n * np.finfo(np.float64).eps * w.max()
     return float(np.sum(np.log(w[keep]))), int(keep.sum())
+
+
+def _connected(p: np.ndarray, band: Optional[int] = None) -> bool:
+    """Whether the graph of the symmetric ``(N, N)`` matrix's non-zero entries joins every node (one
+    piece); ``band``: its bandwidth if the caller knows it (the edges are then read in ``O(N b)``)."""
+    n = p.shape[0]
+    offsets = range(1, (bandwidth(p) if band is None else int(band)) + 1)
+    starts = [np.flatnonzero(np.diagonal(p, d)) for d in offsets]
+    rows = np.concatenate([np.zeros(0, np.int64)] + starts)
+    cols = rows + np.repeat(np.array(offsets, np.int64), [len(s) for s in starts])
+    graph = scipy.sparse.coo_matrix((np.ones(rows.size), (rows, cols)), shape=(n, n))
+    return connected_components(graph, directed=False, return_labels=False) == 1
 
 
 def log_evidence(objective: float, system_log_det: float, prior_log_pdet: float, n_rows: int) -> float:
