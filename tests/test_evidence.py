@@ -18,7 +18,14 @@ from mi_bivariate.basis_prior import BasisPrior
 from mi_bivariate.errors import InputError
 from mi_bivariate.prior import default_prior
 from mi_bivariate.solve import nnls_gram, solve_stages
-from mi_bivariate.solve.evidence import channel_log_evidence, log_det_banded, log_evidence, penalty_log_pdet
+from mi_bivariate.solve.evidence import (
+    channel_log_evidence,
+    check_pair_rule,
+    log_det_banded,
+    log_det_spd,
+    log_evidence,
+    penalty_log_pdet,
+)
 
 N_T = N_S = 6
 N = N_T * N_S
@@ -360,6 +367,21 @@ def test_evidence_without_a_prior_is_the_fit_and_the_data_terms_determinant():
             phi = np.sum((y - A @ f) ** 2)
             expected = -0.5 * data.n_rows * phi - 0.5 * np.linalg.slogdet(A.T @ A)[1]
             assert sol.log_evidence[k] == pytest.approx(expected, rel=1e-6)
+
+
+def test_evidence_helpers_at_the_edges_of_their_inputs():
+    """Against ``slogdet``: a symmetric matrix of negative determinant has no log det (``-inf``, not
+    ``log |det|``); a diagonal matrix (bandwidth 0: the table prior alone at alpha 0) is read from its banded
+    factor's diagonal; a pair rule that is no string is an InputError, never a traceback."""
+    negative = np.diag([2.0, -1.0, 3.0]) + 0.1 * (np.eye(3, k=1) + np.eye(3, k=-1))
+    assert np.linalg.slogdet(negative)[0] < 0
+    assert log_det_spd(negative) == -np.inf
+    d = np.random.default_rng(10).uniform(0.1, 5.0, 9)
+    for band in (None, 0):
+        assert log_det_banded(np.diag(d), band) == pytest.approx(np.linalg.slogdet(np.diag(d))[1], rel=1e-12)
+    for bad in (None, 1, ("evidence",), np.array(["evidence", "residual"])):
+        with pytest.raises(InputError, match="pair_rule"):
+            check_pair_rule(bad)
 
 
 def _grid_laplacian(n_t: int, n_s: int, weights: np.ndarray) -> np.ndarray:
