@@ -914,3 +914,51 @@ def test_prepare_data_term_refuses_bad_row_sigmas():
                                                                                    np.nan, 0.1), np.full((20, 1), 0.1)):
         with pytest.raises(InputError, match="row sigmas"):
             prepare_data_term(L, I, sigma)
+
+
+@pytest.mark.parametrize("table_prior", [False, True])
+def test_confidence_maps_are_the_dense_posterior(table_prior):
+    """The three confidence maps of both pairs (the kept one and the other, computed on first access) against
+    the Gaussian posterior written out densely: with ``G = A^T A`` (``A = L / (sigma sqrt(M))``), ``lambda =
+    alpha / (N level^2)`` per channel and ``X = G + lambda R^T R [+ D]`` (``D = diag(1 / (M std^2))``, the table
+    prior), ``resolution = diag(X^-1 G)``, ``posterior_std = sqrt(diag(X^-1) / M)`` and ``measured = 1 -
+    diag(X^-1) / diag(X_prior^-1)``, ``X_prior = lambda R^T R + D`` (without a table prior ``+ 1e-6 mean(diag G)``
+    stands in for ``D``); the alphas differ per channel. Node 12 no pixel sees: its resolution is 0, and every
+    map stays in its documented range [0, 1] (round-off gave -2e-16 there)."""
+    L = _lighting(150, 24)
+    L[:, 12] = 0.0
+    truth = _truth(25)
+    I = np.einsum("mnk,nk->mk", L.astype(np.float64), truth.reshape(N, 3))
+    I *= 1 + 0.03 * np.random.default_rng(26).standard_normal(I.shape)
+    prior, alphas = _prior(), np.array([0.3, 0.02, 2.0])
+    m = L.shape[0]
+    kwargs = {}
+    if table_prior:
+        mean = np.clip(truth, 0.05, None) * np.array([0.9, 1.1, 1.0])
+        kwargs = dict(mean=mean, mean_std=np.random.default_rng(27).uniform(0.2, 0.6, mean.shape) * mean)
+    result = solve(L, I, prior, alphas, n_t=N_T, n_s=N_S, **kwargs)
+    w = 1.0 / (row_sigma(I) * np.sqrt(m))
+    ones = np.ones(N)
+    for k in range(3):
+        a_k = L[:, :, k].astype(np.float64) * w[:, k, None]
+        g = a_k.T @ a_k
+        level = (ones @ a_k.T @ (I[:, k] * w[:, k])) / (ones @ g @ ones)
+        lam = alphas[k] / (N * level**2)
+        d = 1.0 / (m * kwargs["mean_std"][:, :, k].ravel() ** 2) if table_prior else np.zeros(N)
+        ridge = d if table_prior else np.full(N, 1e-6 * np.mean(np.diag(g)))
+        for pair, sol in result.pairs.items():
+            r = prior.regulariser(pair).toarray()
+            inv = np.linalg.inv(g + lam * r.T @ r + np.diag(d))
+            prior_var = np.diag(np.linalg.inv(lam * r.T @ r + np.diag(ridge)))
+            np.testing.assert_allclose(sol.resolution[:, :, k].ravel(), np.clip(np.diag(inv @ g), 0, 1),
+                                       rtol=0, atol=1e-9, err_msg=pair)
+            np.testing.assert_allclose(sol.posterior_std[:, :, k].ravel(), np.sqrt(np.diag(inv) / m), rtol=1e-9,
+                                       err_msg=pair)
+            np.testing.assert_allclose(sol.measured[:, :, k].ravel(), np.clip(1 - np.diag(inv) / prior_var, 0, 1),
+                                       rtol=0, atol=1e-8, err_msg=pair)  # measured: ~1e-16 apart
+            for name in ("resolution", "measured"):
+                values = getattr(sol, name)[:, :, k]
+                assert np.all((values >= 0) & (values <= 1)), (pair, name)
+    for name in ("resolution", "posterior_std", "measured"):  # the kept pair's, per channel
+        np.testing.assert_array_equal(getattr(result, name), np.stack(
+            [getattr(result.pairs[wn], name)[:, :, k] for k, wn in enumerate(result.winner)], axis=-1))
