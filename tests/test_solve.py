@@ -11,6 +11,7 @@ import scipy.optimize as sopt
 
 from mi_bivariate.errors import InputError
 from mi_bivariate.prior import Prior
+from mi_bivariate.solve import discrepancy as disc
 from mi_bivariate.solve import (
     DEFAULT_ALPHA,
     DISCREPANCY_ALPHAS,
@@ -962,3 +963,28 @@ def test_confidence_maps_are_the_dense_posterior(table_prior):
     for name in ("resolution", "posterior_std", "measured"):  # the kept pair's, per channel
         np.testing.assert_array_equal(getattr(result, name), np.stack(
             [getattr(result.pairs[wn], name)[:, :, k] for k, wn in enumerate(result.winner)], axis=-1))
+
+
+def test_discrepancy_alpha_when_the_floor_fits_the_image_exactly(monkeypatch):
+    """A data term of exactly 0 at the bottom of the bracket (an exact fit: ``recover --normals 1``): the regula
+    falsi in ``(log alpha, log rho)`` takes ``log max(rho, 1e-300)`` there, so the chosen alpha is finite and
+    inside the bracketing half decade, with no ``log(0)`` warning (its secant would be NaN). The factors come
+    back only for all three channels together."""
+    logs = np.log10(DISCREPANCY_ALPHAS)
+    values = np.array([0.0, 0.0, 0.0, 30.0, 60.0])  # rho = 0 up to 1e-3, 30 at 10^-2.5
+    assert len(values) == len(logs)
+
+    def fake(data, entries, channels, alpha, extra):
+        return float(np.interp(np.log10(alpha), logs, values)), [("factor at", alpha)] * len(channels)
+
+    monkeypatch.setattr(disc, "_data_term", fake)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        choice = disc.discrepancy_alpha(None, np.eye(4), target=20.0)
+        one = disc.discrepancy_alpha(None, np.eye(4), channels=(1,), target=20.0, keep_factors=True)
+    assert choice.bounded == "" and 10.0**-3 < choice.alpha <= 10.0**-2.5
+    assert one.alpha == choice.alpha and one.factors is None
+    high = [disc.discrepancy_alpha(None, np.eye(4), channels=c, target=100.0, keep_factors=True)
+            for c in ((0, 1, 2), (1,))]  # the default: the last alpha evaluated
+    assert high[0].bounded == "high" and high[0].factors == [("factor at", high[0].alpha)] * 3
+    assert high[1].bounded == "high" and high[1].factors is None
