@@ -988,3 +988,33 @@ def test_discrepancy_alpha_when_the_floor_fits_the_image_exactly(monkeypatch):
             for c in ((0, 1, 2), (1,))]  # the default: the last alpha evaluated
     assert high[0].bounded == "high" and high[0].factors == [("factor at", high[0].alpha)] * 3
     assert high[1].bounded == "high" and high[1].factors is None
+
+
+def test_data_term_is_the_weighted_system_written_out():
+    """``prepare_data_term`` against the dense float64 products of ``A = L / (sigma sqrt(M))`` and ``y = I /
+    (sigma sqrt(M))``: ``gram = A^T A``, ``rhs = A^T y`` and ``yy = y^T y``, so that ``f^T gram f - 2 rhs^T f + yy``
+    is ``||y - A f||^2`` for any ``f``; ``level`` is the best non-negative constant table (``scipy.optimize.nnls``
+    on the one column ``A 1``), 0 for a channel whose image is noise about black, mostly below 0. An unknown
+    model-error form is an InputError naming it."""
+    L = _lighting(90, 27)
+    rng = np.random.default_rng(28)
+    I = np.einsum("mnk,nk->mk", L.astype(np.float64), _truth(29).reshape(N, 3))
+    I *= 1 + 0.02 * rng.standard_normal(I.shape)
+    I[:, 2] = 0.01 * rng.standard_normal(90) - 0.005
+    sigma = rng.uniform(0.01, 0.1, I.shape)
+    data = prepare_data_term(L, I, sigma)
+    m = len(I)
+    for k in range(3):
+        a = L[:, :, k].astype(np.float64) / (sigma[:, k, None] * np.sqrt(m))
+        y = I[:, k] / (sigma[:, k] * np.sqrt(m))
+        np.testing.assert_allclose(data.gram[k], a.T @ a, rtol=1e-12, atol=1e-14 * np.abs(a.T @ a).max())
+        np.testing.assert_allclose(data.rhs[k], a.T @ y, rtol=1e-12, atol=1e-14 * np.abs(a.T @ y).max())
+        assert data.yy[k] == pytest.approx(y @ y, rel=1e-13)
+        f = rng.uniform(0.0, 1.0, N)
+        assert f @ data.gram[k] @ f - 2 * data.rhs[k] @ f + data.yy[k] == pytest.approx(np.sum((y - a @ f) ** 2),
+                                                                                       rel=1e-10)
+        level = sopt.nnls(a.sum(axis=1)[:, None], y)[0][0]
+        assert data.level[k] == pytest.approx(level, rel=1e-12, abs=0.0)
+    assert data.level[2] == 0.0
+    with pytest.raises(InputError, match="model-error form 'cubic'"):
+        row_sigma(I, form="cubic")
