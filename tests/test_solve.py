@@ -26,6 +26,7 @@ from mi_bivariate.solve import (
     prepare_data_term,
     row_sigma,
     solve,
+    solve_prepared,
 )
 
 N_T, N_S = 6, 5
@@ -1018,3 +1019,22 @@ def test_data_term_is_the_weighted_system_written_out():
     assert data.level[2] == 0.0
     with pytest.raises(InputError, match="model-error form 'cubic'"):
         row_sigma(I, form="cubic")
+
+
+def test_one_pair_is_kept_as_given_and_a_non_finite_table_prior_is_refused():
+    """With one weight pair there is nothing to choose: it is kept as given (``pair_rule`` "given") and no
+    evidence is computed for it (NaN), whatever the rule asked for. A table-prior mean with a NaN or an
+    infinity is an InputError naming the mean, like a std of 0."""
+    L = _lighting(60, 30)
+    I = np.einsum("mnk,nk->mk", L.astype(np.float64), _truth(31).reshape(N, 3))
+    data = prepare_data_term(L, I)
+    for rule in ("evidence", "residual"):
+        result = solve_prepared(data, _prior(), 0.3, n_t=N_T, n_s=N_S, pairs=("gloss",), pair_rule=rule)
+        assert result.winner == ("gloss",) * 3 and result.pair_rule == "given"
+        assert np.all(np.isnan(result.pairs["gloss"].log_evidence))
+    std = np.ones((N_T, N_S, 3))
+    for bad in (np.nan, np.inf):
+        mean = np.ones((N_T, N_S, 3))
+        mean[2, 3, 1] = bad
+        with pytest.raises(InputError, match="mean and std must be finite"):
+            solve_prepared(data, _prior(), 0.3, n_t=N_T, n_s=N_S, mean=mean, mean_std=std)
