@@ -1038,3 +1038,19 @@ def test_one_pair_is_kept_as_given_and_a_non_finite_table_prior_is_refused():
         mean[2, 3, 1] = bad
         with pytest.raises(InputError, match="mean and std must be finite"):
             solve_prepared(data, _prior(), 0.3, n_t=N_T, n_s=N_S, mean=mean, mean_std=std)
+
+
+def test_gcv_keeps_the_pair_with_the_lower_score_and_its_alpha():
+    """With ``alpha="gcv"`` each pair chooses its own alpha per channel, and the kept pair is the one with the
+    lower GCV score; the result's alphas and table are, per channel, the kept pair's (here the pairs differ
+    in alpha by up to a decade, and the kept pair differs between channels)."""
+    L = _lighting(150, 1)
+    I = np.einsum("mnk,nk->mk", L.astype(np.float64), _truth(2).reshape(N, 3))
+    I *= 1 + 0.05 * np.random.default_rng(3).standard_normal(I.shape)
+    result = solve(L, I, _prior(), "gcv", n_t=N_T, n_s=N_S)
+    assert result.alpha_rule == result.pair_rule == "gcv" and len(set(result.winner)) == 2
+    for k, w in enumerate(result.winner):
+        other = "gloss" if w == "diffuse" else "diffuse"
+        assert result.pairs[w].gcv[k] < result.pairs[other].gcv[k]
+        assert result.alphas[k] == result.pairs[w].alpha[k] != result.pairs[other].alpha[k]
+        np.testing.assert_array_equal(result.table[:, :, k], result.pairs[w].table[:, :, k])
