@@ -28,6 +28,7 @@ from mi_bivariate.solve import (
     solve,
     solve_prepared,
 )
+from mi_bivariate.solve.common import spd_inverse
 
 N_T, N_S = 6, 5
 N = N_T * N_S
@@ -1054,3 +1055,14 @@ def test_gcv_keeps_the_pair_with_the_lower_score_and_its_alpha():
         assert result.pairs[w].gcv[k] < result.pairs[other].gcv[k]
         assert result.alphas[k] == result.pairs[w].alpha[k] != result.pairs[other].alpha[k]
         np.testing.assert_array_equal(result.table[:, :, k], result.pairs[w].table[:, :, k])
+
+
+def test_spd_inverse_of_a_singular_matrix_is_the_pseudo_inverse():
+    """``spd_inverse`` (the confidence's dense route to the prior-only variance) as documented: the inverse of
+    an SPD matrix, and ``numpy.linalg.pinv`` of a singular PSD one (rank 2 of 4), whose Cholesky fails."""
+    rng = np.random.default_rng(13)
+    b_mat = rng.standard_normal((2, 4))
+    singular = b_mat.T @ b_mat
+    np.testing.assert_allclose(spd_inverse(singular), np.linalg.pinv(singular), rtol=0, atol=1e-12)
+    spd = singular + np.eye(4)
+    np.testing.assert_allclose(spd_inverse(spd), np.linalg.inv(spd), rtol=0, atol=1e-12)
