@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -169,3 +171,15 @@ def test_factors_divide_by_the_floor_when_one_table_predicts_the_others_exactly(
     assert factors.shape == (3,) and factors[1] == 1.0
     np.testing.assert_allclose(factors[[0, 2]], [expected[0], expected[2]], rtol=1e-5)
     assert factors[2] == pytest.approx(d[2] / CROSS_FLOOR, rel=1e-5)
+
+
+def test_one_image_needs_no_cross_prediction():
+    """One image (or an index naming only image 2): nothing to cross-predict, every factor 1, no solve and no
+    warning (going on gave ``Mean of empty slice`` from the empty set of other images)."""
+    L, I, index, _ = _images()
+    prior = default_prior().resampled(N_T, N_S)
+    two = index == 2
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        factors = cross_image_factors(L[two], I[two], index[two], solve.row_sigma(I[two]), prior, 1e-2)
+    np.testing.assert_array_equal(factors, np.ones(3))
