@@ -28,7 +28,7 @@ from mi_bivariate.solve import (
     solve,
     solve_prepared,
 )
-from mi_bivariate.solve.common import spd_inverse
+from mi_bivariate.solve.common import cholesky, inverse_diagonals, spd_inverse
 
 N_T, N_S = 6, 5
 N = N_T * N_S
@@ -1066,3 +1066,20 @@ def test_spd_inverse_of_a_singular_matrix_is_the_pseudo_inverse():
     np.testing.assert_allclose(spd_inverse(singular), np.linalg.pinv(singular), rtol=0, atol=1e-12)
     spd = singular + np.eye(4)
     np.testing.assert_allclose(spd_inverse(spd), np.linalg.inv(spd), rtol=0, atol=1e-12)
+
+
+def test_inverse_diagonals_of_a_singular_system_are_the_pseudo_inverses():
+    """A system ``X = gram + Q`` singular along a node that neither the data nor the prior reaches: no
+    Cholesky factor (and none of a matrix with a NaN: LAPACK would hand back a NaN factor), so
+    ``inverse_diagonals`` reads ``diag(X^+)`` and ``diag(X^+ gram)`` from numpy's pseudo-inverse."""
+    rng = np.random.default_rng(14)
+    b_mat = rng.standard_normal((30, 6))
+    b_mat[:, 4] = 0.0
+    gram = b_mat.T @ b_mat
+    x = gram + np.diag([0.5, 0.2, 0.3, 0.1, 0.0, 0.4])
+    assert cholesky(x) is None and cholesky(np.array([[1.0, np.nan], [np.nan, 1.0]])) is None
+    var, resolution = inverse_diagonals(x, gram)
+    pinv = np.linalg.pinv(x)
+    np.testing.assert_allclose(var, np.diag(pinv), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(resolution, np.diag(pinv @ gram), rtol=0, atol=1e-12)
+    assert resolution[4] == pytest.approx(0.0, abs=1e-12) and np.all(resolution[[0, 1, 2, 3, 5]] < 1 - 1e-3)
