@@ -170,3 +170,21 @@ def test_overwrite_never_writes_into_an_array_lapack_cannot_take_as_it_is():
         np.testing.assert_allclose(lapack.cho_solve(factor, b), want, rtol=1e-9)
         np.testing.assert_allclose(np.tril(lapack.potri(factor)), np.tril(np.linalg.inv(
             c.astype(np.float64) @ c.astype(np.float64).T)), rtol=1e-9, atol=1e-12)
+
+
+def test_scipy_fallback_keeps_the_documented_factor_and_triangles(monkeypatch):
+    """Without the GIL-free route (``GIL_FREE`` off: scipy's wrappers) the module keeps its contract:
+    ``cho_factor`` hands back ``L`` in the lower triangle (``(c, True)``), and ``potri``, ``trtri`` work in
+    the given factor's own triangle, lower or upper, against numpy's inverses."""
+    monkeypatch.setattr(lapack, "GIL_FREE", False)
+    g = _spd(30, 11)
+    inverse = np.linalg.inv(g)
+    c, lower = lapack.cho_factor(g)
+    assert lower is True
+    np.testing.assert_allclose(np.tril(c), np.linalg.cholesky(g), rtol=1e-12, atol=1e-12)
+    for low in (True, False):
+        f = sla.cho_factor(g, lower=low)
+        tri = np.tril if low else np.triu
+        np.testing.assert_allclose(tri(lapack.potri(f)), tri(inverse), rtol=1e-9, atol=1e-12 * np.abs(inverse).max())
+        w = tri(lapack.trtri(f))
+        np.testing.assert_allclose(w, np.linalg.inv(tri(f[0])), rtol=1e-9, atol=1e-12 * np.abs(w).max())
