@@ -188,3 +188,12 @@ def test_scipy_fallback_keeps_the_documented_factor_and_triangles(monkeypatch):
         np.testing.assert_allclose(tri(lapack.potri(f)), tri(inverse), rtol=1e-9, atol=1e-12 * np.abs(inverse).max())
         w = tri(lapack.trtri(f))
         np.testing.assert_allclose(w, np.linalg.inv(tri(f[0])), rtol=1e-9, atol=1e-12 * np.abs(w).max())
+
+
+def test_cho_solve_of_empty_systems():
+    """``cho_solve`` of a 0 x 0 factor (and of no right-hand sides) returns the empty answer of the right-hand
+    side's shape, as numpy's ``solve`` does, instead of handing LAPACK a leading dimension of 0."""
+    empty = lapack.cho_factor(np.zeros((0, 0)))
+    for b in (np.zeros(0), np.zeros((0, 2))):
+        assert lapack.cho_solve(empty, b).shape == np.linalg.solve(np.zeros((0, 0)), b).shape == b.shape
+    assert lapack.cho_solve(lapack.cho_factor(_spd(3, 12)), np.zeros((3, 0))).shape == (3, 0)
