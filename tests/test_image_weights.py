@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from mi_bivariate import solve
-from mi_bivariate.prior import default_prior
-from mi_bivariate.solve import CROSS_FLOOR, IMAGE_WEIGHTS, cross_image_factors, solve_stages
+from mi_bivariate.prior import Prior, default_prior
+from mi_bivariate.solve import CROSS_FLOOR, DEFAULT_PAIR_RULE, IMAGE_WEIGHTS, cross_image_factors, solve_stages
 
 N_T = N_S = 8
 N = N_T * N_S
@@ -129,13 +129,13 @@ def test_images_that_agree_keep_their_weight():
     np.testing.assert_array_equal(factors, 1.0)
 
 
-def _documented_factors(L, I, index, sigma, prior, alpha):
+def _documented_factors(L, I, index, sigma, prior, alpha, pair_rule: str = DEFAULT_PAIR_RULE):
     """The docstring's rule written out (as in the test above), for any image indices: ``{image: factor}``."""
     images = np.unique(index)
     tables, own = {}, {}
     for i in images:
         rows = index == i
-        result = solve_stages(solve.prepare_data_term(L[rows], I[rows], sigma[rows]), prior, alpha)
+        result = solve_stages(solve.prepare_data_term(L[rows], I[rows], sigma[rows]), prior, alpha, pair_rule=pair_rule)
         tables[i] = result.table.reshape(-1, 3).astype(np.float32).astype(np.float64)
         dof = result.resolution.reshape(-1, 3).sum(axis=0)
         rss = np.sum((np.einsum("mnc,nc->mc", L[rows].astype(np.float64), tables[i]) - I[rows]) ** 2, axis=0)
@@ -183,3 +183,19 @@ def test_one_image_needs_no_cross_prediction():
         warnings.simplefilter("error")
         factors = cross_image_factors(L[two], I[two], index[two], solve.row_sigma(I[two]), prior, 1e-2)
     np.testing.assert_array_equal(factors, np.ones(3))
+
+
+def test_factors_solve_each_image_with_the_pair_rule_given():
+    """``pair_rule`` reaches each image's own solve: with a prior whose pairs differ node by node, the paper's
+    residual rule keeps other pairs than the evidence in some image, and the factors are the documented rule's
+    on those solves (they differ from the evidence rule's by ~2e-4, twenty times the tolerance)."""
+    L, I, index, _ = _images(bias=0.3, noise=0.05)
+    rng = np.random.default_rng(2)
+    prior = Prior({p: (rng.uniform(0.2, 5.0, (N_T, N_S)), rng.uniform(0.2, 5.0, (N_T, N_S)))
+                   for p in ("diffuse", "gloss")})
+    sigma = solve.row_sigma(I, index)
+    expected = np.array(list(_documented_factors(L, I, index, sigma, prior, 1e-2, "residual")[0].values()))
+    evidence = np.array(list(_documented_factors(L, I, index, sigma, prior, 1e-2)[0].values()))
+    assert np.abs(expected / evidence - 1).max() > 1e-4
+    np.testing.assert_allclose(cross_image_factors(L, I, index, sigma, prior, 1e-2, pair_rule="residual"), expected,
+                               rtol=1e-5)
