@@ -464,6 +464,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 # --------------------------------------------------------------------------- evaluate
 
+#: The evaluation record's digests of the bytes it read (a MERL file's, the shared data folder's) that an
+#: ``evaluate --abs`` record must share to be reused.
+ABS_DATA_DIGESTS = ("source_sha256", "shared_data_sha256")
+
+
 def cmd_evaluate(args: argparse.Namespace) -> int:
     """The paper's evaluation over the materials given (:func:`mi_bivariate.evaluate.run_evaluation`).
 
@@ -513,16 +518,24 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if args.abs:
         out = Path(args.out) / "analysis_by_synthesis.jsonl"
         # A rerun resumes, as the evaluation does: a material already run with this configuration,
-        # input probe and time factor is reported from its record, not run (and appended) again.
-        done = {(r["material"], r.get("input_probe"), r.get("time_factor")): r
-                for r in ev.read_records(out) if r["config_hash"] == config.hash()}
+        # input probe and time factor, from the same bytes (a MERL file's, the shared data folder's: the
+        # digests its evaluation record keeps), is reported from its record, not run (and appended) again.
+        # Records written before the digests were kept have none, and are reused as before.
+        done: Dict[tuple, List[dict]] = {}
+        for r in ev.read_records(out):
+            if r["config_hash"] == config.hash():
+                done.setdefault((r["material"], r.get("input_probe"), r.get("time_factor")), []).append(r)
         input_label = ev.probe_label(config.input_probes[0])
         for record in records[:args.abs]:
-            result = done.get((record["material"], input_label, args.abs_time_factor))
+            digests = {k: record[k] for k in ABS_DATA_DIGESTS if record.get(k) is not None}
+            same = [r for r in done.get((record["material"], input_label, args.abs_time_factor), [])
+                    if all(r.get(k, digests.get(k)) == digests.get(k) for k in ABS_DATA_DIGESTS)]
+            result = same[-1] if same else None
             if result is None:
                 result = synthesis.analysis_by_synthesis(record["spec"], config.input_probes[0], config=config,
                                                          data_dir=data, time_factor=args.abs_time_factor)
                 result["time_factor"] = args.abs_time_factor
+                result.update(digests)
                 ev.append_record(out, result)
             else:
                 print(f"analysis by synthesis, {record['material']}: from {out} (an earlier run with this "

@@ -501,6 +501,54 @@ def test_a_merl_file_changed_or_another_file_of_its_name_is_evaluated_again(tmp_
     assert evaluate(other)[0] == 1
 
 
+def test_evaluate_abs_resumes_only_for_the_same_bytes(tmp_path, monkeypatch, capsys):
+    """``evaluate --abs`` reports a material from its earlier record only when that record came from the same
+    bytes (the digests its evaluation record keeps: a MERL file's, the shared data folder's): a file rewritten
+    under the same name is run again, and the first bytes again find their own record, not the latest one.
+    The evaluation and analysis by synthesis are stand-ins: only the resume rule is under test."""
+    from mi_bivariate import synthesis
+
+    calls, digest = [], {}
+
+    def evaluation(materials, out, config=None, **kwargs):
+        Path(out).mkdir(exist_ok=True)
+        return [{"material": "x", "spec": materials[0], **digest}]
+
+    def stand_in(spec, input_probe, config=None, data_dir=None, time_factor=1.0):
+        calls.append(spec)
+        return {"material": "x", "input_probe": ev.probe_label(input_probe), "config_hash": config.hash(),
+                "linear": {"eq1": 1.0, "relight": 1.0, "time_s": 1.0}, "relight_floor": 1.0,
+                "abs": {"final": {"eq1": 1.0}, "best_relight": 1.0, "best_relight_time_s": 1.0, "time_s": 1.0,
+                        "iterations": 1, "reached_linear_relight": False},
+                "linear_to_abs_best": None, "ladder_speedup": None}
+
+    monkeypatch.setattr(ev, "run_evaluation", evaluation)
+    monkeypatch.setattr(ev, "format_summary", lambda records: "")
+    monkeypatch.setattr(synthesis, "analysis_by_synthesis", stand_in)
+    merl_file, out = tmp_path / "x.binary", tmp_path / "abs"
+    analytic.to_merl(analytic.Lambertian(0.5)).write(merl_file)
+
+    def run(**digests):
+        digest.clear()
+        digest.update(digests)
+        assert main(["evaluate", str(merl_file), "--out", str(out), *TINY_ARGS, "--abs", "1"]) == 0
+        capsys.readouterr()
+        return [json.loads(line) for line in (out / "analysis_by_synthesis.jsonl").read_text().splitlines()]
+
+    a, b, c, d = ("a" * 16, "b" * 16, "c" * 16, "d" * 16)
+    assert len(run(source_sha256=a, shared_data_sha256=c)) == 1 and len(calls) == 1
+    again = run(source_sha256=a, shared_data_sha256=c)                     # the same bytes: resumed
+    assert len(again) == 1 and len(calls) == 1
+    assert (again[0]["source_sha256"], again[0]["shared_data_sha256"]) == (a, c)
+    assert len(run(source_sha256=b, shared_data_sha256=c)) == 2 and len(calls) == 2  # another file: run again
+    assert len(run(source_sha256=a, shared_data_sha256=c)) == 2 and len(calls) == 2  # the first: its own record
+    assert len(run(source_sha256=a, shared_data_sha256=d)) == 3 and len(calls) == 3  # another data folder
+    assert len(run(source_sha256=a, shared_data_sha256=d)) == 3 and len(calls) == 3
+    # A record without digests (written before they were kept) is reused, as the evaluation's own are.
+    out.joinpath("analysis_by_synthesis.jsonl").unlink()
+    assert len(run()) == 1 and len(run(source_sha256=a)) == 1 and len(calls) == 4
+
+
 def test_warnings_are_named_recorded_and_said_by_the_process_writing_the_records(tmp_path):
     """A recovery's warnings ("image: ...") name the material and the input probe, go into the record once,
     and are said by run_evaluation's process (from a worker they printed in Python's two-line form)."""
