@@ -37,7 +37,13 @@ from typing import Any, Optional, Sequence, Tuple, Union
 import numpy as np
 
 from mi_bivariate.errors import InputError, InputWarning
-from mi_bivariate.geometry import Intrinsics, PerspectiveSphereGeometry, SphereGeometry, orthonormal_pair
+from mi_bivariate.geometry import (
+    Intrinsics,
+    PerspectiveSphereGeometry,
+    SphereGeometry,
+    check_rotation,
+    orthonormal_pair,
+)
 from mi_bivariate.silhouette import (
     MIN_RADIUS_PX,
     REFINE_PASSES,
@@ -249,10 +255,7 @@ def fit_sphere(image: Optional[np.ndarray] = None, mask: Optional[np.ndarray] = 
         InputError: neither image nor mask, bad shapes, an empty mask, an
             explicit sphere outside the image, or no sphere found.
     """
-    rot = np.eye(3) if camera_to_world is None else np.asarray(camera_to_world, np.float64)
-    if rot.shape != (3, 3) or not np.all(np.isfinite(rot)) or not np.allclose(rot @ rot.T, np.eye(3), atol=1e-6) \
-            or np.linalg.det(rot) < 0:
-        raise InputError(source, "camera_to_world is not a (3, 3) rotation matrix")
+    rot = check_rotation(camera_to_world, source)
     k = None if intrinsics is None else _check_intrinsics(intrinsics, source)
     if not (isinstance(radius, (int, float, np.floating, np.integer)) and math.isfinite(radius) and radius > 0):
         raise InputError(source, f"sphere radius must be a positive number, got {radius!r}")

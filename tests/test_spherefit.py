@@ -118,6 +118,9 @@ def test_explicit_sphere_wins_and_warns_on_disagreement():
     (dict(), "nothing to fit"),
     (dict(mask=np.ones((8, 8), bool), intrinsics=(0.0, 1.0, 4.0, 4.0)), "intrinsics"),
     (dict(mask=np.ones((8, 8), bool), radius=-1.0), "radius"),
+    # Not numbers, or ragged: numpy's ValueError escaped the front door.
+    (dict(mask=np.ones((8, 8), bool), camera_to_world="eye"), r"camera_to_world is not a \(3, 3\) rotation"),
+    (dict(mask=np.ones((8, 8), bool), camera_to_world=[[1.0, 0.0, 0.0], [0.0, 1.0]]), "camera_to_world is not a"),
     # An explicit radius far beyond the image (a typo): once overflowed numpy's arithmetic in warnings.
     (dict(image=np.ones((64, 64, 3)), sphere=(32.0, 32.0, 1e300)), "more than 100 times the 64x64 image"),
 ])
