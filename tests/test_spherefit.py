@@ -118,6 +118,8 @@ def test_explicit_sphere_wins_and_warns_on_disagreement():
     (dict(), "nothing to fit"),
     (dict(mask=np.ones((8, 8), bool), intrinsics=(0.0, 1.0, 4.0, 4.0)), "intrinsics"),
     (dict(mask=np.ones((8, 8), bool), radius=-1.0), "radius"),
+    (dict(mask=np.ones((8, 8), bool), radius=0.0), "radius"),
+    (dict(mask=np.pad(np.ones((1, 1), bool), 4)), "outline has only 4 boundary points"),  # one pixel: no circle
     # Not numbers, or ragged: numpy's ValueError escaped the front door.
     (dict(mask=np.ones((8, 8), bool), camera_to_world="eye"), r"camera_to_world is not a \(3, 3\) rotation"),
     (dict(mask=np.ones((8, 8), bool), camera_to_world=[[1.0, 0.0, 0.0], [0.0, 1.0]]), "camera_to_world is not a"),
@@ -421,3 +423,115 @@ def test_orthographic_sphere_normals_match_the_renderers_under_a_rotated_camera(
     assert np.median(angle) < 0.15 and angle.max() < 1.0, (np.median(angle), angle.max())
     x, y = np.meshgrid(np.arange(96) + 0.5, np.arange(80) + 0.5)
     assert np.allclose(res.geometry.normals_at(x, y)[mask], normals[mask])
+
+
+def test_fit_circle_thresholds_outliers_at_three_consistent_mad_sigmas():
+    """Closed form for the robust fit's outlier threshold, max(1 px, 3 sigma) with sigma = 1.4826 MAD (the
+    Gaussian-consistent scale): with 1 px radial noise, 3 sigma is 3 px, so a Gaussian's tail beyond it
+    (0.3%) is all that goes, while points 4.5 px out are dropped, by the second pass's threshold too; with
+    noise-free points, the 1 px floor keeps every tenth point 0.8 px out (a pixel's quantisation is no
+    outlier). The residuals are signed distances, positive outside (documented)."""
+    rng = np.random.default_rng(7)
+    phi = rng.uniform(0, 2 * np.pi, 1000)
+    radius = 50.0 + rng.standard_normal(1000)
+    radius[:100] = 54.5
+    points = np.stack([70.0 + radius * np.cos(phi), 60.0 + radius * np.sin(phi)], axis=1)
+    cx, cy, r, res, inliers = spherefit.fit_circle(points)
+    assert not inliers[:100].any() and inliers[100:].mean() > 0.99, inliers[100:].mean()
+    assert np.hypot(cx - 70.0, cy - 60.0) < 0.15 and r == pytest.approx(50.0, abs=0.15)
+    np.testing.assert_allclose(res, np.hypot(points[:, 0] - cx, points[:, 1] - cy) - r, atol=1e-9)
+    radius = np.full(400, 30.0)
+    radius[::10] += 0.8
+    phi = np.linspace(0.0, 2 * np.pi, 400, endpoint=False)
+    _, _, _, res, inliers = spherefit.fit_circle(np.stack([radius * np.cos(phi), radius * np.sin(phi)], axis=1))
+    assert inliers.all() and (res[::10] > 0.5).all(), res[::10]
+
+
+def test_an_occluders_edge_is_neither_outline_seen_nor_inlier():
+    """Closed form: a disc of radius r whose part beyond x = cx + r/2 is hidden by an occluder shows
+    1 - acos(1/2) / pi = 2/3 of its outline; the occluder's straight edge (a chord, up to r/2 inside the
+    circle) is outliers, counted neither in the outline seen nor as fitting a circle, so the fit says both
+    (up to its ends, which lie within the outliers' threshold of the circle: measured 72% seen, 81% inliers;
+    counting the chord's points would see all of the outline)."""
+    y, x = np.mgrid[0:128, 0:128] + 0.5
+    mask = ((x - 64.0) ** 2 + (y - 64.0) ** 2 < 40.0**2) & (x < 84.0)
+    fit = spherefit.fit_sphere(mask=mask, warn=False)
+    assert abs(fit.cx - 64.0) < 0.5 and abs(fit.cy - 64.0) < 0.5 and abs(fit.radius - 40.0) < 0.5, fit.summary()
+    assert fit.arc_fraction == pytest.approx(2.0 / 3.0, abs=5.0 / 64), fit.summary()
+    assert fit.inlier_fraction < 0.85 and not fit.confident
+    assert f"only {100 * fit.inlier_fraction:.0f}% of the outline fits a circle" in fit.problems, fit.problems
+    assert f"only {100 * fit.arc_fraction:.0f}% of the outline is seen" in fit.problems, fit.problems
+
+
+def test_a_sphere_smaller_than_the_minimum_radius_is_not_confident():
+    y, x = np.mgrid[0:40, 0:40] + 0.5
+    fit = spherefit.fit_sphere(mask=(x - 20.0) ** 2 + (y - 20.0) ** 2 < 6.0**2, warn=False)
+    assert fit.radius == pytest.approx(6.0, abs=0.3)
+    assert not fit.confident and fit.problems == (f"radius {fit.radius:.1f} px < 8.0 px",), fit.problems
+
+
+def test_an_explicit_sphere_keeps_the_camera_rotation_and_is_checked_against_the_frame():
+    """An explicit (CX, CY, R) with a turned camera: its geometry is SphereGeometry(CX, CY, R, rotation)
+    (the normals rotate with the camera); one past the bottom of a wide image extends beyond it, one
+    below it lies outside it (the height, not the width, bounds y); the radius bound is the larger side's."""
+    rot = rotation_matrix((20.0, -30.0, 5.0))
+    cov = disc_coverage((100, 300), 150.0, 50.0, 40.0)
+    image = np.repeat(cov[..., None], 3, axis=2)
+    fit = spherefit.fit_sphere(image, sphere=(150.0, 50.0, 40.0), camera_to_world=rot)
+    np.testing.assert_array_equal(fit.geometry.camera_to_world, rot)
+    normals, mask = fit.geometry.normals(300, 100)
+    expected = SphereGeometry(150.0, 50.0, 40.0).normals(300, 100)[0] @ rot.T
+    np.testing.assert_allclose(normals[mask], expected[mask], atol=1e-12)
+    assert fit.confident and fit.problems == ()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", InputWarning)
+        low = spherefit.fit_sphere(image, sphere=(150.0, 70.0, 40.0))
+    assert not low.confident and low.problems == ("the sphere extends beyond the 300x100 image",)
+    with pytest.raises(InputError, match="lies outside the 300x100 image"):
+        spherefit.fit_sphere(image, sphere=(150.0, 150.0, 40.0))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", InputWarning)
+        big = spherefit.fit_sphere(image, sphere=(150.0, 50.0, 20000.0))  # 200 times the height, 67 the width
+    assert big.radius == 20000.0 and not big.confident
+
+
+def test_an_explicit_sphere_is_compared_only_with_a_confident_fit():
+    """A cut-off disc fits with no confidence: an explicit sphere 5 px from that fit draws no warning
+    that it disagrees with the image (the image's fit is no yardstick)."""
+    cov = disc_coverage((128, 128), 100.0, 64.0, 40.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        fit = spherefit.fit_sphere(np.repeat(cov[..., None], 3, axis=2), sphere=(100.0, 64.0, 45.0))
+    assert fit.method == "user" and fit.radius == 45.0
+
+
+def test_a_perspective_fit_scales_the_sphere_by_its_given_radius():
+    """Closed form: only radius / distance is seen, so the fitted centre of a sphere given radius 2.5
+    is 2.5 times that of the unit sphere, the true centre of a sphere of radius 2.5 scaled up with it;
+    the summary gives the distance in the radius' units, in radii only for the unit sphere."""
+    k = Intrinsics(180.0, 180.0, 128.0, 96.0)
+    truth = PerspectiveSphereGeometry(k, [2.5 * 0.3, 2.5 * -0.2, 2.5 * -4.0], 2.5)
+    mask = truth.normals_and_views(256, 192)[2]
+    fit = spherefit.fit_sphere(mask=mask, intrinsics=k, radius=2.5)
+    assert fit.geometry.radius == 2.5
+    assert f", distance {fit.geometry.distance:.4g}" in fit.summary() and "radii" not in fit.summary()
+    unit = spherefit.fit_sphere(mask=mask, intrinsics=k)
+    assert f", distance {fit.geometry.distance / 2.5:.4g} radii" in unit.summary()
+    assert np.linalg.norm(fit.geometry.centre - truth.centre) < 2e-3 * truth.distance, fit.geometry.centre
+
+
+def test_a_masked_out_stand_with_an_edge_of_its_own_does_not_move_the_outline():
+    """A user mask leaves out a stand in front of the sphere's lower rim whose own edge (a disc 1 px
+    larger than the sphere) runs beside the hidden outline, within the coverage windows that place it:
+    the outline is refined only within 3 px of the mask's own outline, so the stand's edge does not move
+    the fit (the supersampled disc's centre and radius to 0.02 px; refined there too, it moved the centre
+    0.24 px and the radius 0.12 px)."""
+    cx, cy, r = 131.3, 100.7, 80.4
+    cov = disc_coverage((256, 240), cx, cy, r)
+    image = np.repeat(2.0 * cov[..., None], 3, axis=2)
+    y, x = np.mgrid[0:256, 0:240] + 0.5
+    stand = (np.abs(x - cx) < 40.0) & (y > 150.0)
+    image[stand] = 2.0 * disc_coverage((256, 240), cx, cy, r + 1.0)[stand, None]
+    fit = spherefit.fit_sphere(image, (cov > 0.5) & ~stand)
+    assert fit.confident and fit.inlier_fraction > 0.95, fit.summary()
+    assert abs(fit.cx - cx) < 0.02 and abs(fit.cy - cy) < 0.02 and abs(fit.radius - r) < 0.02, fit.summary()
