@@ -358,10 +358,12 @@ def test_a_sphere_cut_off_by_the_frame_reports_the_outline_it_sees():
 
 def test_disc_mask_is_the_pixel_centres_inside_the_circle():
     """silhouette.disc_mask against SphereGeometry.normals' coverage (pixel centres at k + 0.5), on a
-    non-square image with cx != cy."""
+    non-square image with cx != cy; a pixel centre exactly on the circle (the third: (14.5, 10.5)) is
+    outside both."""
     from mi_bivariate.silhouette import disc_mask
 
-    for cx, cy, r in ((40.3, 25.0, 17.5), (12.0, 30.5, 9.0)):
+    assert not SphereGeometry(10.0, 10.5, 4.5).normals(70, 50)[1][10, 14]
+    for cx, cy, r in ((40.3, 25.0, 17.5), (12.0, 30.5, 9.0), (10.0, 10.5, 4.5)):
         expected = SphereGeometry(cx, cy, r).normals(70, 50)[1]
         assert np.array_equal(disc_mask((50, 70), cx, cy, r), expected)
 

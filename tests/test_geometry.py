@@ -1,0 +1,102 @@
+"""The geometry's small pieces against closed forms (mi_bivariate.geometry): the rotation check, the
+basis completing an axis, a sphere's normals just off its silhouette, the intrinsics' and the
+perspective sphere's checks, and the record a table keeps of its geometry.
+
+The rendered truths (Mitsuba's normals AOV and ray intersections) are in tests/test_spherefit.py.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mi_bivariate.errors import InputError
+from mi_bivariate.geometry import (
+    Camera,
+    Intrinsics,
+    PerspectiveSphereGeometry,
+    SphereGeometry,
+    check_rotation,
+    orthonormal_pair,
+)
+from mi_bivariate.probes import rotation_matrix
+
+
+def test_check_rotation_takes_rotations_and_refuses_the_rest():
+    """A proper rotation (to rounding) passes as float64; a matrix 0.1% too long (it would stretch every
+    normal it turns), a reflection, a non-finite or a non-3x3 one is refused, naming the source."""
+    rot = rotation_matrix((10.0, -70.0, 33.0))
+    np.testing.assert_array_equal(check_rotation(rot), rot)
+    np.testing.assert_array_equal(check_rotation(None), np.eye(3))
+    assert check_rotation(rot + 1e-9).dtype == np.float64
+    for bad in (1.001 * rot, rot @ np.diag([1.0, 1.0, -1.0]), np.where(np.eye(3) > 0, np.nan, 0.0), np.eye(2),
+                "eye"):
+        with pytest.raises(InputError, match="^cam: camera_to_world is not a \\(3, 3\\) rotation matrix"):
+            check_rotation(bad, "cam")
+
+
+@pytest.mark.parametrize("axis", [(1.0, 0.0, 0.0), (-1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, -1.0),
+                                  (0.95, 0.3, -0.1), (0.2, -0.5, -0.8)])
+def test_orthonormal_pair_completes_any_axis_to_a_right_handed_basis(axis):
+    axis = np.array(axis) / np.linalg.norm(axis)
+    e1, e2 = orthonormal_pair(axis)
+    basis = np.stack([e1, e2, axis])
+    np.testing.assert_allclose(basis @ basis.T, np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(np.cross(e1, e2), axis, atol=1e-12)
+
+
+def test_normals_just_off_the_silhouette_are_held_on_the_rim():
+    """Closed form: a position a distance rho > R from the centre in the image direction phi (y down) is
+    pulled onto the rim, to the unit normal (cos phi, -sin phi, ~0) in the camera frame, turned by the
+    camera's rotation; inside the silhouette nothing changes, and without onto_sphere the outside
+    position gives the documented (x, y, 0), longer than 1."""
+    rot = rotation_matrix((20.0, 35.0, -10.0))
+    geometry = SphereGeometry(30.0, 22.0, 10.0, camera_to_world=rot)
+    phi = np.linspace(0.0, 2 * np.pi, 12, endpoint=False)
+    rho = np.array([10.2, 11.0, 13.0] * 4)
+    x, y = 30.0 + rho * np.cos(phi), 22.0 + rho * np.sin(phi)
+    rim = np.stack([np.cos(phi), -np.sin(phi), np.zeros_like(phi)], axis=1) @ rot.T
+    held = geometry.normals_at(x, y, onto_sphere=True)
+    np.testing.assert_allclose(np.linalg.norm(held, axis=1), 1.0, atol=1e-12)
+    np.testing.assert_allclose(held, rim, atol=2e-3)
+    assert np.all(held @ geometry.view_direction() > 0.0)  # the visible hemisphere
+    off = geometry.normals_at(x, y)
+    np.testing.assert_allclose(off, np.stack([rho * np.cos(phi), -rho * np.sin(phi), np.zeros(12)], axis=1)
+                               / 10.0 @ rot.T, atol=1e-12)
+    inside_x, inside_y = np.array([30.0, 33.0, 24.5]), np.array([22.0, 17.0, 29.9])
+    np.testing.assert_array_equal(geometry.normals_at(inside_x, inside_y, onto_sphere=True),
+                                  geometry.normals_at(inside_x, inside_y))
+
+
+@pytest.mark.parametrize("values", [(100.0, 0.0, 32.0, 24.0), (0.0, 100.0, 32.0, 24.0), (100.0, 100.0, np.nan, 24.0),
+                                    (100.0, -100.0, 32.0, 24.0), (np.inf, 100.0, 32.0, 24.0)])
+def test_intrinsics_refuse_a_focal_length_that_is_not_positive_or_a_point_not_finite(values):
+    with pytest.raises(InputError, match="^intrinsics: the focal lengths must be finite and positive"):
+        Intrinsics(*values)
+
+
+def test_a_perspective_sphere_beside_the_camera_is_refused():
+    """Centre on the camera's x axis (z = 0), outside the camera: half of it is behind the image plane and
+    its silhouette is no ellipse; a visible sphere has centre[2] < 0."""
+    k = Intrinsics.from_fov(64, 48, 40.0)
+    with pytest.raises(InputError, match="radius 1\\) is not in front of the camera"):
+        PerspectiveSphereGeometry(k, [3.0, 0.0, 0.0], 1.0)
+    assert PerspectiveSphereGeometry(k, [3.0, 0.0, -1e-3], 1.0).distance == pytest.approx(3.0)
+
+
+def test_a_camera_of_no_pixels_is_refused():
+    for width, height in ((0, 16), (16, 0)):
+        with pytest.raises(InputError, match="image size must be positive"):
+            Camera(width, height, Intrinsics(10.0, 10.0, 8.0, 8.0))
+
+
+def test_a_geometrys_record_holds_its_rotation_and_camera():
+    """What a table records of its geometry tells two cameras apart: the (3, 3) rotation (9 numbers) and a
+    perspective sphere's intrinsics and centre."""
+    rot = rotation_matrix((0.0, 30.0, 0.0))
+    assert SphereGeometry(30.0, 22.0, 10.0, camera_to_world=rot).record() == {
+        "type": "SphereGeometry", "cx": 30.0, "cy": 22.0, "radius": 10.0, "camera_to_world": rot.tolist()}
+    persp = PerspectiveSphereGeometry(Intrinsics(90.0, 110.0, 30.0, 22.0), [0.1, 0.2, -5.0], 0.5, rot)
+    assert persp.record() == {"type": "PerspectiveSphereGeometry",
+                              "intrinsics": {"fx": 90.0, "fy": 110.0, "cx": 30.0, "cy": 22.0},
+                              "centre": [0.1, 0.2, -5.0], "radius": 0.5, "camera_to_world": rot.tolist()}
