@@ -22,7 +22,7 @@ import pytest
 from mi_bivariate import analytic, probes, render, sphere_refine
 from mi_bivariate.cli import main as cli_main
 from mi_bivariate.errors import InputError, InputWarning
-from mi_bivariate.geometry import Intrinsics, PerspectiveSphereGeometry
+from mi_bivariate.geometry import Intrinsics, PerspectiveSphereGeometry, SphereGeometry
 from mi_bivariate.images import write_exr
 from mi_bivariate.recover import recover, recover_from_photo, refine_sphere_and_recover
 from mi_bivariate.reference import render_reference
@@ -194,3 +194,74 @@ def test_cli_refine_sphere_says_each_warning_once(tmp_path, shot, probe, capsys)
     lines = [str(w.message) for w in seen if issubclass(w.category, InputWarning)]
     assert sum("photo is grey" in line for line in lines) == 1, lines
     assert len(lines) == len(set(lines)), lines
+
+
+def _small_sphere():
+    """A 16 px sphere lit from above (shaded by hand: the contract tests below need no converged render),
+    off the image's centre with cx != cy, under a probe bright above and dark below."""
+    geometry = SphereGeometry(21.0, 19.0, 16.0)
+    normals, mask = geometry.normals(44, 40)
+    shading = 0.3 + 0.5 * np.clip(normals[..., 1:2], 0.0, None) + 0.2 * normals[..., 2:3]
+    image = np.where(mask[..., None], shading, 0.0) * np.ones(3)
+    sky = np.linspace(2.0, 0.2, 16)[:, None, None] * np.ones((16, 32, 3))
+    return image, probes.Probe(sky.astype(np.float32)), geometry
+
+
+TINY = dict(grid=(8, 8), n_normals=300, n_dirs=128)
+
+
+def _cost_start(image, probe, geometry, alphas=(1e-3,) * 3, winner=("gloss",) * 3, **kwargs):
+    return sphere_refine.refine_sphere(image, probe, geometry, alphas=alphas, winner=winner, max_evaluations=1,
+                                       **TINY, **kwargs).cost_start
+
+
+def test_the_objective_weighs_each_channel_by_its_own_prior_and_the_rows_by_their_sigmas():
+    """The objective is the recovery's data term, channel by channel: on a grey image the three channels
+    are the same problem, so giving channel 1 another alpha (or prior variant) makes the cost 2/3 of the
+    first setting's plus 1/3 of the second's, exactly; the rows are weighed by their sigmas, so an image
+    and its probe scaled by 50 cost the same, and a camera noise far above the signal costs next to nothing."""
+    image, probe, geometry = _small_sphere()
+    base = _cost_start(image, probe, geometry)
+    smooth = _cost_start(image, probe, geometry, alphas=(1.0,) * 3)
+    assert smooth > 1.05 * base
+    assert _cost_start(image, probe, geometry, alphas=(1e-3, 1.0, 1e-3)) == pytest.approx(
+        (2 * base + smooth) / 3, rel=1e-9)
+    diffuse = _cost_start(image, probe, geometry, winner=("diffuse",) * 3)
+    assert abs(diffuse - base) > 0.01 * base
+    assert _cost_start(image, probe, geometry, winner=("gloss", "diffuse", "gloss")) == pytest.approx(
+        (2 * base + diffuse) / 3, rel=1e-9)
+    assert _cost_start(50.0 * image, probes.Probe(50.0 * probe.data), geometry) == pytest.approx(base, rel=1e-6)
+    assert _cost_start(image, probe, geometry, noise=(0.0, 1e4)) < 1e-6 * base
+
+
+def test_the_search_stops_at_its_budget_with_the_best_sphere_evaluated():
+    """``max_evaluations`` evaluations and no more (the Jacobian's included); at the budget the best geometry
+    evaluated is taken, with its cost, in the convention of least_squares' (half the sum of squares) as the
+    starting cost is: one evaluation is the start itself; four (the start and three of the central-difference
+    Jacobian's steps) found a lower cost than the start's."""
+    image, probe, geometry = _small_sphere()
+    for budget in (1, 4):
+        result = sphere_refine.refine_sphere(image, probe, geometry, alphas=(1e-3,) * 3, winner=("gloss",) * 3,
+                                             max_evaluations=budget, **TINY)
+        assert result.evaluations == budget and result.status == f"stopped at the budget of {budget} evaluations"
+        if budget == 1:
+            assert result.cost == result.cost_start and result.found == geometry, result.summary()
+        else:
+            assert result.cost < result.cost_start and result.found != geometry, result.summary()
+            assert result.accepted and result.shift_px < sphere_refine.MAX_SHIFT_PX
+
+
+def test_a_sphere_too_small_to_refine_is_refused():
+    """A 6 px sphere: the pixels that stay on any sphere within MAX_SHIFT_PX of it (at most
+    1 - (1 + 0.71) / 6 of its radius from its centre) are too few to refine with; so are those of the
+    16 px sphere that a mask leaves (a 6 x 6 window: the mask is the user's)."""
+    image, probe, geometry = _small_sphere()
+    with pytest.raises(InputError, match=r"only \d+ pixels to refine the sphere with"):
+        sphere_refine.refine_sphere(image, probe, SphereGeometry(21.0, 19.0, 6.0), alphas=(1e-3,) * 3,
+                                    winner=("gloss",) * 3, **TINY)
+    mask = np.zeros(image.shape[:2], bool)
+    mask[16:22, 18:24] = True
+    with pytest.raises(InputError, match=r"only \d+ pixels to refine the sphere with"):
+        sphere_refine.refine_sphere(image, probe, geometry, alphas=(1e-3,) * 3, winner=("gloss",) * 3, mask=mask,
+                                    **TINY)
+
