@@ -48,6 +48,7 @@ from mi_bivariate import capture, lighting
 from mi_bivariate import solve as solve_mod
 from mi_bivariate.errors import InputError, InputWarning
 from mi_bivariate.geometry import SphereGeometry
+from mi_bivariate.limits import whole_number
 from mi_bivariate.prior import Prior, default_prior
 from mi_bivariate.probes import Probe
 from mi_bivariate.solve.common import penalty_weight
@@ -173,7 +174,7 @@ def refine_sphere(image: np.ndarray, probe: Probe, geometry: SphereGeometry, *,
 
     Raises:
         InputError: a geometry other than an orthographic sphere, alphas / winner not one per channel,
-            or fewer than 64 pixels to refine with.
+            ``max_evaluations`` not a whole number of at least 1, or fewer than 64 pixels to refine with.
     """
     if not isinstance(geometry, SphereGeometry):
         raise InputError(source, f"refining the sphere needs an orthographic sphere, got {type(geometry).__name__}",
@@ -182,6 +183,9 @@ def refine_sphere(image: np.ndarray, probe: Probe, geometry: SphereGeometry, *,
     winner = [str(w) for w in winner]
     if len(alphas) != 3 or len(winner) != 3:
         raise InputError(source, "alphas and winner must give one value per channel")
+    max_evaluations = whole_number("max_evaluations", max_evaluations)
+    if max_evaluations < 1:  # the starting sphere's evaluation is one
+        raise InputError("max_evaluations", f"must be at least 1, got {max_evaluations}")
     t0 = time.perf_counter()
     n_t, n_s = (int(v) for v in grid)
     prior = default_prior() if prior is None else prior

@@ -265,3 +265,13 @@ def test_a_sphere_too_small_to_refine_is_refused():
         sphere_refine.refine_sphere(image, probe, geometry, alphas=(1e-3,) * 3, winner=("gloss",) * 3, mask=mask,
                                     **TINY)
 
+
+@pytest.mark.parametrize("budget, match", [(0, "must be at least 1, got 0"), (-3, "must be at least 1, got -3"),
+                                           (2.5, "must be a whole number")])
+def test_a_budget_of_no_evaluation_is_refused(budget, match):
+    """The starting sphere's evaluation is the first: a budget below 1 ended in the search's internal
+    stop signal (a bare sphere_refine._Budget from outside its handler), not an InputError."""
+    image, probe, geometry = _small_sphere()
+    with pytest.raises(InputError, match=f"^max_evaluations: {match}"):
+        sphere_refine.refine_sphere(image, probe, geometry, alphas=(1e-3,) * 3, winner=("gloss",) * 3,
+                                    max_evaluations=budget, **TINY)
