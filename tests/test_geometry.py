@@ -1,6 +1,7 @@
 """The geometry's small pieces against closed forms (mi_bivariate.geometry): the rotation check, the
 basis completing an axis, a sphere's normals just off its silhouette, the intrinsics' and the
-perspective sphere's checks, and the record a table keeps of its geometry.
+perspective sphere's checks, the record a table keeps of its geometry, a perspective sphere's view
+angles and a camera's field of view.
 
 The rendered truths (Mitsuba's normals AOV and ray intersections) are in tests/test_spherefit.py.
 """
@@ -100,3 +101,27 @@ def test_a_geometrys_record_holds_its_rotation_and_camera():
     assert persp.record() == {"type": "PerspectiveSphereGeometry",
                               "intrinsics": {"fx": 90.0, "fy": 110.0, "cx": 30.0, "cy": 22.0},
                               "centre": [0.1, 0.2, -5.0], "radius": 0.5, "camera_to_world": rot.tolist()}
+
+
+def test_a_perspective_spheres_view_angles_follow_the_law_of_sines():
+    """Closed form, float64: a pixel whose ray makes the angle beta with the ray to the centre (distance D)
+    meets a sphere of radius r where the normal makes the angle gamma with the view, sin(gamma) =
+    D sin(beta) / r (the triangle camera, centre, hit point), to 1e-11 up to the silhouette (grazing pixels
+    included; measured 1e-13, and 3e-8 with the ray-sphere discriminant alone rounded to float32)."""
+    k = Intrinsics(120.0, 120.0, 32.0, 30.0)
+    geometry = PerspectiveSphereGeometry(k, [0.4, -0.3, -6.0], 0.9)
+    normals, views, mask = geometry.normals_and_views(64, 60)
+    rays = k.rays(*np.meshgrid(np.arange(64) + 0.5, np.arange(60) + 0.5))[mask]
+    sin_beta = np.linalg.norm(np.cross(rays, geometry.centre / geometry.distance), axis=1)
+    expected = np.sqrt(np.clip(1.0 - (geometry.distance * sin_beta / geometry.radius) ** 2, 0.0, None))
+    assert mask.sum() > 200
+    np.testing.assert_allclose(np.sum(normals[mask] * views[mask], axis=1), expected, rtol=0.0, atol=1e-11)
+
+
+def test_a_wide_cameras_sensor_has_the_horizontal_field_of_view():
+    """Camera.look_at(fov_deg=40) of a 64 x 32 image renders through Mitsuba's sensor with a 40 degree
+    horizontal field of view (fov_axis "x"): 2 atan(W / 2 / fx), not the height's."""
+    camera = Camera.look_at((0.0, 0.0, 4.0), (0.0, 0.0, 0.0), width=64, height=32, fov_deg=40.0)
+    sensor = camera.sensor_dict()
+    assert sensor["fov_axis"] == "x" and sensor["fov"] == pytest.approx(40.0, abs=1e-9)
+    assert (sensor["film"]["width"], sensor["film"]["height"]) == (64, 32)
