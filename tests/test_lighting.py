@@ -748,18 +748,24 @@ def test_shadow_rays_leave_from_the_geometric_normal_side():
     np.testing.assert_allclose(L, free, rtol=1e-6, atol=1e-7 * free.max())
 
 
+def _normals_and_views(count: int, spread: float, seed: int):
+    """``count`` random unit normals and unit views about them (``spread``: the views' scatter; a view that
+    would graze or face away is the normal itself): ``((count, 3), (count, 3))``."""
+    rng = np.random.default_rng(seed)
+    n = rng.normal(size=(count, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    v = n + spread * rng.normal(size=(count, 3))
+    v = np.where(np.sum(n * v, axis=1, keepdims=True) < 0.1, n, v)
+    return n, v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
 @pytest.mark.parametrize("sampling", ["mis", "uniform"])
 def test_a_convex_object_does_not_shadow_itself(sampling):
     """Rows on the surface of the occluder itself, a ball, with positions and no geometric normals (their
     shading normals stand in): no light direction of a normal's hemisphere re-enters a convex object, so
     the matrix equals the unoccluded one. Shadow rays that left the surface without spawn_ray's offset
     hit the ball they start on."""
-    rng = np.random.default_rng(15)
-    n = rng.normal(size=(16, 3))
-    n /= np.linalg.norm(n, axis=1, keepdims=True)
-    v = n + 0.8 * rng.normal(size=(16, 3))
-    v = np.where(np.sum(n * v, axis=1, keepdims=True) < 0.1, n, v)
-    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    n, v = _normals_and_views(16, spread=0.8, seed=15)
     obs = Observations(n, v, np.zeros((16, 3), np.float32), np.zeros(16, np.int32), positions=0.7 * n)
     probe = synthetic_probe()
     kwargs = dict(n_t=8, n_s=8, n_dirs=400, seed=3, sampling=sampling)
@@ -775,12 +781,7 @@ def test_geometric_normals_are_directions_and_a_zero_or_nan_one_is_refused():
     a zero one left the ray on the ball it starts from (the rows of a convex ball came out shadowed by
     it), a NaN one started it at NaN. Now such rows are refused, and any other length is a direction: rows
     on the ball with geometric normals 3 n give the matrix of n, which is the unoccluded one."""
-    rng = np.random.default_rng(16)
-    n = rng.normal(size=(12, 3))
-    n /= np.linalg.norm(n, axis=1, keepdims=True)
-    v = n + 0.5 * rng.normal(size=(12, 3))
-    v = np.where(np.sum(n * v, axis=1, keepdims=True) < 0.1, n, v)
-    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    n, v = _normals_and_views(12, spread=0.5, seed=16)
     ball, probe = _sphere_scene((0.0, 0.0, 0.0), 0.7), synthetic_probe()
     kwargs = dict(n_t=8, n_s=8, n_dirs=200, seed=4, sampling="uniform")
 
