@@ -906,6 +906,61 @@ def test_nnls_hands_back_only_a_factor_of_the_whole_system():
         assert np.any(res.x == 0) and res.factor is None
 
 
+def test_nnls_answer_is_non_negative_where_an_exact_fit_touches_zero():
+    """Noiseless data ``a = A x*`` with ``x*`` zero on 4 of 10 coordinates (full column rank ``A``): the unique
+    solution is ``x*`` itself, and there the gradient is 0 too, so the passive-set solve lands on the zeros
+    with round-off of either sign (~-1e-16, below the exchange threshold). The answer must still be ``>= 0``
+    (the result's contract): without the final clip, most of these seeds returned -1e-16."""
+    for seed in range(10):
+        rng = np.random.default_rng(seed)
+        a_mat = rng.standard_normal((30, 10))
+        truth = rng.random(10)
+        truth[:4] = 0.0
+        g, b = a_mat.T @ a_mat, a_mat.T @ (a_mat @ truth)
+        for start in (False, True):
+            res = nnls_gram(g, b, passive=np.full(10, start))
+            assert res.method == "bpp" and res.kkt_violation < 1e-12
+            assert np.all(res.x >= 0.0), (seed, start, res.x.min())
+            np.testing.assert_allclose(res.x, truth, rtol=0, atol=1e-12)
+
+
+def test_nnls_falls_back_exactly_when_the_violation_exceeds_the_given_tolerance():
+    """Closed form: ``G = [[1, -1/2], [-1/2, 1]]``, ``b = G (1, -c)``. The one passive-set solve from the full
+    start (``max_iter=1``) is ``(1, -c)``, clipped to ``(1, 0)``: gradient ``(-c/2, c)``, ``x_scale = 1``,
+    ``g_scale = max|b| + max(|G| x) = 2 + c/2``, violation ``v = (c/2) / (2 + c/2)``. The solution is
+    ``(1 + c/2, 0)`` (``x_1`` active, ``g_1 = 3c/4 > 0``). ``tol`` is the accepted violation: any ``tol`` below
+    ``v`` (even ``v / 2``) sends the solve to the fallback and its exact answer, any above keeps the clipped one."""
+    c = 2e-8
+    G = np.array([[1.0, -0.5], [-0.5, 1.0]])
+    b = G @ np.array([1.0, -c])
+    v = (c / 2) / (2 + c / 2)
+    kept = nnls_gram(G, b, passive=np.ones(2, bool), max_iter=1, tol=2 * v)
+    assert kept.method == "bpp"
+    np.testing.assert_allclose(kept.x, [1.0, 0.0], rtol=1e-14, atol=0)
+    assert kept.kkt_violation == pytest.approx(v, rel=1e-6)  # g's round-off (~1e-16) over c
+    for tol in (v / 2, v / 1.5, KKT_TOLERANCE):
+        assert v > tol
+        res = nnls_gram(G, b, passive=np.ones(2, bool), max_iter=1, tol=tol)
+        assert res.method == "bpp+nnls-fallback" and res.kkt_violation < 1e-15, tol
+        np.testing.assert_allclose(res.x, [1.0 + c / 2, 0.0], rtol=1e-15, atol=0)
+
+
+def test_nnls_fallback_of_a_rank_deficient_system_is_scipys_answer():
+    """``A`` of rank 5 with 10 columns: the minimisers form a set, and ``G``'s 5 null eigenvalues are round-off
+    (~1e-16 of the largest, either sign). The fallback drops them, so its system has ``A``'s row space exactly and
+    ``scipy.optimize.nnls`` on it takes the steps it takes on ``A`` itself: the same answer. Keeping the
+    round-off eigenvalues that happen to be positive (``d = v^T b / sqrt(w)`` of round-off over round-off) moved
+    the answer along ``A``'s null space by up to its own size on 2 of these 6 seeds."""
+    for seed in range(6):
+        rng = np.random.default_rng(seed)
+        a_mat = rng.standard_normal((30, 5)) @ rng.standard_normal((5, 10))
+        rhs = a_mat @ rng.standard_normal(10) + 0.1 * rng.standard_normal(30)
+        expected, _ = sopt.nnls(a_mat, rhs, maxiter=1000)
+        res = nnls_gram(a_mat.T @ a_mat, a_mat.T @ rhs, passive=np.ones(10, bool), max_iter=1)
+        assert res.method == "bpp+nnls-fallback" and res.kkt_violation < KKT_TOLERANCE
+        np.testing.assert_allclose(res.x, expected, rtol=0, atol=1e-10 * np.abs(expected).max(), err_msg=str(seed))
+
+
 def test_prepare_data_term_refuses_bad_row_sigmas():
     """Given row sigmas must be finite, > 0 and shaped like I: a zero (an infinite weight), a NaN and a
     (M, 1) column each give an InputError."""
