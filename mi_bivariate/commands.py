@@ -480,9 +480,12 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     def given(value, default):  # 0 is a value to check, not "unset"
         return default if value is None else value
 
-    _check_recovery_sizes(given(args.normals, 8000), given(args.dirs, lighting.DEFAULT_DIRS), given(args.grid, (32, 32)))
-    _check_render_sizes(given(args.resolution, 128), args.spp)
-    _check_render_sizes(given(args.novel_resolution, 64), args.novel_spp, flag="--novel-spp",
+    # An option not given takes the run's own default: --quick's sizes (EvalConfig.quick), else the full ones.
+    base = ev.EvalConfig.quick(shared_data=have_shared_data(args.data)) if args.quick else ev.EvalConfig()
+    _check_recovery_sizes(given(args.normals, base.n_normals), given(args.dirs, base.n_dirs),
+                          given(args.grid, base.grid))
+    _check_render_sizes(given(args.resolution, base.resolution), args.spp)
+    _check_render_sizes(given(args.novel_resolution, base.novel_resolution), args.novel_spp, flag="--novel-spp",
                         resolution_flag="--novel-resolution")
     _check_seed(args.seed)
     _check_alpha(args.alpha)

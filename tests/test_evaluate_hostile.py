@@ -630,3 +630,46 @@ def test_evaluate_counts_are_refused_at_their_ends(tmp_path, capsys, extra, flag
     status = main(["evaluate", MATERIAL, "--out", str(out), *TINY_ARGS, *extra])
     assert _one_line_error(capsys, status).startswith(f"mi-bivariate: error: {flag}: "), flag
     assert not (tmp_path / "new").exists()
+
+
+QUICK_SIZE_CASES = [
+    # (options with --quick, refused?, what the refusal names): sizes not given are the quick run's
+    # (48 px, 1000 normals, 12 x 12 nodes), not the full run's (128 px, 8000 normals, 32 x 32 nodes)
+    (["--spp", "20000"], False, None),                        # 48 x 48 x 20000 samples; 128 x 128 x 20000 is over
+    (["--normals", "400000"], False, None),                   # 400000 x 144 nodes: 0.6 GiB; x 1024: 4.6 GiB
+    (["--dirs", "3000000"], False, None),                     # 1000 rows x 1.5e6 pairs: 1.5e9 lanes; 2048: over
+    (["--spp", "20000", "--resolution", "128"], True, "--spp: 128 x 128 pixels x 20000 spp"),
+    (["--normals", "400000", "--grid", "32", "32"], True, "--normals: the lighting matrix of 400000 normals x 1024"),
+    # 8000 rows of a 12 x 12 chunk x 500000 pairs; a 32 x 32 chunk's 2048 rows were under the limit: let through
+    (["--dirs", "1000000", "--normals", "8000"], True, "--dirs: 1000000 directions with 144 grid nodes"),
+]
+
+
+@pytest.mark.parametrize("extra, refused, match", QUICK_SIZE_CASES, ids=[" ".join(c[0]) for c in QUICK_SIZE_CASES])
+def test_quick_sizes_are_checked_against_the_quick_configuration(tmp_path, capsys, monkeypatch, extra, refused, match):
+    """``evaluate --quick`` checked the sizes a user left out at the full run's defaults: a valid quick run
+    with a large --spp, --normals or --dirs was refused for a 128 px render, a 32 x 32 grid or 8000 normals it
+    would never use, and 8000 normals with --dirs 1000000 were let through (a 32 x 32 grid's chunk holds fewer
+    rows than the quick 12 x 12 one's), to fail in every material's lighting matrix. They are the quick
+    configuration's now, and the same sizes given explicitly are refused before any work. The kernel's lanes
+    are checked in the layout of a lane per (row, direction), as on CUDA."""
+    from mi_bivariate import lighting
+    from mi_bivariate.lighting import kernels
+
+    monkeypatch.setattr(lighting, "lane_per_row", lambda: False)
+    monkeypatch.setattr(kernels, "lane_per_row", lambda: False)
+    started = []
+
+    def run_evaluation(materials, out, config, **kwargs):       # the checks passed: stop before any work
+        started.append(config)
+        raise InputError(None, "stopped before the evaluation")
+
+    monkeypatch.setattr(ev, "run_evaluation", run_evaluation)
+    line = _one_line_error(capsys, main(["evaluate", "--quick", "--out", str(tmp_path / "e"), "--no-progress",
+                                         *extra]))
+    if refused:
+        assert line.startswith(f"mi-bivariate: error: {match}"), line
+        assert started == []
+    else:
+        assert line == "mi-bivariate: error: stopped before the evaluation", line
+        assert (started[0].resolution, started[0].grid) == (48, (12, 12))    # the quick run, as checked
