@@ -13,7 +13,7 @@ and calls it). The recovery report and the demo figure are in
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Dict, List, Sequence
+from typing import Any, Dict, List, Optional, Sequence
 
 import numpy as np
 
@@ -33,18 +33,22 @@ Artifacts = Dict[str, np.ndarray]
 
 
 def evaluation_figures(records: Sequence[dict], artifacts: Dict[str, Artifacts], fig_dir: PathLike,
-                       formats: Sequence[str] = ("png",), dpi: int = 100) -> List[Path]:
+                       formats: Sequence[str] = ("png",), dpi: int = 100,
+                       novel_probes: Optional[Sequence[str]] = None) -> List[Path]:
     """Draw and save every evaluation figure; returns the files written.
 
     Figures (in ``fig_dir``): ``fig3_reduction``, ``fig5_validation``,
     ``fig6_incident``, ``fig6_errors``, ``fig7_environment``, ``tables``,
     ``baselines``; one file per format in ``formats`` (png, pdf). Fig. 5, 6
     (incident plane) and 7 show the median material by recovered log error
-    under the first input probe.
+    under the first input probe; Figs. 3, 5 and 7 show the renders under the first novel probe.
 
     Args:
         records: the records of one configuration (at least one).
         artifacts: ``{material label: artifact arrays}`` of every record.
+        novel_probes: the novel probes' labels in the configuration's order (``EvalConfig.novel_probes``,
+            each by :func:`mi_bivariate.sources.probe_label`); ``None``: the order of the first record's
+            ``floor_images`` (alphabetical once the record was read back from ``results.jsonl``).
     """
     fig_dir = Path(fig_dir)
     written: List[Path] = []
@@ -53,7 +57,7 @@ def evaluation_figures(records: Sequence[dict], artifacts: Dict[str, Artifacts],
         written.extend(save_figure_formats(fig, fig_dir / stem, formats, dpi=dpi))
 
     probes_in = list(records[0]["inputs"])
-    novel = list(records[0]["floor_images"])
+    novel = list(novel_probes) if novel_probes else list(records[0]["floor_images"])
     save(plot_reduction_ranking(records, artifacts, novel[0]), "fig3_reduction")
     # Fig. 5: the median material by recovered error under the first input probe.
     order = sorted(records, key=lambda r: r["inputs"][probes_in[0]]["recovered"]["log"])
@@ -62,7 +66,7 @@ def evaluation_figures(records: Sequence[dict], artifacts: Dict[str, Artifacts],
     save(plot_validation(example, art, probes_in[0], novel[0]), "fig5_validation")
     save(plot_incident_planes(example, art, probes_in), "fig6_incident")
     save(plot_error_curves(records), "fig6_errors")
-    save(plot_environment_dependence(example, art, probes_in), "fig7_environment")
+    save(plot_environment_dependence(example, art, probes_in, novel[0]), "fig7_environment")
     save(plot_table_gallery(records, artifacts, probes_in), "tables")
     save(plot_baselines(records, probes_in[0]), "baselines")
     return written
@@ -232,14 +236,17 @@ def _observation_image(ax: Any, omap: np.ndarray, title: str) -> None:
     ax.figure.colorbar(im, ax=ax, fraction=0.046, pad=0.02, label="log10 observations")
 
 
-def plot_environment_dependence(record: dict, art: Dict[str, np.ndarray], input_probes: Sequence[str]) -> Any:
+def plot_environment_dependence(record: dict, art: Dict[str, np.ndarray], input_probes: Sequence[str],
+                                novel: Optional[str] = None) -> Any:
     """Fig. 7 analogue: one material recovered under each input probe, with the adequacy map.
 
     Row per input probe: input image, st observation map (adequacy), recovered
-    table, bivariate truth, re-render under the first novel probe.
+    table, bivariate truth, re-render under the novel probe ``novel`` (a label; ``None``: the first
+    of the record's ``floor_images``, as :func:`evaluation_figures` picks it without the configuration).
     """
     plt = pyplot()
-    novel = sorted(k.split("__")[1] for k in art if k.startswith("truth__"))[0]
+    if novel is None:
+        novel = next(iter(record["floor_images"]))
     floor = BivariateBRDF(np.asarray(art["floor"], np.float32))
     lo = float(np.log10(max(np.percentile(floor.table, 1), 1e-4)))
     hi = float(np.log10(max(floor.table.max(), 1e-3)))

@@ -223,3 +223,59 @@ def test_baselines_bars_hold_each_metric_centred_on_their_material(evaluation, c
             np.testing.assert_allclose([b.get_height() for b in bars[label]], values)
             centres.append([b.get_x() + b.get_width() / 2 for b in bars[label]])
         np.testing.assert_allclose(np.mean(centres, axis=0), np.arange(len(order)), atol=1e-12)
+
+
+def test_figs_3_5_and_7_show_the_configurations_first_novel_probe(evaluation, tmp_path, monkeypatch,
+                                                                    close_figures):
+    """Fig. 7 re-rendered under the alphabetically first novel probe (the artifacts' sorted names) and Figs. 3
+    and 5 under the record's first: with --novel-probes venice pisa they could show two probes. Given the
+    configuration's order, all three show its first (venice); without it, the record's first (pisa). Fig. 7's
+    re-render panel is the material's render under that probe, with that probe's numbers."""
+    records, artifacts = evaluation
+    shown = {}
+    for name in ("plot_validation", "plot_incident_planes", "plot_environment_dependence", "plot_reduction_ranking",
+                 "plot_error_curves", "plot_table_gallery", "plot_baselines"):
+        monkeypatch.setattr(figures, name, lambda *args, name=name, **kwargs: shown.setdefault(name, args))
+    monkeypatch.setattr(figures, "save_figure_formats", lambda *args, **kwargs: [])
+    for novel_probes, first in ((("venice", "pisa"), "venice"), (None, "pisa")):
+        shown.clear()
+        figures.evaluation_figures(records, artifacts, tmp_path, novel_probes=novel_probes)
+        assert (shown["plot_reduction_ranking"][2], shown["plot_validation"][3],
+                shown["plot_environment_dependence"][3]) == (first,) * 3, novel_probes
+    monkeypatch.undo()
+    art = artifacts["b"]
+    fig = figures.plot_environment_dependence(records[1], art, PROBES_IN[1:], "venice")
+    panel = [ax for ax in fig.axes if ax.get_title()][4]
+    assert panel.get_title() == "re-render under venice (rel. RMSE 0.232)"   # material b: 0.111 x 2 + 0.01
+    expected = figures.pyplot().figure()
+    figures.show_image(expected.add_subplot(), art["recovered_render__uffizi__venice"], "",
+                       figures.exposure_of(art["truth__venice"], art["mask"]))
+    np.testing.assert_array_equal(panel.images[0].get_array(), expected.axes[0].images[0].get_array())
+
+
+def test_make_figures_passes_the_configurations_novel_order(evaluation, tmp_path, monkeypatch):
+    """Records come back from results.jsonl with their keys sorted (floor_images: pisa, venice): make_figures
+    takes the novel probes' order from config.json (probe files by their labels), for records of its
+    configuration only."""
+    import json
+
+    from mi_bivariate.evaluate import results
+
+    records, artifacts = evaluation
+    out = tmp_path / "e"
+    out.mkdir()
+    for r in records:
+        results.append_record(out / results.RESULTS_FILE, {**r, "config_hash": "h", "slug": r["material"]})
+    passed = []
+    monkeypatch.setattr(results, "load_artifacts", lambda path: artifacts[path.stem])
+    monkeypatch.setattr(results, "evaluation_figures", lambda recs, arts, fig_dir, **kwargs: passed.append(
+        (list(recs[0]["floor_images"]), kwargs["novel_probes"])) or [])
+    for config, novel in (({"config_hash": "h", "novel_probes": ["/probes/venice.hdr", "pisa"]}, ["venice", "pisa"]),
+                          ({"config_hash": "other", "novel_probes": ["venice", "pisa"]}, None),
+                          ("not a config", None)):
+        (out / "config.json").write_text(json.dumps(config))
+        results.make_figures(out, results.read_records(out / results.RESULTS_FILE, "h"))
+        assert passed[-1] == (["pisa", "venice"], novel)
+    (out / "config.json").write_text(json.dumps({"config_hash": "h", "novel_probes": ["venice", "pisa"]}))
+    results.make_figures(out)                                   # records read by make_figures itself
+    assert passed[-1] == (["pisa", "venice"], ["venice", "pisa"]) and len(passed) == 4
