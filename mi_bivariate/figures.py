@@ -34,7 +34,8 @@ Artifacts = Dict[str, np.ndarray]
 
 def evaluation_figures(records: Sequence[dict], artifacts: Dict[str, Artifacts], fig_dir: PathLike,
                        formats: Sequence[str] = ("png",), dpi: int = 100,
-                       novel_probes: Optional[Sequence[str]] = None) -> List[Path]:
+                       novel_probes: Optional[Sequence[str]] = None,
+                       input_probes: Optional[Sequence[str]] = None) -> List[Path]:
     """Draw and save every evaluation figure; returns the files written.
 
     Figures (in ``fig_dir``): ``fig3_reduction``, ``fig5_validation``,
@@ -49,6 +50,8 @@ def evaluation_figures(records: Sequence[dict], artifacts: Dict[str, Artifacts],
         novel_probes: the novel probes' labels in the configuration's order (``EvalConfig.novel_probes``,
             each by :func:`mi_bivariate.sources.probe_label`); ``None``: the order of the first record's
             ``floor_images`` (alphabetical once the record was read back from ``results.jsonl``).
+        input_probes: the inputs' labels in the configuration's order (``EvalConfig.input_probes``, each by
+            :func:`mi_bivariate.sources.input_label`); ``None``: the order of the first record's ``inputs``.
     """
     fig_dir = Path(fig_dir)
     written: List[Path] = []
@@ -56,7 +59,7 @@ def evaluation_figures(records: Sequence[dict], artifacts: Dict[str, Artifacts],
     def save(fig: Any, stem: str) -> None:
         written.extend(save_figure_formats(fig, fig_dir / stem, formats, dpi=dpi))
 
-    probes_in = list(records[0]["inputs"])
+    probes_in = list(input_probes) if input_probes else list(records[0]["inputs"])
     novel = list(novel_probes) if novel_probes else list(records[0]["floor_images"])
     save(plot_reduction_ranking(records, artifacts, novel[0]), "fig3_reduction")
     # Fig. 5: the median material by recovered error under the first input probe.

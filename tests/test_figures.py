@@ -242,6 +242,15 @@ def test_figs_3_5_and_7_show_the_configurations_first_novel_probe(evaluation, tm
         figures.evaluation_figures(records, artifacts, tmp_path, novel_probes=novel_probes)
         assert (shown["plot_reduction_ranking"][2], shown["plot_validation"][3],
                 shown["plot_environment_dependence"][3]) == (first,) * 3, novel_probes
+    # The inputs likewise: given the configuration's order (uffizi, grace), Figs. 5-7, the gallery and the
+    # baselines take uffizi first, and Fig. 5's material is the median under uffizi (log errors +1: still c).
+    for input_probes, order in ((("uffizi", "grace"), ["uffizi", "grace"]), (None, ["grace", "uffizi"])):
+        shown.clear()
+        figures.evaluation_figures(records, artifacts, tmp_path, input_probes=input_probes)
+        assert shown["plot_validation"][2] == order[0] and shown["plot_baselines"][1] == order[0]
+        assert [list(shown[name][2]) for name in ("plot_incident_planes", "plot_environment_dependence",
+                                                  "plot_table_gallery")] == [order] * 3
+        assert shown["plot_validation"][0]["material"] == "c"
     monkeypatch.undo()
     art = artifacts["b"]
     fig = figures.plot_environment_dependence(records[1], art, PROBES_IN[1:], "venice")
@@ -253,10 +262,10 @@ def test_figs_3_5_and_7_show_the_configurations_first_novel_probe(evaluation, tm
     np.testing.assert_array_equal(panel.images[0].get_array(), expected.axes[0].images[0].get_array())
 
 
-def test_make_figures_passes_the_configurations_novel_order(evaluation, tmp_path, monkeypatch):
+def test_make_figures_passes_the_configurations_probe_order(evaluation, tmp_path, monkeypatch):
     """Records come back from results.jsonl with their keys sorted (floor_images: pisa, venice): make_figures
-    takes the novel probes' order from config.json (probe files by their labels), for records of its
-    configuration only."""
+    takes the novel probes' and the inputs' order from config.json (probe files by their labels), for records
+    of its configuration only."""
     import json
 
     from mi_bivariate.evaluate import results
@@ -269,13 +278,15 @@ def test_make_figures_passes_the_configurations_novel_order(evaluation, tmp_path
     passed = []
     monkeypatch.setattr(results, "load_artifacts", lambda path: artifacts[path.stem])
     monkeypatch.setattr(results, "evaluation_figures", lambda recs, arts, fig_dir, **kwargs: passed.append(
-        (list(recs[0]["floor_images"]), kwargs["novel_probes"])) or [])
-    for config, novel in (({"config_hash": "h", "novel_probes": ["/probes/venice.hdr", "pisa"]}, ["venice", "pisa"]),
-                          ({"config_hash": "other", "novel_probes": ["venice", "pisa"]}, None),
-                          ("not a config", None)):
+        (list(recs[0]["floor_images"]), kwargs["novel_probes"], kwargs["input_probes"])) or [])
+    ours = {"config_hash": "h", "novel_probes": ["/probes/venice.hdr", "pisa"], "input_probes": ["/p/uffizi.exr", "grace"]}
+    for config, novel, inputs in ((ours, ["venice", "pisa"], ["uffizi", "grace"]),
+                                  ({**ours, "config_hash": "other"}, None, None),
+                                  ("not a config", None, None)):
         (out / "config.json").write_text(json.dumps(config))
         results.make_figures(out, results.read_records(out / results.RESULTS_FILE, "h"))
-        assert passed[-1] == (["pisa", "venice"], novel)
-    (out / "config.json").write_text(json.dumps({"config_hash": "h", "novel_probes": ["venice", "pisa"]}))
+        assert passed[-1] == (["pisa", "venice"], novel, inputs)
+    (out / "config.json").write_text(json.dumps({"config_hash": "h", "novel_probes": ["venice", "pisa"],
+                                                 "input_probes": ["uffizi", "grace"]}))
     results.make_figures(out)                                   # records read by make_figures itself
-    assert passed[-1] == (["pisa", "venice"], ["venice", "pisa"]) and len(passed) == 4
+    assert passed[-1] == (["pisa", "venice"], ["venice", "pisa"], ["uffizi", "grace"]) and len(passed) == 4

@@ -29,7 +29,7 @@ from mi_bivariate.common import PathLike, finite_json
 from mi_bivariate.errors import InputWarning
 from mi_bivariate.figures import evaluation_figures
 from mi_bivariate.npzio import read_npz
-from mi_bivariate.sources import probe_label
+from mi_bivariate.sources import input_label, probe_label
 
 RESULTS_FILE = "results.jsonl"
 SUMMARY_FILE = "summary.csv"
@@ -242,25 +242,30 @@ def make_figures(out_dir: PathLike, records: Optional[Sequence[dict]] = None,
         return []
     fig_dir = Path(fig_dir) if fig_dir is not None else out / "figures"
     arts = {r["material"]: load_artifacts(artifact_path(out, r)) for r in records}
+    inputs, novel = _probe_order(out, records[0])
     return evaluation_figures([_nulls_as_nan(r) for r in records], arts, fig_dir, formats=formats, dpi=dpi,
-                              novel_probes=_novel_order(out, records[0]))
+                              novel_probes=novel, input_probes=inputs)
 
 
-def _novel_order(out: Path, record: dict) -> Optional[List[str]]:
-    """The labels of ``record``'s novel probes in its configuration's order (``out/config.json``'s, for a
-    record of that configuration); ``None`` where that file is unreadable or of another configuration.
+def _probe_order(out: Path, record: dict) -> Tuple[Optional[List[str]], Optional[List[str]]]:
+    """The labels of ``record``'s inputs and of its novel probes, each in its configuration's order
+    (``out/config.json``'s, for a record of that configuration); ``None`` for either where that file is
+    unreadable or of another configuration.
 
     A record's dicts come back from ``results.jsonl`` in alphabetical order (it is written with sorted
-    keys): the figures' "first novel probe" is the configuration's first, not the alphabetically first.
+    keys): the figures' "first input" and "first novel probe" are the configuration's first, not the
+    alphabetically first.
     """
     try:
         config = json.loads((out / "config.json").read_text())
     except (OSError, ValueError):
-        return None
+        return None, None
     if not isinstance(config, dict) or config.get("config_hash") != record.get("config_hash"):
-        return None
-    labels = [probe_label(str(name)) for name in config.get("novel_probes") or ()]
-    return [label for label in labels if label in record.get("floor_images", {})] or None
+        return None, None
+    inputs = [input_label(str(name)) for name in config.get("input_probes") or ()]
+    novel = [probe_label(str(name)) for name in config.get("novel_probes") or ()]
+    return ([label for label in inputs if label in record.get("inputs", {})] or None,
+            [label for label in novel if label in record.get("floor_images", {})] or None)
 
 
 def _fmt(v: Any, digits: int = 3) -> str:
