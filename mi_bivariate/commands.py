@@ -464,11 +464,6 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 # --------------------------------------------------------------------------- evaluate
 
-#: The evaluation record's digests of the bytes it read (a MERL file's, the shared data folder's) that an
-#: ``evaluate --abs`` record must share to be reused.
-ABS_DATA_DIGESTS = ("source_sha256", "shared_data_sha256")
-
-
 def cmd_evaluate(args: argparse.Namespace) -> int:
     """The paper's evaluation over the materials given (:func:`mi_bivariate.evaluate.run_evaluation`).
 
@@ -521,18 +516,17 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if args.abs:
         out = Path(args.out) / "analysis_by_synthesis.jsonl"
         # A rerun resumes, as the evaluation does: a material already run with this configuration,
-        # input probe and time factor, from the same bytes (a MERL file's, the shared data folder's: the
-        # digests its evaluation record keeps), is reported from its record, not run (and appended) again.
-        # Records written before the digests were kept have none, and are reused as before.
+        # input probe and time factor, from the same bytes (ev.same_data, with the digests its evaluation
+        # record keeps), is reported from its record, not run (and appended) again.
         done: Dict[tuple, List[dict]] = {}
         for r in ev.read_records(out):
             if r["config_hash"] == config.hash():
                 done.setdefault((r["material"], r.get("input_probe"), r.get("time_factor")), []).append(r)
         input_label = ev.probe_label(config.input_probes[0])
         for record in records[:args.abs]:
-            digests = {k: record[k] for k in ABS_DATA_DIGESTS if record.get(k) is not None}
+            digests = {k: record[k] for k in ev.DATA_DIGESTS if record.get(k) is not None}
             same = [r for r in done.get((record["material"], input_label, args.abs_time_factor), [])
-                    if all(r.get(k, digests.get(k)) == digests.get(k) for k in ABS_DATA_DIGESTS)]
+                    if ev.same_data(r, digests)]
             result = same[-1] if same else None
             if result is None:
                 result = synthesis.analysis_by_synthesis(record["spec"], config.input_probes[0], config=config,

@@ -503,7 +503,7 @@ def test_a_merl_file_changed_or_another_file_of_its_name_is_evaluated_again(tmp_
 
 def test_evaluate_abs_resumes_only_for_the_same_bytes(tmp_path, monkeypatch, capsys):
     """``evaluate --abs`` reports a material from its earlier record only when that record came from the same
-    bytes (the digests its evaluation record keeps: a MERL file's, the shared data folder's): a file rewritten
+    bytes (the digests its evaluation record keeps, by the evaluation's own rule ev.same_data): a file rewritten
     under the same name is run again, and the first bytes again find their own record, not the latest one.
     The evaluation and analysis by synthesis are stand-ins: only the resume rule is under test."""
     from mi_bivariate import synthesis
@@ -544,9 +544,13 @@ def test_evaluate_abs_resumes_only_for_the_same_bytes(tmp_path, monkeypatch, cap
     assert len(run(source_sha256=a, shared_data_sha256=c)) == 2 and len(calls) == 2  # the first: its own record
     assert len(run(source_sha256=a, shared_data_sha256=d)) == 3 and len(calls) == 3  # another data folder
     assert len(run(source_sha256=a, shared_data_sha256=d)) == 3 and len(calls) == 3
-    # A record without digests (written before they were kept) is reused, as the evaluation's own are.
+    # Records written before the digests were kept, by the evaluation's own rule (ev.same_data): one without
+    # the shared data's digest is reused; one without a MERL file's is run again.
     out.joinpath("analysis_by_synthesis.jsonl").unlink()
-    assert len(run()) == 1 and len(run(source_sha256=a)) == 1 and len(calls) == 4
+    assert len(run(source_sha256=a)) == 1 and len(run(source_sha256=a, shared_data_sha256=c)) == 1
+    assert len(calls) == 4
+    out.joinpath("analysis_by_synthesis.jsonl").unlink()
+    assert len(run()) == 1 and len(run(source_sha256=a)) == 2 and len(calls) == 6
 
 
 def test_warnings_are_named_recorded_and_said_by_the_process_writing_the_records(tmp_path):

@@ -65,6 +65,7 @@ from mi_bivariate.evaluate.config import (
 )
 from mi_bivariate.evaluate.protocol import INCIDENT_VIEWS, NOISE_SEED_OFFSET, MaterialTask, evaluate_material
 from mi_bivariate.evaluate.results import (
+    DATA_DIGESTS,
     HEADLINE_COLUMNS,
     REJECTED_FILE,
     RESULTS_FILE,
@@ -78,6 +79,7 @@ from mi_bivariate.evaluate.results import (
     markdown_table,
     read_records,
     repair_results,
+    same_data,
     save_artifacts,
     summary_rows,
     write_summary_csv,
@@ -91,11 +93,11 @@ from mi_bivariate.evaluate.runner import (
 from mi_bivariate.sources import MaterialSpec, have_shared_data, load_probe, load_truth, probe_label, resolve_materials
 
 __all__ = [
-    "DEFAULT_INPUT_PROBES", "DEFAULT_NOVEL_PROBES", "HEADLINE_COLUMNS", "INCIDENT_VIEWS", "InputError",
+    "DATA_DIGESTS", "DEFAULT_INPUT_PROBES", "DEFAULT_NOVEL_PROBES", "HEADLINE_COLUMNS", "INCIDENT_VIEWS", "InputError",
     "InputWarning", "LOCK_FILE", "MaterialSpec", "MaterialTask", "NOISE_SEED_OFFSET", "PROTOCOL_VERSION",
     "QUICK_ANALYTIC", "QUICK_NBRDF", "REFERENCE_DIR", "REJECTED_FILE", "RESULTS_FILE", "SUMMARY_COLUMNS",
     "SUMMARY_FILE", "EvalConfig", "append_record", "artifact_path", "evaluate_material",
     "format_summary", "have_shared_data", "load_artifacts", "load_probe", "load_truth", "make_figures",
     "markdown_table", "probe_label", "quick_materials", "read_records", "repair_results", "resolve_materials",
-    "run_evaluation", "save_artifacts", "summary_rows", "threads_per_job", "write_summary_csv",
+    "run_evaluation", "same_data", "save_artifacts", "summary_rows", "threads_per_job", "write_summary_csv",
 ]

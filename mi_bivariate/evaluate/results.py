@@ -74,6 +74,23 @@ def read_records(path: PathLike, config_hash: Optional[str] = None) -> List[dict
     return list(latest.values())
 
 
+#: The digests of the bytes a material's evaluation read that its record keeps: a MERL file's
+#: (``source_sha256``) and the shared data folder's probes and weights (``shared_data_sha256``).
+DATA_DIGESTS = ("source_sha256", "shared_data_sha256")
+
+
+def same_data(record: dict, digests: Dict[str, Optional[str]]) -> bool:
+    """Whether ``record`` (an evaluation's, or ``evaluate --abs``'s) came from the bytes ``digests`` names
+    (``{name in DATA_DIGESTS: digest, or None where nothing of that kind is read}``), so a rerun may reuse it.
+
+    A MERL file's digest must be the same (a record without one, written before it was kept, is evaluated
+    again). The shared data's may be missing from the record: written before it was kept, when shared
+    names alone entered the config hash, such a record is reused as it was.
+    """
+    source, shared = (digests.get(name) for name in DATA_DIGESTS)
+    return record.get("source_sha256") == source and record.get("shared_data_sha256", shared) == shared
+
+
 def repair_results(path: PathLike) -> int:
     """Set damaged lines of a results file aside so that their materials are recomputed.
 

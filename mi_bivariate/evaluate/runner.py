@@ -46,6 +46,7 @@ from mi_bivariate.evaluate.results import (
     make_figures,
     read_records,
     repair_results,
+    same_data,
     save_artifacts,
     write_summary_csv,
 )
@@ -293,16 +294,14 @@ def _run_locked(specs: List[MaterialSpec], out: Path, config: EvalConfig, jobs: 
     # Records written before the digest was kept have none: their MERL files are evaluated once more.
     digest = {m.label: m.source_digest() for m in specs}
     # A shared probe or MERL-NBRDF material counts as done only for the same shared files (another --data folder
-    # may hold other bytes under the same names). Records written before this digest was kept have none: they
-    # are reused, as their config hash is (shared names never entered it).
+    # may hold other bytes under the same names): results.same_data.
     first_of_kind = {m.kind: m for m in reversed(specs)}  # the digest depends on the kind only: read each file once
     by_kind = {kind: shared_data_digest(config, m, data_dir) for kind, m in first_of_kind.items()}
     shared = {m.label: by_kind[m.kind] for m in specs}
 
     def reusable(r: dict) -> bool:
         label = r["material"]
-        return (r.get("source_sha256") == digest.get(label)
-                and r.get("shared_data_sha256", shared.get(label)) == shared.get(label))
+        return same_data(r, {"source_sha256": digest.get(label), "shared_data_sha256": shared.get(label)})
 
     done = {r["material"] for r in read_records(results, h) if reusable(r)}
     if threads is None and dask is None and jobs > 1:
