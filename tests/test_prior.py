@@ -345,3 +345,47 @@ def test_a_channel_with_median_zero_is_normalised_by_its_mean_and_a_black_one_is
     assert got.shape == (2, 4, 5)
     np.testing.assert_allclose(got[0], table[..., 0] / 0.4, rtol=1e-12)
     np.testing.assert_allclose(got[1], np.ones((4, 5)), rtol=1e-12)
+
+
+def _small_prior() -> Prior:
+    rng = np.random.default_rng(12)
+    return Prior({p: (rng.uniform(0.5, 2, (4, 3)), rng.uniform(0.5, 2, (4, 3))) for p in PAIRS}, {"materials": ["a"]})
+
+
+_BAD_PRIOR_FILES = {
+    "maps of another grid": r"pair 'gloss' has sigma maps of shape \(4, 2\), expected \(4, 3\)",
+    "one theta_d node": r"needs at least 2 x 2 integer nodes, got 4 x 1",
+    "a zero sigma": r"pair 'diffuse' has non-positive or non-finite sigmas",
+    "a NaN sigma": r"pair 'diffuse' has non-positive or non-finite sigmas",
+    "another format": r"not a mi_bivariate prior file \(format 'mi_bivariate.basis_prior'\)",
+}
+
+
+@pytest.mark.parametrize("case", list(_BAD_PRIOR_FILES))
+def test_a_prior_file_of_the_wrong_grid_or_values_or_format_is_refused_naming_it(tmp_path, case):
+    """A prior file whose maps disagree in shape (one pair on another grid), with one theta_d node (no
+    s-difference at all), with a zero or NaN sigma, or whose metadata names another format: an InputError
+    naming the file, before any solve (they were loaded, or failed later with the wrong message)."""
+    import json
+
+    path = tmp_path / "prior.npz"
+    _small_prior().save(path)
+    with np.load(path) as z:
+        arrays = {k: z[k] for k in z.files}
+    if case == "maps of another grid":
+        arrays["gloss_sigma_s"] = arrays["gloss_sigma_s"][:, :2]
+    elif case == "one theta_d node":
+        arrays = {k: (v[:, :1] if k != "meta" else v) for k, v in arrays.items()}
+    elif case in ("a zero sigma", "a NaN sigma"):
+        arrays["diffuse_sigma_t"][1, 1] = 0.0 if case == "a zero sigma" else np.nan
+    else:
+        meta = json.loads(str(arrays["meta"]))
+        arrays["meta"] = np.array(json.dumps({**meta, "format": "mi_bivariate.basis_prior"}))
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, **arrays)
+    with pytest.raises(InputError, match=_BAD_PRIOR_FILES[case]) as info:
+        Prior.load(bad)
+    assert info.value.source == str(bad)
+    with pytest.raises(InputError, match="needs at least 2 x 2"):
+        difference_operators(4, 1)
+
