@@ -286,6 +286,9 @@ def test_sigma_maps_floor_and_ceiling_relative_to_each_maps_median():
     assert got_scale == pytest.approx(scale, rel=1e-12)
     np.testing.assert_allclose(sigma_s[:, :-1], edges[0] / scale, rtol=1e-12)
     np.testing.assert_allclose(sigma_t[:-1, :], edges[1] / scale, rtol=1e-12)
+    # The padding (last column of sigma_s, last row of sigma_t) is a copy of its neighbour, as stored.
+    np.testing.assert_array_equal(sigma_s[:, -1], sigma_s[:, -2])
+    np.testing.assert_array_equal(sigma_t[-1], sigma_t[-2])
 
 
 def test_samples_are_normalised_by_their_median_and_resampling_follows_s_too():
@@ -389,3 +392,27 @@ def test_a_prior_file_of_the_wrong_grid_or_values_or_format_is_refused_naming_it
     with pytest.raises(InputError, match="needs at least 2 x 2"):
         difference_operators(4, 1)
 
+
+def test_a_training_table_with_nan_is_refused_naming_the_material():
+    """NaN in one training table: an InputError naming that material from both priors' learning (it became
+    a NaN sigma, refused as "pair 'diffuse' has non-finite sigmas", or a NaN basis)."""
+    from mi_bivariate.basis_prior import BasisPrior
+    from mi_bivariate.training_set import learn_priors
+
+    tables = {name: np.full((4, 4, 3), 0.2) for name in ("a", "b", "c")}
+    tables["b"][0] *= 50  # glossy
+    tables["c"][2, 1, 0] = np.nan
+    for learn in (Prior.learn, BasisPrior.learn, learn_priors):
+        with pytest.raises(InputError, match=r"^c: bivariate table has non-finite values$"):
+            learn(tables)
+
+
+def test_a_material_at_the_gloss_threshold_is_diffuse():
+    """Gloss is a specular ratio *above* the threshold: a ratio of exactly 30 trains the diffuse pair."""
+    at = np.ones((8, 8, 3))
+    at[0] = 30.0                                  # specular ratio 30 / 1
+    above = np.ones((8, 8, 3))
+    above[0] = 31.0
+    prior = Prior.learn({"at": at, "above": above, "flat": np.ones((8, 8, 3))})
+    assert prior.provenance["specular_ratio"]["at"] == 30.0
+    assert prior.provenance["split"] == {"at": "diffuse", "above": "gloss", "flat": "diffuse"}
