@@ -355,6 +355,26 @@ def _small_prior() -> Prior:
     return Prior({p: (rng.uniform(0.5, 2, (4, 3)), rng.uniform(0.5, 2, (4, 3))) for p in PAIRS}, {"materials": ["a"]})
 
 
+def test_penalty_by_hand_on_a_4_by_3_grid_and_its_null_space_is_the_constants():
+    """``f^T R^T R f`` on a 4 x 3 grid written out difference by difference (``(f[it, is+1] - f[it, is]) 2 /
+    sigma_s[it, is]``, ``(f[it+1, is] - f[it, is]) 3 / sigma_t[it, is]``, squared and summed), and the
+    precision's null space: constant tables only (rank N - 1), whatever the weights."""
+    prior = _small_prior()
+    sigma_s, sigma_t = prior.pairs["diffuse"]
+    f = np.random.default_rng(13).random((4, 3))
+    want = 0.0
+    for it in range(4):
+        for i_s in range(3):
+            if i_s + 1 < 3:
+                want += ((f[it, i_s + 1] - f[it, i_s]) * 2.0 / sigma_s[it, i_s]) ** 2
+            if it + 1 < 4:
+                want += ((f[it + 1, i_s] - f[it, i_s]) * 3.0 / sigma_t[it, i_s]) ** 2
+    precision = prior.penalty_matrix("diffuse")
+    assert f.ravel() @ precision @ f.ravel() == pytest.approx(want, rel=1e-12)
+    np.testing.assert_allclose(precision @ np.ones(12), 0.0, atol=1e-12)
+    assert np.linalg.matrix_rank(precision) == 11
+
+
 _BAD_PRIOR_FILES = {
     "maps of another grid": r"pair 'gloss' has sigma maps of shape \(4, 2\), expected \(4, 3\)",
     "one theta_d node": r"needs at least 2 x 2 integer nodes, got 4 x 1",
