@@ -437,3 +437,48 @@ def test_the_basis_prior_file_sits_beside_the_smoothness_prior_and_is_read_when_
     loaded = training_set.load_prior_files(path)
     assert isinstance(loaded[1], BasisPrior) and loaded[1].materials == basis.materials
     assert training_set.load_prior_files(path, basis=False)[1] is None
+
+
+def _toy_prior(n_t: int = 4, n_s: int = 5) -> BasisPrior:
+    """A prior with an orthonormal 3-component basis, written down (no learning)."""
+    rng = np.random.default_rng(2)
+    basis, _ = np.linalg.qr(rng.normal(size=(n_t * n_s, 3)))
+    return BasisPrior(rng.normal(0.0, 0.5, n_t * n_s), basis, np.array([0.5, 0.2, 0.05]),
+                      rng.uniform(0.05, 0.2, n_t * n_s), n_t, n_s, {"materials": ["a", "b", "c"]})
+
+
+@pytest.mark.parametrize("case", ["a zero variance", "a NaN in the mean", "a mean of another grid",
+                                  "one variance too many", "an infinite residual", "another format", "truncated"])
+def test_a_damaged_basis_prior_file_is_refused_naming_it(tmp_path, case):
+    """A basis prior file whose arrays disagree with its grid or each other, hold a non-finite value or a
+    variance of 0 (a division by zero in ``predict``), names another format, or is cut short: an InputError
+    naming the file (they were loaded, and failed or gave NaN later)."""
+    import json
+
+    path = tmp_path / "basis.npz"
+    _toy_prior().save(path)
+    with np.load(path) as z:
+        arrays = {k: z[k] for k in z.files}
+    match = "basis prior arrays are inconsistent or non-finite"
+    if case == "a zero variance":
+        arrays["variances"][2] = 0.0
+    elif case == "a NaN in the mean":
+        arrays["mean"][3] = np.nan
+    elif case == "a mean of another grid":
+        arrays["mean"] = arrays["mean"][:-1]
+    elif case == "one variance too many":
+        arrays["variances"] = np.append(arrays["variances"], 0.01)
+    elif case == "an infinite residual":
+        arrays["residual"][0] = np.inf
+    elif case == "another format":
+        arrays["meta"] = np.array(json.dumps({**json.loads(str(arrays["meta"])), "format": "mi_bivariate.prior"}))
+        match = r"not a mi_bivariate basis prior \(format 'mi_bivariate.prior'\)"
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, **arrays)
+    if case == "truncated":
+        whole = path.read_bytes()
+        bad.write_bytes(whole[:len(whole) // 2])
+        match = "not a readable .npz file"
+    with pytest.raises(InputError, match=match) as info:
+        BasisPrior.load(bad)
+    assert info.value.source == str(bad)
