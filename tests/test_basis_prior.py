@@ -482,3 +482,26 @@ def test_a_damaged_basis_prior_file_is_refused_naming_it(tmp_path, case):
     with pytest.raises(InputError, match=match) as info:
         BasisPrior.load(bad)
     assert info.value.source == str(bad)
+
+
+def test_predicted_mean_is_never_negative_and_resolution_is_clipped_to_0_1():
+    """Where the prior's log shape lies below ``log EPS`` (``exp(g) - EPS < 0``) the predicted table is 0, not
+    negative; a channel of median 0 is scaled by its mean (closed form without data, as
+    ``test_predict_without_data_is_the_prior_itself``); a resolution above 1 or below 0 predicts as 1 or 0
+    (its documented range)."""
+    from mi_bivariate.basis_prior import EPS
+
+    prior = _toy_prior()
+    prior.mean[[0, 7]] = np.log(0.1 * EPS)                     # far below what EPS can represent
+    table = np.random.default_rng(5).uniform(0.1, 3.0, (4, 5, 3))
+    mean, _ = prior.predict(table, np.zeros_like(table), np.ones_like(table))
+    assert np.all(mean.reshape(20, 3)[[0, 7]] == 0.0) and np.all(mean >= 0.0)
+    dark = table.copy()
+    dark[..., 1] = 0.0
+    dark[0, :3, 1] = [4.0, 2.0, 2.0]                              # median 0: the level is the mean, 0.4
+    mean, _ = prior.predict(dark, np.zeros_like(dark), np.ones_like(dark))
+    np.testing.assert_allclose(mean[..., 1].ravel(), 0.4 * np.maximum(np.exp(prior.mean) - EPS, 0.0), rtol=1e-12)
+    resolution = np.random.default_rng(6).uniform(-1.0, 2.0, table.shape)
+    post = 0.1 * table
+    for got, want in zip(prior.predict(table, resolution, post), prior.predict(table, np.clip(resolution, 0, 1), post)):
+        np.testing.assert_array_equal(got, want)
