@@ -505,3 +505,23 @@ def test_predicted_mean_is_never_negative_and_resolution_is_clipped_to_0_1():
     post = 0.1 * table
     for got, want in zip(prior.predict(table, resolution, post), prior.predict(table, np.clip(resolution, 0, 1), post)):
         np.testing.assert_array_equal(got, want)
+
+
+def test_learning_reads_negative_values_as_zero_and_a_median_zero_channel_by_its_mean():
+    """The log map by hand: each channel over its median (its mean where the median is 0; a black channel is
+    no sample), ``log(max(x, 0) + EPS)``; the prior's mean is the samples' mean. Negative values (ringing) are
+    zeros (they were NaN logs, and a NaN prior or an SVD error)."""
+    from mi_bivariate.basis_prior import EPS
+
+    rng = np.random.default_rng(7)
+    tables = {name: rng.uniform(0.5, 2.0, (4, 4, 1)) for name in ("a", "b", "c")}
+    tables["a"][0, :2, 0] = -0.3                                  # (the median is taken with them)
+    tables["b"][:, :, 0] = 0.0
+    tables["b"][1, :3, 0] = [4.0, 2.0, 2.0]                       # median 0, mean 0.5
+    tables["d"] = np.zeros((4, 4, 1))                             # black: no sample
+    prior = BasisPrior.learn(tables, components=1)
+    shapes = [np.log(np.maximum(tables["a"].ravel(), 0) / np.median(tables["a"]) + EPS),
+              np.log(tables["b"].ravel() / 0.5 + EPS),
+              np.log(tables["c"].ravel() / np.median(tables["c"]) + EPS)]
+    np.testing.assert_allclose(prior.mean, np.mean(shapes, axis=0), rtol=1e-12)
+    assert prior.provenance["samples"] == 3 and np.all(np.isfinite(prior.basis))
