@@ -525,3 +525,20 @@ def test_learning_reads_negative_values_as_zero_and_a_median_zero_channel_by_its
               np.log(tables["c"].ravel() / np.median(tables["c"]) + EPS)]
     np.testing.assert_allclose(prior.mean, np.mean(shapes, axis=0), rtol=1e-12)
     assert prior.provenance["samples"] == 3 and np.all(np.isfinite(prior.basis))
+
+
+def test_residual_leaves_out_folds_with_fewer_than_three_other_samples():
+    """Leave one material out only where three samples remain to learn from: material ``a`` (three channels)
+    and ``b`` (one), so leaving ``a`` out would leave one sample and is skipped; the residual is ``b``'s error
+    against a PCA of ``a``'s three log shapes by eigendecomposition (two components), floored at 1e-3."""
+    from mi_bivariate.basis_prior import EPS
+
+    rng = np.random.default_rng(10)
+    tables = {"a": np.exp(rng.normal(0.0, 1.0, (4, 4, 3))), "b": np.exp(rng.normal(0.0, 1.0, (4, 4)))}
+    prior = BasisPrior.learn(tables, components=3)
+    a = np.array([np.log(tables["a"][..., c].ravel() / np.median(tables["a"][..., c]) + EPS) for c in range(3)])
+    b = np.log(tables["b"].ravel() / np.median(tables["b"]) + EPS)
+    _, vec = np.linalg.eigh(np.cov(a.T))
+    top = vec[:, ::-1][:, :2]
+    centred = b - a.mean(axis=0)
+    np.testing.assert_allclose(prior.residual, np.maximum(np.abs(centred - top @ (top.T @ centred)), 1e-3), rtol=1e-8)
