@@ -542,3 +542,44 @@ def test_residual_leaves_out_folds_with_fewer_than_three_other_samples():
     top = vec[:, ::-1][:, :2]
     centred = b - a.mean(axis=0)
     np.testing.assert_allclose(prior.residual, np.maximum(np.abs(centred - top @ (top.T @ centred)), 1e-3), rtol=1e-8)
+
+
+def test_learn_prior_writes_both_priors_on_the_grid_asked_from_the_materials_given(tmp_path, monkeypatch, capsys):
+    """``learn-prior`` end to end (the shared materials' reduction replaced by tables of a known family, on
+    the grid it is asked for): on a 5 x 4 grid, ``--out`` holds the smoothness prior and ``<stem>_basis.npz``
+    the basis prior, each equal to the one learnt in Python from the same tables, with the data folder
+    given passed on; an empty folder of MERL files is one error line and exit 2, writing nothing."""
+    from mi_bivariate import cli
+    from mi_bivariate.prior import Prior
+
+    names = ["black-fabric", "brass", "gold-paint"]
+    t = np.linspace(0, 1, 5)[:, None, None]
+    rng = np.random.default_rng(1)
+    made = {}
+
+    def reduced(n_t, n_s, asked, data_dir=None, progress=False):
+        assert (n_t, n_s, list(asked), str(data_dir)) == (5, 4, names, str(tmp_path))
+        for k, name in enumerate(asked):          # brass glossy, the others diffuse
+            made[name] = (0.1 + (1000.0 * np.exp(-(t / 0.1) ** 2) if k == 1 else 0.0)) * rng.uniform(0.5, 2, (5, 4, 3))
+        return dict(made)
+
+    monkeypatch.setattr(training_set, "reduced_tables", reduced)
+    out = tmp_path / "mine.npz"
+    assert cli.main(["learn-prior", *names, "--grid", "5", "4", "--out", str(out), "--data", str(tmp_path)]) == 0
+    assert f"wrote {out}" in capsys.readouterr().out
+    smooth, basis = Prior.load(out), BasisPrior.load(tmp_path / "mine_basis.npz")
+    want_smooth, want_basis = Prior.learn(made), BasisPrior.learn(made)
+    assert (smooth.n_t, smooth.n_s) == (basis.n_t, basis.n_s) == (5, 4)
+    assert smooth.provenance["split"] == {"black-fabric": "diffuse", "brass": "gloss", "gold-paint": "diffuse"}
+    assert "MERL-NBRDF" in smooth.provenance["sources"]["brass"] and basis.materials == tuple(names)
+    for pair in want_smooth.pairs:
+        for got, want in zip(smooth.pairs[pair], want_smooth.pairs[pair]):
+            np.testing.assert_array_equal(got, want)
+    for name in ("mean", "basis", "variances", "residual"):
+        np.testing.assert_array_equal(getattr(basis, name), getattr(want_basis, name))
+
+    (tmp_path / "empty").mkdir()
+    assert cli.main(["learn-prior", str(tmp_path / "empty"), "--out", str(tmp_path / "p.npz")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith(f"mi-bivariate: error: {tmp_path / 'empty'}: folder holds no MERL")
+    assert not (tmp_path / "p.npz").exists()
