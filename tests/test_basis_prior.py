@@ -583,3 +583,31 @@ def test_learn_prior_writes_both_priors_on_the_grid_asked_from_the_materials_giv
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith(f"mi-bivariate: error: {tmp_path / 'empty'}: folder holds no MERL")
     assert not (tmp_path / "p.npz").exists()
+
+
+def test_a_leave_one_out_prior_is_learnt_from_the_other_materials_rows_only(monkeypatch):
+    """``leave_one_out_priors`` (and ``BasisPrior.learn(exclude=)``) against the training rows, not the
+    provenance: the basis prior's mean and variances are those of the *other* materials' log shapes written
+    out here (their mean, the top eigenvalues of their ``np.cov``), and the smoothness prior is the one
+    learnt from the others alone. (Learning from every table while naming only the others passed.)"""
+    from mi_bivariate.prior import Prior
+
+    names = list(nbrdf.ALL_NBRDF_MATERIALS[:6])
+    rng, t = np.random.default_rng(12), np.linspace(0, 1, 6)[:, None, None]
+    tables = {name: (0.1 + (1000.0 * np.exp(-(t / 0.1) ** 2) if k % 2 else 0.0))
+              * np.exp(rng.normal(0.0, 0.3, (6, 5, 3))) for k, name in enumerate(names)}  # diffuse and glossy
+    monkeypatch.setattr(training_set, "reduced_tables", lambda n_t, n_s, data_dir=None: tables)
+    smooth, basis = training_set.leave_one_out_priors(names[2], 6, 5, cache=False)
+    others = {n: tables[n] for n in names if n != names[2]}
+    shapes = np.concatenate([_log_shapes(table) for table in others.values()])
+    np.testing.assert_allclose(basis.mean, shapes.mean(axis=0), rtol=1e-12, atol=1e-12)
+    eig = np.sort(np.linalg.eigvalsh(np.cov(shapes.T)))[::-1][:basis.variances.size]
+    np.testing.assert_allclose(basis.variances, eig, rtol=1e-8)
+    assert basis.provenance["samples"] == 15 and names[2] not in basis.materials
+    direct = BasisPrior.learn(tables, exclude=names[2])            # BasisPrior.learn's own ``exclude``
+    np.testing.assert_allclose(direct.mean, shapes.mean(axis=0), rtol=1e-12, atol=1e-12)
+    assert direct.provenance["samples"] == 15
+    want = Prior.learn(others)
+    for pair in want.pairs:
+        for got, ref in zip(smooth.pairs[pair], want.pairs[pair]):
+            np.testing.assert_array_equal(got, ref)
