@@ -436,3 +436,12 @@ def test_a_material_at_the_gloss_threshold_is_diffuse():
     prior = Prior.learn({"at": at, "above": above, "flat": np.ones((8, 8, 3))})
     assert prior.provenance["specular_ratio"]["at"] == 30.0
     assert prior.provenance["split"] == {"at": "diffuse", "above": "gloss", "flat": "diffuse"}
+
+
+def test_specular_ratio_is_that_of_the_channel_mean():
+    """The ratio is read on the grey (channel-mean) table, not on one channel: red 10x brighter at the peak,
+    green and blue flat, gives (10 + 1 + 1) / 3 = 4 (the red channel alone would give 10, blue 1)."""
+    table = np.ones((11, 9, 3))
+    table[0, :, 0] = 10.0
+    assert specular_ratio(table) == pytest.approx(4.0, rel=1e-12)
+    assert specular_ratio(table[..., ::-1]) == pytest.approx(4.0, rel=1e-12)
