@@ -385,8 +385,9 @@ def analyse(L: np.ndarray, n_t: int = 32, n_s: int = 32, probes: Optional[Sequen
     Args:
         L: ``(M, n_t * n_s, 3)`` from :func:`mi_bivariate.lighting.lighting_matrix`.
         n_t, n_s: st grid.
-        probes: the probes that lit the rows (enables the detail test; the
-            best probe counts, since its rows constrain the specular region).
+        probes: the probes that lit the rows, or one probe (enables the detail test; the
+            best probe counts, since its rows constrain the specular region). None or an
+            empty list: no detail test.
         warn: issue an :class:`InputWarning` when inadequate.
     """
     if np.ndim(L) >= 2 and np.shape(L)[1] != n_t * n_s:
@@ -396,8 +397,8 @@ def analyse(L: np.ndarray, n_t: int = 32, n_s: int = 32, probes: Optional[Sequen
         omap = shares.reshape(n_t, n_s)
         sigma, observed = _spectrum_from_gram(gram)
         del gram
-        detail = None if probes is None else [environment_detail(p) for p in
-                                              (list(probes) if isinstance(probes, (list, tuple)) else [probes])]
+        probe_list = [] if probes is None else list(probes) if isinstance(probes, (list, tuple)) else [probes]
+        detail = [environment_detail(p) for p in probe_list] or None  # no probes (None or []): no detail test
     if len(sigma):
         p = sigma / sigma.sum()
         p = p[p > 0]

@@ -286,3 +286,12 @@ def test_detail_is_cached_per_number_of_points():
     default = adequacy.environment_detail(probe)
     fewer = adequacy.environment_detail(probe, n_points=2000)
     assert fewer == adequacy._environment_detail(probe, adequacy.DETAIL_SCALE_DEG, 2000) != default
+
+
+def test_an_empty_list_of_probes_skips_the_detail_test():
+    """``probes=[]`` is no probe, as ``probes=None``: the rank verdict alone (before: max() of an empty list
+    raised a bare ValueError)."""
+    for probes in (None, [], ()):
+        report = adequacy.analyse(np.eye(16), 4, 4, probes=probes, warn=False)
+        assert report.detail == [] and report.adequate and "detail" not in report.summary()
+        assert not adequacy.analyse(np.eye(16)[:7], 4, 4, probes=probes, warn=False).adequate
