@@ -195,3 +195,62 @@ def test_grid_nodes():
     assert grid_nodes(32)[31] == 1.0 and len(grid_nodes(32)) == 32
     with pytest.raises(ValueError):
         grid_nodes(1)
+
+
+def test_mirror_pairs_have_the_normal_as_half_vector():
+    """wo = wi mirrored about the normal: h is exactly z, theta_h = 0, and in the frame phi_h = 0 the difference
+    vector is wi itself (theta_d = wi's polar angle, phi_d its azimuth), the explicit construction's angles."""
+    rng = np.random.default_rng(10)
+    theta_d = rng.uniform(0.01, 0.5 * math.pi - 1e-3, 200)
+    phi_d = rng.uniform(-math.pi + 1e-3, math.pi, 200)
+    wi = np.stack([np.sin(theta_d) * np.cos(phi_d), np.sin(theta_d) * np.sin(phi_d), np.cos(theta_d)], -1)
+    wo = wi * [-1.0, -1.0, 1.0]
+    th, ph, td, pd = half_diff_from_dirs(wi, wo)
+    assert np.all(th == 0.0) and np.all(ph == 0.0)
+    np.testing.assert_allclose(td, theta_d, atol=1e-12)
+    assert angle_diff(pd, phi_d).max() < 1e-12
+    wi_ref, wo_ref = rotation_dirs(th, ph, td, pd)
+    np.testing.assert_allclose(wi_ref, wi, atol=1e-12)
+    np.testing.assert_allclose(wo_ref, wo, atol=1e-12)
+    th32, _, td32, _ = (np.array(a, np.float64) for a in half_diff_from_dirs(mi.Vector3f(wi.T.astype(np.float32)),
+                                                                             mi.Vector3f(wo.T.astype(np.float32))))
+    assert np.all(th32 == 0.0)
+    np.testing.assert_allclose(td32, theta_d, atol=2e-6)
+
+
+@pytest.mark.parametrize("region", ["pole", "horizon"])
+def test_angles_rebuild_the_directions_near_the_pole_and_the_horizon(region):
+    """Against the explicit rotations (rotate by phi_h about z, theta_h about y, then phi_d, theta_d): half vectors
+    within 1e-9..1e-2 rad of the normal, and both directions within 1e-12..1e-6 of the horizon. The angles
+    rebuild the directions, and swapping wi and wo (reciprocity) keeps theta_h and theta_d."""
+    rng = np.random.default_rng(11)
+    n = 400
+    if region == "pole":
+        theta_h = 10.0 ** rng.uniform(-9.0, -2.0, n)
+        theta_d = rng.uniform(0.05, 1.5, n)
+        wi, wo = rotation_dirs(theta_h, rng.uniform(-math.pi, math.pi, n), theta_d, rng.uniform(-math.pi, math.pi, n))
+    else:
+        def grazing():
+            z = 10.0 ** rng.uniform(-12.0, -6.0, n)
+            phi = rng.uniform(-math.pi, math.pi, n)
+            r = np.sqrt(1.0 - z * z)
+            return np.stack([r * np.cos(phi), r * np.sin(phi), z], -1)
+        wi, wo = grazing(), grazing()
+    th, ph, td, pd = half_diff_from_dirs(wi, wo)
+    if region == "pole":
+        np.testing.assert_allclose(th, theta_h, atol=2e-14)  # ~eps: the rounding of wi and wo
+        np.testing.assert_allclose(td, theta_d, atol=1e-12)
+    assert np.all((th >= 0) & (th <= 0.5 * math.pi)) and np.all((td >= 0) & (td <= 0.5 * math.pi))
+    wi_ref, wo_ref = rotation_dirs(th, ph, td, pd)
+    np.testing.assert_allclose(wi_ref, wi, atol=1e-9)
+    np.testing.assert_allclose(wo_ref, wo, atol=1e-9)
+    th2, _, td2, _ = half_diff_from_dirs(wo, wi)
+    np.testing.assert_allclose(th2, th, atol=1e-12)
+    np.testing.assert_allclose(td2, td, atol=1e-12)
+
+
+def test_directions_must_have_three_components():
+    """A (..., 4) or (..., 2) array is refused, not read as its first three components."""
+    for shape in ((5, 4), (5, 2)):
+        with pytest.raises(ValueError, match="shape"):
+            half_diff_from_dirs(np.ones(shape), np.ones(shape))
