@@ -288,6 +288,20 @@ def test_detail_is_cached_per_number_of_points():
     assert fewer == adequacy._environment_detail(probe, adequacy.DETAIL_SCALE_DEG, 2000) != default
 
 
+def test_unobserved_nodes_and_a_single_probe_by_hand(monkeypatch):
+    """``unobserved_nodes`` counts the columns of L that no row reaches (12 of 16 here, by construction), and
+    ``probes`` may be one probe rather than a list of them (its detail then decides alone)."""
+    L = np.zeros((5, 16))
+    L[0:3, 0], L[3, 1], L[3, 5], L[4, 2] = 2.0, 0.005, 0.995, 7.0      # columns 0, 1, 2 and 5 are reached
+    report = adequacy.analyse(L, 4, 4, warn=False)
+    assert report.unobserved_nodes == 12 and len(report.singular_values) == 4
+    monkeypatch.setattr(adequacy, "environment_detail", lambda probe: probe)  # a probe given by its detail
+    single = adequacy.analyse(np.eye(16), 4, 4, probes=0.5, warn=False)
+    assert single.detail == [0.5] and single.adequate
+    blurred = adequacy.analyse(np.eye(16), 4, 4, probes=0.01, warn=False)
+    assert blurred.detail == [0.01] and not blurred.adequate and "detail 0.010" in blurred.summary()
+
+
 def test_an_empty_list_of_probes_skips_the_detail_test():
     """``probes=[]`` is no probe, as ``probes=None``: the rank verdict alone (before: max() of an empty list
     raised a bare ValueError)."""
