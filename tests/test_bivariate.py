@@ -86,6 +86,26 @@ def test_direct_reduction_stops_at_merls_last_nodes():
                                rtol=1e-6)
 
 
+class _SignedBRDF(_AngleBRDF):
+    """f = (theta_h - 0.5, theta_d - 0.1, 1) 1/sr: negative near the specular peak and retro-reflection."""
+
+    def eval(self, theta_h, theta_d, phi_d):
+        return super().eval(theta_h, theta_d, phi_d) - np.array([0.5, 0.1, 0.0])
+
+
+def test_direct_reduction_clamps_a_negative_average_to_zero():
+    """A BRDF whose phi_d average is negative (a fit that undershoots) reduces to 0 there and to its closed form
+    elsewhere, rather than being refused as a table with negative values."""
+    biv = BivariateBRDF.reduce(_SignedBRDF(), n_t=5, n_s=6)
+    theta_h, theta_d = biv.node_angles()
+    limit_h, limit_d = (89 / 90) ** 2 * 0.5 * math.pi, 89 / 90 * 0.5 * math.pi
+    red = np.maximum(np.minimum(theta_h, limit_h) - 0.5, 0.0)
+    green = np.maximum(np.minimum(theta_d, limit_d) - 0.1, 0.0)
+    np.testing.assert_allclose(biv.table[..., 0], np.broadcast_to(red[:, None], (5, 6)), rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(biv.table[..., 1], np.broadcast_to(green[None, :], (5, 6)), rtol=1e-6, atol=1e-7)
+    assert (red == 0).any() and (red > 0).any() and (green == 0).any() and (green > 0).any()
+
+
 class _MissingChannelBRDF(_AngleBRDF):
     """As _AngleBRDF, with the red channel missing (NaN) at theta_h = 0 for every phi_d."""
 
@@ -268,7 +288,8 @@ def test_load_errors(tmp_path, case):
 
 
 @pytest.mark.parametrize("table", [np.zeros((32, 32)), np.zeros((1, 5, 3)), np.zeros((4, 4, 4)),
-                                   np.full((4, 4, 3), np.nan), np.full((4, 4, 3), -1.0), "abc"])
+                                   np.full((4, 4, 3), np.nan), np.full((4, 4, 3), -1.0), "abc",
+                                   np.where(np.arange(48).reshape(4, 4, 3) == 7, -1e-6, 1.0)])
 def test_constructor_validates(table):
     with pytest.raises(InputError, match="my-source"):
         BivariateBRDF.from_array(table, source="my-source")
