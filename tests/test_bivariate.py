@@ -340,6 +340,18 @@ def test_to_merl_write_read(tmp_path):
                                fine.table[:90, :90], rtol=1e-6)
 
 
+def test_grid_floor_reduces_onto_the_grid_it_is_given(lobe_merl, monkeypatch):
+    """grid_floor(n_t, n_s) scores (Eq. 1, with its min_value) the n_t x n_s reduction: n_t theta_h nodes, n_s
+    theta_d nodes, not the transposed grid (the scoring itself is stubbed: reduction_error has its own tests)."""
+    from mi_bivariate import bivariate
+
+    scored = []
+    monkeypatch.setattr(bivariate, "reduction_error", lambda merl, biv, min_value: scored.append(
+        (merl, biv.table.shape, min_value)) or 0.25)
+    assert bivariate.grid_floor(lobe_merl, 6, 11, min_value=1e-3) == 0.25
+    assert scored == [(lobe_merl, (6, 11, 3), 1e-3)]
+
+
 # ---------------------------------------------------------------- shared data
 
 
