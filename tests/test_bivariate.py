@@ -106,6 +106,50 @@ def test_direct_reduction_clamps_a_negative_average_to_zero():
     assert (red == 0).any() and (red > 0).any() and (green == 0).any() and (green > 0).any()
 
 
+class _LinearInST:
+    """f = a + b t + c s (1/sr, per channel): bilinear in st, so a table of it interpolates it exactly."""
+
+    name = "linear in st"
+    a, b, c = np.array([0.1, 0.3, 0.05]), np.array([0.7, -0.2, 0.4]), np.array([0.2, 0.1, -0.04])
+
+    def value(self, theta_h, theta_d):
+        t, s = np.sqrt(2.0 * np.asarray(theta_h) / math.pi), 2.0 * np.asarray(theta_d) / math.pi
+        return self.a + self.b * t[..., None] + self.c * s[..., None]
+
+    def eval(self, theta_h, theta_d, phi_d):
+        return np.broadcast_to(self.value(theta_h, theta_d), np.shape(phi_d) + (3,)).copy()
+
+
+def test_a_reduced_table_reads_back_its_brdf_at_random_directions():
+    """A BRDF linear in s and t, reduced onto a 7 x 9 grid, evaluated back at direction pairs built by explicit
+    rotations (wi, wo from random theta_h, theta_d, phi_h, phi_d, as in the MERL code), is the closed form to float32
+    rounding: the st map, the node angles, the reduction and the bilinear lookup together. The last row and
+    column are left out (sampled at MERL's last nodes, 89/90)."""
+    from scipy.spatial.transform import Rotation
+
+    from mi_bivariate.coordinates import st_from_dirs
+
+    brdf = _LinearInST()
+    biv = BivariateBRDF.reduce(brdf, n_t=7, n_s=9, n_phi=4)
+    rng = np.random.default_rng(12)
+    theta_h = 0.5 * math.pi * rng.uniform(0.0, 5 / 6, 300) ** 2     # t below the last cell
+    theta_d = 0.5 * math.pi * rng.uniform(0.0, 7 / 8, 300)
+    phi_h, phi_d = rng.uniform(-math.pi, math.pi, (2, 300))
+
+    def about(axis, angle):
+        return Rotation.from_euler(axis, angle[:, None])
+
+    to_half = about("z", phi_h) * about("y", theta_h)
+    wi = (to_half * about("z", phi_d) * about("y", theta_d)).apply([0.0, 0.0, 1.0])
+    wo = Rotation.from_rotvec(math.pi * to_half.apply([0.0, 0.0, 1.0])).apply(wi)
+    s, t = st_from_dirs(wi, wo)
+    truth = brdf.value(theta_h, theta_d)
+    np.testing.assert_allclose(biv.eval_st(s, t), truth, rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(biv.eval(theta_h, theta_d), truth, rtol=1e-6, atol=1e-6)
+    # Reciprocity: the same value with wi and wo swapped.
+    np.testing.assert_allclose(biv.eval_st(*st_from_dirs(wo, wi)), truth, rtol=1e-6, atol=1e-6)
+
+
 class _MissingChannelBRDF(_AngleBRDF):
     """As _AngleBRDF, with the red channel missing (NaN) at theta_h = 0 for every phi_d."""
 
