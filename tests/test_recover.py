@@ -23,6 +23,7 @@ from mi_bivariate.cli import main as cli_main
 from mi_bivariate.errors import InputError, InputWarning
 from mi_bivariate.export import write_outputs
 from mi_bivariate.images import write_exr
+from mi_bivariate.merl import MERLBRDF
 from mi_bivariate.metrics import image_relative_rmse
 from mi_bivariate.recover import recover
 from mi_bivariate.sources import synthetic_environment
@@ -227,6 +228,13 @@ def test_write_outputs_and_cli_recover(tmp_path, any_probe):
     assert [p.name for p in paths] == ["brdf.npz", "brdf.exr", "brdf.binary", "brdf_report.png"]
     back = BivariateBRDF.load(tmp_path / "brdf.npz")
     np.testing.assert_array_equal(back.table, result.brdf.table)
+    # Every file of the set holds the table (the temporaries exist before they are written: an output that
+    # was never written would be published empty), each read back by its own reader.
+    np.testing.assert_array_equal(probes.read_hdr_image(tmp_path / "brdf.exr")[0], result.brdf.table)
+    merl = MERLBRDF.read(tmp_path / "brdf.binary").table            # to_merl: the same value at every phi_d
+    assert (merl == merl[:, :, :1]).all()
+    np.testing.assert_allclose(merl[:, :, 0], result.brdf.to_merl().table[:, :, 0], rtol=1e-15)
+    assert (tmp_path / "brdf_report.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
     image = tmp_path / "sphere.exr"
     write_exr(image, shot.image)
