@@ -304,6 +304,21 @@ def test_save_load_keeps_confidence_maps(tmp_path):
         np.testing.assert_array_equal(back.confidence[name], value.astype(np.float32))
 
 
+def test_save_refuses_a_table_made_invalid_after_construction(tmp_path):
+    """save checks the table and the confidence maps again, as its docstring says: NaN or negative values written
+    into the table, or a confidence map of another shape assigned, raise an InputError naming the file, and
+    nothing is written (a file load would refuse)."""
+    path = tmp_path / "brdf.npz"
+    for spoil in (lambda b: b.table.__setitem__((1, 2, 0), np.nan), lambda b: b.table.__setitem__((0, 0, 1), -0.5),
+                  lambda b: b.confidence.__setitem__("resolution", np.ones((4, 5, 3), np.float32))):
+        biv = BivariateBRDF(random_table(4, 4), confidence={"resolution": np.ones((4, 4, 3))})
+        spoil(biv)
+        with pytest.raises(InputError) as info:
+            biv.save(path)
+        assert info.value.source == str(path), str(info.value)
+    assert not any(tmp_path.iterdir())
+
+
 def save_npz(path, **arrays):
     with open(path, "wb") as f:
         np.savez(f, **arrays)
@@ -340,8 +355,9 @@ def test_constructor_validates(table):
 
 
 @pytest.mark.parametrize("confidence", [{"m": "abc"}, {"m": {"a": 1}}, {"m": np.full((4, 4, 3), 1 + 2j)}, "abc",
-                                        [("m", np.ones((4, 4, 3)))]],
-                         ids=["text", "dict", "complex", "a string", "a list"])
+                                        [("m", np.ones((4, 4, 3)))], {"m": np.ones((4, 5, 3))},
+                                        {"m": np.full((4, 4, 3), np.inf)}],
+                         ids=["text", "dict", "complex", "a string", "a list", "another shape", "infinite"])
 def test_constructor_validates_confidence_maps(confidence):
     """Before: ValueError (could not convert string to float), TypeError or AttributeError naming nothing,
     and a complex map silently lost its imaginary part; now an InputError naming the source."""
@@ -357,7 +373,7 @@ def test_bitmap_round_trip_and_exr(tmp_path):
     assert (bitmap.height(), bitmap.width()) == (6, 9)
     np.testing.assert_array_equal(BivariateBRDF.from_bitmap(bitmap).table, biv.table)
     gray = mi.Bitmap(np.zeros((6, 9, 1), np.float32))
-    with pytest.raises(InputError, match="gray"):
+    with pytest.raises(InputError, match=r"^gray: bivariate BRDF bitmap must be RGB \(3 channels\), got 1$"):
         BivariateBRDF.from_bitmap(gray, source="gray")
     path = tmp_path / "table.exr"
     biv.save_exr(path)
