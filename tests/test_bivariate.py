@@ -150,6 +150,34 @@ def test_a_reduced_table_reads_back_its_brdf_at_random_directions():
     np.testing.assert_allclose(biv.eval_st(*st_from_dirs(wo, wi)), truth, rtol=1e-6, atol=1e-6)
 
 
+class _Cos2PhiBRDF:
+    """f = cos^2(phi_d) 1/sr in every channel: its Eq. 1 average depends on how much of phi_d is valid."""
+
+    name = "cos2 phi_d"
+
+    def eval(self, theta_h, theta_d, phi_d):
+        return np.repeat((np.cos(phi_d) ** 2)[..., None], 3, axis=-1)
+
+
+def test_direct_reduction_is_the_phi_d_average_over_the_valid_range():
+    """Quadrature truth for Eq. 1: wi and wo are above the horizon where |cos phi_d| < c = cot(theta_d) cot(theta_h),
+    i.e. on (a, pi - a) with a = acos(c) (all of phi_d when c >= 1), over which cos^2 averages to
+    1/2 - sin(2a) / (2 (pi - 2a)). With 18000 phi_d samples the reduction is that integral to the endpoints'
+    quadrature error (one step of pi / 18000 over a range down to 0.06 rad; the corner node, whose valid range
+    is 0.001 rad wide, is left out)."""
+    biv = BivariateBRDF.reduce(_Cos2PhiBRDF(), n_t=3, n_s=3, n_phi=18000)
+    theta_h, theta_d = biv.node_angles()
+    theta_h, theta_d = np.minimum(theta_h, (89 / 90) ** 2 * 0.5 * math.pi), np.minimum(theta_d, 89 / 90 * 0.5 * math.pi)
+    with np.errstate(divide="ignore"):
+        c = 1.0 / (np.tan(theta_h)[:, None] * np.tan(theta_d)[None, :])
+    a = np.arccos(np.minimum(c, 1.0))
+    truth = 0.5 - np.sin(2.0 * a) / (2.0 * (math.pi - 2.0 * a))
+    resolved = math.pi - 2.0 * a > 0.05
+    assert resolved.sum() == 8 and a[resolved].max() > 1.5 and (a == 0).any()   # narrow valid ranges and whole ones
+    np.testing.assert_allclose(biv.table[..., 0][resolved], truth[resolved], rtol=1e-2)
+    np.testing.assert_allclose(biv.table[a == 0, 0], 0.5, rtol=1e-6)
+
+
 class _MissingChannelBRDF(_AngleBRDF):
     """As _AngleBRDF, with the red channel missing (NaN) at theta_h = 0 for every phi_d."""
 
