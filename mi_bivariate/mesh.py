@@ -65,6 +65,8 @@ def _trimesh_load(path: Path) -> Any:
                          f"use one of {', '.join(MESH_SUFFIXES)}") from None
     if not isinstance(loaded, trimesh.Trimesh):
         raise InputError(path, "the file holds no triangle mesh")
+    if not np.all(np.isfinite(loaded.vertices)):  # before trimesh's own processing trips over them
+        raise InputError(path, "the mesh has non-finite vertex positions")
     return loaded
 
 

@@ -445,3 +445,33 @@ def test_mesh_shapes_and_views_refuse_bad_sizes_and_indices():
     with pytest.raises(InputError, match="image is 16x24 but the camera is 24x16"):
         view.surface_maps(16, 24)
     assert view.surface_maps(24, 16).mask.shape == (16, 24)
+
+
+def test_bad_meshes_are_refused_by_name(tmp_path):
+    """A file with no faces, one with a NaN vertex (refused before trimesh's own processing warns about it)
+    and one whose every face has zero area, a Trimesh object with a NaN vertex, then arrays with two
+    vertices, no faces, a face index equal to V, a NaN vertex or a zero vertex normal: one InputError each,
+    naming the file (or object) and the problem."""
+    (tmp_path / "points.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\n")
+    (tmp_path / "nan.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 nan\nv 0 0 1\nf 1 2 3\nf 1 3 4\nf 1 4 2\nf 2 4 3\n")
+    (tmp_path / "flat.obj").write_text("v 0 0 0\nv 1 0 0\nv 2 0 0\nf 1 2 3\nf 3 2 1\n")
+    for name, match in (("points.obj", "the mesh has no triangles"), ("nan.obj", "the mesh has non-finite vertex positions"),
+                        ("flat.obj", r"every face of the mesh is degenerate \(zero area\)")):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            with pytest.raises(InputError, match=f"{name}: {match}"):
+                mesh.MeshShape.load(tmp_path / name)
+    nan_vertex, zero_normal = np.eye(3), np.eye(3)
+    nan_vertex[2, 2], zero_normal[1] = np.nan, 0.0
+    tetra = trimesh.creation.box().vertices[[0, 1, 2, 4]]
+    tetra[3, 0] = np.nan
+    with pytest.raises(InputError, match="trimesh mesh: the mesh has non-finite vertex positions"):
+        mesh.MeshShape.load(trimesh.Trimesh(tetra, [[0, 1, 2], [0, 3, 1], [0, 2, 3], [1, 3, 2]], process=False))
+    for vertices, faces, normals, match in (
+            (np.eye(3)[:2], [[0, 1, 1]], None, r"a mesh needs \(V >= 3, 3\) vertices"),
+            (np.eye(3), np.zeros((0, 3), np.int64), None, r"a mesh needs \(F >= 1, 3\) triangle faces"),
+            (np.eye(3), [[0, 1, 3]], None, r"face indices must be integers in \[0, V\)"),
+            (nan_vertex, [[0, 1, 2]], None, "non-finite vertex positions"),
+            (np.eye(3), [[0, 1, 2]], zero_normal, "vertex normals must be finite, non-zero")):
+        with pytest.raises(InputError, match=match):
+            mesh.MeshShape(vertices, np.asarray(faces), normals, source="arrays")
