@@ -475,3 +475,13 @@ def test_bad_meshes_are_refused_by_name(tmp_path):
             (np.eye(3), [[0, 1, 2]], zero_normal, "vertex normals must be finite, non-zero")):
         with pytest.raises(InputError, match=match):
             mesh.MeshShape(vertices, np.asarray(faces), normals, source="arrays")
+
+
+def test_zero_area_faces_are_dropped():
+    """Faces of zero area (a repeated corner) have no normal: the loaded mesh keeps exactly the others."""
+    ico = trimesh.creation.icosphere(subdivisions=1)
+    faces = np.vstack([ico.faces, [[0, 0, 1], [2, 5, 5]]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", InputWarning)  # (the extra edges open the surface)
+        shape = mesh.MeshShape.load(trimesh.Trimesh(ico.vertices, faces, process=False), normals="face")
+    np.testing.assert_array_equal(shape.faces, ico.faces)
