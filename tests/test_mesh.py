@@ -485,3 +485,48 @@ def test_zero_area_faces_are_dropped():
         warnings.simplefilter("ignore", InputWarning)  # (the extra edges open the surface)
         shape = mesh.MeshShape.load(trimesh.Trimesh(ico.vertices, faces, process=False), normals="face")
     np.testing.assert_array_equal(shape.faces, ico.faces)
+
+
+def test_file_parts_without_usable_normals(tmp_path):
+    """Files whose normals are missing or unusable, against closed forms. (a) A glTF of two parts neither of
+    which stores normals is a mesh without vertex normals (face normals, the 'no vertex normals' warning),
+    not one of computed normals. (b) A part stored without normals and turned by its node gets normals
+    computed from its faces as placed: within a degree of the world radial directions of the ball (not of
+    the ball before its node turned it). (c) A part storing a zero normal stores none usable: its normals
+    are computed, with the parts warning. (d) A PLY with a NaN normal is read as storing none."""
+    from trimesh.transformations import rotation_matrix, translation_matrix
+
+    ico = trimesh.creation.icosphere(subdivisions=2)
+    radial = ico.vertices / np.linalg.norm(ico.vertices, axis=1, keepdims=True)
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=0.5)
+    centre = np.array([4.0, 0.0, 0.0])
+    node = translation_matrix(centre) @ rotation_matrix(np.pi / 2, [0.0, 1.0, 1.0])
+
+    def parts(name, ico_normals, ball_normals):
+        scene = trimesh.Scene()
+        scene.add_geometry(trimesh.Trimesh(ico.vertices, ico.faces, vertex_normals=ico_normals, process=False))
+        scene.add_geometry(trimesh.Trimesh(ball.vertices, ball.faces, vertex_normals=ball_normals, process=False),
+                           transform=node)
+        scene.export(tmp_path / name)
+        return tmp_path / name
+
+    with pytest.warns(InputWarning, match="none.glb: the mesh has no vertex normals"):
+        assert mesh.MeshShape.load(parts("none.glb", None, None)).vertex_normals is None
+    with pytest.warns(InputWarning, match="1 of the file's parts store no vertex normals"):
+        shape = mesh.MeshShape.load(parts("turned.glb", radial, None))
+    on_ball = np.linalg.norm(shape.vertices - centre, axis=1) < 0.6
+    assert on_ball.sum() == len(ball.vertices)
+    outward = (shape.vertices[on_ball] - centre) / 0.5
+    angle = np.degrees(np.arccos(np.clip(np.sum(shape.vertex_normals[on_ball] * outward, axis=1), -1.0, 1.0)))
+    assert angle.max() < 1.0
+    np.testing.assert_allclose(shape.vertex_normals[~on_ball], radial, atol=1e-6)
+    zero = radial.copy()
+    zero[0] = 0.0
+    with pytest.warns(InputWarning, match="1 of the file's parts store no vertex normals"):
+        shape = mesh.MeshShape.load(parts("zero.glb", zero, ball.vertex_normals))
+    assert np.all(np.isfinite(shape.vertex_normals))
+    nan = radial.copy()
+    nan[0] = np.nan
+    trimesh.Trimesh(ico.vertices, ico.faces, vertex_normals=nan, process=False).export(tmp_path / "nan.ply")
+    with pytest.warns(InputWarning, match="nan.ply: the mesh has no vertex normals"):
+        assert mesh.MeshShape.load(tmp_path / "nan.ply").vertex_normals is None
