@@ -530,3 +530,32 @@ def test_file_parts_without_usable_normals(tmp_path):
     trimesh.Trimesh(ico.vertices, ico.faces, vertex_normals=nan, process=False).export(tmp_path / "nan.ply")
     with pytest.warns(InputWarning, match="nan.ply: the mesh has no vertex normals"):
         assert mesh.MeshShape.load(tmp_path / "nan.ply").vertex_normals is None
+
+
+def test_file_normals_are_judged_by_their_median_angle_from_the_outward_faces(tmp_path):
+    """Closed form: icosphere file normals turned by a known angle from the radial direction. 45 degrees off is
+    kept as stored; 75 degrees off (past MAX_NORMAL_DISAGREEMENT_DEG, 60) is refused, and so is a file whose
+    normals point inwards at 70% of its vertices though the others are right. An open sheet has no outside:
+    its normals are kept whichever way its faces are wound."""
+    ico = trimesh.creation.icosphere(subdivisions=2)
+    radial = ico.vertices / np.linalg.norm(ico.vertices, axis=1, keepdims=True)
+    tangent = np.cross(radial, [0.3, 0.5, 0.8])
+    tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
+
+    def load(name, normals):
+        trimesh.Trimesh(ico.vertices, ico.faces, vertex_normals=normals, process=False).export(tmp_path / name)
+        return mesh.MeshShape.load(tmp_path / name)
+
+    turned = {deg: np.cos(np.radians(deg)) * radial + np.sin(np.radians(deg)) * tangent for deg in (45.0, 75.0)}
+    np.testing.assert_allclose(load("t45.ply", turned[45.0]).vertex_normals, turned[45.0], atol=1e-6)
+    with pytest.raises(InputError, match="t75.ply: the file's vertex normals are 75 deg"):
+        load("t75.ply", turned[75.0])
+    flipped = np.where((np.arange(len(radial)) % 10 < 7)[:, None], -radial, radial)
+    with pytest.raises(InputError, match="mostly_inward.ply: the file.s vertex normals are 1[78][0-9] deg"):
+        load("mostly_inward.ply", flipped)
+    sheet = trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], [[0, 2, 1], [0, 3, 2]],  # wound to -z
+                            vertex_normals=np.tile([0.0, 0.0, 1.0], (4, 1)), process=False)
+    sheet.export(tmp_path / "sheet.ply")
+    with pytest.warns(InputWarning, match="not watertight"):
+        shape = mesh.MeshShape.load(tmp_path / "sheet.ply")
+    np.testing.assert_allclose(shape.vertex_normals, np.tile([0.0, 0.0, 1.0], (4, 1)))
