@@ -58,3 +58,31 @@ def test_search_interval_is_kept_and_the_estimate_wrapped(turned_render):
     est = alignment.estimate_yaw(render.image, probe.rotated(euler_deg=(0, -170, 0)), render.geometry,
                                  search_deg=(175.0, 215.0), **known)
     assert abs(est.yaw_deg - (-165.0)) < 2.0, est.summary()
+
+
+def test_the_residual_is_relative_and_the_yaw_in_the_half_open_turn(turned_render):
+    """The residual is relative, ||I - L f|| / ||I||, and the known material has a free scale per channel: the
+    image 1000x brighter (another exposure) with the material's channels scaled by (0.5, 1, 2) (another albedo)
+    gives the same estimate, residual and curve. A yaw is reported in (-180, 180]: -180 as 180, a turn and a
+    half as 180, -190 as 170."""
+    probe, brdf, render = turned_render
+    known = dict(n_normals=400, grid=(8, 8), search_deg=(18.0, 30.0), coarse_step_deg=4.0, tol_deg=0.5)
+    est = alignment.estimate_yaw(render.image, probe, render.geometry, brdf=brdf, **known)
+    other = alignment.estimate_yaw(1000.0 * render.image, probe, render.geometry,
+                                   brdf=BivariateBRDF(brdf.table * np.array([0.5, 1.0, 2.0])), **known)
+    assert 0.0 < est.residual < 0.5 and abs(est.yaw_deg - 25.0) < 2.0, est.summary()
+    assert est.residual == est.residuals.min() < est.residuals[np.isin(est.angles_deg, [18.0, 22.0, 26.0, 30.0])].min()
+    assert other.yaw_deg == pytest.approx(est.yaw_deg, abs=1e-6)
+    np.testing.assert_allclose(other.residuals, est.residuals, rtol=1e-6)
+    assert [alignment._wrap(a) for a in (-180.0, 540.0, -190.0, 190.0, 0.0)] == [180.0, 180.0, 170.0, -170.0, 0.0]
+
+
+def test_a_full_turn_search_covers_the_seam(turned_render):
+    """The truth near the seam: the probe given turned by -145 degrees, so the image is explained by a yaw of
+    170 (= -190). A full-turn search (coarse grid of every 45 degrees from -180, all of them evaluated) finds
+    it across the seam and reports it in (-180, 180]."""
+    probe, brdf, render = turned_render
+    est = alignment.estimate_yaw(render.image, probe.rotated(euler_deg=(0, -145, 0)), render.geometry, brdf=brdf,
+                                 n_normals=400, grid=(8, 8), coarse_step_deg=45.0, tol_deg=1.0)
+    assert abs(est.yaw_deg - 170.0) < 2.0, est.summary()
+    assert set(np.arange(-180.0, 180.0, 45.0)) <= set(est.angles_deg)
