@@ -566,6 +566,9 @@ def test_silhouette_of_a_disc_seen_in_luminance_and_through_an_rgba_mask():
     np.testing.assert_array_equal(silhouette.segment_sphere(noise, mask=holed), disc)
     with pytest.raises(InputError, match="image of 9x2 pixels is too small"):
         silhouette.luminance_map(np.ones((2, 9, 3)))
+    # Negative pixels (noise below black) are clipped before the log: finite, as black.
+    log_lum = silhouette.log_luminance(np.array([[-0.3, 0.0, 1.0]]))
+    assert np.all(np.isfinite(log_lum)) and log_lum[0, 0] == log_lum[0, 1]
 
 
 def test_otsu_threshold_maximises_the_between_class_variance():
@@ -638,3 +641,31 @@ def test_ransac_circles_find_the_circle_whose_edges_point_radially():
     gradients = np.concatenate([radial, tangent, np.stack([np.cos(angle), np.sin(angle)], axis=1)])
     cx, cy, r = ransac_circles(points, gradients, (8.0, 80.0), n_trials=500)[0]
     assert math.hypot(cx - 41.2, cy - 37.9) < 0.3 and abs(r - 23.4) < 0.3, (cx, cy, r)
+
+
+def test_refine_boundary_places_a_straight_edge_and_refuses_doubtful_cracks():
+    """Closed form: a vertical edge at x = 20.3 between an inside of 2.0 and an outside of 0.5 (the pixel it
+    crosses a 0.3 : 0.7 mix). From the cracks of the region left of column 20, seen from a centre far to the
+    left, every crack moves to x = 20.3 exactly. Refused instead: cracks of an edge with 10% contrast (under
+    REFINE_MIN_CONTRAST), cracks whose radial direction (centre far above) runs along the edge, and cracks
+    two pixels from the edge (the measured shift beyond a pixel)."""
+    from mi_bivariate import silhouette
+
+    def edge_image(inside, outside):
+        lum = np.full((20, 40), outside)
+        lum[:, :20] = inside
+        lum[:, 20] = outside + 0.3 * (inside - outside)
+        return lum
+
+    def refine(lum, last_inside_column, centre):
+        region = np.zeros(lum.shape, bool)
+        region[:, :last_inside_column + 1] = True
+        points, axis, outward = silhouette.crack_points(region)
+        return points, silhouette.refine_boundary(lum, points, axis, outward, centre)
+
+    points, (refined, used) = refine(edge_image(2.0, 0.5), 19, (-100.0, 10.0))
+    assert used.all() and len(points) == 20
+    np.testing.assert_allclose(refined, np.stack([np.full(20, 20.3), points[:, 1]], axis=1), atol=1e-9)
+    assert not refine(edge_image(1.0, 0.9), 19, (-100.0, 10.0))[1][1].any()
+    assert not refine(edge_image(2.0, 0.5), 19, (20.0, -1000.0))[1][1].any()
+    assert not refine(edge_image(2.0, 0.5), 17, (-100.0, 10.0))[1][1].any()
