@@ -605,7 +605,8 @@ def test_bilinear_samples_and_edge_support_against_closed_forms():
     """_sample on a linear ramp (pixel centres at k + 0.5) returns the ramp at the point, NaN beyond the
     outermost centres. edge_support: the whole outline of a disc on a background (log-luminance step 3,
     noise 0.01) supports its circle; a flat image with the same noise supports no circle (steps under the
-    contrast floor), nor does the disc a circle 5 px off its centre along most of its length."""
+    contrast floor), nor does the disc a circle 5 px off its centre along most of its length, nor vertical
+    stripes (texture: the steps beside each crossing are as large as the crossing's) along half of it."""
     from mi_bivariate import silhouette
 
     ramp = (np.arange(30)[None, :] + 0.5) + 10.0 * (np.arange(20)[:, None] + 0.5)
@@ -619,6 +620,8 @@ def test_bilinear_samples_and_edge_support_against_closed_forms():
     assert silhouette.edge_support(log_lum, cx, cy, r) >= 0.95 * n
     assert silhouette.edge_support(log_lum, cx + 5.0, cy, r) < 0.5 * n
     assert silhouette.edge_support(noise, cx, cy, r) == 0
+    stripes = np.tile(3.0 * (np.floor((np.arange(64) + 0.5) / 6.0) % 2), (64, 1))  # texture: period 12 px
+    assert silhouette.edge_support(silhouette._smoothed(stripes), cx, cy, r) < 0.5 * n
 
 
 def test_ransac_circles_find_the_circle_whose_edges_point_radially():
