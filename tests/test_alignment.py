@@ -86,3 +86,13 @@ def test_a_full_turn_search_covers_the_seam(turned_render):
                                  n_normals=400, grid=(8, 8), coarse_step_deg=45.0, tol_deg=1.0)
     assert abs(est.yaw_deg - 170.0) < 2.0, est.summary()
     assert set(np.arange(-180.0, 180.0, 45.0)) <= set(est.angles_deg)
+
+
+def test_the_given_alpha_weighs_the_per_candidate_solve(turned_render):
+    """Material unknown: the regularisation weight passed is the one each candidate's solve uses. A
+    regularised fit explains the data no better as its weight grows, so the best residual with alpha = 100
+    is clearly above the one with alpha = 1e-4 (measured 0.16 against 0.08)."""
+    probe, _, render = turned_render
+    small = dict(n_normals=400, grid=(8, 8), texel_width=32, search_deg=(24.0, 26.0), coarse_step_deg=2.0, tol_deg=2.0)
+    loose, tight = (alignment.estimate_yaw(render.image, probe, render.geometry, alpha=a, **small) for a in (1e-4, 1e2))
+    assert tight.residual > 1.5 * loose.residual, (loose.summary(), tight.summary())
