@@ -455,7 +455,8 @@ def test_bad_meshes_are_refused_by_name(tmp_path):
     (tmp_path / "points.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\n")
     (tmp_path / "nan.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 nan\nv 0 0 1\nf 1 2 3\nf 1 3 4\nf 1 4 2\nf 2 4 3\n")
     (tmp_path / "flat.obj").write_text("v 0 0 0\nv 1 0 0\nv 2 0 0\nf 1 2 3\nf 3 2 1\n")
-    for name, match in (("points.obj", "the mesh has no triangles"), ("nan.obj", "the mesh has non-finite vertex positions"),
+    for name, match in (("points.obj", "the mesh has no triangles"),
+                        ("nan.obj", "the mesh has non-finite vertex positions"),
                         ("flat.obj", r"every face of the mesh is degenerate \(zero area\)")):
         with warnings.catch_warnings():
             warnings.simplefilter("error")
