@@ -1,9 +1,10 @@
 """images.py against files written by hand: every byte placed here from the format's specification, the
 decoded pixels compared one by one with the closed-form value those bytes stand for (not with another
-reader's output)."""
+reader's output); its writers and its exposure against what their docstrings promise."""
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -193,3 +194,31 @@ def test_a_mask_painted_in_one_colour_channel_selects_its_pixels(tmp_path):
     path = _exr(tmp_path / "red.exr", {"R": red, "G": green, "B": np.zeros((5, 7), np.float32)})
     np.testing.assert_array_equal(images.load_mask(path, (5, 7)), (red > 0) | (green > 0))
 
+
+# ------------------------------------------------------- exposure and writing
+
+def test_auto_exposure_leaves_black_pixels_out_of_its_percentile():
+    """Grey pixels (luminance = value) 1, 2, 3, 4 and four black ones: the median of the positive luminance is
+    2.5, so the exposure is 1 / 2.5 (with the black pixels counted the median would be 0.5)."""
+    values = np.array([[0.0, 1.0, 0.0, 2.0], [3.0, 0.0, 4.0, 0.0]])
+    image = np.repeat(values[..., None], 3, axis=2)
+    assert images.auto_exposure(image, percentile=50.0) == pytest.approx(1.0 / 2.5)
+
+
+@pytest.mark.parametrize("shape", [(4, 5, 4), (4, 5), (4, 5, 1)])
+def test_write_exr_refuses_an_image_that_is_not_rgb_and_writes_nothing(tmp_path, shape):
+    """write_exr writes (H, W, 3) only: RGBA, grey or flat arrays are an InputError naming the file and
+    the shape, and no file (nor temporary) is left."""
+    with pytest.raises(InputError, match=r"out.exr: image must have shape \(H, W, 3\), got " + re.escape(str(shape))):
+        images.write_exr(tmp_path / "out.exr", np.ones(shape, np.float32))
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_write_png_writes_an_8_bit_image_as_its_codes(tmp_path):
+    """A uint8 image is already display codes: write_png stores them unchanged (no exposure, no second sRGB
+    curve), as Pillow reads them back."""
+    from PIL import Image
+
+    codes = np.random.default_rng(3).integers(0, 256, (4, 6, 3)).astype(np.uint8)
+    images.write_png(tmp_path / "codes.png", codes)
+    np.testing.assert_array_equal(np.asarray(Image.open(tmp_path / "codes.png").convert("RGB")), codes)
