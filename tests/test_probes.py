@@ -324,6 +324,39 @@ def test_angular_map_round_trip():
     _check_against_environment(probe, 0.02)
 
 
+
+@pytest.mark.parametrize("kind", ["angular map", "mirror ball"])
+def test_disk_conversions_hit_the_closed_form_position_of_every_texel(kind):
+    """A 16 x 16 disk image linear in its image coordinates (a right, b up; pixel centres at (k + 1/2) / 8 - 1),
+    which bilinear interpolation reproduces exactly between pixel centres: every lat-long texel, at the
+    direction of the module's formula (u = (i + 1/2) / W, v = j / (H - 1)), holds the value at the disk
+    position (a, b) = r(theta) (d.x, d.y) / |(d.x, d.y)|, r = theta / pi (angular map) or sin(theta / 2)
+    (mirror ball), to float32 rounding. Half a pixel's shift, a flipped axis or the other radius is off
+    by 1e-3 or more."""
+    size, width = 16, 32
+    height = width // 2
+    centres = (np.arange(size) + 0.5) / size * 2 - 1
+    a_img, b_img = np.meshgrid(centres, -centres)      # row 0 at the top
+    coeffs = np.array([[2.0, 0.5, -0.7], [3.0, -0.9, 0.4], [2.5, 0.3, 0.8]])   # per channel: 1, a, b
+
+    def linear(a, b):
+        return np.stack([c[0] + c[1] * a + c[2] * b for c in coeffs], axis=-1)
+
+    convert = Probe.from_angular_map if kind == "angular map" else Probe.from_mirror_ball
+    probe = convert(linear(a_img, b_img).astype(np.float32), width=width)
+    assert probe.data.shape == (height, width, 3)
+    u = (np.arange(width) + 0.5) / width
+    v = np.arange(height) / (height - 1)
+    d = np.stack(np.broadcast_arrays(np.sin(2 * np.pi * u) * np.sin(np.pi * v)[:, None], np.cos(np.pi * v)[:, None],
+                                     -np.cos(2 * np.pi * u) * np.sin(np.pi * v)[:, None]), axis=-1)
+    theta = np.arccos(np.clip(d[..., 2], -1, 1))
+    r = theta / np.pi if kind == "angular map" else np.sin(theta / 2)
+    rho = np.hypot(d[..., 0], d[..., 1])
+    a, b = r * d[..., 0] / rho, r * d[..., 1] / rho
+    inside = np.maximum(np.abs(a), np.abs(b)) <= centres[-1]   # between pixel centres: no edge clamping
+    assert inside.sum() > 150
+    np.testing.assert_allclose(probe.data[inside], linear(a, b)[inside], rtol=1e-5, atol=0)
+
 def test_conversion_rejects_non_square(tmp_path):
     with pytest.raises(InputError, match="square"):
         Probe.from_mirror_ball(np.ones((10, 12, 3)), source="ball.exr")
@@ -513,3 +546,37 @@ def test_a_disk_conversion_names_a_bad_width(width, problem):
         assert info.value.source == "width" and problem in info.value.problem, str(info.value)
     np.testing.assert_array_equal(Probe.from_angular_map(image, width=64.0).data,
                                   Probe.from_angular_map(image, width=64).data)
+
+
+def test_a_rotation_one_percent_off_orthonormal_is_refused():
+    """A rotation scaled by 1.01, or with one entry off by 0.01 (a matrix typed with too few digits), is not
+    a rotation: refused as not orthonormal, by ``rotated`` and as a ``to_world`` alike, rather than handed to
+    Mitsuba's emitter, which would look up the stretched directions."""
+    turn = rotation_matrix([0, 30, 0])
+    skewed = turn.copy()
+    skewed[0, 2] += 0.01
+    for matrix in (1.01 * turn, skewed):
+        with pytest.raises(InputError, match="not orthonormal"):
+            Probe.constant(1.0, 8).rotated(matrix)
+        with pytest.raises(InputError, match="not orthonormal"):
+            Probe(np.ones((4, 8, 3)), to_world=matrix)
+
+
+def test_eval_refuses_zero_and_non_finite_directions():
+    """A zero or non-finite direction has no radiance: ``eval`` refuses it rather than normalise it to NaN
+    and hand Mitsuba a NaN lookup."""
+    probe = Probe.constant(1.0, 8)
+    for bad in ([0.0, 0.0, 0.0], [np.nan, 0.0, 1.0], [np.inf, 0.0, 0.0]):
+        with pytest.raises(ValueError, match="finite and non-zero"):
+            probe.eval(np.array([[0.0, 1.0, 0.0], bad]))
+
+
+def test_a_shared_probe_file_is_found_beside_files_of_other_types(tmp_path):
+    """Only a probe format is the shared probe's file: a note beside it (``grace_256.README``, which sorts
+    first) is passed over."""
+    from mi_bivariate.probes import shared_probe_path
+
+    (tmp_path / "probes").mkdir()
+    for name in ("grace_256.README", "grace_256.hdr.txt", "grace_256.exr"):
+        (tmp_path / "probes" / name).write_bytes(b"")
+    assert shared_probe_path("grace_256", tmp_path) == tmp_path / "probes" / "grace_256.exr"
