@@ -144,6 +144,31 @@ def test_the_probe_cache_follows_the_data_folder_and_the_file(tmp_path, monkeypa
     assert np.all(sources.load_probe(str(path), cache=True).data[..., :3] == 3.0)
 
 
+
+def test_the_probe_cache_tells_a_same_size_rewrite_and_a_shared_file_apart(tmp_path, monkeypatch):
+    """Keys that only look alike: a PFM rewritten in place with other values has the same size (a fixed
+    header and 4 bytes a value), so only its modification time tells the cached probe is stale; and one
+    file named like a shared probe is that shared probe (turned by its rotation) with its data folder given
+    and a plain file (as stored) without. The truth: what an uncached load gives each time."""
+    import os
+
+    monkeypatch.delenv("MI_BIVARIATE_DATA", raising=False)
+    path = tmp_path / "sky.pfm"
+    for level in (1.0, 3.0):
+        path.write_bytes(b"PF\n8 4\n-1.0\n" + np.full((4, 8, 3), level, "<f4").tobytes())
+        stat = os.stat(path)
+        os.utime(path, ns=(stat.st_atime_ns, stat.st_mtime_ns + int(level) * 10**9))   # later, on any file system
+        assert np.all(sources.load_probe(str(path), cache=True).data == level)
+
+    (tmp_path / "probes").mkdir()
+    shared = tmp_path / "probes" / "grace_latlong_1k.pfm"
+    shared.write_bytes(b"PF\n8 4\n-1.0\n" + np.arange(96, dtype="<f4").tobytes())
+    for data_dir in (tmp_path, None, tmp_path):
+        got = sources.load_probe(str(shared), data_dir=data_dir, cache=True)
+        np.testing.assert_array_equal(got.to_world, sources.load_probe(str(shared), data_dir=data_dir).to_world)
+    assert not np.array_equal(sources.load_probe(str(shared), data_dir=tmp_path, cache=True).to_world,
+                              sources.load_probe(str(shared), cache=True).to_world)
+
 def test_an_inputs_label_names_each_of_its_probes():
     """An evaluation input of several probes joined by ``+`` is labelled probe by probe (file stems)."""
     assert sources.input_label("/a/b/pisa_256.hdr+grace_latlong_1k+synthetic:3") == "pisa_256+grace_latlong_1k+synthetic:3"
