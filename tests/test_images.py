@@ -12,6 +12,16 @@ import pytest
 
 from mi_bivariate import images
 from mi_bivariate.errors import InputError
+from mi_bivariate.probes import Probe
+
+
+def test_a_folder_named_like_an_image_is_not_a_file(tmp_path):
+    """A folder given where an image goes (``photo.exr/``) is 'not a file', for a photo, a mask and a probe,
+    not an operating-system error about permissions."""
+    (tmp_path / "photo.exr").mkdir()
+    for read in (images.load_image, lambda p: images.load_mask(p, (4, 4)), Probe.load):
+        with pytest.raises(InputError, match=r"photo.exr: not a file \(give the path of an image file, not of a"):
+            read(tmp_path / "photo.exr")
 
 
 # ------------------------------------------------------------ Radiance RGBE
