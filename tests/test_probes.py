@@ -603,3 +603,30 @@ def test_a_shared_probe_file_is_found_beside_files_of_other_types(tmp_path):
     for name in ("grace_256.README", "grace_256.hdr.txt", "grace_256.exr"):
         (tmp_path / "probes" / name).write_bytes(b"")
     assert shared_probe_path("grace_256", tmp_path) == tmp_path / "probes" / "grace_256.exr"
+
+
+def test_a_probes_radiance_is_a_read_only_copy_also_after_pickling():
+    """``data`` is a read-only copy (its digest and its Mitsuba emitter are computed once): changing the array
+    it was made from changes nothing, writing to it is refused, and a probe sent through pickle (to a worker
+    process) keeps both properties."""
+    import pickle
+
+    source = np.full((4, 8, 3), 2.0)
+    probe = Probe(source)
+    source[:] = 5.0
+    assert np.all(probe.data == 2.0)
+    for p in (probe, pickle.loads(pickle.dumps(probe))):
+        with pytest.raises(ValueError, match="read-only"):
+            p.data[0, 0, 0] = 1.0
+        with pytest.raises(ValueError, match="read-only"):
+            p.to_world[0, 0] = 2.0
+        assert np.all(p.data == 2.0) and p.content_digest() == probe.content_digest()
+
+
+@pytest.mark.parametrize("width, height", [(2, 3), (4, 3), (6, 3), (8, 4), (9, 4)])
+def test_a_constant_probe_of_width_w_has_max_3_w_over_2_rows(width, height):
+    """``Probe.constant(radiance, W)`` is ``max(3, W // 2)`` rows tall, as documented: narrow probes keep the
+    three rows a lat-long map needs (the poles and the equator)."""
+    probe = Probe.constant([1.0, 2.0, 3.0], width)
+    assert probe.data.shape == (height, width, 3)
+    np.testing.assert_allclose(probe.mean_radiance(), [1.0, 2.0, 3.0], rtol=1e-12)
