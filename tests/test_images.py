@@ -29,8 +29,8 @@ def test_a_folder_named_like_an_image_is_not_a_file(tmp_path):
 
 def _rgbe_value(rgbe: np.ndarray) -> np.ndarray:
     """The radiance of RGBE bytes ``(..., 4) uint8``: ``mantissa * 2^(exponent - 136)``, 0 where the
-    exponent byte is 0 (Greg Ward's format as Bruce Walter's rgbe.c, which Mitsuba uses, decodes it: no
-    half-code offset). ``(..., 3) float64``."""
+    exponent byte is 0 (Bruce Walter's rgbe.c convention, which Mitsuba's reader follows: no half-code
+    offset, unlike Radiance's own colr_color). ``(..., 3) float64``."""
     e = rgbe[..., 3:4].astype(np.int64)
     return np.where(e == 0, 0.0, rgbe[..., :3] * np.ldexp(1.0, e - 136))
 
@@ -104,8 +104,8 @@ def test_a_hand_written_radiance_file_decodes_to_its_closed_form(tmp_path):
 
 
 def test_the_last_format_line_of_a_radiance_header_decides(tmp_path):
-    """Radiance reads header lines in order, so a later FORMAT= line overrides an earlier one (a converted
-    file keeps its history): RGBE then XYZE is XYZ pixels, refused; XYZE then RGBE is read."""
+    """Radiance reads header lines in order, a later FORMAT= line overriding an earlier one: RGBE then XYZE
+    is XYZ pixels, refused; XYZE then RGBE is RGB pixels, read."""
     pixels = bytes([128, 64, 32, 129]) * 4
     for name, formats, ok in (("xyz_last", (b"rgbe", b"xyze"), False), ("rgb_last", (b"xyze", b"rgbe"), True)):
         header = b"#?RADIANCE\nFORMAT=32-bit_rle_%s\nFORMAT=32-bit_rle_%s\n\n-Y 2 +X 2\n" % formats
