@@ -91,6 +91,10 @@ def files(tmp_path_factory) -> dict:
     f["truncated_merl"].write_bytes(raw[: len(raw) // 2])
     f["foreign_merl"] = d / "foreign.binary"
     f["foreign_merl"].write_bytes(np.array([90, 90, 360], "<i4").tobytes() + raw[12:])
+    # Folders named like input files.
+    for key, name in (("folder_probe", "folder.exr"), ("folder_npz", "folder.npz")):
+        f[key] = d / name
+        f[key].mkdir()
     return f
 
 
@@ -275,6 +279,10 @@ CLI_CASES = [
      "not a 2:1 lat-long"),
     ("render: black probe", lambda f: ["render", str(f["npz"]), "--probe", str(f["black_probe"])], "black_probe",
      "black"),
+    ("render: probe is a folder", lambda f: ["render", str(f["npz"]), "--probe", str(f["folder_probe"])],
+     "folder_probe", "not a file (give the path of an image file, not of a folder)"),
+    ("render: BRDF is a folder", lambda f: ["render", str(f["folder_npz"]), "--probe", str(f["probe"])],
+     "folder_npz", "not a file (give the path of a .npz file, not of a folder)"),
     _needs_recover(("recover: --out not npz", lambda f: _recover_args(f, out="x.exr"), None, "ending in .npz")),
     _needs_recover(("recover: --fov 0", lambda f: _recover_args(f, fov="0"), None, "error: --fov: must be")),
     _needs_recover(("recover: --fov 170", lambda f: _recover_args(f, fov="170"), None, "error: --fov: must be")),
