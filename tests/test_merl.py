@@ -377,3 +377,87 @@ def test_nbrdf_truth_does_not_depend_on_the_blas(data_dir):
         small = (expected > 0) & (expected < 1e-6)
         assert np.max(np.abs(f32[small] - expected[small]) / expected[small]) > 1e-3, name
 
+
+
+# ------------------------------------------- MERL's reference lookup, transcribed
+
+
+def _rotate(v: np.ndarray, axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
+    """BRDFRead's ``rotate_vector``: Rodrigues' rotation of ``v (N, 3)`` about unit ``axis (3,)`` by ``angle (N,)``."""
+    c, s = np.cos(angle)[:, None], np.sin(angle)[:, None]
+    return v * c + axis * (v @ axis)[:, None] * (1.0 - c) + np.cross(axis, v) * s
+
+
+def reference_lookup_index(wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
+    """BRDFRead's ``lookup_brdf_val`` up to the table read: ``std_coords_to_half_diff_coords`` (half vector,
+    then ``wi`` rotated by ``-phi_h`` about the normal and ``-theta_h`` about the binormal) and the three
+    index functions, for ``wi, wo (N, 3)``. Returns ``(N, 3)`` (i_h, i_d, i_p)."""
+    half = wi + wo
+    half /= np.linalg.norm(half, axis=-1, keepdims=True)
+    theta_half = np.arccos(np.clip(half[:, 2], -1.0, 1.0))
+    fi_half = np.arctan2(half[:, 1], half[:, 0])
+    temp = _rotate(wi, np.array([0.0, 0.0, 1.0]), -fi_half)
+    diff = _rotate(temp, np.array([0.0, 1.0, 0.0]), -theta_half)
+    theta_diff = np.arccos(np.clip(diff[:, 2], -1.0, 1.0))
+    fi_diff = np.arctan2(diff[:, 1], diff[:, 0])
+    return np.array([reference_index(*a) for a in zip(theta_half, theta_diff, fi_diff)])
+
+
+@pytest.fixture(scope="module")
+def indexed_file(tmp_path_factory):
+    """A MERL file whose raw values encode their own position: raw[c][i_h][i_d][i_p] = 1 + the flat index
+    ``((c * 90 + i_h) * 90 + i_d) * 180 + i_p`` (at most 4.4e6: exact in float64)."""
+    raw = 1.0 + np.arange(3 * 90 * 90 * 180, dtype=np.float64)
+    path = tmp_path_factory.mktemp("merl") / "indexed.binary"
+    with open(path, "wb") as f:
+        np.array([90, 90, 180], "<i4").tofile(f)
+        raw.astype("<f8").tofile(f)
+    return path
+
+
+def _decode(value: np.ndarray) -> np.ndarray:
+    """``(..., 3)`` looked-up values of :func:`indexed_file` -> ``(..., 3, 4)`` (c, i_h, i_d, i_p), undoing
+    BRDFRead's published channel scales 1/1500, 1.15/1500, 1.66/1500."""
+    flat = np.rint(value / (np.array([1.0, 1.15, 1.66]) / 1500.0)).astype(np.int64) - 1
+    return np.stack([flat // (90 * 90 * 180), flat // (90 * 180) % 90, flat // 180 % 90, flat % 180], axis=-1)
+
+
+def test_lookup_from_directions_matches_merls_reference_code(indexed_file):
+    """Direction pairs through this project's Rusinkiewicz angles and nearest lookup read the sample that
+    MERL's reference code (coordinates by rotations, then index functions, all transcribed here) reads,
+    in the right channel: checked on a file whose values name their own channel and indices."""
+    from mi_bivariate.coordinates import half_diff_from_dirs
+
+    merl = MERLBRDF.read(indexed_file)
+    rng = np.random.default_rng(7)
+    v = rng.normal(size=(2, 3000, 3))
+    v /= np.linalg.norm(v, axis=-1, keepdims=True)
+    v[..., 2] = np.abs(v[..., 2]) + 1e-3
+    v /= np.linalg.norm(v, axis=-1, keepdims=True)
+    wi, wo = v
+    theta_h, _, theta_d, phi_d = half_diff_from_dirs(wi, wo)
+    got = _decode(merl.eval(theta_h, theta_d, phi_d))
+    want = reference_lookup_index(wi, wo)
+    np.testing.assert_array_equal(got[..., 0], np.broadcast_to([0, 1, 2], (3000, 3)))
+    for c in range(3):
+        np.testing.assert_array_equal(got[:, c, 1:], want, err_msg=f"channel {c}")
+
+
+def test_node_angles_are_merls_bin_edges(indexed_file):
+    """The node angles every truth table is tabulated at are the published ones, theta_h = (i/90)^2 pi/2,
+    theta_d = j/90 pi/2, phi_d = k/180 pi (written out here), each the lower edge of its bin in the
+    reference indexing; tabulating a function there stores it at the node's own index."""
+    theta_h, theta_d, phi_d = node_angles()
+    i, k = np.arange(90), np.arange(180)
+    np.testing.assert_allclose(theta_h, (i / 90.0) ** 2 * (math.pi / 2.0), rtol=1e-15, atol=0)
+    np.testing.assert_allclose(theta_d, i / 90.0 * (math.pi / 2.0), rtol=1e-15, atol=0)
+    np.testing.assert_allclose(phi_d, k / 180.0 * math.pi, rtol=1e-15, atol=0)
+    merl = MERLBRDF.read(indexed_file)
+    nodes = np.array([(a, b, c) for a in (0, 1, 30, 89) for b in (0, 2, 45, 89) for c in (0, 1, 90, 179)])
+    th, td, pd = theta_h[nodes[:, 0]], theta_d[nodes[:, 1]], phi_d[nodes[:, 2]]
+    np.testing.assert_array_equal([reference_index(*a) for a in zip(th, td, pd)], nodes)
+    np.testing.assert_array_equal(_decode(merl.eval(th, td, pd))[:, 0, 1:], nodes)
+    # Just below a node's angle is the bin below (floor indexing, not rounding); phi_d wraps to bin 179.
+    below = merl.eval(th * (1.0 - 1e-6), td * (1.0 - 1e-6), pd - 1e-6)
+    want = np.stack([np.maximum(nodes[:, 0] - 1, 0), np.maximum(nodes[:, 1] - 1, 0), (nodes[:, 2] - 1) % 180], -1)
+    np.testing.assert_array_equal(_decode(below)[:, 0, 1:], want)
