@@ -64,6 +64,17 @@ def test_read_uses_merls_published_scales_and_keeps_zeros(tmp_path):
     assert np.all(np.isnan(table[5, 6, 8]))
 
 
+def test_valid_mask_needs_every_channel(raw_file):
+    """A sample missing in one channel only (the file's channels miss 1% of their samples independently) is
+    not valid: ``valid_mask`` is every raw value non-negative, at a node above the horizon."""
+    path, raw = raw_file
+    merl = MERLBRDF.read(path)
+    expected = np.all(raw >= 0.0, axis=0) & geometric_mask()
+    partly = np.any(raw < 0.0, axis=0) & np.any(raw >= 0.0, axis=0) & geometric_mask()
+    assert partly.sum() > 1000
+    np.testing.assert_array_equal(merl.valid_mask(), expected)
+
+
 def test_write_read_round_trip(raw_file, tmp_path):
     merl = MERLBRDF.read(raw_file[0])
     out = tmp_path / "copy.binary"
@@ -135,6 +146,18 @@ def test_channels_lit_only_where_another_is_missing_are_refused(tmp_path):
     with pytest.raises(InputError, match=f"out.binary: {problem}"):
         MERLBRDF(table).write(tmp_path / "out.binary")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["apart.binary"]
+
+
+def test_channels_overlapping_only_below_the_horizon_are_refused(tmp_path):
+    """As above, but the three channels are all valid and positive at the nodes below the horizon, which are
+    never lit: the check of the samples valid in all three channels looks above the horizon only."""
+    table = np.full(MERL_SHAPE + (3,), np.nan)
+    for c in range(3):
+        table[:, :, c::3, c] = 1.0
+    table[~geometric_mask()] = 2.0
+    with pytest.raises(InputError, match="no sample above the horizon is valid in all three colour channels"):
+        MERLBRDF(table).write(tmp_path / "below.binary")
+    assert list(tmp_path.iterdir()) == []
 
 
 @pytest.mark.parametrize("case", ["truncated", "trailing", "foreign", "tiny", "missing", "directory"])
