@@ -346,6 +346,27 @@ def test_nbrdf_matches_direct_formula(data_dir):
         theta_h[node[0]], theta_d[node[1]], phi_d[node[2]]), rtol=1e-6)
 
 
+def test_nbrdf_training_materials_match_direct_formula(data_dir):
+    """A training-set material is read from merl_nbrdf_train.npz (the development file has no such key) and
+    evaluated as the shared data README's formula, written out here as a plain float64 forward pass, at
+    angles including the grazing and phi_d > pi/2 ones."""
+    from mi_bivariate import nbrdf
+
+    npz = np.load(data_dir / "merl_nbrdf" / "merl_nbrdf_train.npz")
+    th = np.array([0.0, 0.01, 0.3, 0.7, 1.2, 1.5])
+    td = np.array([0.0, 0.5, 1.4, 0.2, 0.9, 0.05])
+    pd = np.array([0.0, 2.5, 0.3, 1.7, 3.0, 0.9])
+    x = np.stack([np.sin(th), 0 * th, np.cos(th), np.sin(td) * np.cos(pd), np.sin(td) * np.sin(pd), np.cos(td)], 1)
+    for name in ("chrome-steel", "yellow-plastic"):
+        w = {k: npz[f"{name}/{k}"].astype(np.float64) for k in ("W1", "b1", "W2", "b2", "W3", "b3")}
+        h1 = np.maximum(x @ w["W1"] + w["b1"], 0.0)
+        h2 = np.maximum(h1 @ w["W2"] + w["b2"], 0.0)
+        expected = np.maximum(np.exp(h2 @ w["W3"] + w["b3"]) - 1.0, 0.0)
+        assert expected.max() > 1.0 and np.count_nonzero(expected) > 9, name  # a lit, non-trivial comparison
+        np.testing.assert_allclose(nbrdf.load_nbrdf(name, data_dir).eval(th, td, pd), expected, rtol=1e-9,
+                                   atol=1e-12, err_msg=name)
+
+
 def test_nbrdf_cached_table_is_read_only(data_dir):
     """nbrdf_merl hands every caller the same cached table: writing into it must fail, not change the
     truth that later callers in the process score against."""
