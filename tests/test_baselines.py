@@ -98,3 +98,19 @@ def test_fit_baselines_fits_each_family_and_refuses_non_finite_observations(two_
     bad[3, 1] = np.nan
     with pytest.raises(InputError, match="non-finite"):
         baselines.fit_baseline("ggx", L, bad, grid=(10, 10), averager=averager)
+
+
+def test_fit_recovers_the_parameters_of_a_model_in_its_family(two_lobe_data):
+    """Observations made (through the fixture's lighting matrix) by a Lambertian + GGX model are fitted by that
+    model: the fit returns its diffuse albedo, specular scale, roughness and index of refraction, each under
+    its own name, and a residual of ~0."""
+    averager, L, _ = two_lobe_data
+    truth = analytic.CookTorranceGGX([0.2, 0.1, 0.05], [0.5, 0.6, 0.7], alpha=0.15, ior=1.5)
+    I = np.einsum("mnc,nc->mc", L.astype(np.float64), averager.average(truth).reshape(-1, 3))
+    fit = baselines.fit_baseline("ggx", L, I, grid=(10, 10), averager=averager, max_nfev=10, starts=2)
+    np.testing.assert_allclose(fit.params["kd"], [0.2, 0.1, 0.05], rtol=1e-3)
+    np.testing.assert_allclose(fit.params["ks"], [0.5, 0.6, 0.7], rtol=1e-3)
+    assert fit.params["alpha"] == pytest.approx(0.15, rel=1e-3)
+    assert fit.params["ior"] == pytest.approx(1.5, rel=1e-3)
+    assert fit.relative_residual < 1e-5
+    assert isinstance(fit.brdf, analytic.CookTorranceGGX) and fit.brdf.ior == pytest.approx(1.5, rel=1e-3)
