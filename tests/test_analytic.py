@@ -194,7 +194,9 @@ def test_spec_parser():
                                   "ggx:diffuse=1e38", "lambertian:albedo=nan", "ggx:alpha=inf",
                                   # negative reflectances, an index of 1 and a zero-width or f0 > 1 lobe
                                   "lambertian:albedo=-0.5", "ggx:specular=0.1,-0.2,0.3", "ggx:ior=1",
-                                  "bivariate-lobe:width=0", "bivariate-lobe:f0=1.5"])
+                                  "bivariate-lobe:width=0", "bivariate-lobe:f0=1.5",
+                                  # a second value of a one-value key was dropped silently; a negative roughness
+                                  "ggx:alpha=0.1,0.2", "oren-nayar:sigma=0.3,0.4", "oren-nayar:sigma=-0.3"])
 def test_spec_parser_errors(spec):
     with pytest.raises(InputError) as info:
         analytic_from_spec(spec)
@@ -214,3 +216,15 @@ def test_bivariate_lobe_closed_form_at_chosen_angles():
     shape = np.exp(-(theta_h / 0.15) ** 2) * (0.2 + 0.8 * (1.0 - np.cos(theta_d)) ** 5)
     want = np.array([0.1, 0.2, 0.3]) / math.pi + shape[:, None] * np.array([4.0, 5.0, 6.0])
     np.testing.assert_allclose(lobe.eval_dirs(wi, wo), want, rtol=1e-9)
+
+
+def test_spec_limits_are_inclusive_and_tables_keep_their_precision():
+    """A parameter of exactly MAX_PARAMETER is accepted ("at most"); ``to_merl(dtype=np.float32)`` (the evaluation's
+    analytic truths, as precise as the renders) stores the closed form rounded to float32 once."""
+    from mi_bivariate.analytic import MAX_PARAMETER
+
+    assert analytic_from_spec(f"lambertian:albedo={MAX_PARAMETER:g}").albedo[0] == MAX_PARAMETER
+    model = Lambertian([0.7, 0.6, 0.5])
+    merl32 = to_merl(model, dtype=np.float32)  # (float64 by default: test_tabulated_nodes_equal_closed_form)
+    assert merl32.table.dtype == np.float32
+    np.testing.assert_array_equal(merl32.table[40, 30, 77], (np.array([0.7, 0.6, 0.5]) / math.pi).astype(np.float32))
