@@ -367,6 +367,28 @@ def test_nbrdf_training_materials_match_direct_formula(data_dir):
                                    atol=1e-12, err_msg=name)
 
 
+@pytest.mark.parametrize("change", ["W2 transposed shape", "b3 missing"])
+def test_nbrdf_malformed_weights_are_refused_by_name(data_dir, tmp_path, change):
+    """A weights file whose layer has the wrong shape or is missing: an InputError naming the file and the
+    array, not numpy's matmul error from inside the network (or a table of a network that is not the one stored)."""
+    from mi_bivariate import nbrdf
+
+    with np.load(data_dir / "merl_nbrdf" / "merl_nbrdf_dev.npz") as npz:
+        arrays = {k: npz[k] for k in npz.files}
+    if change == "b3 missing":
+        del arrays["brass/b3"]
+        match = r"missing array 'brass/b3'"
+    else:
+        arrays["brass/W2"] = arrays["brass/W2"][:, :20]
+        match = r"brass/W2 has shape \(21, 20\), expected \(21, 21\)"
+    (tmp_path / "merl_nbrdf").mkdir()
+    path = tmp_path / "merl_nbrdf" / "merl_nbrdf_dev.npz"
+    np.savez(path, **arrays)
+    with pytest.raises(InputError, match=match) as info:
+        nbrdf.load_nbrdf("brass", data_dir=tmp_path)
+    assert info.value.source == str(path)
+
+
 def test_nbrdf_cached_table_is_read_only(data_dir):
     """nbrdf_merl hands every caller the same cached table: writing into it must fail, not change the
     truth that later callers in the process score against."""
