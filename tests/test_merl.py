@@ -324,6 +324,18 @@ def test_nbrdf_names_and_errors(monkeypatch, tmp_path):
     assert nbrdf.data_dir(tmp_path) == tmp_path
 
 
+def test_nbrdf_explicit_data_folder_overrides_the_environment(monkeypatch, tmp_path):
+    """``--data`` (``data_dir=``) wins over ``MI_BIVARIATE_DATA``: the weights are looked for where the user said."""
+    from mi_bivariate import nbrdf
+
+    other = tmp_path / "env"
+    other.mkdir()
+    monkeypatch.setenv("MI_BIVARIATE_DATA", str(other))
+    assert nbrdf.data_dir(tmp_path) == tmp_path and nbrdf.data_dir() == other
+    assert nbrdf.weights_path("brass", tmp_path) == tmp_path / "merl_nbrdf" / "merl_nbrdf_dev.npz"
+    assert nbrdf.weights_path("chrome-steel", tmp_path) == tmp_path / "merl_nbrdf" / "merl_nbrdf_train.npz"
+
+
 def test_nbrdf_matches_direct_formula(data_dir):
     from mi_bivariate import nbrdf
 
