@@ -114,3 +114,31 @@ def test_fit_recovers_the_parameters_of_a_model_in_its_family(two_lobe_data):
     assert fit.params["ior"] == pytest.approx(1.5, rel=1e-3)
     assert fit.relative_residual < 1e-5
     assert isinstance(fit.brdf, analytic.CookTorranceGGX) and fit.brdf.ior == pytest.approx(1.5, rel=1e-3)
+
+
+def test_phi_average_leaves_out_non_finite_samples_and_fit_baselines_defaults_match():
+    """A model that is NaN at some phi_d samples is averaged over its finite ones (as ``BivariateBRDF.reduce``
+    does), not diluted by the missing ones; ``fit_baselines`` tabulates with ``fit_baseline``'s default 45
+    phi_d, so both give the same fit; a lighting matrix for another grid is refused by name."""
+    from mi_bivariate.errors import InputError
+
+    class HalfMissing:
+        name = "half-missing"
+
+        def eval_dirs(self, wi, wo):
+            return np.where((wi[..., 1] > 0.0)[..., None], np.nan, np.array([1.0, 2.0, 3.0]))
+
+    table = baselines.PhiAverager(4, 5, n_phi=12).average(HalfMissing())
+    np.testing.assert_allclose(table, np.broadcast_to([1.0, 2.0, 3.0], (4, 5, 3)), rtol=1e-12)
+
+    averager = baselines.PhiAverager(6, 6)
+    rng = np.random.default_rng(4)
+    L = (rng.random((200, 36, 3)) * (rng.random((200, 36, 1)) < 0.3)).astype(np.float32)
+    model = analytic.CookTorranceGGX([0.2, 0.2, 0.2], 0.5, alpha=0.3, ior=1.5)
+    I = np.einsum("mnc,nc->mc", L.astype(np.float64), averager.average(model).reshape(-1, 3))
+    kwargs = dict(max_nfev=1, start_nfev=1, starts=1)
+    one = baselines.fit_baseline("ward", L, I, grid=(6, 6), **kwargs)
+    both = baselines.fit_baselines(L, I, grid=(6, 6), families=("ward",), **kwargs)
+    np.testing.assert_array_equal(both["ward"].table.table, one.table.table)
+    with pytest.raises(InputError, match=r"lighting matrix: expected shape \(M, 36, 3\)"):
+        baselines.fit_baseline("ward", L[:, :35], I, grid=(6, 6), **kwargs)
