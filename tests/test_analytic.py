@@ -128,6 +128,24 @@ def test_oren_nayar():
     assert model.eval_dirs(w, w)[0] > 1.3 * model.eval_dirs(w, mirror)[0]
 
 
+def test_oren_nayar_near_the_normal():
+    """The published form (written out) where one direction is within a few degrees of the normal, which the
+    model's guard against the undefined azimuth at the normal itself must not reach; at the normal, Lambertian
+    times A (sin(beta) = 0)."""
+    sigma, rho = 0.5, 0.6
+    model = OrenNayar(rho, sigma)
+    a = 1.0 - 0.5 * sigma**2 / (sigma**2 + 0.33)
+    b = 0.45 * sigma**2 / (sigma**2 + 0.09)
+    for theta_i, theta_o, dphi in [(0.02, 1.2, 0.0), (0.05, 0.08, 0.3), (0.01, 0.5, 1.0), (0.7, 0.003, 0.0)]:
+        wi = np.array([math.sin(theta_i), 0.0, math.cos(theta_i)])
+        wo = np.array([math.sin(theta_o) * math.cos(dphi), math.sin(theta_o) * math.sin(dphi), math.cos(theta_o)])
+        alpha, beta = max(theta_i, theta_o), min(theta_i, theta_o)
+        want = rho / math.pi * (a + b * max(0.0, math.cos(dphi)) * math.sin(alpha) * math.tan(beta))
+        assert model.eval_dirs(wi, wo)[0] == pytest.approx(want, rel=1e-12)
+    normal = np.array([0.0, 0.0, 1.0])
+    assert model.eval_dirs(normal, np.array([0.6, 0.0, 0.8]))[0] == pytest.approx(rho / math.pi * a, rel=1e-12)
+
+
 @pytest.mark.parametrize("model", MODELS, ids=lambda m: m.kind)
 def test_reciprocity_and_horizon(model):
     rng = np.random.default_rng(2)
