@@ -43,6 +43,11 @@ _MISSING_RAW = -1.0
 # Index slack so that a lookup exactly at a node angle never floors to the
 # node below through a last-bit rounding error.
 _INDEX_EPS = 1e-9
+# wi.z and wo.z as above_horizon computes them are off by up to ~2e-16: a configuration exactly on the
+# horizon (theta_h + theta_d = pi/2 at phi_d = 0, as at the MERL nodes (30, 80, 0) and (60, 50, 0))
+# came out as +8e-17 and +1.1e-16 and counted as above it, where a model with 1/cos (Ward's lobe) is
+# ~1e7 1/sr. Heights within this of 0 are on the horizon (the nearest MERL node above it is 1.7e-7 up).
+_HORIZON_EPS = 1e-12
 
 
 def node_angles() -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -55,7 +60,8 @@ def node_angles() -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def above_horizon(theta_h, theta_d, phi_d) -> np.ndarray:
-    """True where both wi and wo of a Rusinkiewicz configuration lie strictly above the horizon.
+    """True where both wi and wo of a Rusinkiewicz configuration lie strictly above the horizon (by more
+    than ``_HORIZON_EPS``, the rounding of their heights: one exactly on it is not above it).
 
     Angles broadcast against each other (radians); phi_h is irrelevant (isotropy).
     With phi_h = 0, ``wi.z = cos td cos th - sin td sin th cos pd`` and ``wo.z``
@@ -64,7 +70,7 @@ def above_horizon(theta_h, theta_d, phi_d) -> np.ndarray:
     theta_h, theta_d, phi_d = (np.asarray(a, np.float64) for a in (theta_h, theta_d, phi_d))
     along = np.cos(theta_d) * np.cos(theta_h)
     across = np.sin(theta_d) * np.sin(theta_h) * np.cos(phi_d)
-    return (along - across > 0.0) & (along + across > 0.0)
+    return (along - across > _HORIZON_EPS) & (along + across > _HORIZON_EPS)
 
 
 def check_reflects(table: np.ndarray, source: Any, hint: str = "give a material that reflects light") -> None:

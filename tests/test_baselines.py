@@ -142,3 +142,20 @@ def test_phi_average_leaves_out_non_finite_samples_and_fit_baselines_defaults_ma
     np.testing.assert_array_equal(both["ward"].table.table, one.table.table)
     with pytest.raises(InputError, match=r"lighting matrix: expected shape \(M, 36, 3\)"):
         baselines.fit_baseline("ward", L[:, :35], I, grid=(6, 6), **kwargs)
+
+
+def test_ward_fit_recovers_a_ward_model(two_lobe_data):
+    """As test_fit_recovers_the_parameters_of_a_model_in_its_family, for the Ward family. The 10 x 10 grid has a
+    node exactly on the horizon's edge (theta_h = 10, theta_d = 80 degrees: wi on the horizon at phi_d = 0), whose
+    rounding (+8e-17) once counted as above it: Ward's phi_d mean there was 1.8e6 1/sr, that one cell decided the
+    fit, and it returned kd = 0 and alpha 0.10 for this alpha 0.15 model."""
+    averager, L, _ = two_lobe_data
+    truth = baselines.WardIsotropic([0.2, 0.1, 0.05], [0.5, 0.6, 0.7], alpha=0.15)
+    table = averager.average(truth)
+    assert table.max() < 1e3  # grazing cells reach 240 1/sr
+    I = np.einsum("mnc,nc->mc", L.astype(np.float64), table.reshape(-1, 3))
+    fit = baselines.fit_baseline("ward", L, I, grid=(10, 10), averager=averager, max_nfev=10, starts=2)
+    np.testing.assert_allclose(fit.params["kd"], [0.2, 0.1, 0.05], rtol=1e-3)
+    np.testing.assert_allclose(fit.params["ks"], [0.5, 0.6, 0.7], rtol=1e-3)
+    assert fit.params["alpha"] == pytest.approx(0.15, rel=1e-3)
+    assert fit.relative_residual < 1e-5

@@ -9,7 +9,15 @@ import pytest
 
 from mi_bivariate.coordinates import dirs_from_half_diff
 from mi_bivariate.errors import InputError
-from mi_bivariate.merl import MERL_FILE_BYTES, MERL_SCALE, MERL_SHAPE, MERLBRDF, geometric_mask, node_angles
+from mi_bivariate.merl import (
+    MERL_FILE_BYTES,
+    MERL_SCALE,
+    MERL_SHAPE,
+    MERLBRDF,
+    above_horizon,
+    geometric_mask,
+    node_angles,
+)
 
 
 def reference_index(theta_h: float, theta_d: float, phi_d: float) -> tuple:
@@ -274,7 +282,8 @@ def test_geometric_mask_and_from_function():
     theta_h, theta_d, phi_d = node_angles()
     th, td, pd = np.meshgrid(theta_h, theta_d, phi_d, indexing="ij")
     wi, wo = dirs_from_half_diff(th, np.zeros_like(th), td, pd)
-    expected = (wi[..., 2] > 0.0) & (wo[..., 2] > 0.0)
+    # Heights within rounding (1e-12) of 0 are on the horizon: the nodes exactly on it (below) come out +8e-17.
+    expected = (wi[..., 2] > 1e-12) & (wo[..., 2] > 1e-12)
     np.testing.assert_array_equal(geometric_mask(), expected)
     assert 0.6 < expected.mean() < 0.9
 
@@ -282,6 +291,25 @@ def test_geometric_mask_and_from_function():
     np.testing.assert_array_equal(merl.valid_mask(), expected)
     np.testing.assert_array_equal(merl.table[expected], np.stack([th, td, pd], axis=-1)[expected])
     assert np.all(np.isnan(merl.table[~expected]))
+
+
+def test_nodes_exactly_on_the_horizon_are_not_above_it():
+    """theta_h + theta_d = pi/2 at phi_d = 0 puts wi exactly on the horizon: on MERL's nodes where
+    (i/90)^2 + j/90 = 1, i.e. (i, j) = (30, 80) and (60, 50) (i^2 + 90 j = 8100). Its height came out as
+    +8e-17 by rounding and both nodes counted as above the horizon, where Ward's 1/sqrt(cos_i cos_o) is
+    ~3e7 1/sr: one such cell made a Ward fit's Eq. 1 ~400 times what the other 1.1 million cells give.
+    They are missing now, in the mask and in every table tabulated on it; the nodes just beside them are not."""
+    from mi_bivariate import analytic
+
+    on = [(i, j) for i in range(90) for j in range(90) if i * i + 90 * j == 8100]
+    assert on == [(30, 80), (60, 50)]
+    mask = geometric_mask()
+    for i, j in on:
+        assert not mask[i, j, 0] and mask[i, j, 1] and mask[i, j - 1, 0] and mask[i - 1, j, 0]
+    assert not above_horizon(math.pi / 18.0, 4.0 * math.pi / 9.0, 0.0)  # 10 + 80 degrees
+    assert above_horizon(math.pi / 18.0, 4.0 * math.pi / 9.0 - 1e-9, 0.0)
+    table = analytic.to_merl(analytic.Lambertian(0.5)).table
+    assert np.all(np.isnan(table[30, 80, 0])) and np.all(np.isnan(table[60, 50, 0]))
 
 
 def test_from_function_clamps_negative_values():
