@@ -20,7 +20,8 @@ image of a smooth object, for the solve's noise-aware data term
 (:func:`mi_bivariate.solve.row_sigma`). Second differences
 ``I[x-1] - 2 I[x] + I[x+1]`` along rows and columns cancel the smooth signal up to
 its curvature and keep ``6 sigma^2`` of white noise; their robust (low-quantile)
-variance per intensity bin, fitted by non-negative least squares to ``a I + b``,
+variance per intensity bin, fitted by non-negative least squares to ``a I + b``
+(:func:`nonnegative_fit`),
 is the estimate (the approach of Foi et al., "Practical Poissonian-Gaussian noise
 modeling and fitting for single-image raw-data", IEEE TIP 2008, in its simplest
 form). Measured on path-traced spheres it *under*-estimates heavy-tailed Monte
@@ -33,7 +34,6 @@ from __future__ import annotations
 from typing import Optional, Tuple, Union
 
 import numpy as np
-import scipy.optimize as sopt
 from scipy.special import erfinv
 
 from mi_bivariate.errors import InputError
@@ -106,8 +106,46 @@ def estimate_camera_noise(image: np.ndarray, mask: Optional[np.ndarray] = None,
     x = np.asarray(centres)
     w = np.sqrt(np.asarray(counts, np.float64)) / np.maximum(np.asarray(variances), 1e-300)
     design = np.stack([np.maximum(x, 0.0), np.ones_like(x)], axis=1) * w[:, None]
-    (a, b), _ = sopt.nnls(design, np.asarray(variances) * w)
-    return float(a), float(b)
+    return nonnegative_fit(design, np.asarray(variances) * w)
+
+
+def nonnegative_fit(design: np.ndarray, target: np.ndarray) -> Tuple[float, float]:
+    """Non-negative least squares of two unknowns: ``argmin ||design x - target||`` over ``x >= 0``.
+
+    The solution lies on one face of the constraints: both unknowns free, or one of them at zero (or
+    both: the one-unknown fits clipped at zero). Each face's own least-squares fit that is feasible is a
+    candidate, and the candidate with the smallest residual is the solution (what
+    ``scipy.optimize.nnls`` returns, without importing ``scipy.optimize``, which costs a ``recover``
+    process ~0.2 s for ~30 solvers it does not use; ``tests/test_noise.py`` compares the two). The
+    columns and the target are first scaled by their largest magnitudes (a positive scaling keeps the
+    constraints): the estimate's columns differ by the image's scale, 1e20 for a very bright image.
+
+    Args:
+        design: ``(n, 2)`` finite float64.
+        target: ``(n,)`` finite float64.
+
+    Returns:
+        ``(x0, x1)``, both >= 0.
+    """
+    a = np.asarray(design, dtype=np.float64)
+    y = np.asarray(target, dtype=np.float64)
+    column_scale = np.max(np.abs(a), axis=0)
+    column_scale = np.where(column_scale > 0, column_scale, 1.0)
+    target_scale = float(np.max(np.abs(y)))
+    if not target_scale > 0:
+        return 0.0, 0.0
+    a, y = a / column_scale, y / target_scale
+    candidates = []
+    for k in (0, 1):  # one unknown free, the other at zero (or both at zero: the clip)
+        norm2 = float(a[:, k] @ a[:, k])
+        x = np.zeros(2)
+        x[k] = max(0.0, float(a[:, k] @ y) / norm2) if norm2 > 0 else 0.0
+        candidates.append(x)
+    both = np.linalg.lstsq(a, y, rcond=None)[0]
+    if np.all(both >= 0):
+        candidates.append(both)
+    best = min(candidates, key=lambda x: float(np.sum((a @ x - y) ** 2))) * target_scale / column_scale
+    return float(best[0]), float(best[1])
 
 
 def check_noise_model(value, source: str = "noise") -> Tuple[Union[float, np.ndarray], Union[float, np.ndarray]]:

@@ -15,7 +15,7 @@ in a photograph it must be measured. This module does it from the silhouette:
    (``S`` inside, ``B`` outside, linear luminance) sum to the edge's position
    (the area of the strip inside the silhouette).
 3. **Fit.** An algebraic circle (Kasa) starts a robust least-squares fit
-   (``scipy.optimize.least_squares``, soft-L1 loss) of the orthographic
+   (soft-L1 loss, :func:`soft_l1_fit`) of the orthographic
    circle; outliers beyond a MAD-scaled threshold are dropped and the fit
    repeated. With camera intrinsics the silhouette is a cone of rays about
    the centre ray with constant half-angle ``asin(r / d)``; the same robust
@@ -32,7 +32,7 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import dataclass, field
-from typing import Any, Optional, Sequence, Tuple, Union
+from typing import Any, Callable, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
@@ -123,16 +123,65 @@ class SphereFit:
         return text + ("" if self.confident else "; NOT confident: " + "; ".join(self.problems))
 
 
-def _robust_fit(residual_fn, x0: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
-    """Robust fit, then drop outliers (> max(1 px, 3 MAD-sigmas)) and refit; ``(params, inliers)``."""
-    from scipy.optimize import least_squares
+def soft_l1_fit(residual_fn: Callable[[np.ndarray], np.ndarray], x0: np.ndarray, f_scale: float,
+                max_iterations: int = 100) -> np.ndarray:
+    """Robust non-linear least squares with the soft-L1 loss.
 
-    x = least_squares(residual_fn, x0, loss="soft_l1", f_scale=1.0).x
+    Minimises ``sum_i f^2 rho((r_i(x) / f)^2)``, ``rho(z) = 2 (sqrt(1 + z) - 1)``: quadratic within
+    ``f_scale`` of zero, linear beyond (``scipy.optimize.least_squares(loss="soft_l1")``'s problem).
+    Iteratively reweighted Gauss-Newton: each step solves the linearised problem with row weights
+    ``rho'(z_i) = 1 / sqrt(1 + z_i)``, whose fixed point is the loss's stationary point; a step that
+    raises the loss is halved (up to 30 times). The Jacobian is by central differences (step
+    ``1e-6 max(1, |x_j|)``). It stops when a step moves no parameter by more than ``1e-10 max(1, |x_j|)``.
+    The sphere fit's problems have 3 unknowns and a few hundred residuals; this spares a ``recover``
+    process the import of ``scipy.optimize`` (~0.2 s), and ``tests/test_spherefit.py`` checks it against
+    ``least_squares``.
+
+    Args:
+        residual_fn: ``x (P,) -> residuals (N,)`` float64.
+        x0: ``(P,)`` start.
+        f_scale: the loss's inlier scale, in the residuals' units.
+
+    Returns:
+        ``(P,)`` float64.
+    """
+    x = np.array(x0, dtype=np.float64)
+
+    def loss(r: np.ndarray) -> float:
+        return float(np.sum(np.sqrt(1.0 + (r / f_scale) ** 2) - 1.0))
+
+    r = residual_fn(x)
+    current = loss(r)
+    for _ in range(max_iterations):
+        h = 1e-6 * np.maximum(1.0, np.abs(x))
+        jac = np.stack([(residual_fn(x + h[j] * e) - residual_fn(x - h[j] * e)) / (2.0 * h[j])
+                        for j, e in enumerate(np.eye(len(x)))], axis=1)
+        w = 1.0 / np.sqrt(1.0 + (r / f_scale) ** 2)
+        step = np.linalg.lstsq(jac * np.sqrt(w)[:, None], -np.sqrt(w) * r, rcond=None)[0]
+        for _ in range(30):
+            trial = x + step
+            r_trial = residual_fn(trial)
+            trial_loss = loss(r_trial)
+            if trial_loss <= current:
+                break
+            step = step / 2.0
+        else:
+            break
+        x, r, current = trial, r_trial, trial_loss
+        if np.all(np.abs(step) <= 1e-10 * np.maximum(1.0, np.abs(x))):
+            break
+    return x
+
+
+def _robust_fit(residual_fn, x0: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """Robust fit (:func:`soft_l1_fit`), then drop outliers (> max(1 px, 3 MAD-sigmas)) and refit;
+    ``(params, inliers)``."""
+    x = soft_l1_fit(residual_fn, x0, f_scale=1.0)
     res = residual_fn(x)
     sigma = 1.4826 * np.median(np.abs(res - np.median(res)))
     inliers = np.abs(res) <= max(1.0, 3.0 * sigma)
     if inliers.sum() >= 8 and not inliers.all():
-        x = least_squares(lambda p: residual_fn(p)[inliers], x, loss="soft_l1", f_scale=0.5).x
+        x = soft_l1_fit(lambda p: residual_fn(p)[inliers], x, f_scale=0.5)
         res = residual_fn(x)
         inliers = np.abs(res) <= max(1.0, 3.0 * sigma)
     return x, inliers

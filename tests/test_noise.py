@@ -292,3 +292,42 @@ def test_recover_auto_noise_leaves_out_what_the_users_mask_leaves_out():
         np.testing.assert_allclose(a_hat * level + b_hat, a * level + b, rtol=0.25, err_msg=str(q))
     level = np.quantile(clean[(shade > 0) & mask], 0.5, axis=0)
     assert np.all(unmasked_a * level + unmasked_b > 1.4 * (a * level + b))  # the label does read as noise
+
+
+def test_nonnegative_fit_is_scipy_nnls():
+    """A second implementation: ``scipy.optimize.nnls`` on two-unknown problems whose solution lies on
+    each face of the constraints (both free, the slope at zero, the offset at zero, both at zero),
+    on a zero column, and on the estimate's own kind of design (bin levels and weights)."""
+    from scipy.optimize import nnls
+
+    from mi_bivariate.noise import nonnegative_fit
+
+    rng = np.random.default_rng(3)
+    x = np.linspace(0.0, 2.0, 12)
+    ones = np.ones_like(x)
+    cases = [(np.stack([x, ones], 1), 0.3 * x + 0.1),          # both free
+             (np.stack([x, ones], 1), -0.3 * x + 0.5),         # slope at zero
+             (np.stack([x, ones], 1), 0.4 * x - 0.2),          # offset at zero
+             (np.stack([x, ones], 1), -0.4 * x - 0.2),         # both at zero
+             (np.stack([np.zeros_like(x), ones], 1), x),        # a zero column
+             (np.stack([x, x], 1), 0.5 * x)]                    # collinear columns
+    for _ in range(200):
+        w = rng.uniform(0.1, 10.0, 12)
+        cases.append((np.stack([rng.uniform(0, 3, 12), ones], 1) * w[:, None], rng.normal(0.0, 1.0, 12) * w))
+    for scale in (1e-20, 1e20):  # an image's scale: the columns differ by it (both faces active and not)
+        w = rng.uniform(0.5, 2.0, 12) / scale**2
+        for slope, offset in ((0.01, 1e-3), (0.01, -1e-3)):
+            variance = (slope * x + offset) * scale**2 * (1 + 0.05 * rng.standard_normal(12))
+            cases.append((np.stack([x * scale, ones], 1) * w[:, None], variance * w))
+    w = np.where(np.arange(12) < 6, 1e300, 1.0)  # the estimate's weight of a bin of no noise (variance 1e-300)
+    cases.append((np.stack([x, ones], 1) * w[:, None], (0.3 * x + 1e-3) * w * 1e-300))
+    for design, target in cases:
+        ours = np.array(nonnegative_fit(design, target))
+        theirs, _ = nnls(design, target)
+        assert np.all(ours >= 0) and np.all(np.isfinite(ours))
+        scale = np.max(np.abs(design), axis=0)
+        scale = np.where(scale > 0, scale, 1.0)  # the columns by their size: the estimate's differ by 1e20
+        residual, best = (np.linalg.norm((design / scale) @ (sol * scale) - target) for sol in (ours, theirs))
+        assert residual <= best * (1 + 1e-9) + 1e-14 * np.max(np.abs(target))
+        if np.linalg.matrix_rank(design / scale) == 2:  # unique solution
+            np.testing.assert_allclose(ours * scale, theirs * scale, rtol=1e-7, atol=1e-12 * np.max(np.abs(theirs * scale)))

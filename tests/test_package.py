@@ -247,3 +247,26 @@ def test_every_script_answers_help_and_does_no_work():
     wrong = [(name, rc, err) for name, rc, out, err in answers if rc != 0 or not out.startswith("usage:")]
     assert not wrong, wrong
     assert {p: p.stat().st_mtime_ns for p in (ROOT / "mi_bivariate" / "data").iterdir()} == packaged
+
+
+def test_recover_from_a_photo_does_not_import_scipy_optimize(tmp_path):
+    """``scipy.optimize`` costs a ``recover`` process ~0.2 s of imports (issue 10's 2 s budget) for ~30
+    solvers it does not use: the sphere fit (:func:`spherefit.soft_l1_fit`) and the noise estimate
+    (:func:`noise.nonnegative_fit`) do without it. In a fresh interpreter, the command line's modules and
+    a whole recovery from a photo (the sphere found in the image, the noise estimated) leave it unloaded."""
+    code = """
+import sys, numpy as np
+import mi_bivariate.commands
+from mi_bivariate.probes import Probe
+from mi_bivariate.render import render_sphere
+from mi_bivariate.recover import recover
+from mi_bivariate.spherefit import fit_sphere
+probe = Probe(np.full((16, 32, 3), 0.5, np.float32))
+shot = render_sphere({"type": "diffuse"}, probe, resolution=64, spp=16)
+fit = fit_sphere(shot.image)
+result = recover(shot.image, probe, fit.geometry, n_normals=300, n_dirs=1000)
+print("fitted", round(fit.radius), result.brdf.table.shape, "optimize:", "scipy.optimize" in sys.modules)
+"""
+    out = _fresh_python(code, tmp_path)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "optimize: False" in out.stdout, out.stdout
