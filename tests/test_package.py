@@ -139,6 +139,26 @@ def test_console_script_freezes_the_imports_and_main_leaves_the_collector_alone(
     assert scripts and scripts.group(1) == "mi_bivariate.__main__:main"  # run, behind the early Ctrl-C guard
 
 
+def test_console_script_runs_no_collection_while_the_pipeline_loads():
+    """In its own process (``run``) the command line turns the cyclic garbage collector off while the
+    pipeline's modules load (``mi_bivariate.commands`` initialising), then freezes them and turns it back
+    on: no collection (the old code ran ~170, one of them full) and the collector enabled afterwards."""
+    code = ("import gc, sys\n"
+            "during = []\n"
+            "def seen(phase, info):\n"
+            "    module = sys.modules.get('mi_bivariate.commands')\n"
+            "    if phase == 'start' and module is not None and getattr(module.__spec__, '_initializing', False):\n"
+            "        during.append(info['generation'])\n"
+            "gc.callbacks.append(seen)\n"
+            "import mi_bivariate.cli as cli\n"
+            "sys.argv = ['mi-bivariate', 'info']\n"
+            "assert cli.run() == 0\n"
+            "print('collections while loading:', len(during), 'enabled:', gc.isenabled())\n")
+    out = _fresh_python(code, ROOT)
+    assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-2000:]
+    assert "collections while loading: 0 enabled: True" in out.stdout, out.stdout[-2000:]
+
+
 def test_console_script_exit_status_on_bad_input(tmp_path):
     """Through ``run`` (``python -m mi_bivariate.cli``), bad input still ends in one line and status 2."""
     missing = tmp_path / "missing.exr"
