@@ -364,3 +364,18 @@ def test_png_previews_are_srgb_encoded_and_rounded(tmp_path):
         mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.UInt8, srgb_gamma=True)).astype(int)
     ours = np.asarray(Image.open(tmp_path / "ramp.png").convert("RGB")).astype(int)
     assert np.abs(ours - mitsuba_codes).max() <= 1
+
+
+def test_render_like_at_render_spheres_own_geometry_is_render_sphere_and_follows_the_seed():
+    """Two implementations of one camera: ``render_like`` given the geometry ``render_sphere`` reports (centred,
+    radius 0.45 x the size) builds the same scene, so at the same samples and seed it renders the same pixels;
+    another seed renders other pixels (before, a seed or spp dropped on the way to Mitsuba went unseen)."""
+    probe = lopsided_probe(8)
+    ref = render_sphere(DIFFUSE, probe, resolution=16, spp=8, seed=3)
+    like = render_like(DIFFUSE, probe, ref.geometry, 16, 16, spp=8, seed=3)
+    np.testing.assert_array_equal(like.image, ref.image)
+    # render_sphere's normals (Mitsuba's, averaged over the pixel) are unit vectors to float32 rounding.
+    np.testing.assert_allclose(np.linalg.norm(ref.normals[ref.mask].astype(np.float64), axis=-1), 1.0, atol=1e-6)
+    assert (like.spp, like.seed) == (8, 3)
+    other = render_like(DIFFUSE, probe, ref.geometry, 16, 16, spp=8, seed=4)
+    assert not np.array_equal(other.image, ref.image)
