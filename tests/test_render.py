@@ -379,3 +379,25 @@ def test_render_like_at_render_spheres_own_geometry_is_render_sphere_and_follows
     assert (like.spp, like.seed) == (8, 3)
     other = render_like(DIFFUSE, probe, ref.geometry, 16, 16, spp=8, seed=4)
     assert not np.array_equal(other.image, ref.image)
+
+
+def test_brdf_objects_render_what_their_merl_file_renders(tmp_path):
+    """A MERLBRDF and an analytic BRDF handed to ``render_sphere`` as objects (tabulated into the plugin's
+    bitmap) render the pixels their MERL ``.binary`` file renders (read by the plugin itself), for a BRDF that
+    varies with theta_h, theta_d and phi_d differently: a table passed with its axes swapped would not."""
+
+    class Skewed:
+        name = "skewed"
+
+        def eval(self, theta_h, theta_d, phi_d):
+            lobe = 0.1 + 2.0 * np.exp(-theta_h / 0.2) * (1.0 + 0.5 * np.cos(phi_d)) + 0.4 * theta_d
+            return lobe[..., None] * np.array([1.0, 0.7, 0.4])
+
+    merl = MERLBRDF.from_function(Skewed().eval, "skewed", dtype=np.float32)
+    merl.write(tmp_path / "skewed.binary")
+    probe = lopsided_probe(8)
+    kwargs = dict(resolution=16, spp=4, seed=2)
+    from_file = render_sphere(tmp_path / "skewed.binary", probe, **kwargs).image
+    assert from_file.max() > 0.0
+    np.testing.assert_allclose(render_sphere(merl, probe, **kwargs).image, from_file, rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(render_sphere(Skewed(), probe, **kwargs).image, from_file, rtol=1e-5, atol=1e-7)
