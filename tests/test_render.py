@@ -424,3 +424,11 @@ def test_render_mesh_hides_the_probe_follows_the_seed_and_uses_its_depth():
     assert not np.array_equal(render_mesh(white, probe, view, spp=16, seed=2), image)
     deeper = render_mesh(white, probe, view, spp=16, seed=1, max_depth=3)
     assert not np.array_equal(deeper, image) and deeper.mean() > 1.01 * image.mean()   # 1.04 x measured
+
+
+def test_a_bsdf_dictionary_without_a_type_is_refused_in_one_line():
+    """A dictionary is passed to Mitsuba as it is; one without ``type`` is named as the BSDF's problem before
+    any scene is built (not Mitsuba's error from deep inside ``load_dict``)."""
+    with pytest.raises(InputError, match="needs a 'type' entry") as info:
+        bsdf_dict({"reflectance": {"type": "rgb", "value": 0.5}})
+    assert info.value.source == "bsdf"
