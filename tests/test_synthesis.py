@@ -409,3 +409,13 @@ def test_ladder_sizes_never_exceed_the_configurations_directions():
     """Rungs floored at LADDER_MIN directions above the configuration's own are dropped (as for normals)."""
     assert synthesis.ladder_sizes(8000, 100) == []
     assert synthesis.ladder_sizes(8000, 300) == [(1000, 250), (2000, 250), (4000, 250)]
+
+
+def test_lambertian_start_of_a_channel_the_lighting_never_reaches_is_zero():
+    """A channel whose lighting-matrix rows are all 0 (``||L 1||^2 = 0``: a probe black in that channel) has
+    no least-squares constant: 0, not NaN from 0 / 0; the other channels keep theirs."""
+    L = np.random.default_rng(3).uniform(0.0, 1.0, (30, 9, 3))
+    L[:, :, 2] = 0.0
+    y = L.sum(axis=1) * np.array([0.3, 0.2, 0.1])
+    with np.errstate(all="raise"):
+        np.testing.assert_allclose(synthesis.lambertian_start(L, y), [0.3, 0.2, 0.0], rtol=1e-12, atol=0)
