@@ -419,3 +419,25 @@ def test_lambertian_start_of_a_channel_the_lighting_never_reaches_is_zero():
     y = L.sum(axis=1) * np.array([0.3, 0.2, 0.1])
     with np.errstate(all="raise"):
         np.testing.assert_allclose(synthesis.lambertian_start(L, y), [0.3, 0.2, 0.0], rtol=1e-12, atol=0)
+
+
+def test_first_adam_step_follows_the_hand_computed_smoothness_gradient():
+    """Adam's first step moves each entry of ``log f`` by the learning rate against the sign of its gradient.
+    With the smoothness weight so large that the image's term is negligible, that sign is the one of the
+    gradient of sum((Delta_t log f)^2) + sum((Delta_s log f)^2) computed here by hand (an entry minus each of its
+    up to four st neighbours, per channel): a term dropped, taken along the wrong axis or of the wrong sign
+    moves some entries the wrong way."""
+    probe, truth, shot = _sky_shot()
+    rng = np.random.default_rng(16)
+    g = np.log(truth) + rng.uniform(-1.0, 1.0, truth.shape)      # log f of the start, (4, 4, 3)
+    grad = np.zeros_like(g)
+    grad[1:] += 2.0 * (g[1:] - g[:-1])
+    grad[:-1] -= 2.0 * (g[1:] - g[:-1])
+    grad[:, 1:] += 2.0 * (g[:, 1:] - g[:, :-1])
+    grad[:, :-1] -= 2.0 * (g[:, 1:] - g[:, :-1])
+    assert np.abs(grad).min() > 0.2                               # every sign decided
+    settings = synthesis.SynthesisSettings(spp=1, learning_rate=0.05, smoothness=1e5, seed=3)
+    start = np.exp(g).astype(np.float32)
+    run = synthesis.optimise_table(shot.image, shot.mask, probe, start, settings, budget_s=1e9, max_iterations=1)
+    step = np.log(run["table"]) - np.log(start.astype(np.float64))
+    np.testing.assert_allclose(step, -0.05 * np.sign(grad), rtol=1e-3)
