@@ -441,3 +441,34 @@ def test_first_adam_step_follows_the_hand_computed_smoothness_gradient():
     run = synthesis.optimise_table(shot.image, shot.mask, probe, start, settings, budget_s=1e9, max_iterations=1)
     step = np.log(run["table"]) - np.log(start.astype(np.float64))
     np.testing.assert_allclose(step, -0.05 * np.sign(grad), rtol=1e-3)
+
+
+def test_optimise_table_clock_budget_and_early_stop(monkeypatch):
+    """A stand-in clock that advances 5 s per reading (two readings an iteration: 5 s an iteration) and 1000 s
+    during each checkpoint: the clock counts the iterations only (5, 10, 15 s), the run stops at the first
+    iteration that reaches the 12 s budget, and a checkpoint that answers True stops it at once."""
+    import types
+
+    probe, truth, shot = _sky_shot()
+    now = [0.0]
+
+    def perf_counter():
+        now[0] += 5.0
+        return now[0]
+
+    monkeypatch.setattr(synthesis, "time", types.SimpleNamespace(perf_counter=perf_counter))
+    settings = synthesis.SynthesisSettings(spp=1, seed=3)
+    seen = []
+
+    def checkpoint(it, clock, loss, table):
+        seen.append((it, clock))
+        now[0] += 1000.0                                          # a slow checkpoint: not on the clock
+        return False
+
+    run = synthesis.optimise_table(shot.image, shot.mask, probe, truth, settings, budget_s=12.0, max_iterations=6,
+                                   eval_every=1, on_checkpoint=checkpoint)
+    assert seen == [(1, 5.0), (2, 10.0), (3, 15.0)]
+    assert run["iterations"] == 3 and run["time_s"] == 15.0 and len(run["losses"]) == 3
+    stop = synthesis.optimise_table(shot.image, shot.mask, probe, truth, settings, budget_s=1e9, max_iterations=6,
+                                    eval_every=1, on_checkpoint=lambda it, clock, loss, table: it == 2)
+    assert stop["iterations"] == 2 and len(stop["losses"]) == 2
