@@ -472,3 +472,32 @@ def test_optimise_table_clock_budget_and_early_stop(monkeypatch):
     stop = synthesis.optimise_table(shot.image, shot.mask, probe, truth, settings, budget_s=1e9, max_iterations=6,
                                     eval_every=1, on_checkpoint=lambda it, clock, loss, table: it == 2)
     assert stop["iterations"] == 2 and len(stop["losses"]) == 2
+
+
+def test_optimise_table_loss_is_the_masked_relative_error_of_a_furnace():
+    """Closed form: a Lambertian table rho / pi under a constant probe of radiance 1 renders rho on every fully
+    covered pixel, so a start k x that table against an image of rho has loss (k - 1)^2 plus the render's own
+    noise, whatever the mask. Here the mask is the left half of the sphere and every pixel outside it is NaN:
+    a loss that counted unmasked pixels or was normalised by them would be far off."""
+    from dataclasses import replace
+
+    from mi_bivariate.geometry import SphereCamera
+
+    _sky_shot()                                                   # the variant, as the tests above
+    probe = Probe.constant(1.0, 8)
+    rho = np.array([0.5, 0.3, 0.2])
+    full = SphereCamera.create("orthographic", 16, radius_fraction=0.45).coverage_mask()
+    mask = full & (np.arange(16)[None, :] < 8)
+    image = np.where(mask[..., None], rho, np.nan).astype(np.float32)
+    settings = synthesis.SynthesisSettings(spp=4, learning_rate=1e-9, smoothness=0.0, sampling="cosine", seed=3)
+    losses = {}
+    for k in (1.0, 2.0):
+        start = np.broadcast_to(k * rho / np.pi, (4, 4, 3)).astype(np.float32)
+        losses[k] = synthesis.optimise_table(image, mask, probe, start, settings, budget_s=1e9,
+                                             max_iterations=2)["losses"]
+    assert max(losses[1.0]) < 0.05                 # the render's own noise (0.016 measured on the whole sphere)
+    assert all(0.95 < loss < 1.2 for loss in losses[2.0]), losses   # (2 - 1)^2 plus that noise
+    # The plugin's sampling is the settings': the table's own importance sampling draws other directions.
+    table = synthesis.optimise_table(image, mask, probe, np.broadcast_to(rho / np.pi, (4, 4, 3)).astype(np.float32),
+                                     replace(settings, sampling="table"), budget_s=1e9, max_iterations=2)
+    assert table["losses"] != losses[1.0] and max(table["losses"]) < 0.1
