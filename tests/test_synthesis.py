@@ -501,3 +501,49 @@ def test_optimise_table_loss_is_the_masked_relative_error_of_a_furnace():
     table = synthesis.optimise_table(image, mask, probe, np.broadcast_to(rho / np.pi, (4, 4, 3)).astype(np.float32),
                                      replace(settings, sampling="table"), budget_s=1e9, max_iterations=2)
     assert table["losses"] != losses[1.0] and max(table["losses"]) < 0.1
+
+
+
+def test_speedup_and_time_to_the_linear_error_when_abs_improves_but_never_reaches_the_linear_route(monkeypatch):
+    """Scripted errors and times (the start's relight error 0.5; AbS's checkpoints 0.4 at 1 s, 0.3 at 2 s; the
+    linear route 0.2 in 0.5 s): AbS's best is 0.3 at 2 s and the linear route is at least as good, so the
+    speedup is 2 s / 0.5 s = 4 (not its inverse), and AbS never reached the linear relight error (no time)."""
+    scripted = {0.5: 0.5, 0.4: 0.4, 0.3: 0.3}               # a table's first node -> its relight error
+
+    def relight_error(table_or_brdf, renderer, probe, probe_spec, truth, seed):
+        table = table_or_brdf if isinstance(table_or_brdf, np.ndarray) else table_or_brdf.table
+        return scripted.get(round(float(table[0, 0, 0]), 6), 0.2)   # the linear table (0.1) and the floor: 0.2
+
+    def optimise_table(image, mask, probe, start, settings, budget_s=60.0, max_iterations=100000, eval_every=10,
+                       on_checkpoint=None):
+        tables = [np.full_like(np.asarray(start), value) for value in (0.4, 0.3)]
+        if on_checkpoint is not None:
+            for it, table in enumerate(tables, start=1):
+                on_checkpoint(it, float(it), 0.5, table)
+        return {"iterations": 2, "time_s": 2.0, "losses": [0.5, 0.5], "table": tables[-1]}
+
+    def linear_run(shot, probe, config, n_normals, n_dirs, repeats, quiet=False, priors=(None, None)):
+        rec = type("Rec", (), {"brdf": BivariateBRDF(np.full((8, 8, 3), 0.1)), "lighting_matrix": None,
+                               "observations": type("Obs", (), {"values": None})()})()
+        return rec, {"n_normals": n_normals, "n_dirs": n_dirs, "grid": [8, 8], "time_s": 0.5}
+
+    class BRDFErrors:
+        def __init__(self, truth):
+            pass
+
+        def __call__(self, brdf):
+            return {"eq1": 0.1, "eq1_min": 0.1, "log": 0.1, "cosine": 0.1, "eq1_rgb": [0.1] * 3}
+
+    monkeypatch.setattr(synthesis, "relight_error", relight_error)
+    monkeypatch.setattr(synthesis, "render_noise", lambda *args: 0.0)
+    monkeypatch.setattr(synthesis, "optimise_table", optimise_table)
+    monkeypatch.setattr(synthesis, "linear_run", linear_run)
+    monkeypatch.setattr(synthesis.metrics, "BRDFErrors", BRDFErrors)
+    monkeypatch.setattr(synthesis, "lambertian_start", lambda L, values: np.full(3, 0.5))
+    config = _tiny_abs_config(monkeypatch)
+    r = synthesis.analysis_by_synthesis("ggx:diffuse=0.2,specular=0.5,alpha=0.2", "synthetic:1", config=config,
+                                        linear_ladder=(), ladder_grid_fractions=(), ladder_repeats=1)
+    assert [t["relight"] for t in r["trace"]] == [0.5, 0.4, 0.3] and r["linear"]["relight"] == 0.2
+    assert r["abs"]["best_relight"] == 0.3 and r["abs"]["best_relight_time_s"] == 2.0
+    assert r["speedup"] == pytest.approx(4.0) and r["ladder_speedup"] == pytest.approx(4.0)
+    assert r["abs"]["reached_linear_relight"] is False and r["abs"]["time_to_linear_relight_s"] is None
