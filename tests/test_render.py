@@ -432,3 +432,18 @@ def test_a_bsdf_dictionary_without_a_type_is_refused_in_one_line():
     with pytest.raises(InputError, match="needs a 'type' entry") as info:
         bsdf_dict({"reflectance": {"type": "rgb", "value": 0.5}})
     assert info.value.source == "bsdf"
+
+
+def test_bsdf_dict_passes_sampling_and_interpolation_on_for_every_source(tmp_path):
+    """``sampling`` (and the ``merl`` plugin's ``interpolation``) reach the plugin whatever the source: before, a
+    BivariateBRDF's dictionary could drop ``sampling`` unseen (the plugin's default is ``"table"``), and the
+    benchmarks compare the two samplings through it."""
+    biv = BivariateBRDF(np.full((4, 4, 3), 0.1))
+    biv.save(tmp_path / "b.npz")
+    for source in (biv, tmp_path / "b.npz"):
+        assert bsdf_dict(source, sampling="cosine")["sampling"] == "cosine"
+    merl = biv.to_merl()
+    merl.write(tmp_path / "m.binary")
+    for source in (merl, tmp_path / "m.binary", Lambertian(0.5)):
+        d = bsdf_dict(source, interpolation="nearest", sampling="cosine")
+        assert (d["type"], d["interpolation"], d["sampling"]) == ("merl", "nearest", "cosine")
