@@ -255,6 +255,11 @@ class BasisPrior:
                 or arrays["variances"].shape != (arrays["basis"].shape[1],) or arrays["residual"].shape != (n,)
                 or not all(np.all(np.isfinite(a)) for a in arrays.values()) or np.any(arrays["variances"] <= 0)):
             raise InputError(path, "basis prior arrays are inconsistent or non-finite")
+        provenance = meta.get("provenance")
+        eps = provenance.get("eps", EPS) if isinstance(provenance, dict) else EPS
+        if eps != EPS:  # predict reads the shapes with this module's log map: another offset misreads them
+            raise InputError(path, f"learnt with the log map's offset eps = {eps!r}, but this version uses {EPS}",
+                             "learn it again with mi-bivariate learn-prior")
         return cls(arrays["mean"], arrays["basis"], arrays["variances"], arrays["residual"], n_t, n_s,
                    provenance_dict(meta.get("provenance"), path))
 

@@ -611,3 +611,24 @@ def test_a_leave_one_out_prior_is_learnt_from_the_other_materials_rows_only(monk
     for pair in want.pairs:
         for got, ref in zip(smooth.pairs[pair], want.pairs[pair]):
             np.testing.assert_array_equal(got, ref)
+
+
+def test_a_basis_prior_learnt_with_another_log_offset_is_refused_naming_it(tmp_path):
+    """``predict`` maps tables with this module's ``EPS``; a file whose provenance says it was learnt with another
+    offset would be read through the wrong log map without a word: it is refused, naming the file. A file with
+    this EPS (or, as older files, none recorded) loads."""
+    from mi_bivariate.basis_prior import EPS
+
+    for eps, ok in ((EPS, True), (None, True), (10 * EPS, False)):
+        prior = _toy_prior()
+        prior.provenance = {k: v for k, v in prior.provenance.items() if k != "eps"}
+        if eps is not None:
+            prior.provenance["eps"] = eps
+        path = tmp_path / f"basis_{eps}.npz"
+        prior.save(path)
+        if ok:
+            assert BasisPrior.load(path).n_t == prior.n_t
+        else:
+            with pytest.raises(InputError, match="offset eps = 0.01") as info:
+                BasisPrior.load(path)
+            assert info.value.source == str(path)
