@@ -352,7 +352,8 @@ def main(argv: Optional[Sequence[str]] = None, *, own_process: bool = False) -> 
     with the code before (``benchmarks/ab_revision.py REV --stages end-to-end,solve``, 2 cores):
     2.30 -> 2.03 s median, with the unchanged solve as control at 1.07x, so a gain of ~6-13%.
     The collector is also off while the pipeline loads: the ~170 collections it ran during the
-    imports (one of them full) walked the growing heap for nothing, 0.05-0.1 s of a process.
+    imports (one of them full) walked the growing heap for nothing: 0.09-0.19 s of collector time in
+    one ``recover --no-report`` process, 0.01-0.02 s without them (two processes each, load 9-15).
     Tests and notebooks calling :func:`main` keep the default, which leaves the collector as it is.
     """
     parser = build_parser()

@@ -116,9 +116,9 @@ def nonnegative_fit(design: np.ndarray, target: np.ndarray) -> Tuple[float, floa
     both: the one-unknown fits clipped at zero). Each face's own least-squares fit that is feasible is a
     candidate, and the candidate with the smallest residual is the solution (what
     ``scipy.optimize.nnls`` returns, without importing ``scipy.optimize``, which costs a ``recover``
-    process ~0.2 s for ~30 solvers it does not use; ``tests/test_noise.py`` compares the two). The
-    columns and the target are first scaled by their largest magnitudes (a positive scaling keeps the
-    constraints): the estimate's columns differ by the image's scale, 1e20 for a very bright image.
+    process ~0.09 s of imports, bytecode compiled, for ~30 solvers it does not use;
+    ``tests/test_noise.py`` compares the two). The columns and the target are first scaled by their
+    largest magnitudes (a positive scaling keeps the constraints): the estimate's columns differ by the image's scale, 1e20 for a very bright image.
 
     Args:
         design: ``(n, 2)`` finite float64.

@@ -270,7 +270,7 @@ def test_every_script_answers_help_and_does_no_work():
 
 
 def test_recover_from_a_photo_does_not_import_scipy_optimize(tmp_path):
-    """``scipy.optimize`` costs a ``recover`` process ~0.2 s of imports (issue 10's 2 s budget) for ~30
+    """``scipy.optimize`` costs a ``recover`` process ~0.09 s of imports (issue 10's 2 s budget) for ~30
     solvers it does not use: the sphere fit (:func:`spherefit.soft_l1_fit`) and the noise estimate
     (:func:`noise.nonnegative_fit`) do without it. In a fresh interpreter, the command line's modules and
     a whole recovery from a photo (the sphere found in the image, the noise estimated) leave it unloaded."""
