@@ -159,6 +159,44 @@ def test_console_script_runs_no_collection_while_the_pipeline_loads():
     assert "collections while loading: 0 enabled: True" in out.stdout, out.stdout[-2000:]
 
 
+def test_console_script_defers_the_numpy_modules_scipy_touches_and_they_work_when_used():
+    """In its own process (``run``) the command line registers ``numpy.f2py``, ``numpy.testing``,
+    ``numpy.ma`` and ``numpy.polynomial`` as lazy modules before the pipeline loads (scipy's vendored
+    ``array_api_compat`` touches every numpy attribute, which imported them all): none of their code has
+    run once the pipeline is loaded, and each works on its first use. ``main`` called from Python leaves
+    numpy as it is (there, loading the pipeline imports them, as before)."""
+    code = ("import importlib, sys, mi_bivariate.cli as cli\n"
+            "def loaded():\n"
+            "    return sorted(m for m in ('numpy.f2py.crackfortran', 'numpy.testing._private.utils', "
+            "'numpy.ma.core', 'numpy.polynomial.polynomial') if m in sys.modules)\n"
+            "def stand_in(args):\n"
+            "    print('while the command runs:', loaded())\n"
+            "    import numpy as np, numpy.ma as ma, numpy.testing as npt\n"
+            "    from numpy.polynomial import Polynomial\n"
+            "    npt.assert_allclose(np.ones(2), 1.0)\n"
+            "    print('used:', float(ma.masked_array([1.0, 5.0], mask=[0, 1]).sum()), Polynomial([1, 2])(3.0), "
+            "np.f2py.__name__, np.testing is npt, loaded())\n"
+            "    return 0\n"
+            "real = importlib.import_module\n"
+            "def load(name, *args):  # the pipeline loads inside run, as for a user; its command is replaced\n"
+            "    module = real(name, *args)\n"
+            "    if name == 'mi_bivariate.commands':\n"
+            "        module.COMMANDS['info'] = stand_in\n"
+            "    return module\n"
+            "importlib.import_module = load\n"
+            "sys.argv = ['mi-bivariate', 'info']\n"
+            "assert cli.run() == 0\n")
+    out = _fresh_python(code, ROOT)
+    assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-2000:]
+    assert "while the command runs: []" in out.stdout, out.stdout[-2000:]
+    assert ("used: 1.0 7.0 numpy.f2py True ['numpy.f2py.crackfortran', 'numpy.ma.core', "
+            "'numpy.polynomial.polynomial', 'numpy.testing._private.utils']") in out.stdout, out.stdout[-2000:]
+    control = _fresh_python("import sys, mi_bivariate.cli as cli, mi_bivariate.commands\n"
+                            "assert cli.main(['info']) == 0\n"
+                            "print('f2py ran:', 'numpy.f2py.crackfortran' in sys.modules)\n", ROOT)
+    assert control.returncode == 0 and "f2py ran: True" in control.stdout, control.stdout[-2000:] + control.stderr
+
+
 def test_console_script_exit_status_on_bad_input(tmp_path):
     """Through ``run`` (``python -m mi_bivariate.cli``), bad input still ends in one line and status 2."""
     missing = tmp_path / "missing.exr"
