@@ -37,7 +37,7 @@ from mi_bivariate import adequacy, baselines, lighting, nbrdf
 from mi_bivariate.bivariate import _ST_MAX
 from mi_bivariate.coordinates import grid_nodes, half_diff_from_st
 from mi_bivariate.evaluate.config import EvalConfig
-from mi_bivariate.merl import MERLBRDF, geometric_mask, node_angles
+from mi_bivariate.merl import MERLBRDF, above_horizon, geometric_mask, node_angles
 from mi_bivariate.metrics import BRDFErrors
 from mi_bivariate.threads import jit_threads
 from mi_bivariate.variants import ensure_variant
@@ -46,18 +46,10 @@ from mi_bivariate.variants import ensure_variant
 METRICS = (("eq1", "Eq. 1 all cells"), ("eq1_min", "Eq. 1 f > 1e-3"), ("eq1_observed", "Eq. 1 observed"))
 
 
-def old_above_horizon(theta_h, theta_d, phi_d) -> np.ndarray:
-    """``merl.above_horizon`` before the fix: heights compared with ``> 0.0`` (radians, broadcast; bool)."""
-    theta_h, theta_d, phi_d = (np.asarray(a, np.float64) for a in (theta_h, theta_d, phi_d))
-    along = np.cos(theta_d) * np.cos(theta_h)
-    across = np.sin(theta_d) * np.sin(theta_h) * np.cos(phi_d)
-    return (along - across > 0.0) & (along + across > 0.0)
-
-
 def old_geometric_mask() -> np.ndarray:
     """``(90, 90, 180) bool``: ``merl.geometric_mask`` before the fix."""
     theta_h, theta_d, phi_d = node_angles()
-    return old_above_horizon(theta_h[:, None, None], theta_d[None, :, None], phi_d[None, None, :])
+    return above_horizon(theta_h[:, None, None], theta_d[None, :, None], phi_d[None, None, :], height=0.0)
 
 
 class OldHorizonMERL(MERLBRDF):
@@ -82,7 +74,7 @@ def fit_is_unchanged(grid) -> None:
     theta_h, _ = half_diff_from_st(0.0, np.minimum(grid_nodes(n_t), _ST_MAX))
     _, theta_d = half_diff_from_st(np.minimum(grid_nodes(n_s), _ST_MAX), 0.0)
     phi_d = np.arange(averager.valid.shape[2]) * (np.pi / averager.valid.shape[2])
-    old = old_above_horizon(theta_h[:, None, None], theta_d[None, :, None], phi_d[None, None, :])
+    old = above_horizon(theta_h[:, None, None], theta_d[None, :, None], phi_d[None, None, :], height=0.0)
     assert np.array_equal(old, averager.valid), "the fit's phi_d samples depend on the horizon test"
 
 

@@ -308,6 +308,13 @@ def test_nodes_exactly_on_the_horizon_are_not_above_it():
         assert not mask[i, j, 0] and mask[i, j, 1] and mask[i, j - 1, 0] and mask[i - 1, j, 0]
     assert not above_horizon(math.pi / 18.0, 4.0 * math.pi / 9.0, 0.0)  # 10 + 80 degrees
     assert above_horizon(math.pi / 18.0, 4.0 * math.pi / 9.0 - 1e-9, 0.0)
+    # height=0.0 is the old test, which kept both nodes (their heights round to ~1e-16 above 0) ...
+    theta_h, theta_d, phi_d = node_angles()
+    for i, j in on:
+        assert above_horizon(theta_h[i], theta_d[j], phi_d[0], height=0.0)
+        assert not above_horizon(theta_h[i], theta_d[j], phi_d[0])
+    # ... and a height is a height: at theta_h = 0 both directions are cos(theta_d) above the horizon.
+    assert above_horizon(0.0, math.pi / 3.0, 0.7, height=0.49) and not above_horizon(0.0, math.pi / 3.0, 0.7, height=0.51)
     table = analytic.to_merl(analytic.Lambertian(0.5)).table
     assert np.all(np.isnan(table[30, 80, 0])) and np.all(np.isnan(table[60, 50, 0]))
 
