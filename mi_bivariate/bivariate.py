@@ -189,7 +189,8 @@ class BivariateBRDF:
             InputError: naming ``brdf`` for an object that is none of these (a file name: read it
                 with :meth:`MERLBRDF.read` or :meth:`load` first), ``n_t``/``n_s`` off the grid limits,
                 or ``n_phi`` not a whole number from 1 with ``n_t * n_s * n_phi`` at most
-                :data:`~mi_bivariate.limits.MAX_REDUCE_SAMPLES`.
+                :data:`~mi_bivariate.limits.MAX_REDUCE_SAMPLES`, or an ``eval`` that returns
+                other than one RGB value per configuration.
         """
         n_t, n_s = check_grid((n_t, n_s), max_nodes=None)
         refuse_probe(brdf, "brdf", "reduce a MERLBRDF, a BRDF with eval() or a table")
@@ -220,7 +221,8 @@ class BivariateBRDF:
             th, td, pd = np.broadcast_arrays(theta_h[:, None, None], theta_d[None, :, None], phi_d[None, None, :])
             value = np.asarray(brdf.eval(th, td, pd), np.float64)
             if value.shape != th.shape + (3,):
-                raise ValueError(f"{brdf!r}.eval returned shape {value.shape}, expected {th.shape + (3,)}")
+                raise InputError("brdf", f"eval returned shape {value.shape} for angles of shape {th.shape}",
+                                 f"return one RGB value (1/sr) per configuration: shape {th.shape + (3,)}")
             valid = above_horizon(th, td, pd)[..., None] & np.isfinite(value)
             count = valid.sum(axis=2)
             with np.errstate(invalid="ignore", divide="ignore"):

@@ -471,6 +471,19 @@ def test_reduce_names_a_brdf_it_cannot_evaluate(brdf):
     assert info.value.source == "brdf" and "MERLBRDF.read(path)" in info.value.hint
 
 
+@pytest.mark.parametrize("channels", [(), (1,), (4,)], ids=["grey", "one channel", "RGBA"])
+def test_reduce_names_an_eval_of_the_wrong_shape(channels):
+    """A user's ``eval`` must give one RGB value per configuration; another shape was a bare ValueError with
+    the object's repr (now InputError naming ``brdf``, with the shape it must return)."""
+    class Grey:
+        def eval(self, theta_h, theta_d, phi_d):
+            return np.full(np.shape(theta_h) + channels, 0.3)
+
+    with pytest.raises(InputError, match=r"eval returned shape \(8, 6, 4" ) as info:
+        BivariateBRDF.reduce(Grey(), 8, 6, n_phi=4)
+    assert info.value.source == "brdf" and "(8, 6, 4, 3)" in info.value.hint
+
+
 @pytest.mark.parametrize("provenance", ["abc", [1, 2], {"materials": "brass"}])
 def test_reduce_checks_provenance(provenance):
     """Before, reduce merged it into its own record first: a string or a list raised a bare ValueError or
