@@ -32,7 +32,6 @@ Leave-one-out: a prior used to score a shared material must not have seen it;
 from __future__ import annotations
 
 import json
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Mapping, Optional, Sequence, Tuple
@@ -228,7 +227,6 @@ class BasisPrior:
             with open(tmp, "wb") as fh:
                 np.savez(fh, meta=np.array(json.dumps(meta)), mean=self.mean, basis=self.basis,
                          variances=self.variances, residual=self.residual)
-            os.chmod(tmp, 0o644)
 
     @classmethod
     def load(cls, path: PathLike) -> "BasisPrior":

@@ -57,7 +57,6 @@ operators never use them.
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 from typing import Any, Dict, Mapping, Optional, Sequence, Tuple, Union
 
@@ -431,7 +430,6 @@ class Prior:
         with atomic_path(path, suffix=".npz") as tmp:
             with open(tmp, "wb") as fh:
                 np.savez(fh, meta=np.array(json.dumps(meta)), **arrays)
-            os.chmod(tmp, 0o644)  # mkstemp makes 0600; a prior is a shareable data file
 
     @classmethod
     def load(cls, path: PathLike) -> "Prior":

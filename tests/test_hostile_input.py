@@ -1746,17 +1746,26 @@ def test_exr_colour_channels_are_found_whatever_their_case_and_rgb_comes_before_
 
 def test_outputs_get_the_permissions_a_plain_open_gives(tmp_path):
     """Outputs are written through mkstemp temporaries (mode 0600): renamed into place, they get what
-    ``open()`` under the process's umask gives (0644 under umask 022, 0660 under 007), not 0600."""
+    ``open()`` under the process's umask gives (0644 under umask 022, 0660 under 007), not 0600. The
+    priors too (``learn-prior``'s files), whose own chmod to 0644 was overridden by the rename anyway."""
     import stat
 
+    from mi_bivariate.basis_prior import BasisPrior
+    from mi_bivariate.prior import Prior
+
+    rng = np.random.default_rng(0)
+    basis = np.linalg.qr(rng.normal(size=(16, 2)))[0]
+    basis_prior = BasisPrior(np.zeros(16), basis, np.array([0.5, 0.2]), 0.1, 4, 4)
     for umask, mode in ((0o022, 0o644), (0o007, 0o660)):
         old = os.umask(umask)
         try:
             images.write_exr(tmp_path / f"{umask:o}.exr", np.ones((2, 2, 3), np.float32))
             images.write_png(tmp_path / f"{umask:o}.png", np.ones((2, 2, 3), np.float32))
+            Prior.uniform(4, 4).save(tmp_path / f"{umask:o}_prior.npz")
+            basis_prior.save(tmp_path / f"{umask:o}_basis.npz")
         finally:
             os.umask(old)
-        for suffix in (".exr", ".png"):
+        for suffix in (".exr", ".png", "_prior.npz", "_basis.npz"):
             assert stat.S_IMODE((tmp_path / f"{umask:o}{suffix}").stat().st_mode) == mode, (umask, suffix)
 
 
