@@ -431,7 +431,9 @@ def _defer_unused_numpy_modules() -> None:
     ``import mi_bivariate.commands`` with bytecode compiled (2026-12-07, this 2-core AMD EPYC VM):
     0.53-0.62 s with them, 0.45-0.53 s without. Only the command line's own process does this
     (:func:`main`'s ``own_process``): a program importing the toolkit keeps numpy as numpy made it.
-    Modules already loaded are left alone.
+    Modules already loaded are left alone. (Before Python 3.12 a lazy module's first use is not
+    thread-safe; the commands' worker threads use none of these modules, and the report draws on the
+    main thread.)
     """
     import numpy
 
