@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import ast
+import ctypes
 import importlib
 import os
 import pkgutil
@@ -195,6 +196,51 @@ def test_console_script_defers_the_numpy_modules_scipy_touches_and_they_work_whe
                             "assert cli.main(['info']) == 0\n"
                             "print('f2py ran:', 'numpy.f2py.crackfortran' in sys.modules)\n", ROOT)
     assert control.returncode == 0 and "f2py ran: True" in control.stdout, control.stdout[-2000:] + control.stderr
+
+
+_MALLOC_PROBE = """
+import ctypes, sys, threading
+import numpy as np
+class MallInfo2(ctypes.Structure):
+    _fields_ = [(n, ctypes.c_size_t) for n in ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks",
+                                                 "fsmblks", "uordblks", "fordblks", "keepcost")]
+libc = ctypes.CDLL(None)
+libc.mallinfo2.restype = MallInfo2
+kept = []
+def stand_in(args=None):
+    worker = threading.Thread(target=lambda: kept.append(np.ones(2 * 2**20)))  # 16 MiB on another thread
+    worker.start()
+    worker.join()
+    print("mapped MiB", round(libc.mallinfo2().hblkhd / 2**20), flush=True)
+    libc.malloc_stats()  # one "Arena N:" block per arena, on standard error
+    return 0
+import importlib
+import mi_bivariate.cli as cli
+real = importlib.import_module
+def load(name, *args):  # the pipeline loads inside the command line, as for a user; its command is replaced
+    module = real(name, *args)
+    if name == "mi_bivariate.commands":
+        module.COMMANDS["info"] = stand_in
+    return module
+importlib.import_module = load
+"""
+
+
+def test_console_script_keeps_freed_memory_in_one_arena():
+    """In its own process (``run``) the command line has glibc keep freed memory for the next arrays:
+    a worker thread's 16 MiB array comes from the one shared arena's heap, not from a mapping of its
+    own, and no second arena exists. ``main`` called from Python leaves the allocator as it is (there
+    the array is mapped, in a second arena)."""
+    if not hasattr(ctypes.CDLL(None), "mallinfo2"):
+        pytest.skip("needs glibc >= 2.33 (mallinfo2)")
+    own = _fresh_python(_MALLOC_PROBE + "sys.argv = ['mi-bivariate', 'info']\nassert cli.run() == 0\n", ROOT)
+    assert own.returncode == 0, own.stdout[-2000:] + own.stderr[-2000:]
+    mapped = int(re.search(r"mapped MiB (\d+)", own.stdout).group(1))
+    assert mapped < 16 and own.stderr.count("Arena ") == 1, own.stdout + own.stderr[-2000:]
+    control = _fresh_python(_MALLOC_PROBE + "assert cli.main(['info']) == 0\n", ROOT)
+    assert control.returncode == 0, control.stdout[-2000:] + control.stderr[-2000:]
+    mapped = int(re.search(r"mapped MiB (\d+)", control.stdout).group(1))
+    assert mapped >= 16 and control.stderr.count("Arena ") == 2, control.stdout + control.stderr[-2000:]
 
 
 def test_console_script_exit_status_on_bad_input(tmp_path):
