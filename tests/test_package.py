@@ -160,13 +160,31 @@ def test_console_script_runs_no_collection_while_the_pipeline_loads():
     assert "collections while loading: 0 enabled: True" in out.stdout, out.stdout[-2000:]
 
 
+#: Appended to a fresh interpreter's code that defines ``stand_in(args)``: ``mi-bivariate info`` through
+#: :func:`cli.run` (its own process), with the pipeline loading inside it as for a user and ``info``
+#: replaced by ``stand_in`` once it has loaded.
+_RUN_STAND_IN = """
+import importlib, sys
+import mi_bivariate.cli as cli
+real = importlib.import_module
+def load(name, *args):
+    module = real(name, *args)
+    if name == "mi_bivariate.commands":
+        module.COMMANDS["info"] = stand_in
+    return module
+importlib.import_module = load
+sys.argv = ["mi-bivariate", "info"]
+assert cli.run() == 0
+"""
+
+
 def test_console_script_defers_the_numpy_modules_scipy_touches_and_they_work_when_used():
     """In its own process (``run``) the command line registers ``numpy.f2py``, ``numpy.testing``,
     ``numpy.ma`` and ``numpy.polynomial`` as lazy modules before the pipeline loads (scipy's vendored
     ``array_api_compat`` touches every numpy attribute, which imported them all): none of their code has
     run once the pipeline is loaded, and each works on its first use. ``main`` called from Python leaves
     numpy as it is (there, loading the pipeline imports them, as before)."""
-    code = ("import importlib, sys, mi_bivariate.cli as cli\n"
+    code = ("import sys\n"
             "def loaded():\n"
             "    return sorted(m for m in ('numpy.f2py.crackfortran', 'numpy.testing._private.utils', "
             "'numpy.ma.core', 'numpy.polynomial.polynomial') if m in sys.modules)\n"
@@ -177,17 +195,8 @@ def test_console_script_defers_the_numpy_modules_scipy_touches_and_they_work_whe
             "    npt.assert_allclose(np.ones(2), 1.0)\n"
             "    print('used:', float(ma.masked_array([1.0, 5.0], mask=[0, 1]).sum()), Polynomial([1, 2])(3.0), "
             "np.f2py.__name__, np.testing is npt, loaded())\n"
-            "    return 0\n"
-            "real = importlib.import_module\n"
-            "def load(name, *args):  # the pipeline loads inside run, as for a user; its command is replaced\n"
-            "    module = real(name, *args)\n"
-            "    if name == 'mi_bivariate.commands':\n"
-            "        module.COMMANDS['info'] = stand_in\n"
-            "    return module\n"
-            "importlib.import_module = load\n"
-            "sys.argv = ['mi-bivariate', 'info']\n"
-            "assert cli.run() == 0\n")
-    out = _fresh_python(code, ROOT)
+            "    return 0\n")
+    out = _fresh_python(code + _RUN_STAND_IN, ROOT)
     assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-2000:]
     assert "while the command runs: []" in out.stdout, out.stdout[-2000:]
     assert ("used: 1.0 7.0 numpy.f2py True ['numpy.f2py.crackfortran', 'numpy.ma.core', "
@@ -214,15 +223,6 @@ def stand_in(args=None):
     print("mapped MiB", round(libc.mallinfo2().hblkhd / 2**20), flush=True)
     libc.malloc_stats()  # one "Arena N:" block per arena, on standard error
     return 0
-import importlib
-import mi_bivariate.cli as cli
-real = importlib.import_module
-def load(name, *args):  # the pipeline loads inside the command line, as for a user; its command is replaced
-    module = real(name, *args)
-    if name == "mi_bivariate.commands":
-        module.COMMANDS["info"] = stand_in
-    return module
-importlib.import_module = load
 """
 
 
@@ -233,11 +233,13 @@ def test_console_script_keeps_freed_memory_in_one_arena():
     the array is mapped, in a second arena)."""
     if not hasattr(ctypes.CDLL(None), "mallinfo2"):
         pytest.skip("needs glibc >= 2.33 (mallinfo2)")
-    own = _fresh_python(_MALLOC_PROBE + "sys.argv = ['mi-bivariate', 'info']\nassert cli.run() == 0\n", ROOT)
+    own = _fresh_python(_MALLOC_PROBE + _RUN_STAND_IN, ROOT)
     assert own.returncode == 0, own.stdout[-2000:] + own.stderr[-2000:]
     mapped = int(re.search(r"mapped MiB (\d+)", own.stdout).group(1))
     assert mapped < 16 and own.stderr.count("Arena ") == 1, own.stdout + own.stderr[-2000:]
-    control = _fresh_python(_MALLOC_PROBE + "assert cli.main(['info']) == 0\n", ROOT)
+    control = _fresh_python(_MALLOC_PROBE + "import mi_bivariate.cli as cli, mi_bivariate.commands as commands\n"
+                            "commands.COMMANDS['info'] = stand_in\n"
+                            "assert cli.main(['info']) == 0\n", ROOT)
     assert control.returncode == 0, control.stdout[-2000:] + control.stderr[-2000:]
     mapped = int(re.search(r"mapped MiB (\d+)", control.stdout).group(1))
     assert mapped >= 16 and control.stderr.count("Arena ") == 2, control.stdout + control.stderr[-2000:]
