@@ -435,7 +435,7 @@ def _keep_freed_memory() -> bool:
     a fault, with another thread mapping and unmapping beside it, costs tens of microseconds of
     system time. Measured, ``recover --no-report`` in fresh processes (2026-12-07, this 2-core AMD
     EPYC VM, nothing else running, the same settings as ``MALLOC_*`` environment variables, six
-    alternating rounds): system time 0.40-4.3 s (median 0.65) -> 0.22-1.5 s (median 0.27), page
+    alternating rounds): system time 0.40-4.3 s (median 0.68) -> 0.22-1.5 s (median 0.29), page
     faults ~55,000 -> ~47,000, wall 2.32-5.87 s (median 2.59) -> 2.17-3.45 s (median 2.40). The
     process's peak memory is what its largest moment needs either way; what it freed stays
     reserved until it ends. Called before any other thread exists (``M_ARENA_MAX`` binds threads
