@@ -371,7 +371,8 @@ def main(argv: Optional[Sequence[str]] = None, *, own_process: bool = False) -> 
     replaced: Dict[int, object] = {}
     try:
         if own_process:
-            _keep_freed_memory()  # first: before any thread allocates (see its notes)
+            if args.command in KEEP_FREED_MEMORY_COMMANDS:
+                _keep_freed_memory()  # first: before any thread allocates (see its notes)
             replaced = _stop_on_signals()
         if own_process:
             gc.disable()  # until the freeze: no collection walks what the imports build (see above)
@@ -421,6 +422,14 @@ def main(argv: Optional[Sequence[str]] = None, *, own_process: bool = False) -> 
 #: glibc's ``mallopt`` parameters (``<malloc.h>``) and the values :func:`_keep_freed_memory` sets.
 M_TRIM_THRESHOLD, M_MMAP_THRESHOLD, M_ARENA_MAX = -1, -3, -8
 MALLOC_SETTINGS = ((M_ARENA_MAX, 1), (M_MMAP_THRESHOLD, 32 * 2**20), (M_TRIM_THRESHOLD, 2**31 - 1))
+#: The commands whose process keeps freed memory: those it was measured on (one photo, or a batch
+#: of photos, each process short). ``evaluate`` (hours in one process with ``--jobs 1``), ``render``
+#: and ``demo`` keep glibc's defaults.
+KEEP_FREED_MEMORY_COMMANDS = ("recover", "recover-batch")
+#: The environment variables by which a user sets glibc's allocator: with any of them, or a
+#: ``glibc.malloc`` tunable in ``GLIBC_TUNABLES``, the allocator is left as the user chose.
+MALLOC_ENV_VARS = ("MALLOC_ARENA_MAX", "MALLOC_ARENA_TEST", "MALLOC_MMAP_MAX_", "MALLOC_MMAP_THRESHOLD_",
+                   "MALLOC_TOP_PAD_", "MALLOC_TRIM_THRESHOLD_")
 
 
 def _keep_freed_memory() -> bool:
@@ -438,9 +447,18 @@ def _keep_freed_memory() -> bool:
     alternating rounds): system time 0.40-4.3 s (median 0.68) -> 0.22-1.5 s (median 0.29), page
     faults ~55,000 -> ~47,000, wall 2.32-5.87 s (median 2.59) -> 2.17-3.45 s (median 2.40). The
     process's peak memory is what its largest moment needs either way; what it freed stays
-    reserved until it ends. Called before any other thread exists (``M_ARENA_MAX`` binds threads
-    that have not allocated yet); only the command line's own process does this.
+    reserved until it ends. Only the command line's own process does this, for
+    :data:`KEEP_FREED_MEMORY_COMMANDS`, and not where the user set the allocator
+    (:data:`MALLOC_ENV_VARS`) or on a 32-bit build (whose largest mmap threshold is 512 KiB).
+    Called before any other thread has allocated: ``M_ARENA_MAX`` binds the threads that allocate
+    afterwards, but a new thread first takes the arena of one that has ended. (numpy's OpenBLAS
+    threads exist by then, idle, and have not allocated.)
     """
+    tunables = os.environ.get("GLIBC_TUNABLES", "")
+    if any(name in os.environ for name in MALLOC_ENV_VARS) or "glibc.malloc." in tunables:
+        return False
+    if ctypes.sizeof(ctypes.c_void_p) != 8:
+        return False
     try:
         mallopt = ctypes.CDLL(None).mallopt
     except (OSError, AttributeError, TypeError):  # not glibc (macOS; Windows refuses CDLL(None))
@@ -465,9 +483,10 @@ def _defer_unused_numpy_modules() -> None:
     ``import mi_bivariate.commands`` with bytecode compiled (2026-12-07, this 2-core AMD EPYC VM):
     0.53-0.62 s with them, 0.45-0.53 s without. Only the command line's own process does this
     (:func:`main`'s ``own_process``): a program importing the toolkit keeps numpy as numpy made it.
-    Modules already loaded are left alone. (Before Python 3.12 a lazy module's first use is not
-    thread-safe; the commands' worker threads use none of these modules, and the report draws on the
-    main thread.)
+    Modules already loaded are left alone. Before Python 3.12 a lazy module's first use is not
+    thread-safe (a second thread touching it meanwhile finds it empty): the commands' worker threads
+    (``threads.thread_map``) use none of these modules, and what does (matplotlib, trimesh and
+    distributed import ``numpy.ma``) is imported on the main thread; keep it so.
     """
     import numpy
 
