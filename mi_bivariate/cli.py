@@ -374,7 +374,6 @@ def main(argv: Optional[Sequence[str]] = None, *, own_process: bool = False) -> 
             if args.command in KEEP_FREED_MEMORY_COMMANDS:
                 _keep_freed_memory()  # first: before any thread allocates (see its notes)
             replaced = _stop_on_signals()
-        if own_process:
             gc.disable()  # until the freeze: no collection walks what the imports build (see above)
         try:
             if own_process:
@@ -443,8 +442,8 @@ def _keep_freed_memory() -> bool:
     faulted in afresh (~55,000 page faults in one ``recover``), and on this project's 2-core VM such
     a fault, with another thread mapping and unmapping beside it, costs tens of microseconds of
     system time. Measured, ``recover --no-report`` in fresh processes (2026-12-07, this 2-core AMD
-    EPYC VM, nothing else running, the same settings as ``MALLOC_*`` environment variables, six
-    alternating rounds): system time 0.40-4.3 s (median 0.68) -> 0.22-1.5 s (median 0.29), page
+    EPYC VM, nothing else running, these settings as ``MALLOC_*`` environment variables, with the
+    trim threshold at 4 GiB, six alternating rounds): system time 0.40-4.3 s (median 0.68) -> 0.22-1.5 s (median 0.29), page
     faults ~55,000 -> ~47,000, wall 2.32-5.87 s (median 2.59) -> 2.17-3.45 s (median 2.40). The
     process's peak memory is what its largest moment needs either way; what it freed stays
     reserved until it ends. Only the command line's own process does this, for

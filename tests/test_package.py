@@ -18,6 +18,7 @@ import pytest
 from helpers import signal_when
 
 import mi_bivariate as mb
+from mi_bivariate import cli
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -83,8 +84,7 @@ def test_readme_python_loads_a_shared_probe_as_the_command_line_does(data_dir, m
 
 
 #: glibc's allocator settings in the environment (a test of the command line's own must not inherit them).
-_MALLOC_ENV = ("MALLOC_ARENA_MAX", "MALLOC_ARENA_TEST", "MALLOC_MMAP_MAX_", "MALLOC_MMAP_THRESHOLD_",
-               "MALLOC_TOP_PAD_", "MALLOC_TRIM_THRESHOLD_", "GLIBC_TUNABLES")
+_MALLOC_ENV = cli.MALLOC_ENV_VARS + ("GLIBC_TUNABLES",)
 
 
 def _fresh_python(code: str, cwd: Path, env_extra: Optional[dict] = None) -> subprocess.CompletedProcess:
