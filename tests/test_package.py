@@ -88,9 +88,10 @@ _MALLOC_ENV = cli.MALLOC_ENV_VARS + ("GLIBC_TUNABLES",)
 
 
 def _fresh_python(code: str, cwd: Path, env_extra: Optional[dict] = None) -> subprocess.CompletedProcess:
-    """``python -c code`` in ``cwd``, with this environment less ``MI_BIVARIATE_VARIANT`` and glibc's
-    allocator settings, plus ``env_extra``."""
-    env = {k: v for k, v in os.environ.items() if k != "MI_BIVARIATE_VARIANT" and k not in _MALLOC_ENV}
+    """``python -c code`` in ``cwd``, with this environment less ``MI_BIVARIATE_VARIANT``, glibc's
+    allocator settings and numpy's huge-page switch, plus ``env_extra``."""
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("MI_BIVARIATE_VARIANT", cli.HUGEPAGE_ENV_VAR) and k not in _MALLOC_ENV}
     env.update(env_extra or {})
     return subprocess.run([sys.executable, "-c", code], cwd=cwd, env=env, capture_output=True, text=True, timeout=300)
 
@@ -267,6 +268,41 @@ def test_recover_commands_keep_freed_memory_in_one_arena(argv):
     for out in left_alone:
         arenas, mapped = _arenas_and_mapped(out)
         assert arenas >= 2 and mapped >= 16, (arenas, mapped, out.stdout[-500:])
+
+
+_THP_PROBE = """
+def stand_in(args=None):
+    status = open("/proc/self/status").read()
+    print("THP_enabled", status.split("THP_enabled:")[1].split()[0], flush=True)
+    return 0
+"""
+
+
+@pytest.mark.parametrize("argv", [("recover", "photo.exr", "--probe", "probe.exr", "--out", "o.npz"),
+                                  ("recover-batch", "a.exr", "b.exr", "--probe", "probe.exr", "--out-dir", "o")],
+                         ids=["recover", "recover-batch"])
+def test_recover_commands_turn_transparent_huge_pages_off(argv):
+    """In its own process (``run``) ``recover`` turns the kernel's transparent huge pages off for itself
+    (``prctl(PR_SET_THP_DISABLE)``; the kernel says so in ``/proc/self/status``), also where the user set
+    ``NUMPY_MADVISE_HUGEPAGE=0``. Left on: another command's process (``info``), ``main`` called from
+    Python, and a process whose user asked numpy for huge pages (``NUMPY_MADVISE_HUGEPAGE=1``)."""
+    status = Path("/proc/self/status")
+    if not status.is_file() or "THP_enabled:\t1" not in status.read_text():
+        pytest.skip("needs Linux >= 5.0 (THP_enabled in /proc/PID/status), in a process whose huge pages are on")
+
+    def thp(out: subprocess.CompletedProcess) -> str:
+        assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-2000:]
+        return re.search(r"THP_enabled (\d)", out.stdout).group(1)
+
+    off = [_fresh_python(_THP_PROBE + _run_stand_in(*argv), ROOT),
+           _fresh_python(_THP_PROBE + _run_stand_in(*argv), ROOT, {"NUMPY_MADVISE_HUGEPAGE": "0"})]
+    assert [thp(out) for out in off] == ["0", "0"]
+    left_alone = [_fresh_python(_THP_PROBE + _run_stand_in("info"), ROOT),
+                  _fresh_python(_THP_PROBE + _run_stand_in(*argv), ROOT, {"NUMPY_MADVISE_HUGEPAGE": "1"}),
+                  _fresh_python(_THP_PROBE + "import mi_bivariate.cli as cli, mi_bivariate.commands as commands\n"
+                                f"commands.COMMANDS[{argv[0]!r}] = stand_in\n"
+                                f"assert cli.main({list(argv)!r}) == 0\n", ROOT)]
+    assert [thp(out) for out in left_alone] == ["1", "1", "1"]
 
 
 def test_console_script_exit_status_on_bad_input(tmp_path):
