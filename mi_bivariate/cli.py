@@ -8,10 +8,8 @@ user's input end in a single line ``mi-bivariate: error: FILE: problem`` and exi
 from __future__ import annotations
 
 import argparse
-import ctypes
 import gc
 import importlib
-import importlib.util
 import math
 import os
 import signal
@@ -19,7 +17,7 @@ import sys
 import warnings
 from typing import Dict, Optional, Sequence, Tuple
 
-from mi_bivariate import __version__
+from mi_bivariate import __version__, process
 from mi_bivariate.atomic import signals_deferred, stop_on_signal
 from mi_bivariate.errors import InputError, Terminated, renamed
 
@@ -357,9 +355,11 @@ def main(argv: Optional[Sequence[str]] = None, *, own_process: bool = False) -> 
     imports (one of them full) walked the growing heap for nothing: 0.09-0.19 s of collector time in
     one ``recover --no-report`` process, 0.01-0.02 s without them (two processes each, load 9-15).
     numpy's submodules that scipy's loading imports for nothing are deferred to their first use
-    (:func:`_defer_unused_numpy_modules`: ~0.09 s), memory the command frees is kept for its
-    next arrays instead of going back to the system (:func:`_keep_freed_memory`), and numpy's large
-    arrays are not put on transparent huge pages (:func:`_no_huge_pages`).
+    (:func:`mi_bivariate.process.defer_unused_numpy_modules`: ~0.09 s), memory the command frees is
+    kept for its next arrays instead of going back to the system
+    (:func:`~mi_bivariate.process.keep_freed_memory`, for :data:`KEEP_FREED_MEMORY_COMMANDS`), and
+    the process's memory is not put on transparent huge pages
+    (:func:`~mi_bivariate.process.no_huge_pages`; an evaluation's worker processes inherit it).
     Tests and notebooks calling :func:`main` keep the default, which leaves the collector as it is.
     """
     parser = build_parser()
@@ -373,13 +373,13 @@ def main(argv: Optional[Sequence[str]] = None, *, own_process: bool = False) -> 
     try:
         if own_process:
             if args.command in KEEP_FREED_MEMORY_COMMANDS:
-                _keep_freed_memory()  # first: before any thread allocates (see its notes)
-                _no_huge_pages()
+                process.keep_freed_memory()  # first: before any thread allocates (see its notes)
+            process.no_huge_pages()
             replaced = _stop_on_signals()
             gc.disable()  # until the freeze: no collection walks what the imports build (see above)
         try:
             if own_process:
-                _defer_unused_numpy_modules()
+                process.defer_unused_numpy_modules()
             with signals_deferred():  # a stop raised inside Dr.Jit's or Mitsuba's start aborted or crashed the process
                 commands = importlib.import_module("mi_bivariate.commands")  # the pipeline, loaded only to run
         finally:
@@ -420,127 +420,10 @@ def main(argv: Optional[Sequence[str]] = None, *, own_process: bool = False) -> 
             signal.signal(signum, handler)
 
 
-#: glibc's ``mallopt`` parameters (``<malloc.h>``) and the values :func:`_keep_freed_memory` sets.
-M_TRIM_THRESHOLD, M_MMAP_THRESHOLD, M_ARENA_MAX = -1, -3, -8
-MALLOC_SETTINGS = ((M_ARENA_MAX, 1), (M_MMAP_THRESHOLD, 32 * 2**20), (M_TRIM_THRESHOLD, 2**31 - 1))
 #: The commands whose process keeps freed memory: those it was measured on (one photo, or a batch
 #: of photos, each process short). ``evaluate`` (hours in one process with ``--jobs 1``), ``render``
 #: and ``demo`` keep glibc's defaults.
 KEEP_FREED_MEMORY_COMMANDS = ("recover", "recover-batch")
-#: The environment variables by which a user sets glibc's allocator: with any of them, or a
-#: ``glibc.malloc`` tunable in ``GLIBC_TUNABLES``, the allocator is left as the user chose.
-MALLOC_ENV_VARS = ("MALLOC_ARENA_MAX", "MALLOC_ARENA_TEST", "MALLOC_MMAP_MAX_", "MALLOC_MMAP_THRESHOLD_",
-                   "MALLOC_TOP_PAD_", "MALLOC_TRIM_THRESHOLD_")
-
-
-def _keep_freed_memory() -> bool:
-    """Have glibc's allocator keep what the command frees for its next arrays (one arena for every
-    thread, arrays up to 32 MiB from the heap, the heap never trimmed). Returns whether it could
-    (glibc only; elsewhere nothing changes).
-
-    The solve, the normal equations and the adequacy test allocate and free many arrays of 1-30 MB
-    on worker threads. By default each thread has its own arena, which glibc trims, and arrays
-    above a moving threshold are mapped and unmapped one by one: every new array's pages are
-    faulted in afresh (~55,000 page faults in one ``recover``), and on this project's 2-core VM such
-    a fault, with another thread mapping and unmapping beside it, costs tens of microseconds of
-    system time. Measured, ``recover --no-report`` in fresh processes (2026-12-07, this 2-core AMD
-    EPYC VM, nothing else running, these settings as ``MALLOC_*`` environment variables, with the
-    trim threshold at 4 GiB, six alternating rounds): system time 0.40-4.3 s (median 0.68) -> 0.22-1.5 s (median 0.29), page
-    faults ~55,000 -> ~47,000, wall 2.32-5.87 s (median 2.59) -> 2.17-3.45 s (median 2.40). The
-    process's peak memory is what its largest moment needs either way; what it freed stays
-    reserved until it ends. Only the command line's own process does this, for
-    :data:`KEEP_FREED_MEMORY_COMMANDS`, and not where the user set the allocator
-    (:data:`MALLOC_ENV_VARS`) or on a 32-bit build (whose largest mmap threshold is 512 KiB).
-    Called before any other thread has allocated: ``M_ARENA_MAX`` binds the threads that allocate
-    afterwards, but a new thread first takes the arena of one that has ended. (numpy's OpenBLAS
-    threads exist by then, idle, and have not allocated.)
-    """
-    tunables = os.environ.get("GLIBC_TUNABLES", "")
-    if any(name in os.environ for name in MALLOC_ENV_VARS) or "glibc.malloc." in tunables:
-        return False
-    if ctypes.sizeof(ctypes.c_void_p) != 8:
-        return False
-    try:
-        mallopt = ctypes.CDLL(None).mallopt
-    except (OSError, AttributeError, TypeError):  # not glibc (macOS; Windows refuses CDLL(None))
-        return False
-    mallopt.argtypes, mallopt.restype = (ctypes.c_int, ctypes.c_int), ctypes.c_int
-    return all(mallopt(param, value) == 1 for param, value in MALLOC_SETTINGS)
-
-
-#: numpy's documented switch for its huge-page advice: a user who set it to anything but 0 asked for
-#: huge pages, and :func:`_no_huge_pages` leaves the process as it is.
-HUGEPAGE_ENV_VAR = "NUMPY_MADVISE_HUGEPAGE"
-#: ``<linux/prctl.h>``: the process's transparent huge pages off (Linux >= 3.15).
-PR_SET_THP_DISABLE = 41
-
-
-def _no_huge_pages() -> bool:
-    """Turn transparent huge pages off for this process (Linux's ``prctl(PR_SET_THP_DISABLE)``), so that
-    the arrays numpy (4 MiB and more) and Dr.Jit (its large host buffers) advise onto huge pages
-    (``madvise(MADV_HUGEPAGE)``) get the kernel's 4 KiB pages. Returns whether it did (Linux only;
-    elsewhere nothing changes).
-
-    Where the kernel's huge pages are ``madvise`` (numpy's default on Linux >= 4.6 then advises every
-    large array; Dr.Jit advises its own), each advised array's first touch takes fresh 2 MiB pages,
-    and on a VM whose host backs free memory lazily that costs far more than the 4 KiB pages the
-    kernel recycles: touching an 80 MB numpy array took 0.30-0.66 s of system time with the advice
-    against 0.04-0.05 s without it (three fresh processes each; 2026-12-07, this 2-core AMD EPYC VM).
-    A ``recover`` touches ~0.4 GB of new memory (its ``(M, N, 3)`` lighting matrix alone is 80 MB).
-    Measured, ``recover --no-report`` in fresh processes, five alternating pairs, both sides with
-    numpy's advice off (``NUMPY_MADVISE_HUGEPAGE=0`` does that alone): system time 0.63-1.21 s ->
-    0.42-0.58 s, the lighting matrix 0.96-1.63 s -> 0.71-0.88 s, wall 2.86-3.47 s -> 2.46-2.88 s;
-    numpy's advice off alone, against neither, four pairs: wall 3.51-5.27 s -> 2.56-3.13 s. Only the
-    command line's own process does this, for :data:`KEEP_FREED_MEMORY_COMMANDS` (a program
-    importing the toolkit keeps the kernel's and numpy's defaults), and not where the user set
-    :data:`HUGEPAGE_ENV_VAR` to anything but 0. A process the command starts would inherit it;
-    ``recover`` starts none.
-    """
-    if os.environ.get(HUGEPAGE_ENV_VAR, "0").strip() != "0" or not sys.platform.startswith("linux"):
-        return False
-    try:
-        prctl = ctypes.CDLL(None, use_errno=True).prctl
-    except (OSError, AttributeError, TypeError):
-        return False
-    prctl.argtypes, prctl.restype = (ctypes.c_int,) + (ctypes.c_ulong,) * 4, ctypes.c_int
-    return prctl(PR_SET_THP_DISABLE, 1, 0, 0, 0) == 0
-
-
-#: numpy's submodules that scipy's loading touches and a command's pipeline never uses (see below).
-DEFERRED_NUMPY_MODULES = ("f2py", "testing", "ma", "polynomial")
-
-
-def _defer_unused_numpy_modules() -> None:
-    """Register numpy's :data:`DEFERRED_NUMPY_MODULES` as lazy modules (:class:`importlib.util.LazyLoader`,
-    the standard library's lazy import): each loads on its first use, where a command uses it (the
-    report's matplotlib uses ``numpy.ma``), and not before.
-
-    ``import scipy.linalg`` loads scipy's vendored ``array_api_compat.numpy``, which copies every
-    public attribute of numpy (``hasattr`` on each name of ``dir(numpy)``) and so imports each of
-    numpy's lazily loaded submodules: ``numpy.f2py``, ``numpy.testing`` (and ``unittest``), ``numpy.ma``,
-    ``numpy.polynomial``. A recovery uses none of them. Measured, three fresh processes each,
-    ``import mi_bivariate.commands`` with bytecode compiled (2026-12-07, this 2-core AMD EPYC VM):
-    0.53-0.62 s with them, 0.45-0.53 s without. Only the command line's own process does this
-    (:func:`main`'s ``own_process``): a program importing the toolkit keeps numpy as numpy made it.
-    Modules already loaded are left alone. Before Python 3.12 a lazy module's first use is not
-    thread-safe (a second thread touching it meanwhile finds it empty): the commands' worker threads
-    (``threads.thread_map``) use none of these modules, and what does (matplotlib, trimesh and
-    distributed import ``numpy.ma``) is imported on the main thread; keep it so.
-    """
-    import numpy
-
-    for name in DEFERRED_NUMPY_MODULES:
-        full = f"numpy.{name}"
-        if full in sys.modules or name in vars(numpy):
-            continue
-        spec = importlib.util.find_spec(full)
-        if spec is None or spec.loader is None:
-            continue
-        spec.loader = importlib.util.LazyLoader(spec.loader)
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[full] = module
-        spec.loader.exec_module(module)  # lazily: the module's code runs on its first attribute access
-        setattr(numpy, name, module)  # numpy's own __getattr__ (which imports) is not asked
 
 
 def _interruption(exc: BaseException) -> Optional[KeyboardInterrupt]:

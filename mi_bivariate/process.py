@@ -1,0 +1,141 @@
+"""What a process that exists for the toolkit's work sets for itself: glibc keeps freed memory
+(:func:`keep_freed_memory`), the kernel's transparent huge pages off (:func:`no_huge_pages`), numpy's
+submodules that scipy's import touches for nothing loaded on first use (:func:`defer_unused_numpy_modules`).
+
+Each changes the whole process and is measured on the 2-core VM the project runs on (docs/recovery.md
+Rounds 35 and 36). The command line calls them in a process of its own (:func:`mi_bivariate.cli.main`);
+a program importing the toolkit is left as it is, unless it calls them itself, e.g. a notebook::
+
+    from mi_bivariate import process
+    process.no_huge_pages()       # before the first large array: its first recover ~2x faster here
+
+Each returns whether it changed anything, and leaves the process alone where the user set the
+matching variable (``MALLOC_*``, ``NUMPY_MADVISE_HUGEPAGE``) or the platform lacks the switch.
+"""
+from __future__ import annotations
+
+import ctypes
+import importlib.util
+import os
+import sys
+
+#: glibc's ``mallopt`` parameters (``<malloc.h>``) and the values :func:`keep_freed_memory` sets.
+M_TRIM_THRESHOLD, M_MMAP_THRESHOLD, M_ARENA_MAX = -1, -3, -8
+MALLOC_SETTINGS = ((M_ARENA_MAX, 1), (M_MMAP_THRESHOLD, 32 * 2**20), (M_TRIM_THRESHOLD, 2**31 - 1))
+#: The environment variables by which a user sets glibc's allocator: with any of them, or a
+#: ``glibc.malloc`` tunable in ``GLIBC_TUNABLES``, the allocator is left as the user chose.
+MALLOC_ENV_VARS = ("MALLOC_ARENA_MAX", "MALLOC_ARENA_TEST", "MALLOC_MMAP_MAX_", "MALLOC_MMAP_THRESHOLD_",
+                   "MALLOC_TOP_PAD_", "MALLOC_TRIM_THRESHOLD_")
+
+
+def keep_freed_memory() -> bool:
+    """Have glibc's allocator keep what the command frees for its next arrays (one arena for every
+    thread, arrays up to 32 MiB from the heap, the heap never trimmed). Returns whether it could
+    (glibc only; elsewhere nothing changes).
+
+    The solve, the normal equations and the adequacy test allocate and free many arrays of 1-30 MB
+    on worker threads. By default each thread has its own arena, which glibc trims, and arrays
+    above a moving threshold are mapped and unmapped one by one: every new array's pages are
+    faulted in afresh (~55,000 page faults in one ``recover``), and on this project's 2-core VM such
+    a fault, with another thread mapping and unmapping beside it, costs tens of microseconds of
+    system time. Measured, ``recover --no-report`` in fresh processes (2026-12-07, this 2-core AMD
+    EPYC VM, nothing else running, these settings as ``MALLOC_*`` environment variables, with the
+    trim threshold at 4 GiB, six alternating rounds): system time 0.40-4.3 s (median 0.68) -> 0.22-1.5 s (median 0.29), page
+    faults ~55,000 -> ~47,000, wall 2.32-5.87 s (median 2.59) -> 2.17-3.45 s (median 2.40). The
+    process's peak memory is what its largest moment needs either way; what it freed stays
+    reserved until it ends. The command line does this in its own process for the commands it was
+    measured on (:data:`mi_bivariate.cli.KEEP_FREED_MEMORY_COMMANDS`), and not where the user set the allocator
+    (:data:`MALLOC_ENV_VARS`) or on a 32-bit build (whose largest mmap threshold is 512 KiB).
+    Called before any other thread has allocated: ``M_ARENA_MAX`` binds the threads that allocate
+    afterwards, but a new thread first takes the arena of one that has ended. (numpy's OpenBLAS
+    threads exist by then, idle, and have not allocated.)
+    """
+    tunables = os.environ.get("GLIBC_TUNABLES", "")
+    if any(name in os.environ for name in MALLOC_ENV_VARS) or "glibc.malloc." in tunables:
+        return False
+    if ctypes.sizeof(ctypes.c_void_p) != 8:
+        return False
+    try:
+        mallopt = ctypes.CDLL(None).mallopt
+    except (OSError, AttributeError, TypeError):  # not glibc (macOS; Windows refuses CDLL(None))
+        return False
+    mallopt.argtypes, mallopt.restype = (ctypes.c_int, ctypes.c_int), ctypes.c_int
+    return all(mallopt(param, value) == 1 for param, value in MALLOC_SETTINGS)
+
+
+#: numpy's documented switch for its huge-page advice: a user who set it to anything but 0 asked for
+#: huge pages, and :func:`no_huge_pages` leaves the process as it is.
+HUGEPAGE_ENV_VAR = "NUMPY_MADVISE_HUGEPAGE"
+#: ``<linux/prctl.h>``: the process's transparent huge pages off (Linux >= 3.15).
+PR_SET_THP_DISABLE = 41
+
+
+def no_huge_pages() -> bool:
+    """Turn transparent huge pages off for this process (Linux's ``prctl(PR_SET_THP_DISABLE)``), so that
+    the arrays numpy (4 MiB and more) and Dr.Jit (its large host buffers) advise onto huge pages
+    (``madvise(MADV_HUGEPAGE)``) get the kernel's 4 KiB pages. Returns whether it did (Linux only;
+    elsewhere nothing changes).
+
+    Where the kernel's huge pages are ``madvise`` (numpy's default on Linux >= 4.6 then advises every
+    large array; Dr.Jit advises its own), each advised array's first touch takes fresh 2 MiB pages,
+    and on a VM whose host backs free memory lazily that costs far more than the 4 KiB pages the
+    kernel recycles: touching an 80 MB numpy array took 0.30-0.66 s of system time with the advice
+    against 0.04-0.05 s without it (three fresh processes each; 2026-12-07, this 2-core AMD EPYC VM).
+    A ``recover`` touches ~0.4 GB of new memory (its ``(M, N, 3)`` lighting matrix alone is 80 MB).
+    Measured, ``recover --no-report`` in fresh processes, five alternating pairs, both sides with
+    numpy's advice off (``NUMPY_MADVISE_HUGEPAGE=0`` does that alone): system time 0.63-1.21 s ->
+    0.42-0.58 s, the lighting matrix 0.96-1.63 s -> 0.71-0.88 s, wall 2.86-3.47 s -> 2.46-2.88 s;
+    numpy's advice off alone, against neither, four pairs: wall 3.51-5.27 s -> 2.56-3.13 s.
+    ``render gold-metallic-paint3 --resolution 256 --spp 64``, three pairs: system time 0.98-1.28 s
+    -> 0.27-0.34 s, wall 4.33-5.49 s -> 3.67-4.98 s. Not where the user set :data:`HUGEPAGE_ENV_VAR`
+    to anything but 0. The processes this one starts afterwards inherit the setting (an evaluation's
+    workers). The command line does this in its own process (:func:`mi_bivariate.cli.main`); a program
+    importing the toolkit keeps the kernel's and numpy's defaults unless it calls this itself (a
+    notebook on such a VM: its first ``recover`` took 3.8-4.3 s with huge pages, 1.85-1.9 s without).
+    """
+    if os.environ.get(HUGEPAGE_ENV_VAR, "0").strip() != "0" or not sys.platform.startswith("linux"):
+        return False
+    try:
+        prctl = ctypes.CDLL(None, use_errno=True).prctl
+    except (OSError, AttributeError, TypeError):
+        return False
+    prctl.argtypes, prctl.restype = (ctypes.c_int,) + (ctypes.c_ulong,) * 4, ctypes.c_int
+    return prctl(PR_SET_THP_DISABLE, 1, 0, 0, 0) == 0
+
+
+#: numpy's submodules that scipy's loading touches and a command's pipeline never uses (see below).
+DEFERRED_NUMPY_MODULES = ("f2py", "testing", "ma", "polynomial")
+
+
+def defer_unused_numpy_modules() -> None:
+    """Register numpy's :data:`DEFERRED_NUMPY_MODULES` as lazy modules (:class:`importlib.util.LazyLoader`,
+    the standard library's lazy import): each loads on its first use, where a command uses it (the
+    report's matplotlib uses ``numpy.ma``), and not before.
+
+    ``import scipy.linalg`` loads scipy's vendored ``array_api_compat.numpy``, which copies every
+    public attribute of numpy (``hasattr`` on each name of ``dir(numpy)``) and so imports each of
+    numpy's lazily loaded submodules: ``numpy.f2py``, ``numpy.testing`` (and ``unittest``), ``numpy.ma``,
+    ``numpy.polynomial``. A recovery uses none of them. Measured, three fresh processes each,
+    ``import mi_bivariate.commands`` with bytecode compiled (2026-12-07, this 2-core AMD EPYC VM):
+    0.53-0.62 s with them, 0.45-0.53 s without. The command line does this in its own process
+    (:func:`mi_bivariate.cli.main`'s ``own_process``): a program importing the toolkit keeps numpy as
+    numpy made it.
+    Modules already loaded are left alone. Before Python 3.12 a lazy module's first use is not
+    thread-safe (a second thread touching it meanwhile finds it empty): the commands' worker threads
+    (``threads.thread_map``) use none of these modules, and what does (matplotlib, trimesh and
+    distributed import ``numpy.ma``) is imported on the main thread; keep it so.
+    """
+    import numpy
+
+    for name in DEFERRED_NUMPY_MODULES:
+        full = f"numpy.{name}"
+        if full in sys.modules or name in vars(numpy):
+            continue
+        spec = importlib.util.find_spec(full)
+        if spec is None or spec.loader is None:
+            continue
+        spec.loader = importlib.util.LazyLoader(spec.loader)
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[full] = module
+        spec.loader.exec_module(module)  # lazily: the module's code runs on its first attribute access
+        setattr(numpy, name, module)  # numpy's own __getattr__ (which imports) is not asked
