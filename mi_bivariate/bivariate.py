@@ -219,7 +219,12 @@ class BivariateBRDF:
             _, theta_d = half_diff_from_st(np.minimum(s_nodes, _ST_MAX), 0.0)
             phi_d = np.arange(n_phi) * (math.pi / n_phi)
             th, td, pd = np.broadcast_arrays(theta_h[:, None, None], theta_d[None, :, None], phi_d[None, None, :])
-            value = np.asarray(brdf.eval(th, td, pd), np.float64)
+            value = brdf.eval(th, td, pd)
+            try:
+                value = np.asarray(value, np.float64)
+            except (TypeError, ValueError) as exc:  # strings, objects, ragged lists
+                raise InputError("brdf", f"eval returned {type(value).__name__} values that are not numbers ({exc})",
+                                 f"return one RGB value (1/sr) per configuration: shape {th.shape + (3,)}") from None
             if value.shape != th.shape + (3,):
                 raise InputError("brdf", f"eval returned shape {value.shape} for angles of shape {th.shape}",
                                  f"return one RGB value (1/sr) per configuration: shape {th.shape + (3,)}")

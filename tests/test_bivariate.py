@@ -484,6 +484,22 @@ def test_reduce_names_an_eval_of_the_wrong_shape(channels):
     assert info.value.source == "brdf" and "(8, 6, 4, 3)" in info.value.hint
 
 
+@pytest.mark.parametrize("value", [lambda shape: np.full(shape + (3,), "grey"),
+                                   lambda shape: [[1.0, 2.0], [3.0]],
+                                   lambda shape: {"r": 0.3}],
+                         ids=["strings", "ragged lists", "a dict"])
+def test_reduce_names_an_eval_that_returns_no_numbers(value):
+    """An ``eval`` returning words, ragged lists or a dict failed in ``np.asarray`` as a bare ValueError or
+    TypeError before the shape check; now InputError naming ``brdf``, with the shape it must return."""
+    class Odd:
+        def eval(self, theta_h, theta_d, phi_d):
+            return value(np.shape(theta_h))
+
+    with pytest.raises(InputError, match="eval returned") as info:
+        BivariateBRDF.reduce(Odd(), 8, 6, n_phi=4)
+    assert info.value.source == "brdf" and "(8, 6, 4, 3)" in info.value.hint
+
+
 @pytest.mark.parametrize("provenance", ["abc", [1, 2], {"materials": "brass"}])
 def test_reduce_checks_provenance(provenance):
     """Before, reduce merged it into its own record first: a string or a list raised a bare ValueError or
