@@ -95,7 +95,9 @@ def _file_vertex_normals(path: Path, n_vertices: int) -> Tuple[Optional[np.ndarr
         if normals is None:
             return None, 0
         normals = np.asarray(normals, dtype=np.float64)
-        if normals.shape != (n_vertices, 3) or not np.all(np.isfinite(normals)):
+        # Unusable as a whole (a NaN or a zero-length normal), as a part of several is (_parts_vertex_normals).
+        if normals.shape != (n_vertices, 3) or not np.all(np.isfinite(normals)) \
+                or not np.all(np.linalg.norm(normals, axis=1) > 0.0):
             return None, 0
         if placed:  # trimesh moved the vertices by the node's transform: the normals follow it
             transform = _node_transform(path)
@@ -218,7 +220,8 @@ class MeshShape:
         """A mesh from a file trimesh reads (OBJ, PLY, STL, GLB, ...) or a ``trimesh.Trimesh``.
 
         Args:
-            normals: ``"auto"``: the file's vertex normals when it has them,
+            normals: ``"auto"``: the file's vertex normals when it has them
+                (a NaN or zero-length one makes them unusable: as none),
                 else face normals with an :class:`InputWarning`; ``"vertex"``:
                 the file's, else smooth angle-weighted ones computed from the
                 faces; ``"face"``: face normals (flat shading). In a file of

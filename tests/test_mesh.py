@@ -494,7 +494,8 @@ def test_file_parts_without_usable_normals(tmp_path):
     not one of computed normals. (b) A part stored without normals and turned by its node gets normals
     computed from its faces as placed: within a degree of the world radial directions of the ball (not of
     the ball before its node turned it). (c) A part storing a zero normal stores none usable: its normals
-    are computed, with the parts warning. (d) A PLY with a NaN normal is read as storing none."""
+    are computed, with the parts warning. (d) A PLY with a NaN normal is read as storing none, (e) and so is a
+    one-part file with a zero normal."""
     from trimesh.transformations import rotation_matrix, translation_matrix
 
     ico = trimesh.creation.icosphere(subdivisions=2)
@@ -531,6 +532,14 @@ def test_file_parts_without_usable_normals(tmp_path):
     trimesh.Trimesh(ico.vertices, ico.faces, vertex_normals=nan, process=False).export(tmp_path / "nan.ply")
     with pytest.warns(InputWarning, match="nan.ply: the mesh has no vertex normals"):
         assert mesh.MeshShape.load(tmp_path / "nan.ply").vertex_normals is None
+    # (e) A one-part file with a zero normal, as a part of several: read as storing none (before, an InputError
+    # without a hint, where the same part in a glTF of two was taken as storing none).
+    for suffix in ("ply", "glb"):
+        trimesh.Trimesh(ico.vertices, ico.faces, vertex_normals=zero, process=False).export(tmp_path / f"zero.{suffix}")
+        with pytest.warns(InputWarning, match=f"zero.{suffix}: the mesh has no vertex normals"):
+            assert mesh.MeshShape.load(tmp_path / f"zero.{suffix}").vertex_normals is None
+        smooth = mesh.MeshShape.load(tmp_path / f"zero.{suffix}", normals="vertex").vertex_normals
+        np.testing.assert_allclose(smooth, radial, atol=0.02)  # computed from the faces: near the radial directions
 
 
 def test_file_normals_are_judged_by_their_median_angle_from_the_outward_faces(tmp_path):
