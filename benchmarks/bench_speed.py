@@ -40,6 +40,12 @@ The scaling table (M, K, grid, images) is ``benchmarks/bench_scaling.py``.
 
     MI_BIVARIATE_DATA=/work/shared/data python benchmarks/bench_speed.py
 
+The benchmark's process turns the kernel's transparent huge pages off first, as the command line does in
+its own processes (:func:`mi_bivariate.process.no_huge_pages`; docs/recovery.md Round 36), so that the
+in-process stages are measured as ``recover`` runs them and not, each call again, at the cost of fresh
+2 MiB pages on this VM (the lighting matrix's 80 MB array is mapped anew per call); ``--huge-pages``
+keeps the kernel's setting (a program importing the toolkit without that call). The machine line says which.
+
 On a shared machine: medians and ratios, with the load average printed. The package's
 bytecode is compiled first (``compileall``): with ``PYTHONDONTWRITEBYTECODE`` set, as in some
 agent shells, every fresh process would otherwise compile ~60 modules from source (~0.16 s),
@@ -340,7 +346,7 @@ def peers(args: argparse.Namespace) -> None:
     from mi_bivariate.variants import ensure_variant
 
     variant = ensure_variant()
-    print(f"Machine: {machine()}")
+    print(f"Machine: {machine()}; transparent huge pages {args.thp_state}")
     print(f"Variant {variant}, Dr.Jit threads {dr.thread_count()}, BLAS threads in heavy stages "
           f"{configured_threads() or 'library default'}.\n")
     _, probe, shot = load_inputs()
@@ -434,8 +440,28 @@ def main() -> None:
     parser.add_argument("--processes", type=int, default=3,
                         help="fresh `recover` processes whose median is the end-to-end time (issue 10: 3; more "
                              "for a steadier figure on a noisy machine)")
+    parser.add_argument("--huge-pages", action="store_true",
+                        help="keep the kernel's transparent huge pages in this process (default: off, as the "
+                             "command line's processes have them)")
     args = parser.parse_args()
+    from mi_bivariate import process
+
+    kernel = _thp_policy()
+    if args.huge_pages:
+        args.thp_state = f"{kernel} (the kernel's, kept: --huge-pages)"
+    else:
+        args.thp_state = f"off in this process (mi_bivariate.process.no_huge_pages: {process.no_huge_pages()}; " \
+                         f"the kernel's: {kernel})"
     peers(args)
+
+
+def _thp_policy() -> str:
+    """The kernel's transparent huge page policy (the bracketed word of its ``enabled`` file), or ``n/a``."""
+    try:
+        text = Path("/sys/kernel/mm/transparent_hugepage/enabled").read_text()
+    except OSError:
+        return "n/a"
+    return text[text.find("[") + 1:text.find("]")] if "[" in text else text.strip()
 
 
 if __name__ == "__main__":
