@@ -27,7 +27,7 @@ import numpy as np
 from mi_bivariate.atomic import atomic_path
 from mi_bivariate.common import PathLike
 from mi_bivariate.coordinates import grid_nodes, half_diff_from_st, st_from_half_diff
-from mi_bivariate.errors import InputError
+from mi_bivariate.errors import InputError, array_from
 from mi_bivariate.images import write_exr
 from mi_bivariate.limits import MAX_REDUCE_SAMPLES, check_grid, whole_number
 from mi_bivariate.merl import MERL_SHAPE, MERLBRDF, above_horizon, node_angles
@@ -219,15 +219,12 @@ class BivariateBRDF:
             _, theta_d = half_diff_from_st(np.minimum(s_nodes, _ST_MAX), 0.0)
             phi_d = np.arange(n_phi) * (math.pi / n_phi)
             th, td, pd = np.broadcast_arrays(theta_h[:, None, None], theta_d[None, :, None], phi_d[None, None, :])
-            value = brdf.eval(th, td, pd)
-            try:
-                value = np.asarray(value, np.float64)
-            except (TypeError, ValueError) as exc:  # strings, objects, ragged lists
-                raise InputError("brdf", f"eval returned {type(value).__name__} values that are not numbers ({exc})",
-                                 f"return one RGB value (1/sr) per configuration: shape {th.shape + (3,)}") from None
-            if value.shape != th.shape + (3,):
+            shape = th.shape + (3,)
+            value = array_from(brdf.eval(th, td, pd), "brdf", "eval to return numbers", np.float64,
+                               f"return one RGB value (1/sr) per configuration: shape {shape}")
+            if value.shape != shape:
                 raise InputError("brdf", f"eval returned shape {value.shape} for angles of shape {th.shape}",
-                                 f"return one RGB value (1/sr) per configuration: shape {th.shape + (3,)}")
+                                 f"return one RGB value (1/sr) per configuration: shape {shape}")
             valid = above_horizon(th, td, pd)[..., None] & np.isfinite(value)
             count = valid.sum(axis=2)
             with np.errstate(invalid="ignore", divide="ignore"):

@@ -40,7 +40,7 @@ from typing import Dict, Optional, Sequence, Tuple
 
 import numpy as np
 
-from mi_bivariate.errors import InputError, InputWarning
+from mi_bivariate.errors import InputError, InputWarning, array_from
 from mi_bivariate.geometry import Geometry, SphereGeometry, check_rotation, check_sphere
 
 DROP_REASONS: Tuple[str, ...] = ("view_angle", "outside_image", "silhouette", "outside_mask",
@@ -193,7 +193,7 @@ def check_image(image: np.ndarray, source: str = "image") -> np.ndarray:
     naming ``source``: another shape (a grey or RGBA image), no pixels, a type other than real numbers,
     values beyond :data:`MAX_PIXEL`, or all (zeros aside) below :data:`MIN_PIXEL`. Integers are read as they
     are, with an :class:`InputWarning`."""
-    image = np.asarray(image)
+    image = array_from(image, source, "an (H, W, 3) RGB image")
     if image.ndim != 3 or image.shape[2] != 3:
         hint = None
         if image.ndim == 2 or (image.ndim == 3 and image.shape[2] == 1):
@@ -568,7 +568,7 @@ def image_observations(image: np.ndarray, geometry: Geometry, *, n_normals: int 
     if not isinstance(geometry, Geometry):
         raise InputError(source, f"unsupported geometry {type(geometry).__name__}",
                          "use SphereGeometry, PerspectiveSphereGeometry or mesh.MeshView")
-    image = np.asarray(image)
+    image = array_from(image, source, "an (H, W, 3) RGB image")
     if image.ndim != 3:
         raise InputError(source, f"expected an (H, W, 3) RGB image, got shape {image.shape}")
     maps = geometry.surface_maps(image.shape[1], image.shape[0], source)

@@ -9,7 +9,9 @@ the class.
 from __future__ import annotations
 
 import os
-from typing import Mapping, Optional
+from typing import Any, Mapping, Optional
+
+import numpy as np
 
 from mi_bivariate.common import PathLike
 
@@ -51,3 +53,16 @@ class Terminated(KeyboardInterrupt):
     """SIGTERM (``timeout``, a job scheduler, ``kill``) in a ``mi-bivariate`` process
     (:func:`mi_bivariate.atomic.stop_on_signal`): raised where the command is, so that it stops as after
     Ctrl-C, its outputs' temporary files removed and the earlier outputs as they were."""
+
+
+def array_from(value: Any, source: Optional[PathLike], what: str = "an array of numbers", dtype: Any = None,
+               hint: Optional[str] = None) -> np.ndarray:
+    """``np.asarray(value, dtype)``, or :class:`InputError` naming ``source`` where numpy cannot make one array
+    of ``value`` (nested lists of unequal lengths, words where numbers go, a dict): numpy's own ``ValueError``
+    or ``TypeError`` would otherwise leave a front door's shape and type checks unreached. ``what``: what the
+    argument must be, for the message (e.g. ``"an (H, W, 3) image"``); ``hint``: what to do."""
+    try:
+        return np.asarray(value, dtype=dtype)
+    except (TypeError, ValueError):
+        raise InputError(source, f"expected {what}, got a {type(value).__name__} that is not one array of numbers "
+                                 "(nested lists of unequal lengths, or values that are not numbers)", hint) from None

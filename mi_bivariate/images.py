@@ -36,7 +36,7 @@ import numpy as np
 from mi_bivariate import __version__
 from mi_bivariate.atomic import atomic_path
 from mi_bivariate.common import PathLike, luminance
-from mi_bivariate.errors import InputError, InputWarning
+from mi_bivariate.errors import InputError, InputWarning, array_from
 
 HDR_SUFFIXES = (".exr", ".hdr", ".rgbe", ".pic", ".pfm")
 LDR_SUFFIXES = (".png", ".jpg", ".jpeg")
@@ -595,8 +595,8 @@ def write_exr(path: PathLike, image: np.ndarray, units: str = RADIANCE_UNITS,
     """
     import OpenEXR
 
-    image = np.ascontiguousarray(image, dtype=np.float32)
     path = Path(path)
+    image = np.ascontiguousarray(array_from(image, path, "an (H, W, 3) image", np.float32))
     if image.ndim != 3 or image.shape[2] != 3:
         raise InputError(path, f"image must have shape (H, W, 3), got {image.shape}")
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
@@ -641,9 +641,11 @@ def tonemap(image: np.ndarray, exposure: Optional[float] = None, percentile: flo
 def write_png(path: PathLike, image: np.ndarray, exposure: Optional[float] = None) -> Path:
     """Write a tonemapped sRGB PNG preview of a linear image atomically."""
     path = Path(path)
-    image = np.asarray(image)
+    image = array_from(image, path, "an (H, W, 3) image")
     if image.ndim != 3 or image.shape[2] != 3:
         raise InputError(path, f"image must have shape (H, W, 3), got {image.shape}")
+    if not np.issubdtype(image.dtype, np.number) or np.iscomplexobj(image):
+        raise InputError(path, f"image has dtype {image.dtype}; expected real numbers (linear radiance, or uint8 sRGB)")
     rgb = tonemap(image, exposure) if image.dtype != np.uint8 else image
     # Encoded in memory and written by Python: Mitsuba's file stream does not report a full disk (it left
     # an empty PNG and no error).

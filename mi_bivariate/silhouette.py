@@ -15,7 +15,7 @@ from typing import Any, Optional, Tuple
 import numpy as np
 
 from mi_bivariate.common import LUMINANCE_WEIGHTS
-from mi_bivariate.errors import InputError
+from mi_bivariate.errors import InputError, array_from
 
 #: The smallest sphere radius (pixels) looked for, and trusted.
 MIN_RADIUS_PX = 8.0
@@ -37,7 +37,7 @@ EDGE_SIGMA_PX = 1.0
 
 def luminance_map(image: np.ndarray, source: str = "image") -> np.ndarray:
     """Linear luminance ``(H, W) float64`` of an ``(H, W)``, ``(H, W, 1|3|4)`` image; NaN where not finite."""
-    image = np.asarray(image)
+    image = array_from(image, source, "an (H, W) or (H, W, 3) image")
     if not np.issubdtype(image.dtype, np.number) or np.iscomplexobj(image):
         raise InputError(source, f"image has non-numeric dtype {image.dtype}")
     if image.ndim == 3 and image.shape[2] in (1, 3, 4):

@@ -139,6 +139,31 @@ def test_recover_refuses_a_black_probe_before_any_work(no_work):
         recover(IMAGE, Probe.constant(0.0, res=16), SPHERE, **SMALL)
 
 
+@pytest.mark.parametrize("bad", [[[0.5, 0.5, 0.5], [0.5, 0.5]], np.full((4, 4, 3), "grey")],
+                         ids=["ragged lists", "words"])
+@pytest.mark.parametrize("front_door", ["fit_sphere", "image_observations", "check_image", "write_exr", "write_png"])
+def test_front_doors_name_an_image_numpy_cannot_read_as_one_array(tmp_path, front_door, bad):
+    """Nested lists of unequal lengths (or words) given as an image: before, numpy's own ValueError ("setting
+    an array element with a sequence ... inhomogeneous shape") escaped from the sphere fit, the image's
+    observations and the EXR/PNG writers before their checks; now an InputError naming the image (or the
+    file), as for a wrong shape, and no file written."""
+    from mi_bivariate import images, spherefit
+
+    out = tmp_path / "out.exr"
+    calls = {"fit_sphere": lambda: spherefit.fit_sphere(bad),
+             "image_observations": lambda: capture.image_observations(bad, SphereGeometry(8, 8, 6)),
+             "check_image": lambda: capture.check_image(bad),
+             "write_exr": lambda: images.write_exr(out, bad),
+             "write_png": lambda: images.write_png(out.with_suffix(".png"), bad)}
+    with pytest.raises(InputError) as info:
+        calls[front_door]()
+    if front_door in ("write_exr", "write_png"):
+        assert info.value.source.startswith(str(tmp_path)) and not list(tmp_path.iterdir())
+    else:
+        assert info.value.source == "image"
+    assert "dtype" in info.value.problem or "not one array of numbers" in info.value.problem, str(info.value)
+
+
 def test_a_grey_two_dimensional_image_is_named_as_one_image(probe):
     with pytest.raises(InputError, match=r"expected an \(H, W, 3\) RGB image, got shape \(48, 48\)") as info:
         recover(IMAGE[..., 0], probe, SPHERE, **SMALL)

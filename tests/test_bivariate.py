@@ -495,7 +495,7 @@ def test_reduce_names_an_eval_that_returns_no_numbers(value):
         def eval(self, theta_h, theta_d, phi_d):
             return value(np.shape(theta_h))
 
-    with pytest.raises(InputError, match="eval returned") as info:
+    with pytest.raises(InputError, match="expected eval to return numbers, got a") as info:
         BivariateBRDF.reduce(Odd(), 8, 6, n_phi=4)
     assert info.value.source == "brdf" and "(8, 6, 4, 3)" in info.value.hint
 
