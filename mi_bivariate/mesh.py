@@ -46,6 +46,8 @@ from mi_bivariate.variants import ensure_variant
 
 #: Mesh file types read through trimesh.
 MESH_SUFFIXES = (".obj", ".ply", ".stl", ".glb", ".gltf", ".off")
+#: The shortest vertex normal taken as a direction (shorter: as none, in a file; refused, given directly).
+MIN_NORMAL_LENGTH = 1e-12
 
 #: A pixel's corner hits must have shading normals within this angle of its centre's.
 PATCH_MAX_ANGLE_DEG = 30.0
@@ -97,7 +99,7 @@ def _file_vertex_normals(path: Path, n_vertices: int) -> Tuple[Optional[np.ndarr
         normals = np.asarray(normals, dtype=np.float64)
         # Unusable as a whole (a NaN or a zero-length normal), as a part of several is (_parts_vertex_normals).
         if normals.shape != (n_vertices, 3) or not np.all(np.isfinite(normals)) \
-                or not np.all(np.linalg.norm(normals, axis=1) > 0.0):
+                or not np.all(np.linalg.norm(normals, axis=1) >= MIN_NORMAL_LENGTH):
             return None, 0
         if placed:  # trimesh moved the vertices by the node's transform: the normals follow it
             transform = _node_transform(path)
@@ -135,7 +137,7 @@ def _parts_vertex_normals(path: Path, parts: Dict[str, Any], n_vertices: int) ->
         own = part.get("vertex_normals") if isinstance(part, dict) else None
         own = None if own is None else np.asarray(own, dtype=np.float64)
         if own is not None and own.shape == (len(geometry.vertices), 3) and np.all(np.isfinite(own)) \
-                and np.all(np.linalg.norm(own, axis=1) > 0.0):
+                and np.all(np.linalg.norm(own, axis=1) >= MIN_NORMAL_LENGTH):
             normals.append(_placed_normals(own, transform))
             stored += 1
         else:
@@ -194,7 +196,7 @@ class MeshShape:
             vertex_normals = np.asarray(vertex_normals, dtype=np.float64)
             length = np.linalg.norm(vertex_normals, axis=1, keepdims=True)
             if vertex_normals.shape != vertices.shape or not np.all(np.isfinite(vertex_normals)) \
-                    or np.any(length < 1e-12):
+                    or np.any(length < MIN_NORMAL_LENGTH):
                 raise InputError(source, "vertex normals must be finite, non-zero and one per vertex")
             vertex_normals = vertex_normals / length
         self.vertices = vertices

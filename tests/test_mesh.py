@@ -524,9 +524,12 @@ def test_file_parts_without_usable_normals(tmp_path):
     np.testing.assert_allclose(shape.vertex_normals[~on_ball], radial, atol=1e-6)
     zero = radial.copy()
     zero[0] = 0.0
-    with pytest.warns(InputWarning, match="1 of the file's parts store no vertex normals"):
-        shape = mesh.MeshShape.load(parts("zero.glb", zero, ball.vertex_normals))
-    assert np.all(np.isfinite(shape.vertex_normals))
+    tiny = radial.copy()
+    tiny[0] = [1e-13, 0.0, 0.0]  # below mesh.MIN_NORMAL_LENGTH: as a zero one, in a file of one part or of two
+    for name, normals in (("zero.glb", zero), ("tiny.glb", tiny)):
+        with pytest.warns(InputWarning, match="1 of the file's parts store no vertex normals"):
+            shape = mesh.MeshShape.load(parts(name, normals, ball.vertex_normals))
+        assert np.all(np.isfinite(shape.vertex_normals))
     nan = radial.copy()
     nan[0] = np.nan
     trimesh.Trimesh(ico.vertices, ico.faces, vertex_normals=nan, process=False).export(tmp_path / "nan.ply")
@@ -534,8 +537,8 @@ def test_file_parts_without_usable_normals(tmp_path):
         assert mesh.MeshShape.load(tmp_path / "nan.ply").vertex_normals is None
     # (e) A one-part file with a zero normal, as a part of several: read as storing none (before, an InputError
     # without a hint, where the same part in a glTF of two was taken as storing none).
-    for suffix in ("ply", "glb"):
-        trimesh.Trimesh(ico.vertices, ico.faces, vertex_normals=zero, process=False).export(tmp_path / f"zero.{suffix}")
+    for suffix, normals in (("ply", zero), ("glb", zero), ("ply", tiny), ("glb", tiny)):
+        trimesh.Trimesh(ico.vertices, ico.faces, vertex_normals=normals, process=False).export(tmp_path / f"zero.{suffix}")
         with pytest.warns(InputWarning, match=f"zero.{suffix}: the mesh has no vertex normals"):
             assert mesh.MeshShape.load(tmp_path / f"zero.{suffix}").vertex_normals is None
         smooth = mesh.MeshShape.load(tmp_path / f"zero.{suffix}", normals="vertex").vertex_normals
