@@ -446,22 +446,25 @@ def main() -> None:
     args = parser.parse_args()
     from mi_bivariate import process
 
-    kernel = _thp_policy()
-    if args.huge_pages:
-        args.thp_state = f"{kernel} (the kernel's, kept: --huge-pages)"
-    else:
-        args.thp_state = f"off in this process (mi_bivariate.process.no_huge_pages: {process.no_huge_pages()}; " \
-                         f"the kernel's: {kernel})"
+    if not args.huge_pages:
+        process.no_huge_pages()
+    args.thp_state = _thp_state() + ("" if args.huge_pages else " (mi_bivariate.process.no_huge_pages)")
     peers(args)
 
 
-def _thp_policy() -> str:
-    """The kernel's transparent huge page policy (the bracketed word of its ``enabled`` file), or ``n/a``."""
+def _thp_state() -> str:
+    """Whether this process has transparent huge pages, as the kernel says (``THP_enabled`` of
+    ``/proc/self/status``), and the kernel's policy (the bracketed word of its ``enabled`` file)."""
     try:
-        text = Path("/sys/kernel/mm/transparent_hugepage/enabled").read_text()
+        policy = Path("/sys/kernel/mm/transparent_hugepage/enabled").read_text()
+        policy = policy[policy.find("[") + 1:policy.find("]")] if "[" in policy else policy.strip()
     except OSError:
-        return "n/a"
-    return text[text.find("[") + 1:text.find("]")] if "[" in text else text.strip()
+        policy = "n/a"
+    try:
+        enabled = Path("/proc/self/status").read_text().split("THP_enabled:")[1].split()[0]
+    except (OSError, IndexError):
+        return f"unknown in this process (the kernel's: {policy})"
+    return f"{'on' if enabled == '1' else 'off'} in this process (the kernel's: {policy})"
 
 
 if __name__ == "__main__":

@@ -58,11 +58,16 @@ class Terminated(KeyboardInterrupt):
 def array_from(value: Any, source: Optional[PathLike], what: str = "an array of numbers", dtype: Any = None,
                hint: Optional[str] = None) -> np.ndarray:
     """``np.asarray(value, dtype)``, or :class:`InputError` naming ``source`` where numpy cannot make one array
-    of ``value`` (nested lists of unequal lengths, words where numbers go, a dict): numpy's own ``ValueError``
-    or ``TypeError`` would otherwise leave a front door's shape and type checks unreached. ``what``: what the
-    argument must be, for the message (e.g. ``"an (H, W, 3) image"``); ``hint``: what to do."""
+    of real numbers of ``value`` (nested lists of unequal lengths, words where numbers go, a dict, integers
+    beyond ``dtype``'s range, complex numbers for a real ``dtype``): numpy's own ``ValueError``,
+    ``TypeError`` or ``OverflowError`` (or a silently dropped imaginary part) would otherwise leave a front
+    door's shape and type checks unreached. ``what``: what the argument must be, for the message (e.g.
+    ``"an (H, W, 3) image"``); ``hint``: what to do."""
     try:
-        return np.asarray(value, dtype=dtype)
-    except (TypeError, ValueError):
-        raise InputError(source, f"expected {what}, got a {type(value).__name__} that is not one array of numbers "
+        array = np.asarray(value)
+        if dtype is not None and np.iscomplexobj(array) and not np.issubdtype(np.dtype(dtype), np.complexfloating):
+            raise TypeError("complex")
+        return array if dtype is None else array.astype(dtype, copy=False)
+    except (TypeError, ValueError, OverflowError):
+        raise InputError(source, f"expected {what}, got a {type(value).__name__} that is not one array of real numbers "
                                  "(nested lists of unequal lengths, or values that are not numbers)", hint) from None

@@ -9,8 +9,9 @@ a program importing the toolkit is left as it is, unless it calls them itself, e
     from mi_bivariate import process
     process.no_huge_pages()       # before the first large array: its first recover ~2x faster here
 
-Each returns whether it changed anything, and leaves the process alone where the user set the
-matching variable (``MALLOC_*``, ``NUMPY_MADVISE_HUGEPAGE``) or the platform lacks the switch.
+The first two return whether they changed anything, and leave the process alone where the user set
+the matching variable (``MALLOC_*``, ``NUMPY_MADVISE_HUGEPAGE``) or the platform lacks the switch; the
+third leaves a module alone that is already loaded.
 """
 from __future__ import annotations
 
@@ -63,8 +64,8 @@ def keep_freed_memory() -> bool:
     return all(mallopt(param, value) == 1 for param, value in MALLOC_SETTINGS)
 
 
-#: numpy's documented switch for its huge-page advice: a user who set it to anything but 0 asked for
-#: huge pages, and :func:`no_huge_pages` leaves the process as it is.
+#: numpy's documented switch for its huge-page advice: a user who set it to a number other than 0 asked
+#: for huge pages, and :func:`no_huge_pages` leaves the process as it is.
 HUGEPAGE_ENV_VAR = "NUMPY_MADVISE_HUGEPAGE"
 #: ``<linux/prctl.h>``: the process's transparent huge pages off (Linux >= 3.15).
 PR_SET_THP_DISABLE = 41
@@ -74,29 +75,46 @@ def no_huge_pages() -> bool:
     """Turn transparent huge pages off for this process (Linux's ``prctl(PR_SET_THP_DISABLE)``), so that
     the arrays numpy (4 MiB and more) and Dr.Jit (its large host buffers) advise onto huge pages
     (``madvise(MADV_HUGEPAGE)``) get the kernel's 4 KiB pages. Returns whether it did (Linux only;
-    elsewhere nothing changes).
+    elsewhere nothing changes). Pages from a reserved ``hugetlbfs`` pool (which Dr.Jit asks for first,
+    ``MAP_HUGETLB``; this project's VM has none) are not transparent ones and stay as they are.
 
     Where the kernel's huge pages are ``madvise`` (numpy's default on Linux >= 4.6 then advises every
-    large array; Dr.Jit advises its own), each advised array's first touch takes fresh 2 MiB pages,
-    and on a VM whose host backs free memory lazily that costs far more than the 4 KiB pages the
-    kernel recycles: touching an 80 MB numpy array took 0.30-0.66 s of system time with the advice
-    against 0.04-0.05 s without it (three fresh processes each; 2026-12-07, this 2-core AMD EPYC VM).
-    A ``recover`` touches ~0.4 GB of new memory (its ``(M, N, 3)`` lighting matrix alone is 80 MB).
-    Measured, ``recover --no-report`` in fresh processes, five alternating pairs, both sides with
-    numpy's advice off (``NUMPY_MADVISE_HUGEPAGE=0`` does that alone): system time 0.63-1.21 s ->
-    0.42-0.58 s, the lighting matrix 0.96-1.63 s -> 0.71-0.88 s, wall 2.86-3.47 s -> 2.46-2.88 s;
-    numpy's advice off alone, against neither, four pairs: wall 3.51-5.27 s -> 2.56-3.13 s.
-    ``render gold-metallic-paint3 --resolution 256 --spp 64``, three pairs: system time 0.98-1.28 s
-    -> 0.27-0.34 s, wall 4.33-5.49 s -> 3.67-4.98 s. Not where the user set :data:`HUGEPAGE_ENV_VAR`
-    to anything but 0. The processes this one starts afterwards inherit the setting (an evaluation's
-    workers). The command line does this in its own process (:func:`mi_bivariate.cli.main`); a program
-    importing the toolkit keeps the kernel's and numpy's defaults unless it calls this itself (a
-    notebook on such a VM: its first ``recover`` took 3.8-4.3 s with huge pages, 1.85-1.9 s without).
+    large array; Dr.Jit advises its own), each advised array's first touch takes fresh 2 MiB pages.
+    On a VM whose host backs free memory lazily that can cost far more than the 4 KiB pages the kernel
+    recycles: touching an 80 MB numpy array took 0.30-0.66 s of system time with the advice against
+    0.04-0.05 s without it in fresh processes after a pause, though back to back it can be cheaper with
+    it (0.01-0.02 s, a review's measurement). A ``recover`` touches ~0.4 GB of new memory (its
+    ``(M, N, 3)`` lighting matrix alone is 80 MB), and over whole commands turning them off paid
+    (2026-12-07, this 2-core AMD EPYC VM, nothing else running; docs/recovery.md Round 36):
+
+    - ``recover --no-report``, ten fresh processes back to back each way: wall median 2.70 s (2.03-3.12,
+      system time 0.25-1.40 s) with huge pages, 2.32 s (2.19-2.53, system time 0.40-0.46 s) without;
+    - the same, five alternating pairs, both sides with numpy's advice off (``NUMPY_MADVISE_HUGEPAGE=0``
+      does that alone): wall 2.86-3.47 s -> 2.46-2.88 s, the lighting matrix 0.96-1.63 s -> 0.71-0.88 s
+      (Dr.Jit's buffers);
+    - ``recover-batch`` of four photos, three pairs: 7.60-9.30 s -> 6.48-7.16 s;
+    - ``render gold-metallic-paint3 --resolution 256 --spp 64``, three pairs: 4.33-5.49 s -> 3.67-4.98 s;
+    - ``evaluate --quick`` (one process, minutes of compute), two pairs: 39.4 and 33.7 s -> 32.2 and
+      33.9 s, the same user time (no cost from the smaller pages' TLB misses).
+
+    Not where the user set :data:`HUGEPAGE_ENV_VAR` to a number other than 0 (read as numpy reads it)
+    or to something that is not a number. The processes this one starts afterwards inherit the setting
+    (an evaluation's workers). The command line does this in its own process for every command
+    (:func:`mi_bivariate.cli.main`); a program importing the toolkit keeps the kernel's and numpy's
+    defaults unless it calls this itself (a notebook on such a VM: its first ``recover`` took 3.8-4.3 s
+    with huge pages, 1.85-1.9 s without).
     """
-    if os.environ.get(HUGEPAGE_ENV_VAR, "0").strip() != "0" or not sys.platform.startswith("linux"):
+    if not sys.platform.startswith("linux"):
         return False
+    setting = os.environ.get(HUGEPAGE_ENV_VAR)
+    if setting is not None:
+        try:
+            if int(setting) != 0:  # as numpy reads it: "1", " 1", "+01" ask for huge pages
+                return False
+        except ValueError:  # not a number: the user meant something; leave the process as it is
+            return False
     try:
-        prctl = ctypes.CDLL(None, use_errno=True).prctl
+        prctl = ctypes.CDLL(None).prctl
     except (OSError, AttributeError, TypeError):
         return False
     prctl.argtypes, prctl.restype = (ctypes.c_int,) + (ctypes.c_ulong,) * 4, ctypes.c_int

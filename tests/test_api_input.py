@@ -161,7 +161,7 @@ def test_front_doors_name_an_image_numpy_cannot_read_as_one_array(tmp_path, fron
         assert info.value.source.startswith(str(tmp_path)) and not list(tmp_path.iterdir())
     else:
         assert info.value.source == "image"
-    assert "dtype" in info.value.problem or "not one array of numbers" in info.value.problem, str(info.value)
+    assert "dtype" in info.value.problem or "not one array of real numbers" in info.value.problem, str(info.value)
 
 
 def test_a_grey_two_dimensional_image_is_named_as_one_image(probe):

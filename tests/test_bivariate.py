@@ -486,11 +486,14 @@ def test_reduce_names_an_eval_of_the_wrong_shape(channels):
 
 @pytest.mark.parametrize("value", [lambda shape: np.full(shape + (3,), "grey"),
                                    lambda shape: [[1.0, 2.0], [3.0]],
-                                   lambda shape: {"r": 0.3}],
-                         ids=["strings", "ragged lists", "a dict"])
+                                   lambda shape: {"r": 0.3},
+                                   lambda shape: np.full(shape + (3,), 10**400, dtype=object),
+                                   lambda shape: np.full(shape + (3,), 0.3 + 0.1j)],
+                         ids=["strings", "ragged lists", "a dict", "too large for a float", "complex"])
 def test_reduce_names_an_eval_that_returns_no_numbers(value):
     """An ``eval`` returning words, ragged lists or a dict failed in ``np.asarray`` as a bare ValueError or
-    TypeError before the shape check; now InputError naming ``brdf``, with the shape it must return."""
+    TypeError before the shape check, integers beyond a float as OverflowError, and complex values lost
+    their imaginary part with a warning; now InputError naming ``brdf``, with the shape it must return."""
     class Odd:
         def eval(self, theta_h, theta_d, phi_d):
             return value(np.shape(theta_h))
