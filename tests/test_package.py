@@ -291,8 +291,8 @@ def test_commands_turn_transparent_huge_pages_off(argv):
     (``prctl(PR_SET_THP_DISABLE)``; the kernel says so in ``/proc/self/status``), also where the user set
     ``NUMPY_MADVISE_HUGEPAGE=0`` (or ``00``, which numpy reads as 0), and a process it starts inherits that.
     Left on: ``main`` called from Python, and a process whose user asked numpy for huge pages
-    (``NUMPY_MADVISE_HUGEPAGE=1``). Each
-    child turns huge pages on first (the suite's own process has them off, tests/conftest.py)."""
+    (``NUMPY_MADVISE_HUGEPAGE=1``). Each child turns huge pages on first (the suite's own process has them
+    off, tests/conftest.py)."""
     status = Path("/proc/self/status")
     if not status.is_file() or "THP_enabled:" not in status.read_text():
         pytest.skip("needs Linux >= 5.0 (THP_enabled in /proc/PID/status)")
