@@ -93,13 +93,8 @@ def _file_vertex_normals(path: Path, n_vertices: int) -> Tuple[Optional[np.ndarr
             return _parts_vertex_normals(path, kwargs["geometry"], n_vertices)
         if placed and isinstance(kwargs["geometry"], dict) and len(kwargs["geometry"]) == 1:
             kwargs = next(iter(kwargs["geometry"].values()))
-        normals = kwargs.get("vertex_normals") if isinstance(kwargs, dict) else None
-        if normals is None:
-            return None, 0
-        normals = np.asarray(normals, dtype=np.float64)
-        # Unusable as a whole (a NaN or a zero-length normal), as a part of several is (_parts_vertex_normals).
-        if normals.shape != (n_vertices, 3) or not np.all(np.isfinite(normals)) \
-                or not np.all(np.linalg.norm(normals, axis=1) >= MIN_NORMAL_LENGTH):
+        normals = _usable_normals(kwargs.get("vertex_normals") if isinstance(kwargs, dict) else None, n_vertices)
+        if normals is None:  # unusable as a whole, as a part of several is (_parts_vertex_normals)
             return None, 0
         if placed:  # trimesh moved the vertices by the node's transform: the normals follow it
             transform = _node_transform(path)
@@ -109,6 +104,18 @@ def _file_vertex_normals(path: Path, n_vertices: int) -> Tuple[Optional[np.ndarr
     except Exception:  # an unreadable normal block is the same as none
         return None, 0
     return normals, 0
+
+
+def _usable_normals(normals: Any, n_vertices: int) -> Optional[np.ndarray]:
+    """A file's stored vertex normals as ``(n_vertices, 3) float64``, or ``None`` where there are none or
+    they are unusable: another shape, a NaN, or one shorter than :data:`MIN_NORMAL_LENGTH`."""
+    if normals is None:
+        return None
+    normals = np.asarray(normals, dtype=np.float64)
+    if normals.shape != (n_vertices, 3) or not np.all(np.isfinite(normals)) \
+            or not np.all(np.linalg.norm(normals, axis=1) >= MIN_NORMAL_LENGTH):
+        return None
+    return normals
 
 
 def _placed_normals(normals: np.ndarray, transform: np.ndarray) -> np.ndarray:
@@ -134,10 +141,8 @@ def _parts_vertex_normals(path: Path, parts: Dict[str, Any], n_vertices: int) ->
             continue
         transform = np.asarray(transform, dtype=np.float64)
         part = parts.get(name)
-        own = part.get("vertex_normals") if isinstance(part, dict) else None
-        own = None if own is None else np.asarray(own, dtype=np.float64)
-        if own is not None and own.shape == (len(geometry.vertices), 3) and np.all(np.isfinite(own)) \
-                and np.all(np.linalg.norm(own, axis=1) >= MIN_NORMAL_LENGTH):
+        own = _usable_normals(part.get("vertex_normals") if isinstance(part, dict) else None, len(geometry.vertices))
+        if own is not None:
             normals.append(_placed_normals(own, transform))
             stored += 1
         else:
