@@ -20,6 +20,7 @@ from typing import Dict, Optional, Sequence, Tuple
 from mi_bivariate import __version__, process
 from mi_bivariate.atomic import signals_deferred, stop_on_signal
 from mi_bivariate.errors import InputError, Terminated, renamed
+from mi_bivariate.report_worker import ReportWorker
 
 
 class _HelpFormatter(argparse.HelpFormatter):
@@ -360,6 +361,8 @@ def main(argv: Optional[Sequence[str]] = None, *, own_process: bool = False) -> 
     (:func:`~mi_bivariate.process.keep_freed_memory`, for :data:`KEEP_FREED_MEMORY_COMMANDS`), and
     the process's memory is not put on transparent huge pages
     (:func:`~mi_bivariate.process.no_huge_pages`; an evaluation's worker processes inherit it).
+    ``recover`` and ``recover-batch`` with their report draw it in a process started here, which loads
+    matplotlib on the core the command's first second leaves idle (:func:`_report_worker_pays`).
     Tests and notebooks calling :func:`main` keep the default, which leaves the collector as it is.
     """
     parser = build_parser()
@@ -370,6 +373,7 @@ def main(argv: Optional[Sequence[str]] = None, *, own_process: bool = False) -> 
     formatwarning = warnings.formatwarning  # restored on return: a notebook calling main keeps its own
     warnings.formatwarning = _warning_formatter(args.source_names)
     replaced: Dict[int, object] = {}
+    worker: Optional[ReportWorker] = None
     try:
         if own_process:
             if args.command in KEEP_FREED_MEMORY_COMMANDS:
@@ -377,6 +381,8 @@ def main(argv: Optional[Sequence[str]] = None, *, own_process: bool = False) -> 
             process.no_huge_pages()
             replaced = _stop_on_signals()
             gc.disable()  # until the freeze: no collection walks what the imports build (see above)
+            if _report_worker_pays(args):
+                args.report_worker = worker = ReportWorker()  # loads matplotlib while the pipeline loads
         try:
             if own_process:
                 process.defer_unused_numpy_modules()
@@ -415,9 +421,27 @@ def main(argv: Optional[Sequence[str]] = None, *, own_process: bool = False) -> 
             raise
         return _stopped(cause)
     finally:
+        if worker is not None:
+            worker.close()
         warnings.formatwarning = formatwarning
         for signum, handler in replaced.items():
             signal.signal(signum, handler)
+
+
+#: The commands that write a recovery report (unless ``--no-report``).
+REPORT_COMMANDS = ("recover", "recover-batch")
+
+
+def _report_worker_pays(args: argparse.Namespace) -> bool:
+    """Whether the command's report is drawn in a :class:`~mi_bivariate.report_worker.ReportWorker`: a
+    report command with its report, and a second core for the worker (not ``--threads 1``).
+
+    Measured (docs/recovery.md Round 37): ...
+    """
+    if args.command not in REPORT_COMMANDS or args.no_report or args.threads == 1:
+        return False
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return cores >= 2
 
 
 #: The commands whose process keeps freed memory: those it was measured on (one photo, or a batch

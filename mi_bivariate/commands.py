@@ -339,7 +339,7 @@ def _recover_image(args: argparse.Namespace, image_path: str, probe, priors: tup
     result.brdf.provenance["photos"] = [str(image_path)]
     args.source_names["out"] = str(out)  # what write_outputs' warnings call "out"
     paths = export.write_outputs(result, out, merl=args.merl, report=not args.no_report,
-                              report_render=args.report_render)
+                                 report_render=args.report_render, report_worker=getattr(args, "report_worker", None))
     return result, paths
 
 

@@ -5,14 +5,15 @@ from __future__ import annotations
 import os
 import warnings
 from pathlib import Path
-from typing import Iterable, List
+from typing import Iterable, List, Optional
 
 from mi_bivariate.atomic import atomic_paths, check_out_file, check_outputs
 from mi_bivariate.common import PathLike
 from mi_bivariate.errors import InputError, InputWarning
 from mi_bivariate.merl import check_values
 from mi_bivariate.recover import Recovery
-from mi_bivariate.report import write_recovery_report
+from mi_bivariate.report import recovery_report_panels, write_recovery_report
+from mi_bivariate.report_worker import ReportWorker
 
 
 def output_paths(out: PathLike, merl: bool = False, report: bool = True) -> List[Path]:
@@ -39,11 +40,13 @@ def recovery_input_files(result: Recovery) -> List[Path]:
 
 
 def write_outputs(result: Recovery, out: PathLike, merl: bool = False, report: bool = True,
-                  report_render: bool = False, inputs: Iterable[PathLike] = ()) -> List[Path]:
+                  report_render: bool = False, inputs: Iterable[PathLike] = (),
+                  report_worker: Optional[ReportWorker] = None) -> List[Path]:
     """Write the table (``.npz``), its EXR view, optionally a MERL ``.binary`` and a PNG report.
 
     The report's re-render is the model's prediction ``L f`` unless ``report_render``
-    asks for a path-traced one (:func:`mi_bivariate.report.write_recovery_report`).
+    asks for a path-traced one (:func:`mi_bivariate.report.write_recovery_report`). A
+    ``report_worker`` (:class:`~mi_bivariate.report_worker.ReportWorker`) draws it in its process.
 
     All or none: every file is written to a temporary first and they are
     renamed into place together (:func:`mi_bivariate.atomic.atomic_paths`).
@@ -76,7 +79,9 @@ def write_outputs(result: Recovery, out: PathLike, merl: bool = False, report: b
         result.brdf.save_exr(temps[1])
         if merl_table is not None:
             merl_table.write(temps[2], validate=False)
-        if report:
+        if report and report_worker is not None:
+            report_worker.write(recovery_report_panels(result, path_trace=report_render), temps[-1])
+        elif report:
             write_recovery_report(result, temps[-1], path_trace=report_render)
     # An earlier run's .binary or report beside the new table would read as part of this set.
     stale = [p for p in output_paths(out, merl=True, report=True) if p not in paths and p.is_file()]

@@ -1,6 +1,7 @@
 """What a process that exists for the toolkit's work sets for itself: glibc keeps freed memory
 (:func:`keep_freed_memory`), the kernel's transparent huge pages off (:func:`no_huge_pages`), numpy's
-submodules that scipy's import touches for nothing loaded on first use (:func:`defer_unused_numpy_modules`).
+submodules that scipy's import touches for nothing loaded on first use (:func:`defer_unused_numpy_modules`);
+and a worker process ends with the process that started it (:func:`die_with_parent`).
 
 Each changes the whole process and is measured on the 2-core VM the project runs on (docs/recovery.md
 Rounds 35 and 36). The command line calls them in a process of its own (:func:`mi_bivariate.cli.main`);
@@ -15,10 +16,14 @@ third leaves a module alone that is already loaded.
 """
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import importlib.util
 import os
+import signal
 import sys
+import threading
+import time
 
 #: glibc's ``mallopt`` parameters (``<malloc.h>``) and the values :func:`keep_freed_memory` sets.
 M_TRIM_THRESHOLD, M_MMAP_THRESHOLD, M_ARENA_MAX = -1, -3, -8
@@ -157,3 +162,27 @@ def defer_unused_numpy_modules() -> None:
         sys.modules[full] = module
         spec.loader.exec_module(module)  # lazily: the module's code runs on its first attribute access
         setattr(numpy, name, module)  # numpy's own __getattr__ (which imports) is not asked
+
+
+#: ``<linux/prctl.h>``: the signal a process gets when its parent ends.
+PR_SET_PDEATHSIG = 1
+
+
+def die_with_parent(parent: int, interval: float = 0.5) -> None:
+    """End this worker process when ``parent`` (the process that started it, ``os.getpid()`` there) ends,
+    killed included: SIGTERM from the kernel on Linux (``prctl(PR_SET_PDEATHSIG)``), and everywhere a
+    daemon thread that checks ``os.getppid()`` every ``interval`` seconds. A worker whose parent has
+    already gone ends at once.
+    """
+    if sys.platform.startswith("linux"):
+        with contextlib.suppress(OSError, AttributeError, TypeError):
+            ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
+    if os.getppid() != parent:  # the parent died before the signal was armed
+        os._exit(1)
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(interval)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="mi-bivariate-parent-watch", daemon=True).start()

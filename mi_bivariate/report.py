@@ -7,7 +7,9 @@ recovered and reference renders are directly comparable.
 
 from __future__ import annotations
 
+import io
 import textwrap
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Dict, Optional, Tuple
 
@@ -23,6 +25,8 @@ from mi_bivariate.images import auto_exposure, tonemap
 
 #: Resolution of the figures (dots per inch); the recovery report's figure is made and saved at it.
 REPORT_DPI = 110
+#: How the figures' PNG files are written: fast zlib (3x faster than the default level, files ~1.3x bigger).
+PNG_SETTINGS = {"pil_kwargs": {"compress_level": 1}}
 #: The recovery report's subplot parameters (13 x 8 in, 2 x 3 panels): what ``tight_layout``
 #: chose for it (``tests/test_report.py`` checks that no text leaves the figure or overlaps).
 RECOVERY_REPORT_LAYOUT = dict(left=0.045, right=0.96, bottom=0.07, top=0.92, wspace=0.36, hspace=0.17)
@@ -38,6 +42,16 @@ def pyplot():
     import matplotlib.pyplot as plt
 
     return plt
+
+
+def warm_up() -> None:
+    """Load matplotlib and draw a small figure with text (the fonts, Agg's first draw), as a process that
+    draws the report next does first (:mod:`mi_bivariate.report_worker`)."""
+    plt = pyplot()
+    fig = plt.figure(figsize=(1.0, 1.0), dpi=REPORT_DPI)
+    fig.text(0.5, 0.5, "theta_d (deg) 0.1234", fontsize=9)
+    fig.canvas.draw()
+    plt.close(fig)
 
 
 def freeze_layout(fig: Any) -> None:
@@ -70,7 +84,7 @@ def save_figure(fig: Any, path: PathLike, dpi: int = REPORT_DPI, tight: bool = T
     fmt = path.suffix.lstrip(".") or "png"
     if not tight:
         freeze_layout(fig)
-    extra = {"pil_kwargs": {"compress_level": 1}} if fmt == "png" else {}  # fast zlib: 3x faster, ~1.3x bigger
+    extra = PNG_SETTINGS if fmt == "png" else {}
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=dpi, bbox_inches="tight" if tight else None, format=fmt, **extra)
     if close:
@@ -219,6 +233,55 @@ def _input_title(result: Any) -> str:
             + (f", probe {short(str(probe), 22)}" if probe else ""))
 
 
+@dataclass
+class RecoveryReportPanels:
+    """What the recovery report shows, as plain arrays and text (:func:`recovery_report_panels`): all
+    :func:`draw_recovery_report` needs, small enough to hand to another process (~2-3 MB for a 256 px
+    photo)."""
+    table: np.ndarray                 #: (n_t, n_s, 3) 1/sr, the recovered table
+    confidence: np.ndarray            #: (n_t, n_s) in [0, 1], ``measured`` of the worst channel
+    seen: np.ndarray                  #: (M,) log10 luminance of the observed pixels
+    fit: np.ndarray                   #: (M,) log10 luminance of their prediction ``L f``
+    relative_residual: float          #: ||I - L f|| / ||I||
+    adequacy: str                     #: the adequacy summary line
+    image: Optional[np.ndarray] = None      #: (H, W, 3) the first photo (linear)
+    mask: Optional[np.ndarray] = None       #: (H, W) bool, its object's pixels
+    input_title: str = "input: image"
+    rerender: Optional[np.ndarray] = None   #: (H, W, 3) the re-render shown beside the photo
+    reference: Optional[np.ndarray] = None  #: (H, W, 3) what the re-render is compared with
+    rerender_title: str = "recovered BRDF re-rendered (same probe)"
+
+
+def recovery_report_panels(result: Any, rerender: Optional[np.ndarray] = None,
+                           path_trace: bool = False) -> RecoveryReportPanels:
+    """The recovery report's panels of a :class:`~mi_bivariate.recover.Recovery`, its re-render made here
+    (see :func:`write_recovery_report` for ``rerender`` and ``path_trace``)."""
+    obs = result.observations
+    panels = RecoveryReportPanels(
+        table=np.asarray(result.brdf.table), confidence=np.min(np.asarray(result.solution.measured), axis=-1),
+        seen=np.log10(np.maximum(luminance(obs.values), 1e-6)),
+        fit=np.log10(np.maximum(luminance(result.predicted), 1e-6)),
+        relative_residual=float(result.relative_residual()), adequacy=result.adequacy.summary())
+    if not result.images:
+        return panels
+    image = result.images[0]
+    panels.image, panels.reference, panels.input_title = image, image, _input_title(result)
+    if not result.geometries:
+        return panels
+    geo = result.geometries[0]
+    panels.mask = geo.surface_maps(image.shape[1], image.shape[0]).mask
+    if rerender is None and path_trace:
+        rerender = render.render_like(render.bsdf_dict(result.brdf), result.probes[0], geo,
+                                      width=image.shape[1], height=image.shape[0], spp=128, seed=1).image
+    elif rerender is None:
+        rerender, observed = predicted_image(result)
+        if rerender is not None:
+            panels.reference = observed
+            panels.rerender_title = "prediction L f at the observed normals (nearest fill)"
+    panels.rerender = rerender
+    return panels
+
+
 def write_recovery_report(result: Any, path: PathLike, rerender: Optional[np.ndarray] = None,
                           path_trace: bool = False) -> Path:
     """PNG report of a :class:`~mi_bivariate.recover.Recovery`.
@@ -232,42 +295,52 @@ def write_recovery_report(result: Any, path: PathLike, rerender: Optional[np.nda
     Mitsuba path-traced render (128 spp, seconds); else (default) the model's
     own prediction ``L f`` at the observed normals (:func:`predicted_image`,
     milliseconds), compared with the observations at the same pixels.
-    """
-    plt = pyplot()
-    obs = result.observations
-    image = result.images[0] if result.images else None
-    reference = image
-    label = "recovered BRDF re-rendered (same probe)"
-    if rerender is None and image is not None and result.geometries:
-        if path_trace:
 
-            geo = result.geometries[0]
-            rerender = render.render_like(render.bsdf_dict(result.brdf), result.probes[0], geo,
-                                          width=image.shape[1], height=image.shape[0], spp=128, seed=1).image
-        else:
-            rerender, observed = predicted_image(result)
-            if rerender is not None:
-                reference = observed
-                label = "prediction L f at the observed normals (nearest fill)"
+    :func:`recovery_report_panels` then :func:`draw_recovery_report`: the command line draws in a
+    process started before the recovery (:mod:`mi_bivariate.report_worker`).
+    """
+    return draw_recovery_report(recovery_report_panels(result, rerender, path_trace), path)
+
+
+def draw_recovery_report(panels: RecoveryReportPanels, path: PathLike) -> Path:
+    """Draw the recovery report of :func:`recovery_report_panels` as a PNG file (atomically)."""
+    png = recovery_report_png(panels)
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(png)
+    return Path(path)
+
+
+def recovery_report_png(panels: RecoveryReportPanels) -> bytes:
+    """The recovery report of :func:`recovery_report_panels`, drawn: the bytes of its PNG file."""
+    fig = recovery_report_figure(panels)
+    png = io.BytesIO()
+    fig.savefig(png, dpi=REPORT_DPI, format="png", **PNG_SETTINGS)
+    pyplot().close(fig)
+    return png.getvalue()
+
+
+def recovery_report_figure(panels: RecoveryReportPanels) -> Any:
+    """The recovery report's matplotlib figure (13 x 8 in at :data:`REPORT_DPI`, laid out, not yet drawn)."""
+    plt = pyplot()
+    image, mask, rerender = panels.image, panels.mask, panels.rerender
     # Titles at a fixed height: none of these axes has tick labels above it, so matplotlib's
     # automatic title placement, which measures every axis' ticks before the draw, moves nothing
     # (the same pixels) and costs ~12% of the report.
     with plt.rc_context({"axes.titley": 1.0}):
         fig, axes = plt.subplots(2, 3, figsize=(13, 8), dpi=REPORT_DPI)  # laid out at the dpi it is saved at
-        if image is not None:
-            mask = result.geometries[0].surface_maps(image.shape[1], image.shape[0]).mask
+        if image is not None and mask is not None:
             exposure = exposure_of(image, mask)
-            show_image(axes[0, 0], image, _input_title(result), exposure)
+            show_image(axes[0, 0], image, panels.input_title, exposure)
             if rerender is not None:
-                show_image(axes[0, 1], rerender, label, exposure)
-                show_difference(axes[0, 2], rerender, reference, mask, "|difference| x100 / mean")
+                show_image(axes[0, 1], rerender, panels.rerender_title, exposure)
+                show_difference(axes[0, 2], rerender, panels.reference, mask, "|difference| x100 / mean")
         for ax in axes[0]:
             if not ax.images:
                 ax.set_axis_off()
-        plot_table(axes[1, 0], result.brdf, "recovered table (mean RGB)")
+        plot_table(axes[1, 0], BivariateBRDF(panels.table), "recovered table (mean RGB)")
         # Which nodes the photo measured and which the priors supplied: how much of each node's
         # uncertainty under the priors alone the image removed (1: all, 0: none), worst channel.
-        confidence = np.min(np.asarray(result.solution.measured), axis=-1)
+        confidence = panels.confidence
         im = axes[1, 1].imshow(confidence, origin="lower", extent=node_extent(*confidence.shape), cmap="magma",
                                vmin=0.0, vmax=1.0, aspect="auto")
         degree_axes(axes[1, 1])  # as the table's panel beside it
@@ -281,16 +354,15 @@ def write_recovery_report(result: Any, path: PathLike, rerender: Optional[np.nda
         bar.ax.tick_params(labelsize=7)
         # log10 values on linear axes: the same picture as log axes without their
         # mathtext tick labels (the slowest part of drawing this figure).
-        seen = np.log10(np.maximum(luminance(obs.values), 1e-6))
-        fit = np.log10(np.maximum(luminance(result.predicted), 1e-6))
+        seen, fit = panels.seen, panels.fit
         axes[1, 2].plot(seen, fit, ".", ms=1.5, alpha=0.5)
         lo, hi = float(np.min(seen)), float(np.max(seen))
         axes[1, 2].plot([lo, hi], [lo, hi], "k-", lw=0.8)
         axes[1, 2].set_xlabel("log10 observed pixel (luminance)", fontsize=8)
         axes[1, 2].set_ylabel("log10 predicted L f", fontsize=8)
-        axes[1, 2].set_title(f"fit: relative residual {result.relative_residual():.4f}", fontsize=9)
+        axes[1, 2].set_title(f"fit: relative residual {panels.relative_residual:.4f}", fontsize=9)
         # The adequacy line, wrapped: an inadequate verdict's reasons run to 300-450 characters.
-        lines = textwrap.wrap(result.adequacy.summary(), SUPTITLE_WIDTH)
+        lines = textwrap.wrap(panels.adequacy, SUPTITLE_WIDTH)
         fig.suptitle("\n".join(lines), fontsize=9)
         # A fixed layout: this figure's panels and titles are the same for every recovery and its
         # tick labels change little, while tight_layout measures every text once more before the
@@ -298,7 +370,8 @@ def write_recovery_report(result: Any, path: PathLike, rerender: Optional[np.nda
         layout = dict(RECOVERY_REPORT_LAYOUT)
         layout["top"] -= 0.022 * (len(lines) - 1)
         fig.subplots_adjust(**layout)
-        return save_figure(fig, path, dpi=REPORT_DPI, tight=False)
+        freeze_layout(fig)
+        return fig
 
 
 def write_demo_figure(path: PathLike, shot: Any, novel_rec: Any, novel_truth: Any, rec: Any, truth: Any,

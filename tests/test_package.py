@@ -363,7 +363,8 @@ LAYERS = (
     "lighting adequacy",
     "prior basis_prior training_set solve alignment sphere_refine",
     "recover",
-    "render reference metrics baselines report export figures evaluate synthesis demo cli commands __main__",
+    "render reference metrics baselines report report_worker export figures evaluate synthesis demo cli commands "
+    "__main__",
 )
 
 

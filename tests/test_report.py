@@ -73,13 +73,14 @@ def test_report_is_drawn_once_at_its_own_resolution(tmp_path, recovery, monkeypa
 def _report_figure(recovery, tmp_path, monkeypatch, layout=None):
     """The recovery report's figure as saved (drawn, not closed); ``layout`` replaces its subplot parameters."""
     saved = []
-    save = report.save_figure
+    make = report.recovery_report_figure
 
-    def keep(fig, *args, **kwargs):
-        saved.append(fig)
-        return save(fig, *args, **{**kwargs, "close": False})
+    def keep(*args, **kwargs):
+        saved.append(make(*args, **kwargs))
+        return saved[-1]
 
-    monkeypatch.setattr(report, "save_figure", keep)
+    monkeypatch.setattr(report, "recovery_report_figure", keep)
+    monkeypatch.setattr(report.pyplot(), "close", lambda fig: None)
     if layout is not None:
         monkeypatch.setattr(report, "RECOVERY_REPORT_LAYOUT", layout)
     report.write_recovery_report(recovery[0], tmp_path / "r.png")

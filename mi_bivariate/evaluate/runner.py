@@ -13,16 +13,11 @@ same command reproduces the same numbers.
 from __future__ import annotations
 
 import contextlib
-import ctypes
 import fcntl
 import json
 import multiprocessing
 import os
 import shutil
-import signal
-import sys
-import threading
-import time
 import warnings
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures import as_completed as cf_completed
@@ -52,6 +47,7 @@ from mi_bivariate.evaluate.results import (
 )
 from mi_bivariate.merl import MERLBRDF
 from mi_bivariate.probes import check_lit
+from mi_bivariate.process import die_with_parent
 from mi_bivariate.sources import MaterialSpec, load_probe, resolve_materials, unique_materials
 from mi_bivariate.threads import pin_process_threads
 from mi_bivariate.variants import ensure_variant
@@ -67,29 +63,13 @@ def threads_per_job(jobs: int) -> int:
     return max(1, (os.cpu_count() or 1) // max(1, jobs))
 
 
-def _watch_parent(parent: int, interval: float = 0.5) -> None:
-    """Exit this process as soon as ``parent`` is no longer its parent (it died)."""
-    def watch() -> None:
-        while os.getppid() == parent:
-            time.sleep(interval)
-        os._exit(1)
-
-    threading.Thread(target=watch, name="mi-bivariate-parent-watch", daemon=True).start()
-
-
 def _init_worker(variant: Optional[str], parent: Optional[int] = None, threads: Optional[int] = None) -> None:
     """Worker set-up: die with the parent (``PR_SET_PDEATHSIG`` on Linux and a
     watchdog thread polling ``os.getppid``), select the variant, and give this
     process ``threads`` BLAS/OpenMP threads and solve workers (its own setting:
     nothing to restore, the parent's environment is untouched)."""
     if parent is not None:
-        if sys.platform.startswith("linux"):
-            with contextlib.suppress(OSError, AttributeError):
-                libc = ctypes.CDLL(None, use_errno=True)
-                libc.prctl(1, signal.SIGTERM, 0, 0, 0)  # PR_SET_PDEATHSIG = 1
-        if os.getppid() != parent:      # the parent died before the signal was armed
-            os._exit(1)
-        _watch_parent(parent)
+        die_with_parent(parent)
     if threads is not None:
         pin_process_threads(threads)
     ensure_variant(variant)
