@@ -392,7 +392,11 @@ def main(argv: Optional[Sequence[str]] = None, *, own_process: bool = False) -> 
             if own_process:
                 gc.freeze()
                 gc.enable()
-        return int(commands.COMMANDS[args.command](args) or 0)
+        try:
+            return int(commands.COMMANDS[args.command](args) or 0)
+        finally:
+            if worker is not None:  # here, so that a stop while it ends is said as any other
+                worker.close()
     except InputError as exc:
         # The library's own parameter ("noise", "basis_prior") named as the user gave it; a file the
         # user named so (a photo called "noise") is left alone. Messages without a source may begin
@@ -438,7 +442,7 @@ def _report_worker_pays(args: argparse.Namespace) -> bool:
 
     Measured (docs/recovery.md Round 37): ...
     """
-    if args.command not in REPORT_COMMANDS or args.no_report or args.threads == 1:
+    if args.command not in REPORT_COMMANDS or args.no_report or args.threads == 1 or os.name != "posix":
         return False
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     return cores >= 2

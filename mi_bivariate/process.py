@@ -172,7 +172,9 @@ def die_with_parent(parent: int, interval: float = 0.5) -> None:
     """End this worker process when ``parent`` (the process that started it, ``os.getpid()`` there) ends,
     killed included: SIGTERM from the kernel on Linux (``prctl(PR_SET_PDEATHSIG)``), and everywhere a
     daemon thread that checks ``os.getppid()`` every ``interval`` seconds. A worker whose parent has
-    already gone ends at once.
+    already gone ends at once. On Linux the kernel's signal comes when the parent's *thread* that started
+    the worker ends: start workers from a thread that lives as long as they should (the command line's
+    main thread).
     """
     if sys.platform.startswith("linux"):
         with contextlib.suppress(OSError, AttributeError, TypeError):

@@ -303,11 +303,9 @@ def write_recovery_report(result: Any, path: PathLike, rerender: Optional[np.nda
 
 
 def draw_recovery_report(panels: RecoveryReportPanels, path: PathLike) -> Path:
-    """Draw the recovery report of :func:`recovery_report_panels` as a PNG file (atomically)."""
-    png = recovery_report_png(panels)
-    with atomic_path(path) as tmp:
-        tmp.write_bytes(png)
-    return Path(path)
+    """Draw the recovery report of :func:`recovery_report_panels` to ``path`` (the format from its suffix, as
+    :func:`save_figure`; a PNG's bytes are :func:`recovery_report_png`'s), atomically."""
+    return save_figure(recovery_report_figure(panels), path, dpi=REPORT_DPI, tight=False)
 
 
 def recovery_report_png(panels: RecoveryReportPanels) -> bytes:

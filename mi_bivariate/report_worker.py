@@ -19,24 +19,42 @@ draws in its own process (:func:`mi_bivariate.report.write_recovery_report`), or
     worker.close()
 
 The worker is in a session of its own (a Ctrl-C at the terminal is the command's to handle, which
-ends the worker), writes no file, and ends with the process that started it
-(:func:`mi_bivariate.process.die_with_parent`). This module loads only the standard library and the
-toolkit's :mod:`~mi_bivariate.atomic` and :mod:`~mi_bivariate.process`, so the command line can start
-the worker before it loads the pipeline; the worker loads the report's module.
+ends the worker), writes no file (its answers come back on a pipe of their own: nothing it or a
+library prints can be taken for one), and ends with the process that started it
+(:func:`mi_bivariate.process.die_with_parent`). It runs isolated from the current folder and the
+``PYTHON*`` variables (``python -I``) and imports from the command's own ``sys.path``: the same copy
+of the toolkit and of matplotlib as the command. What the drawing warns about is said again by the
+command, as the nearest built-in category (a ``MatplotlibDeprecationWarning`` as a
+``DeprecationWarning``), through the command's own warning filters. Only the command line's process
+starts it: this module loads the toolkit's :mod:`~mi_bivariate.atomic` and
+:mod:`~mi_bivariate.process` (and numpy, through them) and the standard library, so the command line can
+start the worker before it loads the pipeline; the worker loads the report's module.
 """
 
 from __future__ import annotations
 
 import os
 import pickle
+import select
 import subprocess
 import sys
 import warnings
 from pathlib import Path
-from typing import Any, Optional, Union
+from typing import Any, List, Optional, Tuple, Union
 
 from mi_bivariate.atomic import atomic_path
 from mi_bivariate.process import die_with_parent
+
+#: What the worker runs, ``python -I -c BOOT PARENT_PID REPLY_FD``: its first message is the command's
+#: ``sys.path``, so that it imports what the command imports (``-I``: not the current folder's modules).
+BOOT = ("import pickle, sys; sys.path[:] = pickle.load(sys.stdin.buffer); "
+        "from mi_bivariate.report_worker import serve; sys.exit(serve(int(sys.argv[1]), int(sys.argv[2])))")
+#: Seconds the command waits for a report once the worker has its panels (its first report includes
+#: matplotlib's start: seconds, or longer where matplotlib builds its font cache); then it draws it itself.
+REPLY_TIMEOUT_S = 120.0
+#: Panels above this many bytes of arrays (a photo of ~5 megapixels and more) are drawn in the command's
+#: own process: the worker would hold a copy of them (and pickling another) for nothing but speed.
+MAX_PANEL_BYTES = 64 * 2**20
 
 
 class ReportWorker:
@@ -48,35 +66,48 @@ class ReportWorker:
 
     def __init__(self) -> None:
         self._process: Optional[subprocess.Popen] = None
+        self._replies: Optional[Any] = None
+        read_fd, write_fd = os.pipe()
         try:
             self._process = subprocess.Popen(
-                [sys.executable, "-m", "mi_bivariate.report_worker", str(os.getpid())],
-                stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
-                start_new_session=True)
-        except OSError:  # no process to be had (limits, memory): the report is drawn here
-            self._process = None
+                [sys.executable, "-I", "-c", BOOT, str(os.getpid()), str(write_fd)],
+                stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                pass_fds=(write_fd,), start_new_session=True)
+            self._replies, read_fd = os.fdopen(read_fd, "rb"), -1
+            pickle.dump(list(sys.path), self._process.stdin, protocol=pickle.HIGHEST_PROTOCOL)
+            self._process.stdin.flush()
+        except OSError:  # no process to be had (limits, memory), or it ended at once: the report is drawn here
+            self.close()
+        finally:
+            os.close(write_fd)
+            if read_fd >= 0:
+                os.close(read_fd)
 
     def write(self, panels: Any, path: Union[str, os.PathLike]) -> Path:
         """Write the report of :func:`~mi_bivariate.report.recovery_report_panels`' ``panels`` to ``path`` (a
-        PNG, atomically), drawn in the worker, or here where it cannot be. Returns the path.
+        ``.png``, atomically), drawn in the worker, or here where it cannot be (another format, panels over
+        :data:`MAX_PANEL_BYTES`, a worker that failed or gave no answer in :data:`REPLY_TIMEOUT_S`).
+        Returns the path.
 
         The worker hands back the file's bytes and what it warned about (said again here, as a
         report drawn here would say it); it writes no file, so ending it at any moment leaves none.
         """
-        process = self._process
         reply = None
-        if process is not None:
+        if self._process is not None and Path(path).suffix.lower() == ".png" and _array_bytes(panels) <= MAX_PANEL_BYTES:
             try:
-                pickle.dump(panels, process.stdin, protocol=pickle.HIGHEST_PROTOCOL)
-                process.stdin.flush()
-                reply = pickle.load(process.stdout)
+                pickle.dump(panels, self._process.stdin, protocol=pickle.HIGHEST_PROTOCOL)
+                self._process.stdin.flush()
+                if select.select([self._replies], [], [], REPLY_TIMEOUT_S)[0]:
+                    reply = pickle.load(self._replies)
             except Exception:  # noqa: BLE001 (it died, could not take the panels, or answered nonsense)
                 reply = None
             except BaseException:  # Ctrl-C, SIGTERM: the worker ends with the command's stop
                 self.close()
                 raise
-        if not (isinstance(reply, tuple) and len(reply) == 2 and isinstance(reply[0], bytes)):
-            self.close()  # a worker that failed once is not asked again
+            if not (isinstance(reply, tuple) and len(reply) == 2 and isinstance(reply[0], bytes)):
+                reply = None
+                self.close()  # a worker that failed once is not asked again
+        if reply is None:
             from mi_bivariate.report import draw_recovery_report  # loaded by the pipeline by then
             return draw_recovery_report(panels, path)
         png, said = reply
@@ -89,13 +120,14 @@ class ReportWorker:
     def close(self) -> None:
         """End the worker (it holds no work between reports) and wait for it; a second call does nothing."""
         process, self._process = self._process, None
-        if process is None:
-            return
-        process.kill()
-        process.wait()
-        for stream in (process.stdin, process.stdout):
+        replies, self._replies = self._replies, None
+        if process is not None:
+            process.kill()
+            process.wait()
+        for stream in (process.stdin if process is not None else None, replies):
             try:
-                stream.close()
+                if stream is not None:
+                    stream.close()
             except OSError:  # a broken pipe's unsent bytes
                 pass
 
@@ -106,13 +138,24 @@ class ReportWorker:
         self.close()
 
 
-def serve(parent: int) -> int:
+def _array_bytes(panels: Any) -> int:
+    """The bytes of the arrays among ``panels``' attributes."""
+    return sum(int(getattr(value, "nbytes", 0)) for value in vars(panels).values())
+
+
+def _builtin_category(category: type) -> type:
+    """``category``, or its nearest built-in base class (a library's category would load that library to be
+    read back, and the command's filters know the built-in ones)."""
+    return next((c for c in category.__mro__ if c.__module__ == "builtins" and issubclass(c, Warning)), UserWarning)
+
+
+def serve(parent: int, reply_fd: int) -> int:
     """The worker's loop: load the report's module and warm matplotlib up, then, for each panels object read
-    from stdin, answer on stdout with ``(PNG bytes, [(warning text, category), ...])``, or ``None`` where
-    the drawing failed (the command then draws it itself, and says what went wrong); until stdin ends."""
+    from stdin, answer on ``reply_fd`` with ``(PNG bytes, [(warning text, category), ...])``, or ``None``
+    where the drawing failed (the command then draws it itself, and says what went wrong); until stdin
+    ends."""
     die_with_parent(parent)
-    replies = os.fdopen(os.dup(1), "wb")
-    os.dup2(os.open(os.devnull, os.O_WRONLY), 1)  # what matplotlib or a library prints goes nowhere
+    replies = os.fdopen(reply_fd, "wb")
     requests = sys.stdin.buffer
     from mi_bivariate import report  # the point of this process: loaded while the command runs
 
@@ -122,18 +165,13 @@ def serve(parent: int) -> int:
             panels = pickle.load(requests)
         except EOFError:
             return 0
+        answer: Optional[Tuple[bytes, List[Tuple[str, type]]]]
         try:
             with warnings.catch_warnings(record=True) as said:
-                warnings.simplefilter("always")
+                warnings.simplefilter("always")  # each one; the command's filters decide
                 png = report.recovery_report_png(panels)
-            # A library's own category (matplotlib's) would load that library to be read back: its base instead.
-            answer = (png, [(str(w.message), w.category if w.category.__module__ == "builtins" else UserWarning)
-                            for w in said])
+            answer = png, [(str(w.message), _builtin_category(w.category)) for w in said]
         except Exception:  # noqa: BLE001 (the command draws it again, and says what went wrong)
             answer = None
         pickle.dump(answer, replies, protocol=pickle.HIGHEST_PROTOCOL)
         replies.flush()
-
-
-if __name__ == "__main__":
-    sys.exit(serve(int(sys.argv[1])))

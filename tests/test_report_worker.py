@@ -4,8 +4,10 @@ file written by the worker, and no worker left behind (by a command, or when its
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import os
+import pickle
 import subprocess
 import sys
 import time
@@ -14,12 +16,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mi_bivariate import analytic, cli, probes, render, report
+from mi_bivariate import analytic, cli, probes, render, report, report_worker
 from mi_bivariate.errors import InputError
 from mi_bivariate.images import write_exr
 from mi_bivariate.recover import recover
 from mi_bivariate.report_worker import ReportWorker
 from mi_bivariate.sources import synthetic_environment
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
@@ -99,6 +103,48 @@ def test_worker_writes_no_file_and_an_unwritable_report_fails_as_here(tmp_path, 
     assert list(tmp_path.iterdir()) == [folder] and list(folder.iterdir()) == []
 
 
+def test_what_the_worker_does_not_draw_is_drawn_here(tmp_path, panels, monkeypatch):
+    """Another format than PNG (the suffix decides, as for a report drawn here) and panels over the size
+    limit are drawn in this process; the worker stays for the next report."""
+    with ReportWorker() as worker:
+        pdf = worker.write(panels, tmp_path / "r.pdf")
+        assert pdf.read_bytes().startswith(b"%PDF") and _worker_alive(worker)
+        monkeypatch.setattr(report_worker, "MAX_PANEL_BYTES", 0)
+        here = worker.write(panels, tmp_path / "big.png")
+        assert _worker_alive(worker)
+    assert here.read_bytes() == report.draw_recovery_report(panels, tmp_path / "here.png").read_bytes()
+
+
+def test_warnings_come_back_as_their_nearest_builtin_category():
+    from matplotlib import MatplotlibDeprecationWarning
+
+    assert report_worker._builtin_category(MatplotlibDeprecationWarning) is DeprecationWarning
+    assert report_worker._builtin_category(RuntimeWarning) is RuntimeWarning
+    assert report_worker._builtin_category(type("Mine", (Warning,), {})) is Warning
+
+
+def test_worker_imports_what_the_command_imports_not_the_current_folders(tmp_path, panels):
+    """A command started as the console script is (its folder first on its path, not the current one), in a
+    folder holding a ``matplotlib.py``: the worker draws the report without running that file."""
+    folder = tmp_path / "work"
+    folder.mkdir()
+    (folder / "matplotlib.py").write_text("open('ran', 'w').close()\nraise ImportError('not this one')\n")
+    (tmp_path / "panels.pickle").write_bytes(pickle.dumps(panels))
+    script = tmp_path / "bin" / "command.py"
+    script.parent.mkdir()
+    script.write_text(f"import pickle, sys\nsys.path.insert(1, {str(ROOT)!r})\n"
+                      "from mi_bivariate.report_worker import ReportWorker\n"
+                      "panels = pickle.loads(open(sys.argv[1], 'rb').read())\n"
+                      "with ReportWorker() as worker:\n"
+                      "    worker.write(panels, 'r.png')\n"
+                      "    assert worker._process is not None and worker._process.poll() is None\n")
+    run = subprocess.run([sys.executable, str(script), str(tmp_path / "panels.pickle")], cwd=folder,
+                         capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    assert not (folder / "ran").exists()
+    assert (folder / "r.png").read_bytes() == report.draw_recovery_report(panels, tmp_path / "here.png").read_bytes()
+
+
 def _ended(pid: int) -> bool:
     try:
         with open(f"/proc/{pid}/stat") as f:
@@ -109,14 +155,42 @@ def _ended(pid: int) -> bool:
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
 def test_worker_ends_with_the_process_that_started_it():
-    code = ("import os; from mi_bivariate.report_worker import ReportWorker; w = ReportWorker(); "
-            "print(w._process.pid, flush=True); os._exit(0)")
-    pid = int(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
-                             timeout=60).stdout)
-    deadline = time.monotonic() + 30
-    while not _ended(pid) and time.monotonic() < deadline:
-        time.sleep(0.1)
-    assert _ended(pid)
+    """The parent ends while a process it forked still holds the worker's requests open (so the worker
+    sees no end of its input): the worker ends all the same (:func:`mi_bivariate.process.die_with_parent`)."""
+    code = ("import os, time; from mi_bivariate.report_worker import ReportWorker; w = ReportWorker(); "
+            "print(w._process.pid, flush=True)\n"
+            "if os.fork() == 0:\n"
+            "    os.closerange(0, 3); time.sleep(60); os._exit(0)\n"
+            "time.sleep(0.5); print(os.getpid(), flush=True); os._exit(0)")
+    command = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    worker, parent = (int(v) for v in command.stdout.split())
+    holder = [int(entry.name) for entry in Path("/proc").iterdir() if entry.name.isdigit() and _ppid(entry) == 1
+              and _holds_pipe_of(entry, worker)]
+    try:
+        deadline = time.monotonic() + 30
+        while not _ended(worker) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert _ended(worker)
+    finally:
+        for pid in holder:
+            with contextlib.suppress(OSError):
+                os.kill(pid, 9)
+
+
+def _ppid(entry: Path) -> int:
+    try:
+        return int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
+    except (OSError, ValueError, IndexError):
+        return -1
+
+
+def _holds_pipe_of(entry: Path, worker: int) -> bool:
+    """Whether process ``entry`` holds a pipe that is ``worker``'s standard input."""
+    try:
+        stdin = os.readlink(f"/proc/{worker}/fd/0")
+        return any(os.readlink(fd) == stdin for fd in (entry / "fd").iterdir())
+    except OSError:
+        return False
 
 
 @pytest.mark.parametrize("argv, pays", [
@@ -146,8 +220,8 @@ def test_recover_draws_its_report_in_a_worker_that_ends_with_it(tmp_path, recove
         [sys.executable, "-m", "mi_bivariate.cli", "recover", str(tmp_path / "photo.exr"), "--probe",
          str(tmp_path / "probe.exr"), "--out", str(tmp_path / "out.npz"), "--normals", "1500", "--dirs", "4000"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    mark = f"mi_bivariate.report_worker\0{command.pid}"
-    workers = set()
+    mark = f"{report_worker.BOOT}\0{command.pid}\0"
+    workers, drew_here = set(), False
     while command.poll() is None:
         for entry in Path("/proc").iterdir():
             try:
@@ -155,10 +229,13 @@ def test_recover_draws_its_report_in_a_worker_that_ends_with_it(tmp_path, recove
                     workers.add(int(entry.name))
             except OSError:
                 pass
+        with contextlib.suppress(OSError):  # matplotlib's renderer in the command's own process
+            drew_here = drew_here or "_backend_agg" in Path(f"/proc/{command.pid}/maps").read_text()
         time.sleep(0.05)
     out, err = command.communicate()
     assert command.returncode == 0, err
     assert workers, "no report worker ran"
+    assert not drew_here, "the command drew its report itself"
     assert all(_ended(pid) for pid in workers)
     # The same command in this process (main's default: no worker) draws the same report.
     assert cli.main(["recover", str(tmp_path / "photo.exr"), "--probe", str(tmp_path / "probe.exr"), "--out",
