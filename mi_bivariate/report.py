@@ -203,7 +203,7 @@ def predicted_image(result: Any, index: int = 0) -> Tuple[Optional[np.ndarray], 
         ``(predicted, observed)``, ``(H, W, 3) float32`` each, zero off the
         sphere; ``(None, None)`` when the rows carry no pixel positions.
     """
-    from scipy.spatial import cKDTree
+    from scipy.ndimage import distance_transform_edt
 
     obs = result.observations
     image = result.images[index]
@@ -211,12 +211,17 @@ def predicted_image(result: Any, index: int = 0) -> Tuple[Optional[np.ndarray], 
     if len(rows) == 0 or not result.geometries:
         return None, None
     mask = result.geometries[index].surface_maps(image.shape[1], image.shape[0]).mask
-    target = np.argwhere(mask)
-    _, nearest = cKDTree(np.asarray(obs.pixels)[rows]).query(target, k=1)
+    # Each pixel's nearest observed pixel: the Euclidean feature transform of the observed pixels (the
+    # sphere fit's scipy.ndimage, already loaded; a k-d tree cost the report 0.06 s, its import included).
+    pixels = np.asarray(obs.pixels)[rows]
+    row_at = np.full(image.shape[:2], -1, np.int64)
+    row_at[pixels[:, 0], pixels[:, 1]] = rows
+    _, (near_r, near_c) = distance_transform_edt(row_at < 0, return_indices=True)
+    nearest = row_at[near_r[mask], near_c[mask]]
     predicted = np.zeros(image.shape[:2] + (3,), np.float32)
     observed = np.zeros_like(predicted)
-    predicted[target[:, 0], target[:, 1]] = np.asarray(result.predicted)[rows[nearest]]
-    observed[target[:, 0], target[:, 1]] = np.asarray(obs.values)[rows[nearest]]
+    predicted[mask] = np.asarray(result.predicted)[nearest]
+    observed[mask] = np.asarray(obs.values)[nearest]
     return predicted, observed
 
 

@@ -31,6 +31,22 @@ def test_prediction_is_l_f_at_the_observed_pixels(recovery):
     assert np.all(predicted[~mask] == 0.0) and np.all(predicted[mask].sum(axis=1) > 0.0)
 
 
+def test_prediction_fills_each_pixel_from_a_nearest_observed_pixel(recovery):
+    """Independent truth: a k-d tree's nearest observed pixels (any of those tied at the least distance)."""
+    from scipy.spatial import cKDTree
+
+    result, _ = recovery
+    predicted, observed = report.predicted_image(result)
+    obs = result.observations
+    mask = result.geometries[0].surface_maps(64, 64).mask
+    target = np.argwhere(mask)
+    distance, index = cKDTree(obs.pixels).query(target, k=8)
+    for (r, c), d, k in zip(target, distance, index):
+        tied = k[d <= d[0] + 1e-9]
+        assert any(np.array_equal(predicted[r, c], result.predicted[j].astype(np.float32))
+                   and np.array_equal(observed[r, c], obs.values[j].astype(np.float32)) for j in tied), (r, c)
+
+
 def test_prediction_agrees_with_a_path_traced_rerender(recovery):
     """Independent truth: Mitsuba renders the recovered table under the same probe."""
     result, shot = recovery
