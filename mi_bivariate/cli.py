@@ -440,7 +440,11 @@ def _report_worker_pays(args: argparse.Namespace) -> bool:
     """Whether the command's report is drawn in a :class:`~mi_bivariate.report_worker.ReportWorker`: a
     report command with its report, and a second core for the worker (not ``--threads 1``).
 
-    Measured (docs/recovery.md Round 37): ...
+    Measured (docs/recovery.md Round 37; 2026-12-07, the 2-core AMD EPYC VM, fresh processes, the same
+    PNG byte for byte): what the report adds to ``recover`` went from 0.99-1.37 s to 0.54-1.07 s in four
+    alternating A/B runs, and was 0.76 and 0.87 s in two ``bench_speed.py`` runs (target 1 s). The worker
+    costs 0.1-0.5 s more CPU than drawing here (its own imports), so on a machine with no idle core it
+    would cost time: hence a second core and not ``--threads 1``.
     """
     if args.command not in REPORT_COMMANDS or args.no_report or args.threads == 1 or os.name != "posix":
         return False
