@@ -21,9 +21,10 @@ draws in its own process (:func:`mi_bivariate.report.write_recovery_report`), or
 The worker is in a session of its own (a Ctrl-C at the terminal is the command's to handle, which
 ends the worker), writes no file (its answers come back on a pipe of their own: nothing it or a
 library prints can be taken for one), and ends with the process that started it
-(:func:`mi_bivariate.process.die_with_parent`). It runs isolated from the current folder and the
-``PYTHON*`` variables (``python -I``) and imports from the command's own ``sys.path``: the same copy
-of the toolkit and of matplotlib as the command. What the drawing warns about is said again by the
+(:func:`mi_bivariate.process.die_with_parent`). It runs with the command's interpreter flags (``-B``,
+``-O``, ``-W``, ``-X``) but isolated from the current folder and the ``PYTHON*`` variables (``-I``), and
+imports from the command's own ``sys.path``: the same copy of the toolkit and of matplotlib as the
+command. What the drawing warns about is said again by the
 command, as the nearest built-in category (a ``MatplotlibDeprecationWarning`` as a
 ``DeprecationWarning``), through the command's own warning filters. Only the command line's process
 starts it: this module loads the toolkit's :mod:`~mi_bivariate.atomic` and
@@ -45,8 +46,9 @@ from typing import Any, List, Optional, Tuple, Union
 from mi_bivariate.atomic import atomic_path
 from mi_bivariate.process import die_with_parent
 
-#: What the worker runs, ``python -I -c BOOT PARENT_PID REPLY_FD``: its first message is the command's
-#: ``sys.path``, so that it imports what the command imports (``-I``: not the current folder's modules).
+#: What the worker runs, ``python [the command's flags] -I -c BOOT PARENT_PID REPLY_FD``: its first message is
+#: the command's ``sys.path``, so that it imports what the command imports (``-I``: not the current folder's
+#: modules, nor what ``PYTHONPATH`` would add to the command's path since it started).
 BOOT = ("import pickle, sys; sys.path[:] = pickle.load(sys.stdin.buffer); "
         "from mi_bivariate.report_worker import serve; sys.exit(serve(int(sys.argv[1]), int(sys.argv[2])))")
 #: Seconds the command waits for a report once the worker has its panels (its first report includes
@@ -70,7 +72,7 @@ class ReportWorker:
         read_fd, write_fd = os.pipe()
         try:
             self._process = subprocess.Popen(
-                [sys.executable, "-I", "-c", BOOT, str(os.getpid()), str(write_fd)],
+                [sys.executable, *_interpreter_flags(), "-I", "-c", BOOT, str(os.getpid()), str(write_fd)],
                 stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                 pass_fds=(write_fd,), start_new_session=True)
             self._replies, read_fd = os.fdopen(read_fd, "rb"), -1
@@ -136,6 +138,13 @@ class ReportWorker:
 
     def __exit__(self, *exc: Any) -> None:
         self.close()
+
+
+def _interpreter_flags() -> List[str]:
+    """This interpreter's command-line flags (``-B``, ``-O``, ``-W``, ``-X``) for the worker's, as
+    :mod:`multiprocessing` passes them to its own workers (the standard library's helper)."""
+    flags = getattr(subprocess, "_args_from_interpreter_flags", None)
+    return list(flags()) if callable(flags) else []
 
 
 def _array_bytes(panels: Any) -> int:

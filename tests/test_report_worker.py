@@ -145,6 +145,22 @@ def test_worker_imports_what_the_command_imports_not_the_current_folders(tmp_pat
     assert (folder / "r.png").read_bytes() == report.draw_recovery_report(panels, tmp_path / "here.png").read_bytes()
 
 
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_worker_runs_with_the_commands_interpreter_flags():
+    """``python -B -W ...``: the worker writes no bytecode either, and has the same warning options."""
+    code = ("import time; from mi_bivariate.report_worker import ReportWorker\n"
+            "with ReportWorker() as w:\n"
+            "    for _ in range(100):\n"
+            "        argv = open(f'/proc/{w._process.pid}/cmdline').read().split(chr(0))\n"
+            "        if '-c' in argv: break\n"
+            "        time.sleep(0.05)  # between the fork and the exec\n"
+            "    print(argv)")
+    run = subprocess.run([sys.executable, "-B", "-W", "ignore::DeprecationWarning", "-c", code], capture_output=True,
+                         text=True, timeout=60, check=True)
+    argv = eval(run.stdout)  # the list printed above
+    assert argv[1:5] == ["-B", "-Wignore::DeprecationWarning", "-I", "-c"], argv
+
+
 def _ended(pid: int) -> bool:
     try:
         with open(f"/proc/{pid}/stat") as f:
