@@ -81,7 +81,7 @@ def save_figure(fig: Any, path: PathLike, dpi: int = REPORT_DPI, tight: bool = T
     layout of its ``tight_layout``.
     """
     path = Path(path)
-    fmt = path.suffix.lstrip(".") or "png"
+    fmt = path.suffix.lstrip(".").lower() or "png"
     if not tight:
         freeze_layout(fig)
     extra = PNG_SETTINGS if fmt == "png" else {}
@@ -216,7 +216,7 @@ def predicted_image(result: Any, index: int = 0) -> Tuple[Optional[np.ndarray], 
     pixels = np.asarray(obs.pixels)[rows]
     row_at = np.full(image.shape[:2], -1, np.int64)
     row_at[pixels[:, 0], pixels[:, 1]] = rows
-    _, (near_r, near_c) = distance_transform_edt(row_at < 0, return_indices=True)
+    near_r, near_c = distance_transform_edt(row_at < 0, return_distances=False, return_indices=True)
     nearest = row_at[near_r[mask], near_c[mask]]
     predicted = np.zeros(image.shape[:2] + (3,), np.float32)
     observed = np.zeros_like(predicted)

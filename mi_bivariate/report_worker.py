@@ -22,9 +22,9 @@ The worker is in a session of its own (a Ctrl-C at the terminal is the command's
 ends the worker), writes no file (its answers come back on a pipe of their own: nothing it or a
 library prints can be taken for one), and ends with the process that started it
 (:func:`mi_bivariate.process.die_with_parent`). It runs with the command's interpreter flags (``-B``,
-``-O``, ``-W``, ``-X``) but isolated from the current folder and the ``PYTHON*`` variables (``-I``), and
-imports from the command's own ``sys.path``: the same copy of the toolkit and of matplotlib as the
-command. What the drawing warns about is said again by the
+``-O``, ``-W``, ``-X``) and imports from the command's own ``sys.path`` (not the current folder, which
+``python -c`` would put first): the same copy of the toolkit and of matplotlib as the command, where that
+path alone finds them (an import hook a ``.pth`` file installs is the worker's own ``site``'s). What the drawing warns about is said again by the
 command, as the nearest built-in category (a ``MatplotlibDeprecationWarning`` as a
 ``DeprecationWarning``), through the command's own warning filters. Only the command line's process
 starts it: this module loads the toolkit's :mod:`~mi_bivariate.atomic` and
@@ -36,24 +36,31 @@ from __future__ import annotations
 
 import os
 import pickle
-import select
+import selectors
+import signal
 import subprocess
 import sys
 import warnings
 from pathlib import Path
-from typing import Any, List, Optional, Tuple, Union
+from typing import Any, List, Optional, Union
 
 from mi_bivariate.atomic import atomic_path
 from mi_bivariate.process import die_with_parent
 
-#: What the worker runs, ``python [the command's flags] -I -c BOOT PARENT_PID REPLY_FD``: its first message is
-#: the command's ``sys.path``, so that it imports what the command imports (``-I``: not the current folder's
-#: modules, nor what ``PYTHONPATH`` would add to the command's path since it started).
-BOOT = ("import pickle, sys; sys.path[:] = pickle.load(sys.stdin.buffer); "
-        "from mi_bivariate.report_worker import serve; sys.exit(serve(int(sys.argv[1]), int(sys.argv[2])))")
-#: Seconds the command waits for a report once the worker has its panels (its first report includes
-#: matplotlib's start: seconds, or longer where matplotlib builds its font cache); then it draws it itself.
+#: What the worker runs, ``python [the command's flags] -c BOOT PARENT_PID REPLY_FD``: the current folder that
+#: ``-c`` puts first on the path is dropped before anything is imported, and its first message is the
+#: command's ``sys.path``, so that it imports what the command imports (not the current folder's modules).
+BOOT = ("import sys\nif sys.path and sys.path[0] == '':\n    del sys.path[0]\nimport pickle\n"
+        "sys.path[:] = pickle.load(sys.stdin.buffer)\nfrom mi_bivariate.report_worker import serve\n"
+        "sys.exit(serve(int(sys.argv[1]), int(sys.argv[2])))")
+#: Seconds the command waits for the worker to be ready (matplotlib loaded: seconds, or longer where
+#: matplotlib builds its font cache), and then again for each report; past either it draws the report itself.
 REPLY_TIMEOUT_S = 120.0
+#: Seconds a worker asked to end (SIGTERM: it unwinds, so that matplotlib's font-cache lock is not left
+#: behind) is given before it is killed.
+END_TIMEOUT_S = 10.0
+#: The worker's first answer: it has loaded matplotlib and is waiting for panels.
+READY = "ready"
 #: Panels above this many bytes of arrays (a photo of ~5 megapixels and more) are drawn in the command's
 #: own process: the worker would hold a copy of them (and pickling another) for nothing but speed.
 MAX_PANEL_BYTES = 64 * 2**20
@@ -69,17 +76,19 @@ class ReportWorker:
     def __init__(self) -> None:
         self._process: Optional[subprocess.Popen] = None
         self._replies: Optional[Any] = None
+        self._ready = False
         read_fd, write_fd = os.pipe()
         try:
             self._process = subprocess.Popen(
-                [sys.executable, *_interpreter_flags(), "-I", "-c", BOOT, str(os.getpid()), str(write_fd)],
+                [sys.executable, *_interpreter_flags(), "-c", BOOT, str(os.getpid()), str(write_fd)],
                 stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                 pass_fds=(write_fd,), start_new_session=True)
             self._replies, read_fd = os.fdopen(read_fd, "rb"), -1
-            pickle.dump(list(sys.path), self._process.stdin, protocol=pickle.HIGHEST_PROTOCOL)
+            path = [os.fspath(p) if isinstance(p, os.PathLike) else p for p in sys.path]
+            pickle.dump([p for p in path if isinstance(p, str)], self._process.stdin, protocol=pickle.HIGHEST_PROTOCOL)
             self._process.stdin.flush()
-        except OSError:  # no process to be had (limits, memory), or it ended at once: the report is drawn here
-            self.close()
+        except Exception:  # noqa: BLE001 (no process to be had, it ended at once, or no pipes to pass on this
+            self.close()   # platform: the report is drawn here)
         finally:
             os.close(write_fd)
             if read_fd >= 0:
@@ -97,10 +106,12 @@ class ReportWorker:
         reply = None
         if self._process is not None and Path(path).suffix.lower() == ".png" and _array_bytes(panels) <= MAX_PANEL_BYTES:
             try:
-                pickle.dump(panels, self._process.stdin, protocol=pickle.HIGHEST_PROTOCOL)
-                self._process.stdin.flush()
-                if select.select([self._replies], [], [], REPLY_TIMEOUT_S)[0]:
-                    reply = pickle.load(self._replies)
+                if not self._ready:  # its start, bounded too: the panels would wait in a full pipe meanwhile
+                    self._ready = self._answer() == READY
+                if self._ready:
+                    pickle.dump(panels, self._process.stdin, protocol=pickle.HIGHEST_PROTOCOL)
+                    self._process.stdin.flush()
+                    reply = self._answer()
             except Exception:  # noqa: BLE001 (it died, could not take the panels, or answered nonsense)
                 reply = None
             except BaseException:  # Ctrl-C, SIGTERM: the worker ends with the command's stop
@@ -119,13 +130,23 @@ class ReportWorker:
             tmp.write_bytes(png)
         return Path(path)
 
+    def _answer(self) -> Any:
+        """The worker's next answer, or ``None`` where none comes within :data:`REPLY_TIMEOUT_S`."""
+        with selectors.DefaultSelector() as selector:
+            selector.register(self._replies, selectors.EVENT_READ)
+            return pickle.load(self._replies) if selector.select(REPLY_TIMEOUT_S) else None
+
     def close(self) -> None:
         """End the worker (it holds no work between reports) and wait for it; a second call does nothing."""
         process, self._process = self._process, None
         replies, self._replies = self._replies, None
         if process is not None:
-            process.kill()
-            process.wait()
+            process.terminate()  # while it waits for panels it ends at once; inside matplotlib, it unwinds first
+            try:
+                process.wait(END_TIMEOUT_S)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                process.wait()
         for stream in (process.stdin if process is not None else None, replies):
             try:
                 if stream is not None:
@@ -159,22 +180,36 @@ def _builtin_category(category: type) -> type:
 
 
 def serve(parent: int, reply_fd: int) -> int:
-    """The worker's loop: load the report's module and warm matplotlib up, then, for each panels object read
-    from stdin, answer on ``reply_fd`` with ``(PNG bytes, [(warning text, category), ...])``, or ``None``
-    where the drawing failed (the command then draws it itself, and says what went wrong); until stdin
-    ends."""
+    """The worker's loop: load the report's module and warm matplotlib up, answer :data:`READY` on
+    ``reply_fd``, then, for each panels object read from stdin, answer ``(PNG bytes, [(warning text,
+    category), ...])``, or ``None`` where the drawing failed (the command then draws it itself, and says what
+    went wrong); until stdin ends."""
+    busy = [True]
+
+    def stop(signum: int, frame: Any) -> None:
+        """SIGTERM (the command's :meth:`ReportWorker.close`, or the end of the command): inside matplotlib,
+        unwind (its font-cache lock file is removed on the way out); waiting for panels, end at once."""
+        if busy[0]:
+            raise SystemExit(1)
+        os._exit(0)
+
+    signal.signal(signal.SIGTERM, stop)
     die_with_parent(parent)
     replies = os.fdopen(reply_fd, "wb")
     requests = sys.stdin.buffer
     from mi_bivariate import report  # the point of this process: loaded while the command runs
 
     report.warm_up()
+    answer: Any = READY
     while True:
+        pickle.dump(answer, replies, protocol=pickle.HIGHEST_PROTOCOL)
+        replies.flush()
+        busy[0] = False
         try:
             panels = pickle.load(requests)
         except EOFError:
             return 0
-        answer: Optional[Tuple[bytes, List[Tuple[str, type]]]]
+        busy[0] = True
         try:
             with warnings.catch_warnings(record=True) as said:
                 warnings.simplefilter("always")  # each one; the command's filters decide
@@ -182,5 +217,3 @@ def serve(parent: int, reply_fd: int) -> int:
             answer = png, [(str(w.message), _builtin_category(w.category)) for w in said]
         except Exception:  # noqa: BLE001 (the command draws it again, and says what went wrong)
             answer = None
-        pickle.dump(answer, replies, protocol=pickle.HIGHEST_PROTOCOL)
-        replies.flush()

@@ -105,14 +105,21 @@ def test_worker_writes_no_file_and_an_unwritable_report_fails_as_here(tmp_path, 
 
 def test_what_the_worker_does_not_draw_is_drawn_here(tmp_path, panels, monkeypatch):
     """Another format than PNG (the suffix decides, as for a report drawn here) and panels over the size
-    limit are drawn in this process; the worker stays for the next report."""
+    limit are drawn in this process without asking the worker (here a dead one, which a question would
+    close): the same bytes, and an upper-case ``.PNG`` the same as ``.png``."""
     with ReportWorker() as worker:
+        worker._process.kill()
+        worker._process.wait()
         pdf = worker.write(panels, tmp_path / "r.pdf")
-        assert pdf.read_bytes().startswith(b"%PDF") and _worker_alive(worker)
+        assert pdf.read_bytes().startswith(b"%PDF") and worker._process is not None  # not asked
         monkeypatch.setattr(report_worker, "MAX_PANEL_BYTES", 0)
-        here = worker.write(panels, tmp_path / "big.png")
-        assert _worker_alive(worker)
-    assert here.read_bytes() == report.draw_recovery_report(panels, tmp_path / "here.png").read_bytes()
+        big = worker.write(panels, tmp_path / "big.PNG")
+        assert worker._process is not None  # not asked
+        monkeypatch.setattr(report_worker, "MAX_PANEL_BYTES", 2**40)
+        worker.write(panels, tmp_path / "asked.png")
+        assert worker._process is None  # asked, found dead, closed
+    here = report.draw_recovery_report(panels, tmp_path / "here.png").read_bytes()
+    assert big.read_bytes() == here == (tmp_path / "asked.png").read_bytes()
 
 
 def test_warnings_come_back_as_their_nearest_builtin_category():
@@ -158,7 +165,69 @@ def test_worker_runs_with_the_commands_interpreter_flags():
     run = subprocess.run([sys.executable, "-B", "-W", "ignore::DeprecationWarning", "-c", code], capture_output=True,
                          text=True, timeout=60, check=True)
     argv = eval(run.stdout)  # the list printed above
-    assert argv[1:5] == ["-B", "-Wignore::DeprecationWarning", "-I", "-c"], argv
+    flags = argv[1:argv.index("-c")]
+    assert "-B" in flags and "-Wignore::DeprecationWarning" in flags, argv
+
+
+@pytest.fixture(scope="module")
+def package_copy(tmp_path_factory):
+    """A copy of the package (and its plugins) whose ``report.warm_up`` first does what ``$COPY_WARM_UP``
+    says: ``mark:FILE`` creates FILE; ``hold:FILE`` creates FILE, sleeps 60 s and removes it on the way out
+    (as matplotlib's font-cache lock file)."""
+    import shutil
+
+    root = tmp_path_factory.mktemp("copy")
+    shutil.copytree(ROOT / "mi_bivariate", root / "mi_bivariate", ignore=shutil.ignore_patterns("__pycache__"))
+    shutil.copytree(ROOT / "plugins", root / "mi_bivariate" / "plugins", ignore=shutil.ignore_patterns("__pycache__"))
+    source = (root / "mi_bivariate" / "report.py").read_text()
+    hook = ('def warm_up() -> None:\n'
+            '    import os, time\n'
+            '    how, _, name = os.environ.get("COPY_WARM_UP", "").partition(":")\n'
+            '    if how == "mark":\n'
+            '        open(name, "w").close()\n'
+            '    if how == "hold":\n'
+            '        open(name, "w").close()\n'
+            '        try:\n'
+            '            time.sleep(60)\n'
+            '        finally:\n'
+            '            os.remove(name)\n')
+    assert source.count("def warm_up() -> None:\n") == 1
+    (root / "mi_bivariate" / "report.py").write_text(source.replace("def warm_up() -> None:\n", hook + "    return _warm_up()\n\n\ndef _warm_up() -> None:\n"))
+    return root
+
+
+def _run_with_copy(copy: Path, tmp_path: Path, panels, body: str, env: dict) -> subprocess.CompletedProcess:
+    """Run ``body`` in a fresh process whose path puts ``copy`` first, with ``panels`` and a ``ReportWorker``
+    class of the copy at hand."""
+    (tmp_path / "panels.pickle").write_bytes(pickle.dumps(panels))
+    code = (f"import pickle, sys\nsys.path.insert(0, {str(copy)!r})\n"
+            "from mi_bivariate import report_worker\nfrom mi_bivariate.report_worker import ReportWorker\n"
+            f"panels = pickle.loads(open({str(tmp_path / 'panels.pickle')!r}, 'rb').read())\n" + body)
+    return subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=180,
+                          env={**os.environ, **env})
+
+
+def test_worker_imports_the_commands_copy_of_the_package(tmp_path, panels, package_copy):
+    body = ("with ReportWorker() as worker:\n"
+            "    worker.write(panels, 'r.png')\n"
+            "    assert worker._process is not None, 'drawn here'\n")
+    run = _run_with_copy(package_copy, tmp_path, panels, body, {"COPY_WARM_UP": f"mark:{tmp_path / 'copy-used'}"})
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert (tmp_path / "copy-used").exists()  # the worker's warm_up was the copy's
+
+
+def test_a_worker_slow_to_start_is_not_waited_for_and_unwinds_when_ended(tmp_path, panels, package_copy):
+    """The wait for the worker's start is bounded too; ending a worker inside its start lets it unwind (a
+    lock file it holds, as matplotlib's font cache's, is removed)."""
+    held = tmp_path / "held.lock"
+    body = ("import time\nreport_worker.REPLY_TIMEOUT_S = 3.0\nt = time.monotonic()\n"
+            "worker = ReportWorker()\nworker.write(panels, 'r.png')\n"
+            "assert worker._process is None, 'not closed'\nprint(time.monotonic() - t)\n")
+    run = _run_with_copy(package_copy, tmp_path, panels, body, {"COPY_WARM_UP": f"hold:{held}"})
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert float(run.stdout) < 30.0  # 3 s of waiting, the report drawn here, the worker ended
+    assert (tmp_path / "r.png").stat().st_size > 10000
+    assert not held.exists()
 
 
 def _ended(pid: int) -> bool:
