@@ -441,8 +441,9 @@ def _report_worker_pays(args: argparse.Namespace) -> bool:
     report command with its report, and a second core for the worker (not ``--threads 1``).
 
     Measured (docs/recovery.md Round 37; 2026-12-07, the 2-core AMD EPYC VM, fresh processes, the same
-    PNG byte for byte): what the report adds to ``recover`` went from 0.99-1.37 s to 0.54-1.07 s in four
-    alternating A/B runs, and was 0.76 and 0.87 s in two ``bench_speed.py`` runs (target 1 s). The worker
+    PNG byte for byte): what the report adds to ``recover`` was 0.69 s against 1.03 s without the worker in
+    an alternating A/B run of the final code (0.54-1.07 s against 0.99-1.37 s over five runs of its versions),
+    and 0.76-0.87 s in three ``bench_speed.py`` runs (target 1 s). The worker
     costs 0.1-0.5 s more CPU than drawing here (its own imports), so on a machine with no idle core it
     would cost time: hence a second core and not ``--threads 1``.
     """
