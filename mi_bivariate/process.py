@@ -16,7 +16,6 @@ third leaves a module alone that is already loaded.
 """
 from __future__ import annotations
 
-import contextlib
 import ctypes
 import importlib.util
 import os
@@ -118,12 +117,18 @@ def no_huge_pages() -> bool:
                 return False
         except ValueError:  # not a number: the user meant something; leave the process as it is
             return False
+    return _prctl(PR_SET_THP_DISABLE, 1)
+
+
+def _prctl(option: int, value: int) -> bool:
+    """Linux's ``prctl(option, value, 0, 0, 0)`` for this process; whether it succeeded (``False`` where the C
+    library has none)."""
     try:
         prctl = ctypes.CDLL(None).prctl
     except (OSError, AttributeError, TypeError):
         return False
     prctl.argtypes, prctl.restype = (ctypes.c_int,) + (ctypes.c_ulong,) * 4, ctypes.c_int
-    return prctl(PR_SET_THP_DISABLE, 1, 0, 0, 0) == 0
+    return prctl(option, value, 0, 0, 0) == 0
 
 
 #: numpy's submodules that scipy's loading touches and a command's pipeline never uses (see below).
@@ -177,8 +182,7 @@ def die_with_parent(parent: int, interval: float = 0.5) -> None:
     main thread).
     """
     if sys.platform.startswith("linux"):
-        with contextlib.suppress(OSError, AttributeError, TypeError):
-            ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
+        _prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
     if os.getppid() != parent:  # the parent died before the signal was armed
         os._exit(1)
 
