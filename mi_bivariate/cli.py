@@ -449,8 +449,7 @@ def _report_worker_pays(args: argparse.Namespace) -> bool:
     """
     if args.command not in REPORT_COMMANDS or args.no_report or args.threads == 1 or os.name != "posix":
         return False
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    return cores >= 2
+    return process.usable_cores() >= 2
 
 
 #: The commands whose process keeps freed memory: those it was measured on (one photo, or a batch

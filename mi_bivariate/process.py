@@ -169,6 +169,11 @@ def defer_unused_numpy_modules() -> None:
         setattr(numpy, name, module)  # numpy's own __getattr__ (which imports) is not asked
 
 
+def usable_cores() -> int:
+    """The CPUs this process may run on (its affinity where the platform says, else the machine's count)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
 #: ``<linux/prctl.h>``: the signal a process gets when its parent ends.
 PR_SET_PDEATHSIG = 1
 

@@ -30,6 +30,8 @@ from typing import Any, Callable, Iterable, Iterator, List, Optional, TypeVar
 
 import drjit as dr
 
+from mi_bivariate.process import usable_cores
+
 #: BLAS threads inside :func:`blas_threads` when neither the argument nor the environment says.
 DEFAULT_BLAS_THREADS = 1
 #: Environment variable overriding :data:`DEFAULT_BLAS_THREADS`.
@@ -160,7 +162,7 @@ def solve_threads() -> int:
     except ValueError:
         n = 0
     if n <= 0:
-        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+        cores = usable_cores()
         blas = [lib.num_threads for lib in _controller().select(user_api="blas").lib_controllers]
         # With single-threaded BLAS, one worker per channel where two cores are free: three CPU-bound
         # workers on two cores balance the three channels (0.38 s against 0.42 s with two workers, 0.67 s
