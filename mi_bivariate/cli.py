@@ -355,8 +355,9 @@ def main(argv: Optional[Sequence[str]] = None, *, own_process: bool = False) -> 
     The collector is also off while the pipeline loads: the ~170 collections it ran during the
     imports (one of them full) walked the growing heap for nothing: 0.09-0.19 s of collector time in
     one ``recover --no-report`` process, 0.01-0.02 s without them (two processes each, load 9-15).
-    numpy's submodules that scipy's loading imports for nothing are deferred to their first use
-    (:func:`mi_bivariate.process.defer_unused_numpy_modules`: ~0.09 s), memory the command frees is
+    the modules that scipy's loading imports for nothing (numpy's ``f2py``, ``testing``, ``ma`` and
+    ``polynomial``; ``scipy.special``) are deferred to their first use
+    (:func:`mi_bivariate.process.defer_unused_modules`: ~0.09 s and ~0.04 s), memory the command frees is
     kept for its next arrays instead of going back to the system
     (:func:`~mi_bivariate.process.keep_freed_memory`, for :data:`KEEP_FREED_MEMORY_COMMANDS`), and
     the process's memory is not put on transparent huge pages
@@ -385,7 +386,7 @@ def main(argv: Optional[Sequence[str]] = None, *, own_process: bool = False) -> 
                 args.report_worker = worker = ReportWorker()  # loads matplotlib while the pipeline loads
         try:
             if own_process:
-                process.defer_unused_numpy_modules()
+                process.defer_unused_modules()
             with signals_deferred():  # a stop raised inside Dr.Jit's or Mitsuba's start aborted or crashed the process
                 commands = importlib.import_module("mi_bivariate.commands")  # the pipeline, loaded only to run
         finally:

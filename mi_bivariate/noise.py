@@ -31,10 +31,10 @@ within 25% (tests/test_noise.py).
 
 from __future__ import annotations
 
+from statistics import NormalDist
 from typing import Optional, Tuple, Union
 
 import numpy as np
-from scipy.special import erfinv
 
 from mi_bivariate.errors import InputError
 
@@ -46,9 +46,11 @@ MIN_BIN_PIXELS = 20
 #: whose second difference holds the signal's own curvature (the edges of sharp
 #: highlights) do not count as noise.
 QUANTILE = 0.25
-#: That quantile of chi-square(1), ``2 erfinv(q)^2`` (what ``scipy.stats.chi2.ppf(q, 1)`` gives, without
-#: importing scipy.stats): ``var = quantile(d^2) / this`` for Gaussian ``d``.
-_CHI2_QUANTILE = 2.0 * float(erfinv(QUANTILE)) ** 2
+#: That quantile of chi-square(1), ``z^2`` for the standard normal's ``(1 + q) / 2`` quantile ``z`` (what
+#: ``scipy.stats.chi2.ppf(q, 1)`` gives, without importing scipy.stats or scipy.special, which a
+#: command defers: :func:`mi_bivariate.process.defer_unused_modules`): ``var = quantile(d^2) / this``
+#: for Gaussian ``d``.
+_CHI2_QUANTILE = NormalDist().inv_cdf(0.5 + 0.5 * QUANTILE) ** 2
 
 
 def _second_differences(image: np.ndarray, mask: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:

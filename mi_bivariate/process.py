@@ -1,6 +1,6 @@
 """What a process that exists for the toolkit's work sets for itself: glibc keeps freed memory
-(:func:`keep_freed_memory`), the kernel's transparent huge pages off (:func:`no_huge_pages`), numpy's
-submodules that scipy's import touches for nothing loaded on first use (:func:`defer_unused_numpy_modules`);
+(:func:`keep_freed_memory`), the kernel's transparent huge pages off (:func:`no_huge_pages`), the
+modules that scipy's import loads for nothing run on first use (:func:`defer_unused_modules`);
 and a worker process ends with the process that started it (:func:`die_with_parent`).
 
 Each changes the whole process and is measured on the 2-core VM the project runs on (docs/recovery.md
@@ -131,33 +131,43 @@ def _prctl(option: int, value: int) -> bool:
     return prctl(option, value, 0, 0, 0) == 0
 
 
-#: numpy's submodules that scipy's loading touches and a command's pipeline never uses (see below).
-DEFERRED_NUMPY_MODULES = ("f2py", "testing", "ma", "polynomial")
+#: Modules that loading scipy imports and a command's pipeline need not run (see
+#: :func:`defer_unused_modules`): numpy's submodules that scipy's vendored ``array_api_compat``
+#: touches, and ``scipy.special``, which ``scipy.ndimage`` imports for functions the toolkit does not call.
+DEFERRED_MODULES = ("numpy.f2py", "numpy.testing", "numpy.ma", "numpy.polynomial", "scipy.special")
 
 
-def defer_unused_numpy_modules() -> None:
-    """Register numpy's :data:`DEFERRED_NUMPY_MODULES` as lazy modules (:class:`importlib.util.LazyLoader`,
-    the standard library's lazy import): each loads on its first use, where a command uses it (the
-    report's matplotlib uses ``numpy.ma``), and not before.
+def defer_unused_modules() -> None:
+    """Register :data:`DEFERRED_MODULES` as lazy modules (:class:`importlib.util.LazyLoader`, the
+    standard library's lazy import): each loads on its first use, where a command uses it, and not before.
 
-    ``import scipy.linalg`` loads scipy's vendored ``array_api_compat.numpy``, which copies every
-    public attribute of numpy (``hasattr`` on each name of ``dir(numpy)``) and so imports each of
-    numpy's lazily loaded submodules: ``numpy.f2py``, ``numpy.testing`` (and ``unittest``), ``numpy.ma``,
-    ``numpy.polynomial``. A recovery uses none of them. Measured, three fresh processes each,
-    ``import mi_bivariate.commands`` with bytecode compiled (2026-12-07, this 2-core AMD EPYC VM):
-    0.53-0.62 s with them, 0.45-0.53 s without. The command line does this in its own process
-    (:func:`mi_bivariate.cli.main`'s ``own_process``): a program importing the toolkit keeps numpy as
-    numpy made it.
-    Modules already loaded are left alone. Before Python 3.12 a lazy module's first use is not
-    thread-safe (a second thread touching it meanwhile finds it empty): the commands' worker threads
-    (``threads.thread_map``) use none of these modules, and what does (matplotlib, trimesh and
-    distributed import ``numpy.ma``) is imported on the main thread; keep it so.
+    - ``import scipy.linalg`` loads scipy's vendored ``array_api_compat.numpy``, which copies every
+      public attribute of numpy (``hasattr`` on each name of ``dir(numpy)``) and so imports each of
+      numpy's lazily loaded submodules: ``numpy.f2py``, ``numpy.testing`` (and ``unittest``),
+      ``numpy.ma``, ``numpy.polynomial``. Measured, three fresh processes each, ``import
+      mi_bivariate.commands`` with bytecode compiled (2026-12-07, this 2-core AMD EPYC VM): 0.53-0.62 s
+      with them, 0.45-0.53 s without. (numpy's own ``np.unique`` asks ``numpy.ma`` whether its argument
+      is masked, so a recovery loads that one later anyway, ~8 ms, on its main thread.)
+    - ``scipy.ndimage`` (the sphere fit's and the noise estimate's image operations) imports
+      ``scipy.special`` for its spline filters, which formats the docstrings of its ~300 functions
+      at import (scipy 1.17). Measured, six fresh processes each, ``from scipy import ndimage`` and a
+      call of each ndimage function the pipeline uses, after ``import mi_bivariate.commands``:
+      0.108-0.121 s with it loaded, 0.061-0.108 s (median 0.07) lazy (2026-12-07, same VM); a
+      ``recover`` never runs its code (``--refine-sphere``'s ``scipy.optimize`` does, on the main thread).
+
+    The command line does this in its own process (:func:`mi_bivariate.cli.main`'s ``own_process``):
+    a program importing the toolkit keeps numpy and scipy as they made themselves.
+    Modules already loaded, or already an attribute of their package, are left alone. Before Python
+    3.12 a lazy module's first use is not thread-safe (a second thread touching it meanwhile finds it
+    empty): the commands' worker threads (``threads.thread_map``) first use none of these modules (the
+    solve's rare ``scipy.optimize`` fallback imports it under that module's import lock), and what
+    does (matplotlib, trimesh and distributed import ``numpy.ma``) is imported on the main thread;
+    keep it so.
     """
-    import numpy
-
-    for name in DEFERRED_NUMPY_MODULES:
-        full = f"numpy.{name}"
-        if full in sys.modules or name in vars(numpy):
+    for full in DEFERRED_MODULES:
+        package, _, name = full.rpartition(".")
+        parent = importlib.import_module(package)  # numpy and scipy: loaded by the command line already
+        if full in sys.modules or name in vars(parent):
             continue
         spec = importlib.util.find_spec(full)
         if spec is None or spec.loader is None:
@@ -166,7 +176,7 @@ def defer_unused_numpy_modules() -> None:
         module = importlib.util.module_from_spec(spec)
         sys.modules[full] = module
         spec.loader.exec_module(module)  # lazily: the module's code runs on its first attribute access
-        setattr(numpy, name, module)  # numpy's own __getattr__ (which imports) is not asked
+        setattr(parent, name, module)  # the package's own __getattr__ (which imports) is not asked
 
 
 def usable_cores() -> int:
