@@ -355,7 +355,7 @@ def main(argv: Optional[Sequence[str]] = None, *, own_process: bool = False) -> 
     The collector is also off while the pipeline loads: the ~170 collections it ran during the
     imports (one of them full) walked the growing heap for nothing: 0.09-0.19 s of collector time in
     one ``recover --no-report`` process, 0.01-0.02 s without them (two processes each, load 9-15).
-    the modules that scipy's loading imports for nothing (numpy's ``f2py``, ``testing``, ``ma`` and
+    The modules that scipy's loading imports for nothing (numpy's ``f2py``, ``testing``, ``ma`` and
     ``polynomial``; ``scipy.special``) are deferred to their first use
     (:func:`mi_bivariate.process.defer_unused_modules`: ~0.09 s and ~0.04 s), memory the command frees is
     kept for its next arrays instead of going back to the system

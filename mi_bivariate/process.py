@@ -131,9 +131,9 @@ def _prctl(option: int, value: int) -> bool:
     return prctl(option, value, 0, 0, 0) == 0
 
 
-#: Modules that loading scipy imports and a command's pipeline need not run (see
+#: Modules that loading scipy imports and a default ``recover`` need not run (see
 #: :func:`defer_unused_modules`): numpy's submodules that scipy's vendored ``array_api_compat``
-#: touches, and ``scipy.special``, which ``scipy.ndimage`` imports for functions the toolkit does not call.
+#: touches, and ``scipy.special``, which ``scipy.ndimage`` imports for a function the toolkit does not call.
 DEFERRED_MODULES = ("numpy.f2py", "numpy.testing", "numpy.ma", "numpy.polynomial", "scipy.special")
 
 
@@ -149,24 +149,28 @@ def defer_unused_modules() -> None:
       with them, 0.45-0.53 s without. (numpy's own ``np.unique`` asks ``numpy.ma`` whether its argument
       is masked, so a recovery loads that one later anyway, ~8 ms, on its main thread.)
     - ``scipy.ndimage`` (the sphere fit's and the noise estimate's image operations) imports
-      ``scipy.special`` for its spline filters, which formats the docstrings of its ~300 functions
-      at import (scipy 1.17). Measured, six fresh processes each, ``from scipy import ndimage`` and a
+      ``scipy.special`` (in ``_interpolation``, for ``rotate`` alone), which formats the docstrings of
+      its ~300 functions at import (scipy 1.17). Measured, six fresh processes each, ``from scipy import ndimage`` and a
       call of each ndimage function the pipeline uses, after ``import mi_bivariate.commands``:
-      0.108-0.121 s with it loaded, 0.061-0.108 s (median 0.07) lazy (2026-12-07, same VM); a
-      ``recover`` never runs its code (``--refine-sphere``'s ``scipy.optimize`` does, on the main thread).
+      0.108-0.121 s with it loaded, 0.061-0.108 s (median 0.07) lazy (2026-12-07, same VM). A default
+      ``recover`` never runs its code; ``--refine-sphere`` (``scipy.optimize``), ``--probe-rotation``
+      (``scipy.spatial.transform``) and the evaluation's baselines load it, on the main thread.
 
     The command line does this in its own process (:func:`mi_bivariate.cli.main`'s ``own_process``):
     a program importing the toolkit keeps numpy and scipy as they made themselves.
-    Modules already loaded, or already an attribute of their package, are left alone. Before Python
-    3.12 a lazy module's first use is not thread-safe (a second thread touching it meanwhile finds it
-    empty): the commands' worker threads (``threads.thread_map``) first use none of these modules (the
-    solve's rare ``scipy.optimize`` fallback imports it under that module's import lock), and what
-    does (matplotlib, trimesh and distributed import ``numpy.ma``) is imported on the main thread;
-    keep it so.
+    Modules already loaded, or already an attribute of their package, are left alone. In the Python
+    this runs on (3.11; CPython made it thread-safe later, gh-114763) a lazy module's first use is
+    not thread-safe: a second thread touching it meanwhile finds it empty (measured: three threads
+    asking for ``scipy.special.erf`` at once fail every time). So the commands' worker threads
+    (``threads.thread_map``) import nothing: a test records every import made off the main thread in
+    a default ``recover`` and finds none. The one exception, the solve's rare ``scipy.optimize``
+    fallback on a channel's thread (``solve.nnls``), loads ``scipy.special`` inside that module's
+    import, whose lock the other channels wait on; and what uses ``numpy.ma`` (matplotlib, trimesh,
+    distributed) is imported on the main thread. Keep it so.
     """
     for full in DEFERRED_MODULES:
         package, _, name = full.rpartition(".")
-        parent = importlib.import_module(package)  # numpy and scipy: loaded by the command line already
+        parent = importlib.import_module(package)  # numpy is loaded already; scipy here (the pipeline needs it)
         if full in sys.modules or name in vars(parent):
             continue
         spec = importlib.util.find_spec(full)

@@ -15,7 +15,6 @@ from typing import Optional, Tuple
 
 import numpy as np
 import pytest
-from helpers import signal_when
 
 import mi_bivariate as mb
 from mi_bivariate import cli, process
@@ -234,11 +233,9 @@ def test_console_script_defers_the_modules_scipy_loads_for_nothing_and_they_work
     assert control.returncode == 0 and "lazy: []" in control.stdout, control.stdout[-2000:] + control.stderr
 
 
-def test_recover_runs_no_code_of_scipy_special(tmp_path):
-    """A whole ``recover`` (its own process, its report drawn in the command's process) never runs
-    ``scipy.special``'s code, which the command line defers (``process.defer_unused_modules``): its
-    ndimage operations, noise estimate and report do not need it, so the ~0.04 s its loading costs is
-    saved; the table is the one ``main`` called from Python (scipy loaded as scipy loads) recovers."""
+def _small_recover_argv(tmp_path: Path) -> list:
+    """``recover`` of a 48 px sphere (a smooth GGX) under a small synthetic probe, written to ``tmp_path``:
+    the command's arguments without ``--out``."""
     from mi_bivariate import analytic, render
     from mi_bivariate.images import write_exr
     from mi_bivariate.probes import Probe
@@ -249,8 +246,16 @@ def test_recover_runs_no_code_of_scipy_special(tmp_path):
     shot = render.render_sphere(render.bsdf_dict(truth), probe, resolution=48, spp=16, seed=0)
     write_exr(tmp_path / "photo.exr", shot.image)
     probe.save_exr(tmp_path / "probe.exr")
-    argv = ["recover", str(tmp_path / "photo.exr"), "--probe", str(tmp_path / "probe.exr"), "--normals", "500",
-            "--dirs", "512", "--grid", "8", "8", "--threads", "1"]
+    return ["recover", str(tmp_path / "photo.exr"), "--probe", str(tmp_path / "probe.exr"), "--normals", "500",
+            "--dirs", "512", "--grid", "8", "8"]
+
+
+def test_recover_runs_no_code_of_scipy_special(tmp_path):
+    """A whole ``recover`` (its own process, its report drawn in the command's process) never runs
+    ``scipy.special``'s code, which the command line defers (``process.defer_unused_modules``): its
+    ndimage operations, noise estimate and report do not need it, so the ~0.04 s its loading costs is
+    saved; the table is the one ``main`` called from Python (scipy loaded as scipy loads) recovers."""
+    argv = _small_recover_argv(tmp_path) + ["--threads", "1"]
     code = ("import sys\n"
             "import mi_bivariate.cli as cli\n"
             f"sys.argv = ['mi-bivariate', *{argv!r}, '--out', {str(tmp_path / 'run.npz')!r}]\n"
@@ -266,6 +271,29 @@ def test_recover_runs_no_code_of_scipy_special(tmp_path):
     assert control.returncode == 0, control.stdout[-2000:] + control.stderr[-2000:]
     with np.load(tmp_path / "run.npz") as a, np.load(tmp_path / "main.npz") as b:
         assert np.array_equal(a["table"], b["table"])
+
+
+def test_recover_imports_nothing_off_its_main_thread(tmp_path):
+    """The lazy modules of ``process.defer_unused_modules`` are not thread-safe on first use before
+    CPython's fix (gh-114763; three threads asking for ``scipy.special.erf`` at once fail): a ``recover``
+    with its solve on three worker threads (and its report worker) imports nothing off its main thread,
+    so none of them is first loaded on a worker. Every import is recorded with its thread."""
+    argv = _small_recover_argv(tmp_path)
+    code = ("import sys, threading\n"
+            "off_main = []\n"
+            "class Record:\n"
+            "    def find_spec(self, name, path, target=None):\n"
+            "        if threading.current_thread() is not threading.main_thread():\n"
+            "            off_main.append((threading.current_thread().name, name))\n"
+            "        return None\n"
+            "sys.meta_path.insert(0, Record())\n"
+            "import mi_bivariate.cli as cli\n"
+            f"sys.argv = ['mi-bivariate', *{argv!r}, '--out', {str(tmp_path / 'run.npz')!r}]\n"
+            "status = cli.run()\n"
+            "print('status', status, 'imports off the main thread:', off_main)\n")
+    out = _fresh_python(code, ROOT, {"MI_BIVARIATE_SOLVE_THREADS": "3"})
+    assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-2000:]
+    assert "status 0 imports off the main thread: []" in out.stdout, out.stdout[-2000:]
 
 
 _MALLOC_PROBE = """
