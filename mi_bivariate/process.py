@@ -150,8 +150,9 @@ def defer_unused_modules() -> None:
       is masked, so a recovery loads that one later anyway, ~8 ms, on its main thread.)
     - ``scipy.ndimage`` (the sphere fit's and the noise estimate's image operations) imports
       ``scipy.special`` (in ``_interpolation``, for ``rotate`` alone), which formats the docstrings of
-      its ~300 functions at import (scipy 1.17). Measured, six fresh processes each, ``from scipy import ndimage`` and a
-      call of each ndimage function the pipeline uses, after ``import mi_bivariate.commands``:
+      its ~300 functions at import (scipy 1.17). Measured, six fresh processes each, ``from scipy
+      import ndimage`` and a call of each ndimage function the pipeline uses, after ``import
+      mi_bivariate.commands``:
       0.108-0.121 s with it loaded, 0.061-0.108 s (median 0.07) lazy (2026-12-07, same VM). A default
       ``recover`` never runs its code; ``--refine-sphere`` (``scipy.optimize``), ``--probe-rotation``
       (``scipy.spatial.transform``) and the evaluation's baselines load it, on the main thread.
