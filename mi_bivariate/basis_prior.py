@@ -53,6 +53,10 @@ EPS = 1e-3
 DEFAULT_COMPONENTS = 12
 #: Log-space noise floor of an observed node (a node is never "known" better than ~5%).
 OBSERVATION_FLOOR = 0.05
+#: The largest log shape (``log(f / median + EPS)``), mean, residual or component spread a loaded prior
+#: may hold: e^80 times a table's median is no material's (the packaged prior reaches 8.7), and the
+#: prediction's ``exp`` must stay finite.
+MAX_LOG_SHAPE = 80.0
 
 
 def _log_map(values: np.ndarray) -> np.ndarray:
@@ -253,6 +257,11 @@ class BasisPrior:
                 or arrays["variances"].shape != (arrays["basis"].shape[1],) or arrays["residual"].shape != (n,)
                 or not all(np.all(np.isfinite(a)) for a in arrays.values()) or np.any(arrays["variances"] <= 0)):
             raise InputError(path, "basis prior arrays are inconsistent or non-finite")
+        reach = max(float(np.abs(arrays["mean"]).max()), float(np.abs(arrays["residual"]).max()),
+                    float(np.sqrt(arrays["variances"].max()) * np.abs(arrays["basis"]).max()))
+        if reach > MAX_LOG_SHAPE:
+            raise InputError(path, f"its log shapes reach {reach:.3g}, beyond any table (at most {MAX_LOG_SHAPE:g}: "
+                             "e^80 times a table's median)", "learn it again with mi-bivariate learn-prior")
         provenance = meta.get("provenance")
         eps = provenance.get("eps", EPS) if isinstance(provenance, dict) else EPS
         if eps != EPS:  # predict reads the shapes with this module's log map: another offset misreads them

@@ -42,19 +42,11 @@ import numpy as np
 
 from mi_bivariate.errors import InputError, InputWarning, array_from
 from mi_bivariate.geometry import Geometry, SphereGeometry, check_rotation, check_sphere
+from mi_bivariate.limits import MAX_RADIANCE, MIN_RADIANCE
 
 DROP_REASONS: Tuple[str, ...] = ("view_angle", "outside_image", "silhouette", "outside_mask",
                                  "duplicate", "nonfinite", "negative", "saturated")
 
-#: The largest pixel value accepted: a thousandth of float32's largest, so that the table (which scales
-#: with the image) and the solve's sums stay finite (measured: a recovery at 1e34 is right, at 1e37 it
-#: overflowed inside the priors).
-MAX_PIXEL = float(np.finfo(np.float32).max) / 1e3
-#: The least value the brightest pixel may have: a recovery scales with the image down to a brightest pixel
-#: of 1e-25 (measured on the bench sphere, the table the same to 7e-7 of its largest value); below it
-#: float32's squares underflow (a review measured the table 3% off at 1e-27 and 80% off, the sphere fit
-#: moved, at 1e-30). Five decades of margin.
-MIN_PIXEL = 1e-20
 #: Fewer usable observations than this gives an :class:`InputWarning`.
 MIN_OBSERVATIONS = 256
 
@@ -191,7 +183,8 @@ def _frame_about(axis: np.ndarray) -> np.ndarray:
 def check_image(image: np.ndarray, source: str = "image") -> np.ndarray:
     """``image`` as ``(H, W, 3) float32`` linear RGB (no copy when it is one), else :class:`InputError`
     naming ``source``: another shape (a grey or RGBA image), no pixels, a type other than real numbers,
-    values beyond :data:`MAX_PIXEL`, or all (zeros aside) below :data:`MIN_PIXEL`. Integers are read as they
+    values beyond :data:`~mi_bivariate.limits.MAX_RADIANCE`, or all (zeros aside) below
+    :data:`~mi_bivariate.limits.MIN_RADIANCE`. Integers are read as they
     are, with an :class:`InputWarning`."""
     image = array_from(image, source, "an (H, W, 3) RGB image")
     if image.ndim != 3 or image.shape[2] != 3:
@@ -211,13 +204,13 @@ def check_image(image: np.ndarray, source: str = "image") -> np.ndarray:
                       "e.g. an EXR merged from several exposures)", InputWarning, stacklevel=3)
     else:
         top = float(np.max(np.abs(image), initial=0.0, where=np.isfinite(image)))  # no copy of the image
-        if top > MAX_PIXEL:
+        if top > MAX_RADIANCE:
             raise InputError(source, f"image values up to {top:.3g} are too large for float32 and the solve's sums "
-                             f"(at most {MAX_PIXEL:.3g})", "scale the image (and its probe) down: the table scales "
+                             f"(at most {MAX_RADIANCE:.3g})", "scale the image (and its probe) down: the table scales "
                              "with the image over the probe")
-        if 0.0 < top < MIN_PIXEL:  # an all-zero image is refused as black, with its own reasons
+        if 0.0 < top < MIN_RADIANCE:  # an all-zero image is refused as black, with its own reasons
             raise InputError(source, f"image values up to {top:.3g} are too small for float32 and the solve's sums "
-                             f"(the largest must be at least {MIN_PIXEL:g})", "scale the image up: the table scales "
+                             f"(the largest must be at least {MIN_RADIANCE:g})", "scale the image up: the table scales "
                              "with the image over the probe")
     return image.astype(np.float32, copy=False)
 

@@ -12,7 +12,9 @@ import gc
 import importlib
 import math
 import os
+import select
 import signal
+import stat
 import sys
 import warnings
 from typing import Dict, Optional, Sequence, Tuple
@@ -410,6 +412,8 @@ def main(argv: Optional[Sequence[str]] = None, *, own_process: bool = False) -> 
         print(f"mi-bivariate: error: {' '.join(text.split())}", file=sys.stderr)
         return 2
     except OSError as exc:
+        if isinstance(exc, BrokenPipeError) and _stdout_reader_gone():
+            return 1  # ``mi-bivariate ... | head``: the reader stopped reading; nothing to say, nowhere to say it
         # A file the checks could not foresee (vanished, unreadable, a full disk).
         name = exc.filename if exc.filename is not None else args.command
         print(f"mi-bivariate: error: {name}: {exc.strerror or exc} (check the path, permissions and free space)",
@@ -431,6 +435,29 @@ def main(argv: Optional[Sequence[str]] = None, *, own_process: bool = False) -> 
         warnings.formatwarning = formatwarning
         for signum, handler in replaced.items():
             signal.signal(signum, handler)
+
+
+def _stdout_reader_gone() -> bool:
+    """Whether standard output is a pipe whose reader has gone (``mi-bivariate recover ... | head -1``; the
+    kernel then reports an error condition on the pipe's write end). If so, standard output is pointed at
+    ``os.devnull``, so that the interpreter's last flush does not fail again: the command ends with status
+    1 and no message, as a Unix tool stopped by SIGPIPE does (Python ignores SIGPIPE), not with a file's
+    problem (status 2). Its outputs are written if the pipe broke after them (the summary is printed last).
+    A broken pipe elsewhere (a worker's) is not this."""
+    try:
+        fd = sys.stdout.fileno()
+        if not stat.S_ISFIFO(os.fstat(fd).st_mode):
+            return False
+        poller = select.poll()
+        poller.register(fd, select.POLLOUT)
+        if not any(events & select.POLLERR for _, events in poller.poll(0)):
+            return False
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, fd)
+        os.close(devnull)
+    except (OSError, ValueError, AttributeError):  # no descriptor (a notebook's stream), no poll (Windows)
+        return False
+    return True
 
 
 #: The commands that write a recovery report (unless ``--no-report``).

@@ -16,6 +16,21 @@ import numpy as np
 
 from mi_bivariate.errors import InputError
 
+#: The largest radiance accepted in a photo or a probe: a thousandth of float32's largest, so that the
+#: table (which scales with the image over the probe) and the solve's sums stay finite (measured: a
+#: recovery at a pixel of 1e34 is right, at 1e37 it overflowed inside the priors).
+MAX_RADIANCE = 3.4028234663852886e38 / 1e3
+#: The least value the brightest pixel of a photo, or texel of a probe, may have: a recovery scales with
+#: the image down to a brightest pixel of 1e-25 (measured on the bench sphere, the table the same to 7e-7
+#: of its largest value); below it float32's squares underflow (a review measured the table 3% off at
+#: 1e-27 and 80% off, the sphere fit moved, at 1e-30). Five decades of margin.
+MIN_RADIANCE = 1e-20
+#: The range of a recovery's Lambertian level (its best constant table, 1/sr), which the image over the
+#: probe sets: beyond it the float32 table, or the basis prior's exponentials of it, leave float32's
+#: normal range (an image of 3e35 under a probe of 1e-30 gave a level of ~1e65 and an overflow deep
+#: in the priors).
+MAX_TABLE_LEVEL = 1e30
+MIN_TABLE_LEVEL = 1e-30
 #: Nodes per st axis, and nodes of the whole grid (the solve's normal equations are N x N).
 MAX_GRID_AXIS = 256
 MAX_GRID_NODES = 64 * 64

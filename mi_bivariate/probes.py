@@ -55,7 +55,7 @@ import numpy as np
 from mi_bivariate.common import PathLike, luminance
 from mi_bivariate.errors import InputError
 from mi_bivariate.images import read_image, write_exr
-from mi_bivariate.limits import MAX_RESOLUTION, check_max, whole_number
+from mi_bivariate.limits import MAX_RADIANCE, MAX_RESOLUTION, MIN_RADIANCE, check_max, whole_number
 
 #: Readable probe file types (extension -> description).
 PROBE_FORMATS: Dict[str, str] = {
@@ -306,6 +306,18 @@ class Probe:
             raise InputError(self.source, f"probe data has shape {data.shape}; expected (H >= 3, W >= 2, 3)",
                              "give a latitude-longitude environment map, twice as wide as it is tall")
         check_radiance(data, self.source)
+        top = float(data.max())  # against the limits as float32 holds them (the data is float32 by now)
+        if top > float(np.float32(MAX_RADIANCE)):
+            raise InputError(self.source, f"probe values up to {top:.3g} are too large for float32 and the lighting "
+                             f"matrix's sums (at most {MAX_RADIANCE:.3g})", "scale the probe (and its photos) down: "
+                             "the table scales with the image over the probe")
+        if 0.0 < top < float(np.float32(MIN_RADIANCE)):  # an all-black probe is refused where it is used (check_lit)
+            raise InputError(self.source, f"probe values up to {top:.3g} are too small for float32 and the lighting "
+                             f"matrix's sums (the largest must be at least {MIN_RADIANCE:g})", "scale the probe up: "
+                             "the table scales with the image over the probe")
+        # Values below float32's normal range count as 0: the lighting kernels read them as 0 on some threads and
+        # not on others (300 texels of 1e-40 in uffizi_256 gave tables 1.3e-11 apart with --threads 1 and 2).
+        data[data < np.finfo(np.float32).tiny] = 0.0
         data.setflags(write=False)
         to_world = _as_transform(self.to_world, "to_world" if self.source == "<array>" else self.source,
                                  allow_reflection=True)

@@ -448,7 +448,8 @@ def _toy_prior(n_t: int = 4, n_s: int = 5) -> BasisPrior:
 
 
 @pytest.mark.parametrize("case", ["a zero variance", "a NaN in the mean", "a mean of another grid",
-                                  "one variance too many", "an infinite residual", "another format", "truncated"])
+                                  "one variance too many", "an infinite residual", "another format", "truncated",
+                                  "a finite mean of 1e300", "a component spread of e^90"])
 def test_a_damaged_basis_prior_file_is_refused_naming_it(tmp_path, case):
     """A basis prior file whose arrays disagree with its grid or each other, hold a non-finite value or a
     variance of 0 (a division by zero in ``predict``), names another format, or is cut short: an InputError
@@ -470,6 +471,12 @@ def test_a_damaged_basis_prior_file_is_refused_naming_it(tmp_path, case):
         arrays["variances"] = np.append(arrays["variances"], 0.01)
     elif case == "an infinite residual":
         arrays["residual"][0] = np.inf
+    elif case == "a finite mean of 1e300":  # loaded, then exp() overflowed in predict (a helper's hostile input)
+        arrays["mean"][1] = 1e300
+        match = r"its log shapes reach 1e\+300, beyond any table \(at most 80"
+    elif case == "a component spread of e^90":
+        arrays["variances"][0] = 90.0**2 / np.abs(arrays["basis"]).max() ** 2
+        match = r"its log shapes reach 90(\.0)?, beyond any table"
     elif case == "another format":
         arrays["meta"] = np.array(json.dumps({**json.loads(str(arrays["meta"])), "format": "mi_bivariate.prior"}))
         match = r"not a mi_bivariate basis prior \(format 'mi_bivariate.prior'\)"

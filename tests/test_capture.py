@@ -8,7 +8,7 @@ import warnings
 import numpy as np
 import pytest
 
-from mi_bivariate import capture
+from mi_bivariate import capture, limits
 from mi_bivariate.errors import InputError, InputWarning
 from mi_bivariate.geometry import Intrinsics, PerspectiveSphereGeometry, SphereGeometry
 
@@ -317,11 +317,11 @@ def test_a_sphere_wholly_off_any_side_is_refused_and_one_across_any_side_warns(c
 
 
 def test_pixel_value_limits_are_inclusive():
-    """The largest accepted value is MAX_PIXEL itself and the smallest largest value MIN_PIXEL itself (float64
-    input, compared before the float32 cast); twice the one and half the other are refused."""
+    """The largest accepted value is MAX_RADIANCE itself and the smallest largest value MIN_RADIANCE itself
+    (float64 input, compared before the float32 cast); twice the one and half the other are refused."""
     image = np.zeros((4, 4, 3))
-    for top, ok in ((capture.MAX_PIXEL, True), (2.0 * capture.MAX_PIXEL, False), (capture.MIN_PIXEL, True),
-                    (0.5 * capture.MIN_PIXEL, False)):
+    for top, ok in ((limits.MAX_RADIANCE, True), (2.0 * limits.MAX_RADIANCE, False), (limits.MIN_RADIANCE, True),
+                    (0.5 * limits.MIN_RADIANCE, False)):
         image[1, 1, 1] = top
         if ok:
             capture.check_image(image)

@@ -114,6 +114,30 @@ def test_rejects_nan_inf_negative(tmp_path):
         assert "4 of 128 pixels" in msg and "1 NaN" in msg and "1 infinite" in msg and "2 negative" in msg
 
 
+def test_probe_radiance_outside_float32s_working_range_is_refused_and_subnormal_texels_read_as_zero(tmp_path):
+    """A probe brighter than MAX_RADIANCE or whose brightest texel is below MIN_RADIANCE is refused, naming its
+    file (a helper's hostile probe at 1e-35 was accepted, and --threads 1 and 2 then recovered tables 190%
+    apart); a texel below float32's normal range reads as 0 (so no thread of the lighting kernels reads it
+    otherwise: 300 such texels gave tables 1.3e-11 apart with --threads 1 and 2)."""
+    from mi_bivariate import limits
+
+    for top, problem in ((limits.MAX_RADIANCE * 2.0, "too large"), (limits.MIN_RADIANCE / 2.0, "too small")):
+        image = np.full((8, 16, 3), top, np.float32)
+        path = tmp_path / f"{problem.replace(' ', '_')}.exr"
+        write_exr(path, image)
+        with pytest.raises(InputError, match=rf"probe values up to .* are {problem} for float32") as err:
+            Probe.load(path)
+        assert str(path) in str(err.value) and "\n" not in str(err.value)
+    Probe(np.full((8, 16, 3), limits.MIN_RADIANCE, np.float32))  # the limits themselves are accepted
+    Probe(np.full((8, 16, 3), limits.MAX_RADIANCE, np.float32))
+    data = np.ones((8, 16, 3), np.float32)
+    data[2, 3] = 1e-40  # subnormal in float32
+    data[4, 5, 1] = np.finfo(np.float32).tiny  # the smallest normal: kept
+    probe = Probe(data)
+    assert np.all(probe.data[2, 3] == 0.0) and probe.data[4, 5, 1] == np.finfo(np.float32).tiny
+    assert np.count_nonzero(probe.data != data) == 3
+
+
 def test_rejects_unknown_extension_and_missing_file(tmp_path):
     for name in ("probe.png", "probe"):
         path = tmp_path / name

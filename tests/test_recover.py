@@ -623,6 +623,29 @@ def test_the_timings_add_up_to_no_more_than_the_recovery_took(two_photos):
     assert min(result.timings.values()) >= 0.0 and sum(result.timings.values()) <= wall, (result.timings, wall)
 
 
+def test_an_image_and_probe_whose_ratio_leaves_float32_are_refused_before_the_solve(any_probe, tmp_path):
+    """Each within its own limits, an image 1e32 times brighter than its probe (or 1e-32 times) asks for a
+    table of ~1e31 1/sr (~1e-33): refused naming the image (a helper's image of 3e35 under a probe of 1e-30
+    ended in "mean: the table prior's mean and std must be finite", an internal name and no advice);
+    the command line names the photo."""
+    merl = analytic.to_merl(analytic.Lambertian(np.array([0.6, 0.5, 0.4])))
+    shot = render.render_sphere(render.bsdf_dict(merl), any_probe, resolution=32, spp=16, seed=5)
+    kwargs = dict(n_normals=300, n_dirs=1000, grid=(8, 8), noise=None)
+    bright_probe = probes.Probe(any_probe.data * 1e14, any_probe.to_world, "bright probe")
+    for image, probe, value in ((shot.image * 1e32, any_probe, r"e\+3[12]"), (shot.image * 1e-18, bright_probe,
+                                                                              r"e-3[2-4]")):
+        with pytest.raises(InputError, match=rf"image over the probe gives a table of about [0-9.]+{value} 1/sr, "
+                                             "outside float32's working range") as err:
+            recover(image, probe, shot.geometry, **kwargs)
+        assert err.value.source == "image" and "scale the image or the probe" in str(err.value)
+    write_exr(tmp_path / "bright.exr", shot.image * 1e32)
+    any_probe.save_exr(tmp_path / "probe.exr")
+    status = cli_main(["recover", str(tmp_path / "bright.exr"), "--probe", str(tmp_path / "probe.exr"),
+                       "--normals", "300", "--dirs", "1000", "--grid", "8", "8", "--noise", "none",
+                       "--out", str(tmp_path / "t.npz"), "--no-report"])
+    assert status == 2 and not (tmp_path / "t.npz").exists()
+
+
 def test_the_provenance_and_summary_say_what_was_computed(two_photos):
     """Rows, probes and the summary's numbers, recomputed from the recovery's arrays (prediction = L f)."""
     import re
