@@ -256,7 +256,8 @@ class BasisPrior:
         if (arrays["mean"].shape != (n,) or arrays["basis"].ndim != 2 or arrays["basis"].shape[0] != n
                 or arrays["variances"].shape != (arrays["basis"].shape[1],) or arrays["residual"].shape != (n,)
                 or not all(np.all(np.isfinite(a)) for a in arrays.values()) or np.any(arrays["variances"] <= 0)):
-            raise InputError(path, "basis prior arrays are inconsistent or non-finite")
+            raise InputError(path, "basis prior arrays are inconsistent or non-finite",
+                             "learn it again with mi-bivariate learn-prior")
         reach = max(float(np.abs(arrays["mean"]).max()), float(np.abs(arrays["residual"]).max()),
                     float(np.sqrt(arrays["variances"].max()) * np.abs(arrays["basis"]).max()))
         if reach > MAX_LOG_SHAPE:

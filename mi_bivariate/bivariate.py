@@ -24,6 +24,7 @@ from typing import Any, Optional
 import mitsuba as mi
 import numpy as np
 
+from mi_bivariate import __version__
 from mi_bivariate.atomic import atomic_path
 from mi_bivariate.common import PathLike
 from mi_bivariate.coordinates import grid_nodes, half_diff_from_st, st_from_half_diff
@@ -59,7 +60,8 @@ def validate_table(table: Any, source: str) -> np.ndarray:
     if table.ndim != 3 or table.shape[2] != 3 or table.shape[0] < 2 or table.shape[1] < 2:
         raise InputError(source, f"bivariate BRDF table must have shape (n_t >= 2, n_s >= 2, 3), got {table.shape}")
     if not np.all(np.isfinite(table)):
-        raise InputError(source, "bivariate BRDF table has non-finite (NaN or infinite) values")
+        raise InputError(source, "bivariate BRDF table has non-finite (NaN or infinite) values",
+                         "a table is finite and >= 0 (1/sr): recover or reduce it again")
     if np.any(table < 0.0):
         raise InputError(source, f"bivariate BRDF table has negative values (min {table.min():g} 1/sr)")
     return np.array(table, dtype=np.float32, order="C", copy=True)
@@ -299,14 +301,24 @@ class BivariateBRDF:
         try:
             meta = json.loads(meta_text)
         except json.JSONDecodeError:
-            raise InputError(path, "bivariate BRDF metadata is not JSON") from None
+            raise InputError(path, "bivariate BRDF metadata is not JSON",
+                             "write it with BivariateBRDF.save; the file was edited or is not a table") from None
         if not isinstance(meta, dict) or meta.get("units") != UNITS:
             units = meta.get("units") if isinstance(meta, dict) else None
             raise InputError(path, f"bivariate BRDF units must be {UNITS!r}, got {units!r}")
+        if meta.get("format", FORMAT) != FORMAT:  # (tables from before the field: no format, read as this one)
+            raise InputError(path, f"not a bivariate BRDF table (its format is {meta.get('format')!r})",
+                             f"give a table written by BivariateBRDF.save ({FORMAT!r})")
+        version = meta.get("version", FORMAT_VERSION)
+        if not (isinstance(version, int) and not isinstance(version, bool) and 1 <= version <= FORMAT_VERSION):
+            raise InputError(path, f"the table is of format version {version!r}, which this mi_bivariate "
+                             f"({__version__}) does not know (it reads versions 1 to {FORMAT_VERSION})",
+                             "read it with the mi_bivariate that wrote it, or update this one")
         biv = cls(table, provenance=meta.get("provenance"), source=os.fspath(path), confidence=confidence)
         for name, nodes, n in (("s_nodes", s_nodes, biv.n_s), ("t_nodes", t_nodes, biv.n_t)):
             if np.shape(nodes) != (n,) or not np.allclose(nodes, grid_nodes(n), atol=1e-9):
-                raise InputError(path, f"{name} are not the uniform st nodes i/(n-1) of a {n}-node axis")
+                raise InputError(path, f"{name} are not the uniform st nodes i/(n-1) of a {n}-node axis",
+                                 "write it with BivariateBRDF.save; the file was edited or is not a table")
         return biv
 
     def save_exr(self, path: PathLike) -> None:

@@ -336,7 +336,8 @@ def _check_pfm(path: Path) -> None:
     except ValueError:
         raise InputError(path, "cannot be read as an image: corrupt PFM file, bad header") from None
     if not np.isfinite(scale) or scale == 0.0:
-        raise InputError(path, "cannot be read as an image: corrupt PFM file, bad scale")
+        raise InputError(path, "cannot be read as an image: corrupt PFM file, bad scale",
+                         "its third header line must be a non-zero number (negative: little-endian); write it again")
     _check_size(path, width, height)
     expected = pos + width * height * (3 if kind == b"PF" else 1) * 4
     size = path.stat().st_size

@@ -273,7 +273,8 @@ class Prior:
                                      f"expected {shape or '(n_t, n_s)'}")
                 shape = m.shape
                 if not np.all(np.isfinite(m)) or np.any(m <= 0):
-                    raise InputError("prior", f"pair {name!r} has non-positive or non-finite sigmas")
+                    raise InputError("prior", f"pair {name!r} has non-positive or non-finite sigmas",
+                                     "learn it again with mi-bivariate learn-prior")
             checked[name] = maps  # type: ignore[assignment]
         check_grid(*shape)
         for name, (sigma_s, sigma_t) in checked.items():

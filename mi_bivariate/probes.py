@@ -258,7 +258,8 @@ def _as_transform(matrix: Any, source: str, allow_reflection: bool) -> np.ndarra
     if m.shape != (3, 3) or not np.all(np.isfinite(m)):
         raise InputError(source, f"rotation must be a finite (3, 3) or (4, 4) matrix, got shape {m.shape}")
     if np.abs(m.T @ m - np.eye(3)).max() > 1e-5:
-        raise InputError(source, "rotation matrix is not orthonormal")
+        raise InputError(source, "rotation matrix is not orthonormal",
+                         "give a rotation (orthonormal rows, no scale), or Euler angles")
     if np.linalg.det(m) < 0 and not allow_reflection:
         raise InputError(source, "rotation matrix has determinant -1 (a mirror flip)",
                          "pass allow_reflection=True if the flip is intended")

@@ -353,7 +353,8 @@ def save_npz(path, **arrays):
     return path
 
 
-@pytest.mark.parametrize("case", ["corrupt", "foreign", "shape", "units", "nodes", "missing"])
+@pytest.mark.parametrize("case", ["corrupt", "foreign", "shape", "units", "nodes", "missing", "newer version",
+                                  "version text", "other format"])
 def test_load_errors(tmp_path, case):
     good = BivariateBRDF(random_table(4, 4))
     meta = json.dumps(good.metadata())
@@ -369,9 +370,17 @@ def test_load_errors(tmp_path, case):
         save_npz(path, table=good.table, meta=np.array(meta.replace("1/sr", "W")), **nodes)
     elif case == "nodes":
         save_npz(path, table=good.table, meta=np.array(meta), s_nodes=np.arange(4.0), t_nodes=grid_nodes(4))
+    elif case in ("newer version", "version text", "other format"):  # a helper's version 99 was read as 1
+        changed = {"newer version": {"version": 99}, "version text": {"version": "1"},
+                   "other format": {"format": "mi_bivariate.basis_prior"}}[case]
+        save_npz(path, table=good.table, meta=np.array(json.dumps({**good.metadata(), **changed})), **nodes)
     with pytest.raises(InputError) as info:
         BivariateBRDF.load(path)
     assert str(path) in str(info.value) and "\n" not in str(info.value)
+    if case == "newer version":
+        assert "format version 99, which this mi_bivariate" in str(info.value)
+    if case == "other format":
+        assert "not a bivariate BRDF table (its format is 'mi_bivariate.basis_prior')" in str(info.value)
 
 
 @pytest.mark.parametrize("table", [np.zeros((32, 32)), np.zeros((1, 5, 3)), np.zeros((4, 4, 4)),

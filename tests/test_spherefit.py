@@ -120,6 +120,9 @@ def test_explicit_sphere_wins_and_warns_on_disagreement():
     (dict(mask=np.ones((8, 8), bool), radius=-1.0), "radius"),
     (dict(mask=np.ones((8, 8), bool), radius=0.0), "radius"),
     (dict(mask=np.pad(np.ones((1, 1), bool), 4)), "outline has only 4 boundary points"),  # one pixel: no circle
+    # A mask of the whole image leaves no outline: the hint says the mask is the problem (was "is the region the
+    # whole image, or tiny?", naming the photo).
+    (dict(image=np.ones((64, 64, 3)), mask=np.ones((64, 64), bool)), r"only 0 boundary points \(check the mask"),
     # Not numbers, or ragged: numpy's ValueError escaped the front door.
     (dict(mask=np.ones((8, 8), bool), camera_to_world="eye"), r"camera_to_world is not a \(3, 3\) rotation"),
     (dict(mask=np.ones((8, 8), bool), camera_to_world=[[1.0, 0.0, 0.0], [0.0, 1.0]]), "camera_to_world is not a"),
