@@ -9,16 +9,32 @@ is the library's front door.
 from __future__ import annotations
 
 import importlib
-import pkgutil
-from typing import Any
+import os
 
 __version__ = "0.1.0"
 
+
+def _on_disk(folder: str) -> tuple:
+    """The modules (``*.py``) and sub-packages (folders with an ``__init__.py``) in ``folder``, private ones
+    aside. A listing of the folder, not ``pkgutil.iter_modules``: that imports ``inspect`` (~10 ms), before
+    the command line's Ctrl-C guard (``mi_bivariate.__main__``) is set up, where a Ctrl-C still ends in a
+    traceback (a helper measured that window at 0.03-0.045 s of the console script's start)."""
+    names = []
+    for entry in os.scandir(folder):
+        if entry.name.startswith("_"):
+            continue
+        if entry.name.endswith(".py") and entry.is_file():
+            names.append(entry.name[:-3])
+        elif entry.is_dir() and os.path.isfile(os.path.join(entry.path, "__init__.py")):
+            names.append(entry.name)
+    return tuple(sorted(names))
+
+
 #: Every module and sub-package of the package, found on disk so the list cannot drift.
-_SUBMODULES = tuple(sorted(m.name for m in pkgutil.iter_modules(__path__) if not m.name.startswith("_")))
+_SUBMODULES = _on_disk(__path__[0])
 
 
-def __getattr__(name: str) -> Any:
+def __getattr__(name: str) -> object:  # (no typing import: see _on_disk)
     if name in _SUBMODULES:
         return importlib.import_module(f"{__name__}.{name}")
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
