@@ -19,14 +19,21 @@ def _on_disk(folder: str) -> tuple:
     aside. A listing of the folder, not ``pkgutil.iter_modules``: that imports ``inspect`` (~10 ms), before
     the command line's Ctrl-C guard (``mi_bivariate.__main__``) is set up, where a Ctrl-C still ends in a
     traceback (a helper measured that window at 0.03-0.045 s of the console script's start)."""
+    try:
+        entries = list(os.scandir(folder))
+    except OSError:  # not a folder (a zip archive, a frozen application): ask the import system
+        import pkgutil
+
+        return tuple(sorted(m.name for m in pkgutil.iter_modules([folder]) if not m.name.startswith("_")))
     names = []
-    for entry in os.scandir(folder):
-        if entry.name.startswith("_"):
+    for entry in entries:
+        stem = entry.name[:-3] if entry.name.endswith(".py") else entry.name
+        if stem.startswith("_") or not stem.isidentifier():  # private, or no module name (.hidden.py, a.b.py)
             continue
         if entry.name.endswith(".py") and entry.is_file():
-            names.append(entry.name[:-3])
+            names.append(stem)
         elif entry.is_dir() and os.path.isfile(os.path.join(entry.path, "__init__.py")):
-            names.append(entry.name)
+            names.append(stem)
     return tuple(sorted(names))
 
 

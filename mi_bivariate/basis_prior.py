@@ -53,9 +53,9 @@ EPS = 1e-3
 DEFAULT_COMPONENTS = 12
 #: Log-space noise floor of an observed node (a node is never "known" better than ~5%).
 OBSERVATION_FLOOR = 0.05
-#: The largest log shape (``log(f / median + EPS)``), mean, residual or component spread a loaded prior
-#: may hold: e^80 times a table's median is no material's (the packaged prior reaches 8.7), and the
-#: prediction's ``exp`` must stay finite.
+#: The largest log shape (``log(f / median + EPS)``) a loaded prior's mean, residual or per-node spread
+#: (``sqrt(sum_k basis^2 variance)``) may reach: e^80 times a table's median is no material's (the packaged
+#: prior reaches 7.9), and the prediction's ``exp`` must stay finite.
 MAX_LOG_SHAPE = 80.0
 
 
@@ -258,8 +258,9 @@ class BasisPrior:
                 or not all(np.all(np.isfinite(a)) for a in arrays.values()) or np.any(arrays["variances"] <= 0)):
             raise InputError(path, "basis prior arrays are inconsistent or non-finite",
                              "learn it again with mi-bivariate learn-prior")
-        reach = max(float(np.abs(arrays["mean"]).max()), float(np.abs(arrays["residual"]).max()),
-                    float(np.sqrt(arrays["variances"].max()) * np.abs(arrays["basis"]).max()))
+        spread = np.sqrt((arrays["basis"] ** 2 * arrays["variances"]).sum(axis=1))  # each node's, over components
+        reach = max(float(np.abs(arrays["mean"]).max(initial=0.0)), float(np.abs(arrays["residual"]).max(initial=0.0)),
+                    float(spread.max(initial=0.0)))
         if reach > MAX_LOG_SHAPE:
             raise InputError(path, f"its log shapes reach {reach:.3g}, beyond any table (at most {MAX_LOG_SHAPE:g}: "
                              "e^80 times a table's median)", "learn it again with mi-bivariate learn-prior")

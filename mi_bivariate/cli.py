@@ -2,7 +2,9 @@
 
 Subcommands: ``info``, ``render``, ``reduce``, ``learn-prior``, ``recover``,
 ``recover-batch``, ``demo``, ``evaluate``. Every one has ``--help``. Problems with the
-user's input end in a single line ``mi-bivariate: error: FILE: problem`` and exit status 2.
+user's input end in a single line ``mi-bivariate: error: FILE: problem`` and exit status 2. A stop ends
+in ``mi-bivariate: interrupted`` (or ``terminated``) with 130 (Ctrl-C) or 143 (SIGTERM); a standard output
+whose reader has gone (``| head``), quietly with 141.
 """
 
 from __future__ import annotations
@@ -413,7 +415,7 @@ def main(argv: Optional[Sequence[str]] = None, *, own_process: bool = False) -> 
         return 2
     except OSError as exc:
         if isinstance(exc, BrokenPipeError) and _stdout_reader_gone():
-            return 1  # ``mi-bivariate ... | head``: the reader stopped reading; nothing to say, nowhere to say it
+            return STATUS_READER_GONE  # ``mi-bivariate ... | head``: the reader stopped; nothing to say, nowhere to say it
         # A file the checks could not foresee (vanished, unreadable, a full disk).
         name = exc.filename if exc.filename is not None else args.command
         print(f"mi-bivariate: error: {name}: {exc.strerror or exc} (check the path, permissions and free space)",
@@ -437,20 +439,26 @@ def main(argv: Optional[Sequence[str]] = None, *, own_process: bool = False) -> 
             signal.signal(signum, handler)
 
 
+#: Exit status of a command whose standard output's reader has gone: what a shell reports for a process
+#: stopped by SIGPIPE (128 + 13), as the command line's other stops (130 for Ctrl-C, 143 for SIGTERM).
+STATUS_READER_GONE = 128 + int(getattr(signal, "SIGPIPE", 13))
+
+
 def _stdout_reader_gone() -> bool:
-    """Whether standard output is a pipe whose reader has gone (``mi-bivariate recover ... | head -1``; the
-    kernel then reports an error condition on the pipe's write end). If so, standard output is pointed at
-    ``os.devnull``, so that the interpreter's last flush does not fail again: the command ends with status
-    1 and no message, as a Unix tool stopped by SIGPIPE does (Python ignores SIGPIPE), not with a file's
-    problem (status 2). Its outputs are written if the pipe broke after them (the summary is printed last).
-    A broken pipe elsewhere (a worker's) is not this."""
+    """Whether standard output is a pipe or socket whose reader has gone (``mi-bivariate recover ... | head
+    -1``; the kernel then reports an error or hang-up on the write end). If so, standard output is pointed at
+    ``os.devnull``, so that the interpreter's last flush does not fail again, and the command ends with
+    :data:`STATUS_READER_GONE` and no message, as a Unix tool stopped by SIGPIPE does (Python ignores SIGPIPE),
+    not as a file's problem (status 2). Its outputs are written if the pipe broke after them (the summary is
+    printed last). A broken pipe elsewhere (a worker's) is not this."""
     try:
         fd = sys.stdout.fileno()
-        if not stat.S_ISFIFO(os.fstat(fd).st_mode):
+        mode = os.fstat(fd).st_mode
+        if not (stat.S_ISFIFO(mode) or stat.S_ISSOCK(mode)):
             return False
         poller = select.poll()
         poller.register(fd, select.POLLOUT)
-        if not any(events & select.POLLERR for _, events in poller.poll(0)):
+        if not any(events & (select.POLLERR | select.POLLHUP) for _, events in poller.poll(0)):
             return False
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, fd)

@@ -25,12 +25,20 @@ MAX_RADIANCE = 3.4028234663852886e38 / 1e3
 #: of its largest value); below it float32's squares underflow (a review measured the table 3% off at
 #: 1e-27 and 80% off, the sphere fit moved, at 1e-30). Five decades of margin.
 MIN_RADIANCE = 1e-20
+#: A probe's texels below this read as 0 (:class:`~mi_bivariate.probes.Probe`): five decades under the
+#: dimmest brightest texel accepted, where the lighting kernels' products of them would leave float32's
+#: normal range, which some of their threads flush to 0 and others keep (so ``--threads 1`` and ``2``
+#: would recover different tables).
+RADIANCE_FLOOR = 1e-25
 #: The range of a recovery's Lambertian level (its best constant table, 1/sr), which the image over the
-#: probe sets: beyond it the float32 table, or the basis prior's exponentials of it, leave float32's
-#: normal range (an image of 3e35 under a probe of 1e-30 gave a level of ~1e65 and an overflow deep
-#: in the priors).
-MAX_TABLE_LEVEL = 1e30
-MIN_TABLE_LEVEL = 1e-30
+#: probe sets (:func:`check_table_level`). Beyond it the float32 table, or the basis prior's exponentials
+#: of it, leave float32's working range: an image of 3e35 under a probe of 1e-30 gave a level of ~1e65
+#: and an overflow deep in the priors; levels of 1.2-1.8e-30 came back 2-6.5% off, 1.8e-29 1e-5 off
+#: (a review's scaled 32 px Lambertian sphere), hence five decades of margin below. Above, a glossy
+#: table's peak is up to ~1e4-1e5 times its level, and float32 ends at 3.4e38: a Lambertian sphere
+#: recovered right at levels up to ~5e34, a glossy one would not.
+MAX_TABLE_LEVEL = 1e33
+MIN_TABLE_LEVEL = 1e-25
 #: Nodes per st axis, and nodes of the whole grid (the solve's normal equations are N x N).
 MAX_GRID_AXIS = 256
 MAX_GRID_NODES = 64 * 64
@@ -165,3 +173,23 @@ def check_render_sizes(resolution: Optional[int], spp: Optional[int], names: Seq
         if width * tall * spp > MAX_RENDER_SAMPLES:
             raise InputError(spp_name, f"{width} x {tall} pixels x {spp} spp = {width * tall * spp} samples, over "
                              f"the limit of {MAX_RENDER_SAMPLES} for one render", hint)
+
+
+def check_table_level(level: Any, what: str = "image") -> None:
+    """Refuse a recovery whose Lambertian level (``(3,)`` 1/sr, the best constant table per channel; a
+    channel of 0 has no light and is left to the fit checks) lies outside :data:`MAX_TABLE_LEVEL` /
+    :data:`MIN_TABLE_LEVEL`, naming ``"image"``: the image over the probe sets it, and each may be within
+    its own limits (:data:`MAX_RADIANCE`, :data:`MIN_RADIANCE`) while their ratio is not. ``what`` says
+    which (``"image"``, ``"image 1"``, ``"images"``)."""
+    level = np.asarray(level, np.float64)
+    lit = level[level > 0]
+    if not lit.size:
+        return
+    top, low = float(lit.max()), float(lit.min())
+    if top > MAX_TABLE_LEVEL or low < MIN_TABLE_LEVEL:
+        value = top if top > MAX_TABLE_LEVEL else low
+        verb = "give" if what == "images" else "gives"
+        raise InputError("image", f"the {what} over the probe {verb} a table of about {value:.3g} 1/sr, outside "
+                         f"float32's working range ({MIN_TABLE_LEVEL:g} to {MAX_TABLE_LEVEL:g})",
+                         "scale the image or the probe so that their ratio is an ordinary reflectance: "
+                         "the table scales with the image over the probe")

@@ -55,7 +55,7 @@ import numpy as np
 from mi_bivariate.common import PathLike, luminance
 from mi_bivariate.errors import InputError
 from mi_bivariate.images import read_image, write_exr
-from mi_bivariate.limits import MAX_RADIANCE, MAX_RESOLUTION, MIN_RADIANCE, check_max, whole_number
+from mi_bivariate.limits import MAX_RADIANCE, MAX_RESOLUTION, MIN_RADIANCE, RADIANCE_FLOOR, check_max, whole_number
 
 #: Readable probe file types (extension -> description).
 PROBE_FORMATS: Dict[str, str] = {
@@ -175,10 +175,22 @@ def refuse_probe(value: Any, source: Any = "brdf", hint: str = "pass the BRDF fi
 
 
 def check_lit(probe: "Probe", source: Any, every_channel: bool = False) -> None:
-    """Raise :class:`InputError` naming ``source`` if ``probe`` emits no light at all (every texel 0), or,
-    with ``every_channel`` (as a recovery from it needs), no light in one of its colour channels."""
+    """Raise :class:`InputError` naming ``source`` if ``probe`` emits no light at all (every texel 0), its
+    brightest texel lies outside float32's working range (:data:`~mi_bivariate.limits.MAX_RADIANCE`,
+    :data:`~mi_bivariate.limits.MIN_RADIANCE`, as a photo's brightest pixel), or, with ``every_channel``
+    (as a recovery from it needs), no light in one of its colour channels. The front doors that light
+    with a user's probe ask this; probes made from it (downsampled, rotated) are not asked again."""
     if not np.any(probe.data > 0.0):
         raise InputError(source, "probe is black: nothing would be lit", "give a probe that emits light")
+    top = float(probe.data.max())  # against the limits as float32 holds them (the data is float32)
+    if top > float(np.float32(MAX_RADIANCE)):
+        raise InputError(source, f"probe values up to {top:.3g} are too large for float32 and the lighting "
+                         f"matrix's sums (at most {MAX_RADIANCE:.3g})", "scale the probe (and its photos) down: "
+                         "the table scales with the image over the probe")
+    if top < float(np.float32(MIN_RADIANCE)):
+        raise InputError(source, f"probe values up to {top:.3g} are too small for float32 and the lighting "
+                         f"matrix's sums (the largest must be at least {MIN_RADIANCE:g})", "scale the probe up: "
+                         "the table scales with the image over the probe")
     if every_channel:
         dark = [name for name, lit in zip("RGB", np.any(probe.data[..., :3] > 0.0, axis=(0, 1))) if not lit]
         if dark:
@@ -307,18 +319,10 @@ class Probe:
             raise InputError(self.source, f"probe data has shape {data.shape}; expected (H >= 3, W >= 2, 3)",
                              "give a latitude-longitude environment map, twice as wide as it is tall")
         check_radiance(data, self.source)
-        top = float(data.max())  # against the limits as float32 holds them (the data is float32 by now)
-        if top > float(np.float32(MAX_RADIANCE)):
-            raise InputError(self.source, f"probe values up to {top:.3g} are too large for float32 and the lighting "
-                             f"matrix's sums (at most {MAX_RADIANCE:.3g})", "scale the probe (and its photos) down: "
-                             "the table scales with the image over the probe")
-        if 0.0 < top < float(np.float32(MIN_RADIANCE)):  # an all-black probe is refused where it is used (check_lit)
-            raise InputError(self.source, f"probe values up to {top:.3g} are too small for float32 and the lighting "
-                             f"matrix's sums (the largest must be at least {MIN_RADIANCE:g})", "scale the probe up: "
-                             "the table scales with the image over the probe")
-        # Values below float32's normal range count as 0: the lighting kernels read them as 0 on some threads and
-        # not on others (300 texels of 1e-40 in uffizi_256 gave tables 1.3e-11 apart with --threads 1 and 2).
-        data[data < np.finfo(np.float32).tiny] = 0.0
+        # Texels below RADIANCE_FLOOR count as 0: the lighting kernels' products of them leave float32's normal
+        # range, and some threads flush such values while others keep them (300 texels of 1e-40 in uffizi_256
+        # gave tables 1.3e-11 apart with --threads 1 and 2; of 1e-37, 7.7e-9).
+        data[data < RADIANCE_FLOOR] = 0.0
         data.setflags(write=False)
         to_world = _as_transform(self.to_world, "to_world" if self.source == "<array>" else self.source,
                                  allow_reflection=True)

@@ -366,7 +366,7 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
             timings["image weights"] = time.perf_counter() - t1
             t0 += timings["image weights"]
         data = solve_mod.prepare_data_term(L, observations.values, sigma)
-        _check_table_level(data.level, n)
+        limits.check_table_level(data.level, "image" if n == 1 else "images")
         timings["normal equations"] = time.perf_counter() - t0
         solution = solve_stages(data, prior, alpha, basis, pair_rule)
         timings["solve"] = time.perf_counter() - t0 - timings["normal equations"]
@@ -405,23 +405,6 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
                     images=[np.array(image, copy=True) for image in images] if keep_inputs else [],
                     geometries=geometries,
                     probes=probe_list, timings=timings)
-
-
-def _check_table_level(level: np.ndarray, n_images: int) -> None:
-    """Refuse a recovery whose Lambertian level (the best constant table, ``(3,)`` 1/sr) lies outside
-    :data:`~mi_bivariate.limits.MAX_TABLE_LEVEL` / ``MIN_TABLE_LEVEL``: the image over the probe sets it, and
-    each may be within its own limits while their ratio is not."""
-    lit = level[level > 0]
-    if not lit.size:
-        return  # no light explained at all: the fit checks say so
-    top, low = float(lit.max()), float(lit.min())
-    images = "image over the probe gives" if n_images == 1 else "images over their probes give"
-    if top > limits.MAX_TABLE_LEVEL or low < limits.MIN_TABLE_LEVEL:
-        value = top if top > limits.MAX_TABLE_LEVEL else low
-        raise InputError("image", f"the {images} a table of about {value:.3g} 1/sr, outside "
-                         f"float32's working range ({limits.MIN_TABLE_LEVEL:g} to {limits.MAX_TABLE_LEVEL:g})",
-                         "scale the image or the probe so that their ratio is an ordinary reflectance: "
-                         "the table scales with the image over the probe")
 
 
 def _basis_prior(value: Union[BasisPrior, None, str], n_t: int, n_s: int) -> Optional[BasisPrior]:

@@ -323,8 +323,8 @@ def fit_sphere(image: Optional[np.ndarray] = None, mask: Optional[np.ndarray] = 
     if len(points) < 8:
         raise InputError(source, f"the sphere's outline has only {len(points)} boundary points",
                          "check the mask: it leaves no sphere outline inside the image" if mask is not None else
-                         "the object covers the whole image or is tiny: crop the photo around the sphere, or pass "
-                         "the sphere (--sphere cx,cy,r)")
+                         "the object covers the whole image or is tiny: crop the photo around the sphere, or give "
+                         "the sphere (sphere=(cx, cy, r); --sphere on the command line)")
     cx, cy, r, res, inliers = fit_circle(points)
     cone = fit_cone(points, k, (cx, cy, r)) if k is not None else None
     if lum is not None:

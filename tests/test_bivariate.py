@@ -354,7 +354,7 @@ def save_npz(path, **arrays):
 
 
 @pytest.mark.parametrize("case", ["corrupt", "foreign", "shape", "units", "nodes", "missing", "newer version",
-                                  "version text", "other format"])
+                                  "version text", "version true", "version 0", "other format"])
 def test_load_errors(tmp_path, case):
     good = BivariateBRDF(random_table(4, 4))
     meta = json.dumps(good.metadata())
@@ -370,9 +370,10 @@ def test_load_errors(tmp_path, case):
         save_npz(path, table=good.table, meta=np.array(meta.replace("1/sr", "W")), **nodes)
     elif case == "nodes":
         save_npz(path, table=good.table, meta=np.array(meta), s_nodes=np.arange(4.0), t_nodes=grid_nodes(4))
-    elif case in ("newer version", "version text", "other format"):  # a helper's version 99 was read as 1
-        changed = {"newer version": {"version": 99}, "version text": {"version": "1"},
-                   "other format": {"format": "mi_bivariate.basis_prior"}}[case]
+    elif case in ("newer version", "version text", "version true", "version 0", "other format"):
+        # A helper's version 99 was read as version 1.
+        changed = {"newer version": {"version": 99}, "version text": {"version": "1"}, "version true": {"version": True},
+                   "version 0": {"version": 0}, "other format": {"format": "mi_bivariate.basis_prior"}}[case]
         save_npz(path, table=good.table, meta=np.array(json.dumps({**good.metadata(), **changed})), **nodes)
     with pytest.raises(InputError) as info:
         BivariateBRDF.load(path)

@@ -300,8 +300,8 @@ def test_recover_imports_nothing_off_its_main_thread(tmp_path):
 
 def test_recover_into_a_pipe_whose_reader_has_gone_ends_quietly_with_its_outputs(tmp_path):
     """``mi-bivariate recover ... | head -1``: the reader closes the pipe, the command's summary cannot be
-    printed. It ends with status 1 and no error line (a helper's run ended with status 2 and "Broken pipe
-    (check the path, permissions and free space)", blaming a file), its outputs written."""
+    printed. It ends with status 141 (a shell's for SIGPIPE) and no error line (a helper's run ended with
+    status 2 and "Broken pipe (check the path, permissions and free space)", blaming a file)."""
     argv = _small_recover_argv(tmp_path) + ["--no-report", "--out", str(tmp_path / "t.npz")]
     read, write = os.pipe()
     os.close(read)  # the reader is gone before the command prints anything
@@ -310,7 +310,7 @@ def test_recover_into_a_pipe_whose_reader_has_gone_ends_quietly_with_its_outputs
                              text=True, cwd=ROOT, timeout=300, env=dict(os.environ, PYTHONPATH=str(ROOT)))
     finally:
         os.close(write)
-    assert out.returncode == 1, (out.returncode, out.stderr[-2000:])
+    assert out.returncode == cli.STATUS_READER_GONE == 141, (out.returncode, out.stderr[-2000:])
     assert "error" not in out.stderr and "Traceback" not in out.stderr and "Exception" not in out.stderr, out.stderr
     # The first print (the sphere fit's summary) broke: nothing was recovered, and nothing half-written is left.
     assert sorted(p.name for p in tmp_path.iterdir()) == ["photo.exr", "probe.exr"]

@@ -114,28 +114,36 @@ def test_rejects_nan_inf_negative(tmp_path):
         assert "4 of 128 pixels" in msg and "1 NaN" in msg and "1 infinite" in msg and "2 negative" in msg
 
 
-def test_probe_radiance_outside_float32s_working_range_is_refused_and_subnormal_texels_read_as_zero(tmp_path):
-    """A probe brighter than MAX_RADIANCE or whose brightest texel is below MIN_RADIANCE is refused, naming its
-    file (a helper's hostile probe at 1e-35 was accepted, and --threads 1 and 2 then recovered tables 190%
-    apart); a texel below float32's normal range reads as 0 (so no thread of the lighting kernels reads it
-    otherwise: 300 such texels gave tables 1.3e-11 apart with --threads 1 and 2)."""
+def test_probe_radiance_outside_float32s_working_range_is_refused_and_its_faintest_texels_read_as_zero(tmp_path):
+    """A probe brighter than MAX_RADIANCE or whose brightest texel is below MIN_RADIANCE is refused where a
+    front door lights with it (``check_lit``), naming its file (a helper's hostile probe at 1e-35 was
+    accepted, and --threads 1 and 2 then recovered tables 190% apart); the probes a recovery makes from it
+    (downsampled: dimmer still) are not refused again. A texel below RADIANCE_FLOOR reads as 0 (so no thread
+    of the lighting kernels reads it otherwise: 300 texels of 1e-40 gave tables 1.3e-11 apart with --threads
+    1 and 2, of 1e-37 7.7e-9; identical since, with the texels at 1e-37 to 1e-22)."""
     from mi_bivariate import limits
+    from mi_bivariate.probes import check_lit
 
     for top, problem in ((limits.MAX_RADIANCE * 2.0, "too large"), (limits.MIN_RADIANCE / 2.0, "too small")):
         image = np.full((8, 16, 3), top, np.float32)
         path = tmp_path / f"{problem.replace(' ', '_')}.exr"
         write_exr(path, image)
+        probe = Probe.load(path)  # read as it is: a probe made from another is not asked
         with pytest.raises(InputError, match=rf"probe values up to .* are {problem} for float32") as err:
-            Probe.load(path)
+            check_lit(probe, str(path))
         assert str(path) in str(err.value) and "\n" not in str(err.value)
-    Probe(np.full((8, 16, 3), limits.MIN_RADIANCE, np.float32))  # the limits themselves are accepted
-    Probe(np.full((8, 16, 3), limits.MAX_RADIANCE, np.float32))
+    check_lit(Probe(np.full((8, 16, 3), limits.MIN_RADIANCE, np.float32)), "dim")  # the limits themselves pass
+    check_lit(Probe(np.full((8, 16, 3), limits.MAX_RADIANCE, np.float32)), "bright")
+    dim = Probe(np.full((8, 16, 3), 2.0 * limits.MIN_RADIANCE, np.float32))
+    dim.downsampled(2)  # its downsampled copy (a recovery's adequacy test makes one) is a probe too
     data = np.ones((8, 16, 3), np.float32)
     data[2, 3] = 1e-40  # subnormal in float32
-    data[4, 5, 1] = np.finfo(np.float32).tiny  # the smallest normal: kept
+    data[4, 5, 1] = 1e-37  # a normal float32, but its products in the kernels are not
+    data[6, 7, 2] = limits.RADIANCE_FLOOR  # kept
     probe = Probe(data)
-    assert np.all(probe.data[2, 3] == 0.0) and probe.data[4, 5, 1] == np.finfo(np.float32).tiny
-    assert np.count_nonzero(probe.data != data) == 3
+    assert np.all(probe.data[2, 3] == 0.0) and probe.data[4, 5, 1] == 0.0
+    assert probe.data[6, 7, 2] == np.float32(limits.RADIANCE_FLOOR)
+    assert np.count_nonzero(probe.data != data) == 4
 
 
 def test_rejects_unknown_extension_and_missing_file(tmp_path):

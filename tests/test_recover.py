@@ -624,22 +624,37 @@ def test_the_timings_add_up_to_no_more_than_the_recovery_took(two_photos):
 
 
 def test_an_image_and_probe_whose_ratio_leaves_float32_are_refused_before_the_solve(any_probe, tmp_path):
-    """Each within its own limits, an image 1e32 times brighter than its probe (or 1e-32 times) asks for a
-    table of ~1e31 1/sr (~1e-33): refused naming the image (a helper's image of 3e35 under a probe of 1e-30
-    ended in "mean: the table prior's mean and std must be finite", an internal name and no advice);
-    the command line names the photo."""
+    """Each within its own limits, an image 1e38 times brighter than its probe (or 1e-32 times) asks for a
+    table of ~1e37 1/sr (~1e-33): refused naming the image (a helper's image of 3e35 under a probe of 1e-30
+    ended in "mean: the table prior's mean and std must be finite", an internal name and no advice); with
+    two photos too, whose cross-image weights solve each alone first; the command line names the photo."""
     merl = analytic.to_merl(analytic.Lambertian(np.array([0.6, 0.5, 0.4])))
     shot = render.render_sphere(render.bsdf_dict(merl), any_probe, resolution=32, spp=16, seed=5)
     kwargs = dict(n_normals=300, n_dirs=1000, grid=(8, 8), noise=None)
+    dim_probe = probes.Probe(any_probe.data * 1e-3, any_probe.to_world, "dim probe")
     bright_probe = probes.Probe(any_probe.data * 1e14, any_probe.to_world, "bright probe")
-    for image, probe, value in ((shot.image * 1e32, any_probe, r"e\+3[12]"), (shot.image * 1e-18, bright_probe,
-                                                                              r"e-3[2-4]")):
+    for image, probe, value in ((shot.image * 1e35, dim_probe, r"e\+3[6-8]"),
+                                (shot.image * 1e-18, bright_probe, r"e-3[2-4]")):
         with pytest.raises(InputError, match=rf"image over the probe gives a table of about [0-9.]+{value} 1/sr, "
                                              "outside float32's working range") as err:
             recover(image, probe, shot.geometry, **kwargs)
         assert err.value.source == "image" and "scale the image or the probe" in str(err.value)
-    write_exr(tmp_path / "bright.exr", shot.image * 1e32)
-    any_probe.save_exr(tmp_path / "probe.exr")
+    # Two photos: the cross-image weights solve each photo alone before recover's own check; each is checked
+    # there too (a review's pair ended in "mean: ..." again).
+    other = render.render_sphere(render.bsdf_dict(merl), any_probe, resolution=32, spp=16, seed=6)
+    with pytest.raises(InputError, match=r"the image 0 over the probe gives a table of about [0-9.]+e\+3[6-8] 1/sr"):
+        recover([shot.image * 1e35, other.image * 1e35], [dim_probe, dim_probe], [shot.geometry, other.geometry],
+                **kwargs)
+    # A channel without light (a blue albedo of 0: level 0) is no table out of range; nor is a table of
+    # ~1e30 1/sr (recovered right before these checks: the same table, scaled).
+    black_blue = analytic.to_merl(analytic.Lambertian(np.array([0.6, 0.5, 0.0])))
+    no_blue = render.render_sphere(render.bsdf_dict(black_blue), any_probe, resolution=32, spp=16, seed=5)
+    assert recover(no_blue.image, any_probe, no_blue.geometry, **kwargs).brdf.table[..., 2].max() < 1e-3
+    plain = recover(shot.image, any_probe, shot.geometry, **kwargs).brdf.table
+    scaled = recover(shot.image * 1e30, any_probe, shot.geometry, **kwargs).brdf.table
+    np.testing.assert_allclose(scaled / 1e30, plain, rtol=1e-4, atol=1e-6 * plain.max())
+    write_exr(tmp_path / "bright.exr", shot.image * 1e35)
+    dim_probe.save_exr(tmp_path / "probe.exr")
     status = cli_main(["recover", str(tmp_path / "bright.exr"), "--probe", str(tmp_path / "probe.exr"),
                        "--normals", "300", "--dirs", "1000", "--grid", "8", "8", "--noise", "none",
                        "--out", str(tmp_path / "t.npz"), "--no-report"])

@@ -7,6 +7,7 @@ from typing import Any, Optional
 import numpy as np
 
 from mi_bivariate.basis_prior import BasisPrior
+from mi_bivariate.limits import check_table_level
 from mi_bivariate.prior import Prior
 from mi_bivariate.solve.data_term import prepare_data_term
 from mi_bivariate.solve.evidence import DEFAULT_PAIR_RULE
@@ -53,8 +54,9 @@ def cross_image_factors(L: np.ndarray, values: np.ndarray, image_index: np.ndarr
     L_of = [L[rows] for rows in rows_of]  # one copy of each image's rows, used by both loops
     observed_of = [values[rows].astype(np.float64) for rows in rows_of]
     tables, dof = [], []
-    for rows, L_i, observed in zip(rows_of, L_of, observed_of):
+    for i, rows, L_i, observed in zip(images, rows_of, L_of, observed_of):
         data = prepare_data_term(L_i, observed, sigma[rows])
+        check_table_level(data.level, f"image {int(i)}")  # before its solve (these precede recover's own check)
         result = solve_stages(data, prior, alpha, basis, pair_rule)
         tables.append(result.table.reshape(-1, 3).astype(np.float32))
         dof.append(np.sum(result.resolution.reshape(-1, 3), axis=0))  # trace of the hat matrix per channel
