@@ -415,7 +415,7 @@ def main(argv: Optional[Sequence[str]] = None, *, own_process: bool = False) -> 
         return 2
     except OSError as exc:
         if isinstance(exc, BrokenPipeError) and _stdout_reader_gone():
-            return STATUS_READER_GONE  # ``mi-bivariate ... | head``: the reader stopped; nothing to say, nowhere to say it
+            return STATUS_READER_GONE  # ``mi-bivariate ... | head``: nothing to say, and nowhere to say it
         # A file the checks could not foresee (vanished, unreadable, a full disk).
         name = exc.filename if exc.filename is not None else args.command
         print(f"mi-bivariate: error: {name}: {exc.strerror or exc} (check the path, permissions and free space)",

@@ -372,8 +372,9 @@ def test_load_errors(tmp_path, case):
         save_npz(path, table=good.table, meta=np.array(meta), s_nodes=np.arange(4.0), t_nodes=grid_nodes(4))
     elif case in ("newer version", "version text", "version true", "version 0", "other format"):
         # A helper's version 99 was read as version 1.
-        changed = {"newer version": {"version": 99}, "version text": {"version": "1"}, "version true": {"version": True},
-                   "version 0": {"version": 0}, "other format": {"format": "mi_bivariate.basis_prior"}}[case]
+        changed = {"newer version": {"version": 99}, "version text": {"version": "1"},
+                   "version true": {"version": True}, "version 0": {"version": 0},
+                   "other format": {"format": "mi_bivariate.basis_prior"}}[case]
         save_npz(path, table=good.table, meta=np.array(json.dumps({**good.metadata(), **changed})), **nodes)
     with pytest.raises(InputError) as info:
         BivariateBRDF.load(path)
