@@ -278,6 +278,12 @@ def _finish(image: np.ndarray, rows: np.ndarray, cols: np.ndarray, normals: np.n
                          "check where the object is (the sphere, or the mesh and its camera), the mask and "
                          "--max-view-angle")
     if not np.any(values[keep] > 0.0):
+        # None of the object's pixels, dropped or kept, is lit, but the photo is: the object is placed where
+        # the photo is dark (a perspective sphere far too large for the image, a mesh seen from elsewhere).
+        if not np.any(np.nan_to_num(values, nan=0.0, posinf=0.0) > 0.0) and np.any(np.isfinite(image) & (image > 0.0)):
+            raise InputError(source, "no positive pixel value where the object is placed, though the photo has "
+                             "light elsewhere", "check where the object is (the sphere's centre and radius, the "
+                             "field of view, or the mesh and its camera) and the mask")
         raise InputError(source, "the image is black on the object (no positive pixel value)",
                          "check the exposure, the sphere position and the mask")
     n_bad = len(values) - n_ok

@@ -378,6 +378,21 @@ def test_a_sphere_whose_only_light_is_in_dropped_pixels_is_black():
         capture.observations_from_sphere(dark, geo, n_normals=1000, saturation=5.0)
 
 
+def test_an_object_placed_where_the_photo_is_dark_is_not_called_a_black_image():
+    """Every pixel where the sphere is placed is 0, while the photo has light elsewhere (a helper's perspective
+    sphere far too large for its image): the error says where the object is placed is the problem, not that
+    the image is black."""
+    image, geo = sphere_image()
+    elsewhere = np.zeros_like(image)
+    elsewhere[:3, :3] = 1.0  # a lit corner outside the sphere
+    assert not capture.observations_from_sphere(image, geo, n_normals=200).pixels[:, 0].min() < 3
+    with pytest.raises(InputError, match="no positive pixel value where the object is placed, though the photo has "
+                                         "light elsewhere .check where the object is"):
+        capture.observations_from_sphere(elsewhere, geo, n_normals=1000)
+    with pytest.raises(InputError, match="black on the object"):  # nothing lit anywhere: black, as before
+        capture.observations_from_sphere(np.zeros_like(image), geo, n_normals=1000)
+
+
 def test_a_subset_in_another_order_keeps_each_footprint_with_its_row():
     """``subset`` with rows in another order (a permutation): the footprint normals follow their rows and stay
     ascending by row."""
