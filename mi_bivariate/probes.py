@@ -293,7 +293,10 @@ class Probe:
     :meth:`from_angular_map`, :meth:`from_mirror_ball`).
 
     Attributes:
-        data: ``(H, W, 3) float32`` linear radiance (read-only copy), H >= 3, W >= 2.
+        data: ``(H, W, 3) float32`` linear radiance (read-only copy), H >= 3, W >= 2; NaN, infinite or
+            negative values are refused, and texels below :data:`~mi_bivariate.limits.RADIANCE_FLOOR`
+            (1e-25) read as 0. Whether its brightest texel is within float32's working range is asked
+            where a recovery or the command line lights with it (:func:`check_lit`).
         to_world: ``(4, 4) float64`` orthogonal transform, the envmap emitter's
             ``to_world``: a local lat-long direction d is the world direction
             ``to_world[:3, :3] @ d``.
