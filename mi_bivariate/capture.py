@@ -42,7 +42,7 @@ import numpy as np
 
 from mi_bivariate.errors import InputError, InputWarning, array_from
 from mi_bivariate.geometry import Geometry, SphereGeometry, check_rotation, check_sphere
-from mi_bivariate.limits import MAX_RADIANCE, MIN_RADIANCE
+from mi_bivariate.limits import check_brightest
 
 DROP_REASONS: Tuple[str, ...] = ("view_angle", "outside_image", "silhouette", "outside_mask",
                                  "duplicate", "nonfinite", "negative", "saturated")
@@ -203,15 +203,7 @@ def check_image(image: np.ndarray, source: str = "image") -> np.ndarray:
                       "an 8- or 16-bit photo is usually gamma-encoded and clipped (give a linear HDR image, "
                       "e.g. an EXR merged from several exposures)", InputWarning, stacklevel=3)
     else:
-        top = float(np.max(np.abs(image), initial=0.0, where=np.isfinite(image)))  # no copy of the image
-        if top > MAX_RADIANCE:
-            raise InputError(source, f"image values up to {top:.3g} are too large for float32 and the solve's sums "
-                             f"(at most {MAX_RADIANCE:.3g})", "scale the image (and its probe) down: the table scales "
-                             "with the image over the probe")
-        if 0.0 < top < MIN_RADIANCE:  # an all-zero image is refused as black, with its own reasons
-            raise InputError(source, f"image values up to {top:.3g} are too small for float32 and the solve's sums "
-                             f"(the largest must be at least {MIN_RADIANCE:g})", "scale the image up: the table scales "
-                             "with the image over the probe")
+        check_brightest(float(np.max(np.abs(image), initial=0.0, where=np.isfinite(image))), source)  # no copy
     return image.astype(np.float32, copy=False)
 
 

@@ -175,6 +175,21 @@ def check_render_sizes(resolution: Optional[int], spp: Optional[int], names: Seq
                              f"the limit of {MAX_RENDER_SAMPLES} for one render", hint)
 
 
+def check_brightest(top: float, source: Any, what: str = "image") -> None:
+    """Refuse, naming ``source``, the brightest value ``top`` of an image or a probe (``what``) beyond
+    :data:`MAX_RADIANCE` or (non-zero) below :data:`MIN_RADIANCE`; the limits themselves pass, also once
+    rounded to float32 (a probe's data is float32 when it is checked, a photo's may not be yet). All zero is
+    left to the callers (a black photo or probe has its own reasons)."""
+    if top > MAX_RADIANCE * (1.0 + 2.0**-23):
+        raise InputError(source, f"{what} values up to {top:.3g} are too large for float32 and the solve's sums "
+                         f"(at most {MAX_RADIANCE:.3g})", f"scale the {what} down: the table scales with the "
+                         "image over the probe")
+    if 0.0 < top < MIN_RADIANCE * (1.0 - 2.0**-23):
+        raise InputError(source, f"{what} values up to {top:.3g} are too small for float32 and the solve's sums "
+                         f"(the largest must be at least {MIN_RADIANCE:g})", f"scale the {what} up: the table "
+                         "scales with the image over the probe")
+
+
 def check_table_level(level: Any, what: str = "image") -> None:
     """Refuse a recovery whose Lambertian level (``(3,)`` 1/sr, the best constant table per channel; a
     channel of 0 has no light and is left to the fit checks) lies outside :data:`MAX_TABLE_LEVEL` /

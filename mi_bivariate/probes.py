@@ -55,7 +55,7 @@ import numpy as np
 from mi_bivariate.common import PathLike, luminance
 from mi_bivariate.errors import InputError
 from mi_bivariate.images import read_image, write_exr
-from mi_bivariate.limits import MAX_RADIANCE, MAX_RESOLUTION, MIN_RADIANCE, RADIANCE_FLOOR, check_max, whole_number
+from mi_bivariate.limits import MAX_RESOLUTION, RADIANCE_FLOOR, check_brightest, check_max, whole_number
 
 #: Readable probe file types (extension -> description).
 PROBE_FORMATS: Dict[str, str] = {
@@ -180,17 +180,10 @@ def check_lit(probe: "Probe", source: Any, every_channel: bool = False) -> None:
     :data:`~mi_bivariate.limits.MIN_RADIANCE`, as a photo's brightest pixel), or, with ``every_channel``
     (as a recovery from it needs), no light in one of its colour channels. The front doors that light
     with a user's probe ask this; probes made from it (downsampled, rotated) are not asked again."""
-    if not np.any(probe.data > 0.0):
+    top = float(probe.data.max())  # (no negative value: check_radiance)
+    if not top > 0.0:
         raise InputError(source, "probe is black: nothing would be lit", "give a probe that emits light")
-    top = float(probe.data.max())  # against the limits as float32 holds them (the data is float32)
-    if top > float(np.float32(MAX_RADIANCE)):
-        raise InputError(source, f"probe values up to {top:.3g} are too large for float32 and the lighting "
-                         f"matrix's sums (at most {MAX_RADIANCE:.3g})", "scale the probe (and its photos) down: "
-                         "the table scales with the image over the probe")
-    if top < float(np.float32(MIN_RADIANCE)):
-        raise InputError(source, f"probe values up to {top:.3g} are too small for float32 and the lighting "
-                         f"matrix's sums (the largest must be at least {MIN_RADIANCE:g})", "scale the probe up: "
-                         "the table scales with the image over the probe")
+    check_brightest(top, source, "probe")
     if every_channel:
         dark = [name for name, lit in zip("RGB", np.any(probe.data[..., :3] > 0.0, axis=(0, 1))) if not lit]
         if dark:
