@@ -191,3 +191,54 @@ def test_merl_prb_table_sampling_gradient_matches_finite_differences():
     results = check.compare([direction], seeds=SEEDS[:4])
     assert abs(results[0][0]) > 0
     assert_agree(results)
+
+
+_PRB_RENDER = """
+import hashlib, sys
+import drjit as dr, drjit.ast
+import mitsuba as mi
+from mi_bivariate.variants import ensure_variant
+if sys.argv[1] == "deferred":
+    ensure_variant("llvm_ad_rgb")
+    from mitsuba.python.ad.integrators import prb
+    assert hasattr(prb.PRBIntegrator.sample, "__wrapped__"), "prb's sample was rewritten at definition"
+else:
+    mi.set_variant("llvm_ad_rgb")
+    from mitsuba.python.ad.integrators import prb
+    assert not hasattr(prb.PRBIntegrator.sample, "__wrapped__")
+assert dr.syntax is drjit.ast.syntax, "drjit.syntax was left replaced"
+scene = mi.load_dict({"type": "scene", "integrator": {"type": "prb", "max_depth": 3},
+                      "sensor": {"type": "perspective", "fov": 40, "to_world": mi.ScalarTransform4f().look_at(
+                          origin=[0, 0, 4], target=[0, 0, 0], up=[0, 1, 0]),
+                                 "film": {"type": "hdrfilm", "width": 16, "height": 16}},
+                      "sphere": {"type": "sphere", "bsdf": {"type": "roughconductor", "alpha": 0.3}},
+                      "floor": {"type": "rectangle", "to_world": mi.ScalarTransform4f().translate([0, 0, -2]).scale(4),
+                                "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.5, 0.4, 0.3]}}},
+                      "light": {"type": "constant"}})
+params = mi.traverse(scene)
+key = "floor.bsdf.reflectance.value"
+dr.enable_grad(params[key])
+params.update()
+image = mi.render(scene, params, spp=8, seed=3)
+dr.backward(dr.sum(image))
+print(hashlib.sha256(image.numpy().tobytes()).hexdigest(), float(image.numpy().sum()),
+      *dr.grad(params[key]).numpy().ravel().tolist())
+"""
+
+
+def test_prb_rewritten_on_first_call_renders_as_rewritten_at_definition():
+    """:func:`ensure_variant` defers ``@dr.syntax``'s rewrite of Mitsuba's AD integrators to their first call
+    (``variants.syntax_on_first_call``): a ``prb`` render, in a fresh process, is bit for bit that of a process
+    that selected the variant with ``mi.set_variant`` (rewritten at definition), and its gradient the same to
+    float32 rounding (the gradient's parallel sum varies in its last bit from run to run, either way)."""
+    import subprocess
+    import sys
+    runs = {mode: subprocess.run([sys.executable, "-c", _PRB_RENDER, mode], capture_output=True, text=True,
+                                 timeout=300) for mode in ("deferred", "eager")}
+    for mode, run in runs.items():
+        assert run.returncode == 0, f"{mode}: {run.stderr[-2000:]}"
+    (deferred_image, *deferred), (eager_image, *eager) = (runs[mode].stdout.split() for mode in ("deferred", "eager"))
+    assert deferred_image == eager_image
+    eager = np.array(eager, float)
+    assert eager[0] > 0.0 and np.all(eager[1:] > 0.0)
+    np.testing.assert_allclose(np.array(deferred, float), eager, rtol=1e-6)
