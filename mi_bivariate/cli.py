@@ -10,6 +10,7 @@ whose reader has gone (``| head``), quietly with 141.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import gc
 import importlib
 import math
@@ -361,7 +362,9 @@ def main(argv: Optional[Sequence[str]] = None, *, own_process: bool = False) -> 
     one ``recover --no-report`` process, 0.01-0.02 s without them (two processes each, load 9-15).
     The modules that scipy's loading imports for nothing (numpy's ``f2py``, ``testing``, ``ma`` and
     ``polynomial``; ``scipy.special``) are deferred to their first use
-    (:func:`mi_bivariate.process.defer_unused_modules`: ~0.09 s and ~0.04 s), memory the command frees is
+    (:func:`mi_bivariate.process.defer_unused_modules`: ~0.09 s and ~0.04 s), as is Dr.Jit's rewrite of
+    the functions Mitsuba's import decorates with ``@dr.syntax`` (:func:`~mi_bivariate.process.syntax_on_first_call`,
+    ~0.02 s; a variant's start, ~0.1 s more, defers it in any process), memory the command frees is
     kept for its next arrays instead of going back to the system
     (:func:`~mi_bivariate.process.keep_freed_memory`, for :data:`KEEP_FREED_MEMORY_COMMANDS`), and
     the process's memory is not put on transparent huge pages
@@ -391,7 +394,8 @@ def main(argv: Optional[Sequence[str]] = None, *, own_process: bool = False) -> 
         try:
             if own_process:
                 process.defer_unused_modules()
-            with signals_deferred():  # a stop raised inside Dr.Jit's or Mitsuba's start aborted or crashed the process
+            # A stop raised inside Dr.Jit's or Mitsuba's start aborted or crashed the process.
+            with signals_deferred(), process.syntax_on_first_call() if own_process else contextlib.nullcontext():
                 commands = importlib.import_module("mi_bivariate.commands")  # the pipeline, loaded only to run
         finally:
             if own_process:

@@ -1,7 +1,9 @@
 """What a process that exists for the toolkit's work sets for itself: glibc keeps freed memory
 (:func:`keep_freed_memory`), the kernel's transparent huge pages off (:func:`no_huge_pages`), the
 modules that scipy's import loads for nothing run on first use (:func:`defer_unused_modules`);
-and a worker process ends with the process that started it (:func:`die_with_parent`).
+and a worker process ends with the process that started it (:func:`die_with_parent`). Likewise
+Dr.Jit's rewrite of Mitsuba's ``@dr.syntax`` functions, on their first call
+(:func:`syntax_on_first_call`, a block: also where any process selects a variant).
 
 Each changes the whole process and is measured on the 2-core VM the project runs on (docs/recovery.md
 Rounds 35 and 36). The command line calls them in a process of its own (:func:`mi_bivariate.cli.main`);
@@ -16,13 +18,17 @@ third leaves a module alone that is already loaded.
 """
 from __future__ import annotations
 
+import contextlib
 import ctypes
+import functools
 import importlib.util
 import os
 import signal
 import sys
 import threading
 import time
+import types
+from typing import Callable, Iterator, Optional
 
 #: glibc's ``mallopt`` parameters (``<malloc.h>``) and the values :func:`keep_freed_memory` sets.
 M_TRIM_THRESHOLD, M_MMAP_THRESHOLD, M_ARENA_MAX = -1, -3, -8
@@ -182,6 +188,51 @@ def defer_unused_modules() -> None:
         sys.modules[full] = module
         spec.loader.exec_module(module)  # lazily: the module's code runs on its first attribute access
         setattr(parent, name, module)  # the package's own __getattr__ (which imports) is not asked
+
+
+@contextlib.contextmanager
+def syntax_on_first_call() -> Iterator[None]:
+    """Within the block, ``@dr.syntax`` (Dr.Jit's rewrite of a function's loops and conditionals
+    from its source: ``inspect.getsource``, ``ast``, ``compile``) rewrites each function it decorates
+    on that function's first call, not at its definition.
+
+    Mitsuba's Python modules decorate methods they define at import: ``mitsuba.python.ad.projective``
+    when ``mitsuba`` is imported, and the AD integrators (``prb``, ``prb_basic``, ``prbvolpath``, ...)
+    again at every start of a JIT variant. A recovery, which renders nothing, never calls them.
+    The decorated name holds a wrapper (``functools.wraps``: the same name, docstring and signature)
+    that calls ``drjit.syntax``'s own rewrite of the function once, under a lock, and then always
+    that rewritten function: the code that runs is the one the decorator would have made
+    (``tests/test_gradients.py`` renders ``prb`` and its gradient both ways). ``drjit.syntax`` is
+    restored on leaving. Measured on this project's 2-core VM (three fresh processes each): the start
+    of ``llvm_ad_rgb`` took 0.13-0.18 s eagerly and 0.03 s so; ``import mitsuba`` 0.04-0.06 s and
+    0.03 s. :func:`mi_bivariate.variants.ensure_variant` starts a variant within it in any process;
+    the command line also loads its pipeline within it, in a process of its own
+    (:func:`mi_bivariate.cli.main`).
+    """
+    dr = importlib.import_module("drjit")  # the pipeline loads it anyway
+    rewrite = dr.syntax
+
+    def deferred(f: Optional[types.FunctionType] = None, **options) -> Callable:
+        if f is None:  # @dr.syntax(recursive=True)
+            return lambda g: deferred(g, **options)
+        rewritten = []
+        lock = threading.Lock()
+
+        @functools.wraps(f)
+        def on_first_call(*args, **kwargs):
+            if not rewritten:
+                with lock:
+                    if not rewritten:
+                        rewritten.append(rewrite(f, **options))
+            return rewritten[0](*args, **kwargs)
+
+        return on_first_call
+
+    dr.syntax = deferred
+    try:
+        yield
+    finally:
+        dr.syntax = rewrite
 
 
 def usable_cores() -> int:

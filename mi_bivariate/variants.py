@@ -19,65 +19,25 @@ A variant's start imports Mitsuba's Python AD integrators (``prb``, ``prb_basic`
 ``prbvolpath``, ...), whose ``@dr.syntax`` methods Dr.Jit rewrites from their source at
 definition (``inspect.getsource``, ``ast``, ``compile``): ~0.1 s of a one-core start that a
 recovery, which renders nothing, never uses. :func:`ensure_variant` has the rewrite happen on
-each method's first call instead (:func:`syntax_on_first_call`): the same rewritten code, run the
-same way, paid only by the process that renders with that integrator.
+each method's first call instead: the same rewritten code, run the
+same way, paid only by the process that renders with that integrator
+(:func:`mi_bivariate.process.syntax_on_first_call`).
 """
 
 from __future__ import annotations
 
-import contextlib
-import functools
 import os
-import threading
-import types
-from typing import Callable, Iterator, Optional
+from typing import Optional
 
-import drjit as dr
 import mitsuba as mi
 
 from mi_bivariate.atomic import signals_deferred
 from mi_bivariate.errors import InputError
 from mi_bivariate.plugins import register
+from mi_bivariate.process import syntax_on_first_call
 
 DEFAULT_VARIANT = "llvm_ad_rgb"
 SUPPORTED_VARIANTS = ("llvm_ad_rgb", "cuda_ad_rgb", "scalar_rgb")
-
-
-@contextlib.contextmanager
-def syntax_on_first_call() -> Iterator[None]:
-    """Within the block, ``@dr.syntax`` (Dr.Jit's loop and conditional rewrite) rewrites each
-    function it decorates on that function's first call, not at its definition.
-
-    The decorated name holds a wrapper (``functools.wraps``: the same name, docstring and
-    signature) that calls ``drjit.syntax``'s own rewrite of the function once, under a lock, and
-    then always that rewritten function: the code that runs is the one the decorator would have
-    made. Used around ``mi.set_variant`` (module docstring); measured on this project's 2-core VM,
-    the start of ``llvm_ad_rgb`` took 0.13-0.18 s eagerly and 0.03 s so (three fresh processes
-    each, docs/recovery.md Round 39). ``drjit.syntax`` is restored on leaving.
-    """
-    rewrite = dr.syntax
-
-    def deferred(f: Optional[types.FunctionType] = None, **options) -> Callable:
-        if f is None:  # @dr.syntax(recursive=True)
-            return lambda g: deferred(g, **options)
-        rewritten = []
-        lock = threading.Lock()
-
-        @functools.wraps(f)
-        def on_first_call(*args, **kwargs):
-            if not rewritten:
-                with lock:
-                    if not rewritten:
-                        rewritten.append(rewrite(f, **options))
-            return rewritten[0](*args, **kwargs)
-
-        return on_first_call
-
-    dr.syntax = deferred
-    try:
-        yield
-    finally:
-        dr.syntax = rewrite
 
 
 def ensure_variant(variant: Optional[str] = None, vectorised: bool = False) -> str:

@@ -298,6 +298,26 @@ def test_recover_imports_nothing_off_its_main_thread(tmp_path):
     assert "status 0 imports off the main thread: []" in out.stdout, out.stdout[-2000:]
 
 
+def test_recover_in_its_own_process_leaves_mitsubas_syntax_rewrites_to_their_first_call(tmp_path):
+    """``process.syntax_on_first_call``: in the command line's own process, the ``@dr.syntax`` methods that
+    ``import mitsuba`` (``ProjectiveDetail``) and the variant's start (``prb``) define are not rewritten
+    before their first call, and ``drjit.syntax`` is Dr.Jit's own again once the pipeline is loaded (a
+    rendering notebook or evaluation worker started from it decorates as Dr.Jit does)."""
+    argv = _small_recover_argv(tmp_path) + ["--no-report", "--out", str(tmp_path / "run.npz")]
+    code = ("import sys\n"
+            "import mi_bivariate.cli as cli\n"
+            f"sys.argv = ['mi-bivariate', *{argv!r}]\n"
+            "status = cli.run()\n"
+            "import drjit, drjit.ast\n"
+            "from mitsuba.python.ad.projective import ProjectiveDetail\n"
+            "from mitsuba.python.ad.integrators.prb import PRBIntegrator\n"
+            "print('status', status, hasattr(ProjectiveDetail.init_indirect_silhouette_grid_unif, '__wrapped__'),\n"
+            "      hasattr(PRBIntegrator.sample, '__wrapped__'), drjit.syntax is drjit.ast.syntax)\n")
+    out = _fresh_python(code, ROOT)
+    assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-2000:]
+    assert "status 0 True True True" in out.stdout, out.stdout[-2000:]
+
+
 def test_recover_into_a_pipe_whose_reader_has_gone_ends_quietly_with_its_outputs(tmp_path):
     """``mi-bivariate recover ... | head -1``: the reader closes the pipe, the command's summary cannot be
     printed. It ends with status 141 (a shell's for SIGPIPE) and no error line (a helper's run ended with
