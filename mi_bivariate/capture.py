@@ -378,8 +378,7 @@ def observations_from_sphere(image: np.ndarray, geometry: SphereGeometry, n_norm
     views = np.broadcast_to(view, normals.shape).copy()
 
     if saturation is None:
-        _, sphere_mask = geometry.normals(width, height)
-        _plateau_warning(image[sphere_mask], source)
+        _plateau_warning(image[geometry.object_mask(width, height)], source)
     obs = _finish(image, rows, cols, normals, views, dropped, saturation, source, probe_index)
     if footprint is not None:
         obs.footprint_normals, obs.footprint_rows = _sphere_footprints(obs.pixels, cx, cy, radius, rot, footprint)

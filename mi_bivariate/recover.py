@@ -560,7 +560,7 @@ def _estimate_noise(image: np.ndarray, geometry: Geometry, source: str,
     from scipy import ndimage  # as the sphere fit, which a recovery from a photo has run already
 
     lit = np.all(np.isfinite(image), axis=2) & np.all(image > 0, axis=2)
-    on_object = geometry.surface_maps(image.shape[1], image.shape[0], source).mask
+    on_object = geometry.object_mask(image.shape[1], image.shape[0], source)
     near = ndimage.binary_dilation(on_object, iterations=NOISE_MARGIN_PX)  # 4-neighbour steps
     # The frame's own rows and columns are left as they are: there the object is cut, not mixed.
     interior = np.zeros_like(lit)

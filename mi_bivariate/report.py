@@ -210,7 +210,7 @@ def predicted_image(result: Any, index: int = 0) -> Tuple[Optional[np.ndarray], 
     rows = np.flatnonzero((np.asarray(obs.image_index) == index) & (np.asarray(obs.pixels)[:, 0] >= 0))
     if len(rows) == 0 or not result.geometries:
         return None, None
-    mask = result.geometries[index].surface_maps(image.shape[1], image.shape[0]).mask
+    mask = result.geometries[index].object_mask(image.shape[1], image.shape[0])
     # Each pixel's nearest observed pixel: the Euclidean feature transform of the observed pixels (the
     # sphere fit's scipy.ndimage, already loaded; a k-d tree cost the report 0.06 s, its import included).
     pixels = np.asarray(obs.pixels)[rows]
@@ -274,7 +274,7 @@ def recovery_report_panels(result: Any, rerender: Optional[np.ndarray] = None,
     if not result.geometries:
         return panels
     geo = result.geometries[0]
-    panels.mask = geo.surface_maps(image.shape[1], image.shape[0]).mask
+    panels.mask = geo.object_mask(image.shape[1], image.shape[0])
     if rerender is None and path_trace:
         rerender = render.render_like(render.bsdf_dict(result.brdf), result.probes[0], geo,
                                       width=image.shape[1], height=image.shape[0], spp=128, seed=1).image

@@ -32,6 +32,11 @@ REFINE_PASSES = 2
 #: Scale (pixels) of the Gaussian smoothing before edge detection.
 EDGE_SIGMA_PX = 1.0
 
+#: The automatic search (no mask) of a photo larger than this on its longer side (pixels) runs first on its
+#: log-luminance box-averaged by an integer factor (:func:`segment_sphere`): searched at full resolution, a
+#: 2048 x 2048 photo took 5.4 s and a 4096 x 4096 one ~20 s (2-core VM; docs/recovery.md Round 39).
+SEARCH_SIDE_PX = 512
+
 
 # ------------------------------------------------------------------ inputs
 
@@ -270,6 +275,13 @@ def segment_sphere(image: np.ndarray, mask: Optional[np.ndarray] = None, source:
     longest :func:`edge_support` wins; its region (a component, or the disc
     of a RANSAC circle) is returned.
 
+    A photo larger than :data:`SEARCH_SIDE_PX` on its longer side is searched first in its
+    log-luminance box-averaged by an integer factor (:func:`_coarse_region`); a threshold
+    component that wins there is cut again at full resolution, with the same threshold, in
+    the circle's bounding box, and kept if its outline passes the same circle checks at full
+    resolution. Otherwise (a RANSAC circle, a sphere under :data:`MIN_RADIUS_PX` coarse pixels,
+    a region that does not hold up) the full-resolution search runs as for a small image.
+
     Raises:
         InputError: no finite pixel, empty mask, or no circular region found.
     """
@@ -281,33 +293,97 @@ def segment_sphere(image: np.ndarray, mask: Optional[np.ndarray] = None, source:
     if not np.isfinite(lum).any():
         raise InputError(source, "has no finite pixel", "check the file: every value is NaN or infinite")
     log_lum = log_luminance(lum)
+    factor = math.ceil(max(height, width) / SEARCH_SIDE_PX)
+    if factor >= 2:
+        region = _coarse_region(log_lum, factor, seed)
+        if region is not None:
+            return region
+    (cx, cy, r), region, _ = _search(log_lum, source, seed)
+    return region if region is not None else disc_mask(lum.shape, cx, cy, r)
+
+
+def _search(log_lum: np.ndarray, source: str, seed: int) -> Tuple[Tuple[float, float, float], Optional[np.ndarray],
+                                                                   Optional[Tuple[float, bool]]]:
+    """The winning candidate of :func:`segment_sphere`'s search: ``(circle, region, cut)``, with
+    ``region`` and ``cut`` (its threshold and whether the region is above it) ``None`` for a RANSAC circle."""
+    height, width = log_lum.shape
     finite = log_lum[np.isfinite(log_lum)]
     thresholds = np.unique(np.concatenate([[otsu_threshold(finite)], np.quantile(finite, THRESHOLD_QUANTILES)]))
     min_area = max(int(math.pi * MIN_RADIUS_PX ** 2), int(2e-4 * height * width))
     candidates = []
     with np.errstate(invalid="ignore"):
-        classes = [log_lum > t for t in thresholds] + [log_lum <= t for t in thresholds]
-    for binary in classes:
+        classes = [(log_lum > t, (float(t), True)) for t in thresholds] + \
+                  [(log_lum <= t, (float(t), False)) for t in thresholds]
+    for binary, cut in classes:
         for region in _fill_components(binary, min_area):
             circle = _region_circle(region)
             if circle is not None:
-                candidates.append((circle, region))
+                candidates.append((circle, region, cut))
     smooth = _smoothed(log_lum)
-    support = [edge_support(smooth, *circle) for circle, _ in candidates]
+    support = [edge_support(smooth, *circle) for circle, _, _ in candidates]
     # RANSAC only when no threshold region has a clear edge all round (it costs more).
-    if not any(n >= 0.9 * 2 * math.pi * c[2] for n, (c, _) in zip(support, candidates)):
+    if not any(n >= 0.9 * 2 * math.pi * c[2] for n, (c, _, _) in zip(support, candidates)):
         edges, gradients = _edge_pixels(log_lum)
         for circle in ransac_circles(edges, gradients, (MIN_RADIUS_PX, max(height, width)), seed=seed):
-            candidates.append((circle, None))
+            candidates.append((circle, None, None))
             support.append(edge_support(smooth, *circle))
     if not candidates:
         raise InputError(source, "no sphere found: no region of the image has a circular outline",
                          "pass the sphere explicitly (CX,CY,R) or a mask of it")
-    (cx, cy, r), region = candidates[int(np.argmax(support))]
-    if max(support) < 0.25 * 2 * math.pi * r:
+    best = candidates[int(np.argmax(support))]
+    if max(support) < 0.25 * 2 * math.pi * best[0][2]:
         raise InputError(source, "no sphere found: no circular outline with a clear edge",
                          "pass the sphere explicitly (CX,CY,R) or a mask of it")
-    return region if region is not None else disc_mask(lum.shape, cx, cy, r)
+    return best
+
+
+def block_mean(values: np.ndarray, factor: int) -> np.ndarray:
+    """``(ceil(H / factor), ceil(W / factor))``: the mean of each ``factor x factor`` block of ``(H, W)``
+    values over its finite ones (NaN where it has none; the last blocks may be cut by the frame)."""
+    height, width = values.shape
+    rows, cols = -(-height // factor), -(-width // factor)
+    finite = np.isfinite(values)
+    padded = np.zeros((rows * factor, cols * factor))
+    padded[:height, :width] = np.where(finite, values, 0.0)
+    count = np.zeros(padded.shape)
+    count[:height, :width] = finite
+    total = padded.reshape(rows, factor, cols, factor).sum(axis=(1, 3))
+    n = count.reshape(rows, factor, cols, factor).sum(axis=(1, 3))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(n > 0, total / n, np.nan)
+
+
+def _coarse_region(log_lum: np.ndarray, factor: int, seed: int) -> Optional[np.ndarray]:
+    """:func:`segment_sphere`'s region found in ``log_lum`` box-averaged by ``factor``, cut again at full
+    resolution (its docstring), or ``None`` where the full-resolution search must decide."""
+    from scipy import ndimage
+
+    try:
+        (cx, cy, r), _, cut = _search(block_mean(log_lum, factor), "", seed)
+    except InputError:
+        return None
+    if cut is None:  # a RANSAC circle: the coarse pixels cannot place its edge well enough
+        return None
+    threshold, above = cut
+    cx, cy, r = cx * factor, cy * factor, r * factor
+    height, width = log_lum.shape
+    margin = 2 * factor + 2
+    y0, y1 = max(0, math.floor(cy - r - margin)), min(height, math.ceil(cy + r + margin))
+    x0, x1 = max(0, math.floor(cx - r - margin)), min(width, math.ceil(cx + r + margin))
+    if y1 - y0 < 3 or x1 - x0 < 3:
+        return None
+    box = log_lum[y0:y1, x0:x1]
+    with np.errstate(invalid="ignore"):
+        binary = box > threshold if above else box <= threshold
+    labels, n = ndimage.label(binary)
+    if n == 0:
+        return None
+    # The component that covers most of the coarse circle's disc.
+    overlap = np.bincount(labels[disc_mask(box.shape, cx - x0, cy - y0, r)], minlength=n + 1)
+    overlap[0] = 0
+    region = np.zeros(log_lum.shape, bool)
+    region[y0:y1, x0:x1] = ndimage.binary_fill_holes(labels == int(np.argmax(overlap)))
+    return region if _region_circle(region) is not None else None
 
 
 # ---------------------------------------------------------------- boundary

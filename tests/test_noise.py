@@ -331,3 +331,48 @@ def test_nonnegative_fit_is_scipy_nnls():
         assert residual <= best * (1 + 1e-9) + 1e-14 * np.max(np.abs(target))
         if np.linalg.matrix_rank(design / scale) == 2:  # unique solution
             np.testing.assert_allclose(ours * scale, theirs * scale, rtol=1e-7, atol=1e-12 * np.max(np.abs(theirs * scale)))
+
+
+def test_a_large_objects_estimate_samples_evenly_spaced_rows_and_columns():
+    """An object of 1.6 M pixels gives ~3.3 M second differences; the estimate takes every 7th row and column
+    (``MAX_SECOND_DIFFERENCES``) and lands within 3% of the estimate from all of them, which itself holds
+    the added noise to 25% (as on smaller images), at the median and the bright end. The thinned
+    differences are exactly the full set's along those rows and columns."""
+    from mi_bivariate import noise
+    from mi_bivariate.noise import _second_differences
+
+    clean, mask = _sphere_like(1600)
+    a, b = 0.01, 1e-4
+    noisy = add_camera_noise(clean, a, b, seed=2)[..., 0]
+    step = -(-2 * np.count_nonzero(mask) // noise.MAX_SECOND_DIFFERENCES)
+    assert step == 7
+    steps = []
+
+    def recorded(image, m, step=1):
+        steps.append(step)
+        return _second_differences(image, m, step)
+
+    noise._second_differences = recorded
+    try:
+        thinned = estimate_camera_noise(noisy, mask)
+    finally:
+        noise._second_differences = _second_differences
+    assert steps == [7]
+    saved = noise.MAX_SECOND_DIFFERENCES
+    try:
+        noise.MAX_SECOND_DIFFERENCES = 10**12
+        full = estimate_camera_noise(noisy, mask)
+    finally:
+        noise.MAX_SECOND_DIFFERENCES = saved
+    for level in (np.median(clean[mask, 0]), np.quantile(clean[mask, 0], 0.95)):
+        assert thinned[0] * level + thinned[1] == pytest.approx(full[0] * level + full[1], rel=0.03)
+        assert thinned[0] * level + thinned[1] == pytest.approx(a * level + b, rel=0.25)
+    image = np.where(mask, noisy, 0.0)
+    level, d = _second_differences(image, mask, step=step)
+    want_rows = _second_differences(image[::step], mask[::step])  # along the rows: within rows 0, 7, 14, ...
+    want_cols = _second_differences(image[:, ::step], mask[:, ::step])
+    n_cols = np.count_nonzero(mask[:-2, ::step] & mask[1:-1, ::step] & mask[2:, ::step])  # down the columns first
+    np.testing.assert_array_equal(d[:n_cols], want_cols[1][:n_cols])
+    n_rows = np.count_nonzero(mask[::step, :-2] & mask[::step, 1:-1] & mask[::step, 2:])
+    np.testing.assert_array_equal(np.sort(d[n_cols:]), np.sort(want_rows[1][len(want_rows[1]) - n_rows:]))
+    assert len(d) == n_cols + n_rows

@@ -733,3 +733,69 @@ def test_soft_l1_fit_halves_a_step_that_would_raise_the_loss():
     x = 0 lands at ~34, where the loss is higher): the fit still reaches the minimum, x = 3."""
     x = spherefit.soft_l1_fit(lambda p: np.arctan(np.array([p[0] - 3.0])), np.array([0.0]), 1.0)
     assert x[0] == pytest.approx(3.0, abs=1e-9)
+
+
+def _large_photo(shape, cx, cy, r, seed=0, shade=1.5):
+    """A disc (supersampled coverage) shaded ``0.3 + shade z^4`` on a dim background with a gradient and noise."""
+    h, w = shape
+    y, x = np.mgrid[0:h, 0:w] + 0.5
+    cov = disc_coverage(shape, cx, cy, r, ss=4)
+    z = np.sqrt(np.clip(1.0 - ((x - cx) ** 2 + (y - cy) ** 2) / r ** 2, 0.0, 1.0))
+    background = 0.02 + 0.03 * x / w
+    lum = cov * (0.3 + shade * z ** 4) + (1.0 - cov) * background
+    lum *= 1.0 + 0.01 * np.random.default_rng(seed).standard_normal(shape)
+    return np.repeat(lum[..., None], 3, axis=2)
+
+
+def test_a_large_photo_is_searched_coarse_and_cut_at_full_resolution(monkeypatch):
+    """A 1300 x 1500 photo (larger than ``SEARCH_SIDE_PX``): the sphere is found in the image box-averaged
+    3 x 3, its region cut again at full resolution, and the fit lands on the supersampled disc to 0.02 px,
+    as the full-resolution search's own fit does. A sphere of 12 px radius is under ``MIN_RADIUS_PX`` coarse
+    pixels: the coarse search finds nothing and the full-resolution search finds it (to 0.05 px). A photo
+    at most ``SEARCH_SIDE_PX`` on its longer side is searched at full resolution alone."""
+    from mi_bivariate import silhouette
+
+    found = []
+    coarse = silhouette._coarse_region
+    monkeypatch.setattr(silhouette, "_coarse_region",
+                        lambda *args: found.append(coarse(*args)) or found[-1])
+    shape, (cx, cy, r) = (1500, 1300), (701.3, 742.6, 560.4)
+    image = _large_photo(shape, cx, cy, r)
+    fit = spherefit.fit_sphere(image)
+    assert len(found) == 1 and found[0] is not None
+    assert fit.confident, fit.summary()
+    assert abs(fit.cx - cx) < 0.02 and abs(fit.cy - cy) < 0.02 and abs(fit.radius - r) < 0.02, fit.summary()
+    monkeypatch.setattr(silhouette, "SEARCH_SIDE_PX", 10**6)
+    full = spherefit.fit_sphere(image)
+    assert len(found) == 1  # not asked
+    assert abs(full.cx - cx) < 0.02 and abs(full.cy - cy) < 0.02 and abs(full.radius - r) < 0.02, full.summary()
+    monkeypatch.setattr(silhouette, "SEARCH_SIDE_PX", 512)
+    small = _large_photo((1100, 1000), 420.7, 530.2, 12.0, seed=1, shade=0.0)  # (the rim's coverage model
+    # assumes the sphere's own pixels beside its edge alike: a 12 px sphere's steep shading would pull it in)
+    fit = spherefit.fit_sphere(small, warn=False)
+    assert len(found) == 2 and found[1] is None
+    assert abs(fit.cx - 420.7) < 0.05 and abs(fit.cy - 530.2) < 0.05 and abs(fit.radius - 12.0) < 0.05, fit.summary()
+    spherefit.fit_sphere(small[300:800, 200:600], warn=False)
+    assert len(found) == 2
+
+
+def test_block_mean_averages_the_finite_values_of_each_block():
+    """Against plain loops: blocks cut by the frame average what they hold, non-finite values are left
+    out, a block of none is NaN."""
+    from mi_bivariate.silhouette import block_mean
+
+    values = np.random.default_rng(5).random((7, 11))
+    values[0, 0:3] = np.nan
+    values[6, 9] = np.inf
+    values[3:6, 3:6] = np.nan
+    got = block_mean(values, 3)
+    assert got.shape == (3, 4)
+    for i in range(3):
+        for j in range(4):
+            block = values[3 * i:3 * i + 3, 3 * j:3 * j + 3]
+            block = block[np.isfinite(block)]
+            if block.size:
+                assert got[i, j] == pytest.approx(block.mean(), rel=1e-12)
+            else:
+                assert np.isnan(got[i, j])
+    assert np.isnan(got[1, 1])
