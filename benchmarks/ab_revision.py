@@ -1,10 +1,12 @@
 r"""Time the solve, the lighting matrix or ``recover`` end to end against another git revision, A/B.
 
     MI_BIVARIATE_DATA=../shared/data OPENBLAS_NUM_THREADS=1 python benchmarks/ab_revision.py REV [--rounds 3] \
-        [--stages solve,lighting,end-to-end]
+        [--stages solve,lighting,end-to-end] [--resolution 256 --spp 256]
 
 The inputs are ``bench_speed.py``'s (a 256 px gold-metallic-paint3 sphere under
-grace_latlong_1k, recovered once here for its observations, lighting matrix and pixels).
+grace_latlong_1k, recovered once here for its observations, lighting matrix and pixels);
+``--resolution N`` renders the sphere at ``N x N`` pixels instead (``--spp`` samples per pixel),
+as a user's photo of a few megapixels: the stages before the lighting matrix grow with it.
 Each round runs, alternately, one fresh process per side (``REV`` checked out in a temporary
 ``git worktree``, its ``plugins/`` linked in where the package expects them; this checkout as
 it is), with the side's package first on the path (checked before the rounds).
@@ -12,7 +14,8 @@ it is), with the side's package first on the path (checked before the rounds).
 - ``solve``, ``lighting``: each process times its stage 3 times and reports the median.
 - ``end-to-end``: each process is ``mi-bivariate recover IMAGE --probe PROBE --out ... --no-report``
   (``python -m mi_bivariate.cli``, the sphere fitted from the image as a user's run would),
-  timed by wall clock from outside: process start, imports and shutdown included;
+  timed by wall clock from outside (:data:`LAUNCH`): process start, imports and shutdown included;
+  its peak memory (the kernel's maximum resident set of that process) is printed with every round's time;
   ``end-to-end-report``: the same with the report (``recover``'s default).
 
 Printed: the median over rounds per side, their ratio, and how far the sides' answers differ
@@ -102,13 +105,29 @@ def _run_side(stage: str, side: str, root: Path, tmp: str, inputs: str) -> float
            inputs + "_probe.exr", "--out", str(table)]
     if stage != "end-to-end-report":
         cmd.append("--no-report")
-    t0 = time.perf_counter()
-    out = subprocess.run(cmd, env=env, capture_output=True, text=True, cwd=tmp)
-    wall = time.perf_counter() - t0
+    out = subprocess.run([sys.executable, "-c", LAUNCH, *cmd], env=env, capture_output=True, text=True, cwd=tmp)
     if out.returncode:
         sys.exit(f"{side} side failed:\n{out.stderr[-3000:]}")
+    wall, peak_kb = out.stderr.strip().splitlines()[-1].split()[1::2]
+    PEAK_MB.setdefault(side, []).append(int(peak_kb) / 1024.0)
     np.save(f"{tmp}/{side}.npy", np.load(table)["table"])
-    return wall
+    return float(wall)
+
+
+#: Runs an end-to-end command from a small process of its own, which times it and reads its peak memory:
+#: a child forked from this benchmark (its renders make it large) would count the benchmark's memory as
+#: its own peak, since the kernel's maximum resident set survives ``exec``.
+LAUNCH = r"""
+import resource, subprocess, sys, time
+t0 = time.perf_counter()
+out = subprocess.run(sys.argv[1:], capture_output=True, text=True)
+wall = time.perf_counter() - t0
+sys.stderr.write(out.stdout + out.stderr)
+sys.stderr.write(f"\nwall {wall} peak-kb {resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss}\n")
+sys.exit(out.returncode)
+"""
+#: Each side's end-to-end processes' peak memory (MB), in the order run.
+PEAK_MB: dict = {}
 
 
 def main() -> None:
@@ -117,6 +136,8 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--stages", default="solve,lighting",
                         help="any of solve, lighting, end-to-end, end-to-end-report")
+    parser.add_argument("--resolution", type=int, default=256, help="the sphere photo's side (pixels)")
+    parser.add_argument("--spp", type=int, default=256, help="its samples per pixel")
     args = parser.parse_args()
     sys.path.insert(0, str(ROOT / "benchmarks"))
     import bench_speed
@@ -140,7 +161,7 @@ def main() -> None:
                 subprocess.run([sys.executable, "-m", "compileall", "-q", str(root / "mi_bivariate"),
                                 str(root / "plugins")], check=True, capture_output=True)
                 _check_side(root, tmp)
-            _, probe, shot = bench_speed.load_inputs()
+            _, probe, shot = bench_speed.load_inputs(resolution=args.resolution, spp=args.spp)
             rec = recover(shot.image, probe, shot.geometry)
             inputs = str(Path(tmp) / "inputs")
             np.savez(inputs + ".npz", L=rec.lighting_matrix, I=rec.observations.values)
@@ -148,7 +169,8 @@ def main() -> None:
                 pickle.dump(rec.observations, fh)
             write_exr(inputs + "_sphere.exr", shot.image)
             probe.save_exr(inputs + "_probe.exr")
-            print(f"A/B against {args.revision}; {args.rounds} rounds; load average "
+            print(f"A/B against {args.revision}; {args.rounds} rounds; a {args.resolution} px sphere "
+                  f"({args.spp} spp); load average "
                   f"{', '.join(f'{v:.1f}' for v in os.getloadavg())}\n")
             print(f"| stage | {args.revision} (s) | this checkout (s) | ratio | max answer difference / max |")
             print("|---|---:|---:|---:|---:|")
@@ -164,6 +186,10 @@ def main() -> None:
                 rev, here = np.median(times["rev"]), np.median(times["here"])
                 details.append(f"{stage}: {args.revision} {sorted(round(v, 3) for v in times['rev'])}, "
                                f"this checkout {sorted(round(v, 3) for v in times['here'])}")
+                if stage.startswith("end-to-end"):
+                    details.append(f"{stage}, peak memory (MB): {args.revision} "
+                                   f"{sorted(round(v) for v in PEAK_MB.pop('rev'))}, this checkout "
+                                   f"{sorted(round(v) for v in PEAK_MB.pop('here'))}")
                 print(f"| {stage} | {rev:.3f} | {here:.3f} | {rev / here:.2f}x | {diff:.1e} |", flush=True)
             print("\nEvery round, sorted (s):\n" + "\n".join(f"- {line}" for line in details))
         finally:
