@@ -381,6 +381,8 @@ def _coarse_region(log_lum: np.ndarray, factor: int, seed: int) -> Optional[np.n
     # The component that covers most of the coarse circle's disc.
     overlap = np.bincount(labels[disc_mask(box.shape, cx - x0, cy - y0, r)], minlength=n + 1)
     overlap[0] = 0
+    if not overlap.any():
+        return None
     region = np.zeros(log_lum.shape, bool)
     region[y0:y1, x0:x1] = ndimage.binary_fill_holes(labels == int(np.argmax(overlap)))
     return region if _region_circle(region) is not None else None
