@@ -613,6 +613,25 @@ def write_exr(path: PathLike, image: np.ndarray, units: str = RADIANCE_UNITS,
     return path
 
 
+def block_mean(values: np.ndarray, factor: int) -> np.ndarray:
+    """``(ceil(H / factor), ceil(W / factor), ...) float64``: the mean of each ``factor x factor`` block of
+    ``(H, W)`` or ``(H, W, C)`` values over its finite ones, per channel (NaN where a block has none; the
+    last blocks may be cut by the frame). A photo's pixels averaged in linear radiance: what a camera
+    of ``factor`` times larger pixels would record."""
+    values = np.asarray(values)
+    height, width = values.shape[:2]
+    rows, cols = -(-height // factor), -(-width // factor)
+    pad = ((0, rows * factor - height), (0, cols * factor - width)) + ((0, 0),) * (values.ndim - 2)
+    blocks = (rows, factor, cols, factor) + values.shape[2:]
+    finite = np.isfinite(values)
+    # Summed along each block's rows, then its columns (3x faster than both axes at once for RGB).
+    total = np.pad(np.where(finite, values, np.zeros((), values.dtype)), pad).reshape(blocks).sum(
+        axis=3, dtype=np.float64).sum(axis=1)
+    count = np.pad(finite, pad).reshape(blocks).sum(axis=3).sum(axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(count > 0, total / np.maximum(count, 1), np.nan)
+
+
 def auto_exposure(image: np.ndarray, mask: Optional[np.ndarray] = None, percentile: float = 99.0) -> float:
     """The exposure (a factor on radiance) that maps the ``percentile`` of the positive, finite
     luminance of ``image`` ``(H, W, 3)`` (over ``mask`` ``(H, W) bool`` when given) to display white; 1

@@ -20,11 +20,16 @@ from mi_bivariate.atomic import atomic_path
 from mi_bivariate.bivariate import BivariateBRDF
 from mi_bivariate.common import PathLike, luminance, node_extent
 from mi_bivariate.coordinates import half_diff_from_dirs
-from mi_bivariate.images import auto_exposure, tonemap
+from mi_bivariate.images import auto_exposure, block_mean, tonemap
 
 
 #: Resolution of the figures (dots per inch); the recovery report's figure is made and saved at it.
 REPORT_DPI = 110
+#: The recovery report's photo panels (~470 px wide at :data:`REPORT_DPI`) are drawn from images at most this
+#: many pixels on their longer side: a larger photo is box-averaged by an integer factor first
+#: (:func:`~mi_bivariate.images.block_mean`). Drawn from a 2048 x 2048 photo at full resolution, the report
+#: took ~6 s (tone mapping 2.4 s, matplotlib's resampling ~0.9 s, the nearest fill 0.8 s).
+REPORT_IMAGE_SIDE_PX = 512
 #: How the figures' PNG files are written: fast zlib (3x faster than the default level, files ~1.3x bigger).
 PNG_SETTINGS = {"pil_kwargs": {"compress_level": 1}}
 #: The recovery report's subplot parameters (13 x 8 in, 2 x 3 panels): what ``tight_layout``
@@ -188,7 +193,7 @@ def plot_incident_plane(ax: Any, curves: Dict[str, Any], theta_view_deg: float =
     ax.grid(True, which="both", alpha=0.3)
 
 
-def predicted_image(result: Any, index: int = 0) -> Tuple[Optional[np.ndarray], Optional[np.ndarray]]:
+def predicted_image(result: Any, index: int = 0, factor: int = 1) -> Tuple[Optional[np.ndarray], Optional[np.ndarray]]:
     """The model's own re-render: ``L f`` at the observed pixels of image ``index``, nearest-filled.
 
     The recovered table predicts each observation as a row of the lighting
@@ -199,8 +204,13 @@ def predicted_image(result: Any, index: int = 0) -> Tuple[Optional[np.ndarray], 
     way, so the difference of the two is exactly the fit residual at the
     observed pixels.
 
+    Args:
+        factor: fill an image ``factor`` times smaller on each side (its pixel ``(i, j)`` holds the photo's
+            ``factor x factor`` block at ``(factor i, factor j)``; the sphere's pixels: blocks at least half
+            on it), as the report draws a large photo (:data:`REPORT_IMAGE_SIDE_PX`).
+
     Returns:
-        ``(predicted, observed)``, ``(H, W, 3) float32`` each, zero off the
+        ``(predicted, observed)``, ``(ceil(H / factor), ceil(W / factor), 3) float32`` each, zero off the
         sphere; ``(None, None)`` when the rows carry no pixel positions.
     """
     from scipy.ndimage import distance_transform_edt
@@ -211,14 +221,16 @@ def predicted_image(result: Any, index: int = 0) -> Tuple[Optional[np.ndarray], 
     if len(rows) == 0 or not result.geometries:
         return None, None
     mask = result.geometries[index].object_mask(image.shape[1], image.shape[0])
+    if factor > 1:
+        mask = block_mean(mask, factor) >= 0.5
     # Each pixel's nearest observed pixel: the Euclidean feature transform of the observed pixels (the
     # sphere fit's scipy.ndimage, already loaded; a k-d tree cost the report 0.06 s, its import included).
-    pixels = np.asarray(obs.pixels)[rows]
-    row_at = np.full(image.shape[:2], -1, np.int64)
+    pixels = np.asarray(obs.pixels)[rows] // factor
+    row_at = np.full(mask.shape, -1, np.int64)
     row_at[pixels[:, 0], pixels[:, 1]] = rows
     near_r, near_c = distance_transform_edt(row_at < 0, return_distances=False, return_indices=True)
     nearest = row_at[near_r[mask], near_c[mask]]
-    predicted = np.zeros(image.shape[:2] + (3,), np.float32)
+    predicted = np.zeros(mask.shape + (3,), np.float32)
     observed = np.zeros_like(predicted)
     predicted[mask] = np.asarray(result.predicted)[nearest]
     observed[mask] = np.asarray(obs.values)[nearest]
@@ -242,7 +254,7 @@ def _input_title(result: Any) -> str:
 class RecoveryReportPanels:
     """What the recovery report shows, as plain arrays and text (:func:`recovery_report_panels`): all
     :func:`draw_recovery_report` needs, small enough to hand to another process (~2-3 MB for a 256 px
-    photo)."""
+    photo; a photo larger than :data:`REPORT_IMAGE_SIDE_PX` is shown box-averaged to about that size)."""
     table: np.ndarray                 #: (n_t, n_s, 3) 1/sr, the recovered table
     confidence: np.ndarray            #: (n_t, n_s) in [0, 1], ``measured`` of the worst channel
     seen: np.ndarray                  #: (M,) log10 luminance of the observed pixels
@@ -270,20 +282,28 @@ def recovery_report_panels(result: Any, rerender: Optional[np.ndarray] = None,
     if not result.images:
         return panels
     image = result.images[0]
-    panels.image, panels.reference, panels.input_title = image, image, _input_title(result)
+    factor = -(-max(image.shape[:2]) // REPORT_IMAGE_SIDE_PX)  # the photo's panels at display size
+
+    def shown(full: np.ndarray) -> np.ndarray:
+        return full if factor < 2 else block_mean(full, factor).astype(np.float32)
+
+    panels.image = panels.reference = shown(image)
+    panels.input_title = _input_title(result)
     if not result.geometries:
         return panels
     geo = result.geometries[0]
-    panels.mask = geo.object_mask(image.shape[1], image.shape[0])
+    mask = geo.object_mask(image.shape[1], image.shape[0])
+    panels.mask = mask if factor < 2 else block_mean(mask, factor) >= 0.5
     if rerender is None and path_trace:
         rerender = render.render_like(render.bsdf_dict(result.brdf), result.probes[0], geo,
                                       width=image.shape[1], height=image.shape[0], spp=128, seed=1).image
     elif rerender is None:
-        rerender, observed = predicted_image(result)
+        rerender, observed = predicted_image(result, factor=max(factor, 1))
         if rerender is not None:
             panels.reference = observed
             panels.rerender_title = "prediction L f at the observed normals (nearest fill)"
-    panels.rerender = rerender
+            factor = 1  # filled at display size already
+    panels.rerender = None if rerender is None else shown(rerender)
     return panels
 
 

@@ -16,6 +16,7 @@ import numpy as np
 
 from mi_bivariate.common import LUMINANCE_WEIGHTS
 from mi_bivariate.errors import InputError, array_from
+from mi_bivariate.images import block_mean
 
 #: The smallest sphere radius (pixels) looked for, and trusted.
 MIN_RADIUS_PX = 8.0
@@ -276,7 +277,8 @@ def segment_sphere(image: np.ndarray, mask: Optional[np.ndarray] = None, source:
     of a RANSAC circle) is returned.
 
     A photo larger than :data:`SEARCH_SIDE_PX` on its longer side is searched first in its
-    log-luminance box-averaged by an integer factor (:func:`_coarse_region`); a threshold
+    log-luminance box-averaged by an integer factor (:func:`_coarse_region`,
+    :func:`~mi_bivariate.images.block_mean`); a threshold
     component that wins there is cut again at full resolution, with the same threshold, in
     the circle's bounding box, and kept if its outline passes the same circle checks at full
     resolution. Otherwise (a RANSAC circle, a sphere under :data:`MIN_RADIUS_PX` coarse pixels,
@@ -335,22 +337,6 @@ def _search(log_lum: np.ndarray, source: str, seed: int) -> Tuple[Tuple[float, f
         raise InputError(source, "no sphere found: no circular outline with a clear edge",
                          "pass the sphere explicitly (CX,CY,R) or a mask of it")
     return best
-
-
-def block_mean(values: np.ndarray, factor: int) -> np.ndarray:
-    """``(ceil(H / factor), ceil(W / factor))``: the mean of each ``factor x factor`` block of ``(H, W)``
-    values over its finite ones (NaN where it has none; the last blocks may be cut by the frame)."""
-    height, width = values.shape
-    rows, cols = -(-height // factor), -(-width // factor)
-    finite = np.isfinite(values)
-    padded = np.zeros((rows * factor, cols * factor))
-    padded[:height, :width] = np.where(finite, values, 0.0)
-    count = np.zeros(padded.shape)
-    count[:height, :width] = finite
-    total = padded.reshape(rows, factor, cols, factor).sum(axis=(1, 3))
-    n = count.reshape(rows, factor, cols, factor).sum(axis=(1, 3))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(n > 0, total / n, np.nan)
 
 
 def _coarse_region(log_lum: np.ndarray, factor: int, seed: int) -> Optional[np.ndarray]:

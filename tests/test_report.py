@@ -47,6 +47,36 @@ def test_prediction_fills_each_pixel_from_a_nearest_observed_pixel(recovery):
                    and np.array_equal(observed[r, c], obs.values[j].astype(np.float32)) for j in tied), (r, c)
 
 
+def test_a_large_photos_panels_are_drawn_box_averaged_to_display_size(recovery, monkeypatch):
+    """A photo larger than ``REPORT_IMAGE_SIDE_PX`` (here the fixture's 64 px against 24: a factor of 3)
+    is shown averaged over 3 x 3 blocks (``images.block_mean``), its sphere's mask where a block is at
+    least half on it, and the prediction and the observations are filled at that size from the observed
+    pixels' blocks: each observed pixel's block on the mask holds exactly some observation's values (one
+    of those in it), and the fill reaches every block of the mask; off it the panels are 0."""
+    from mi_bivariate.images import block_mean
+
+    result, _ = recovery
+    monkeypatch.setattr(report, "REPORT_IMAGE_SIDE_PX", 24)
+    panels = report.recovery_report_panels(result)
+    assert panels.image.shape == (22, 22, 3) and panels.image.dtype == np.float32
+    np.testing.assert_allclose(panels.image, block_mean(result.images[0], 3), rtol=1e-6)
+    mask64 = result.geometries[0].object_mask(64, 64)
+    np.testing.assert_array_equal(panels.mask, block_mean(mask64, 3) >= 0.5)
+    predicted, observed = panels.rerender, panels.reference
+    assert predicted.shape == observed.shape == (22, 22, 3)
+    obs = result.observations
+    blocks = obs.pixels // 3
+    shown = [(r, c) for r, c in np.unique(blocks, axis=0) if panels.mask[r, c]]
+    assert len(shown) > 0.9 * len(np.unique(blocks, axis=0))  # (rim blocks under half on the sphere: not)
+    for (r, c) in shown:
+        inside = np.flatnonzero((blocks[:, 0] == r) & (blocks[:, 1] == c))
+        assert any(np.array_equal(predicted[r, c], result.predicted[j].astype(np.float32))
+                   and np.array_equal(observed[r, c], obs.values[j].astype(np.float32)) for j in inside)
+    assert np.all(predicted[~panels.mask] == 0.0) and np.all(predicted[panels.mask].sum(axis=1) > 0.0)
+    unchanged = report.predicted_image(result)[0]
+    assert unchanged.shape == (64, 64, 3)
+
+
 def test_prediction_agrees_with_a_path_traced_rerender(recovery):
     """Independent truth: Mitsuba renders the recovered table under the same probe."""
     result, shot = recovery

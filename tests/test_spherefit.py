@@ -781,8 +781,8 @@ def test_a_large_photo_is_searched_coarse_and_cut_at_full_resolution(monkeypatch
 
 def test_block_mean_averages_the_finite_values_of_each_block():
     """Against plain loops: blocks cut by the frame average what they hold, non-finite values are left
-    out, a block of none is NaN."""
-    from mi_bivariate.silhouette import block_mean
+    out, a block of none is NaN; an RGB image's channels each so."""
+    from mi_bivariate.images import block_mean
 
     values = np.random.default_rng(5).random((7, 11))
     values[0, 0:3] = np.nan
@@ -799,3 +799,9 @@ def test_block_mean_averages_the_finite_values_of_each_block():
             else:
                 assert np.isnan(got[i, j])
     assert np.isnan(got[1, 1])
+    rgb = np.stack([values, 2.0 * values, np.ones_like(values)], axis=-1).astype(np.float32)
+    got_rgb = block_mean(rgb, 3)
+    assert got_rgb.shape == (3, 4, 3) and got_rgb.dtype == np.float64
+    np.testing.assert_allclose(got_rgb[..., 0], got, rtol=1e-6)
+    np.testing.assert_allclose(got_rgb[..., 1], 2.0 * got, rtol=1e-6)
+    np.testing.assert_array_equal(got_rgb[..., 2], 1.0)  # finite everywhere: each block its own count
