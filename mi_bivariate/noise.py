@@ -81,7 +81,7 @@ def estimate_camera_noise(image: np.ndarray, mask: Optional[np.ndarray] = None,
         image: ``(H, W)`` or ``(H, W, 3)`` linear values (channels are averaged).
         mask: ``(H, W) bool`` pixels of the object (default: every finite pixel); non-finite pixels in it
             are left out. An object of more than :data:`MAX_SECOND_DIFFERENCES` / 2 pixels is sampled along
-            evenly spaced rows and columns.
+            every ``k``-th row and column, ``k`` odd.
 
     Raises:
         InputError: another shape, or too few usable pixels: fewer than 100 second differences, or fewer
@@ -93,8 +93,10 @@ def estimate_camera_noise(image: np.ndarray, mask: Optional[np.ndarray] = None,
     if img.ndim != 2:
         raise InputError(source, f"expected an (H, W) or (H, W, 3) image, got shape {np.shape(image)}")
     m = np.isfinite(img) if mask is None else (np.asarray(mask, bool) & np.isfinite(img))
-    # Each pixel inside the object gives up to two differences; a large object's are thinned evenly.
-    step = max(1, -(-2 * int(np.count_nonzero(m)) // MAX_SECOND_DIFFERENCES))
+    # Each pixel inside the object gives up to two differences; a large object's are thinned evenly, by an
+    # odd step: an even one keeps one phase of a noise that alternates with the Bayer pattern of a
+    # demosaiced photo (measured: 0.56x the full estimate with step 2).
+    step = max(1, -(-2 * int(np.count_nonzero(m)) // MAX_SECOND_DIFFERENCES)) | 1
     level, d = _second_differences(np.where(m, img, 0.0), m, step)
     if level.size < 100:
         raise InputError(source, f"only {level.size} usable pixels to estimate the noise from",

@@ -190,6 +190,12 @@ def defer_unused_modules() -> None:
         setattr(parent, name, module)  # the package's own __getattr__ (which imports) is not asked
 
 
+#: :func:`syntax_on_first_call`'s blocks now open, and Dr.Jit's own ``drjit.syntax`` while they are.
+_SYNTAX_LOCK = threading.Lock()
+_syntax_depth = 0
+_syntax_rewrite: Optional[Callable] = None
+
+
 @contextlib.contextmanager
 def syntax_on_first_call() -> Iterator[None]:
     """Within the block, ``@dr.syntax`` (Dr.Jit's rewrite of a function's loops and conditionals
@@ -203,15 +209,31 @@ def syntax_on_first_call() -> Iterator[None]:
     that calls ``drjit.syntax``'s own rewrite of the function once, under a lock, and then always
     that rewritten function: the code that runs is the one the decorator would have made
     (``tests/test_gradients.py`` renders ``prb`` and its gradient both ways). ``drjit.syntax`` is
-    restored on leaving. Measured on this project's 2-core VM (three fresh processes each): the start
-    of ``llvm_ad_rgb`` took 0.13-0.18 s eagerly and 0.03 s so; ``import mitsuba`` 0.04-0.06 s and
-    0.03 s. :func:`mi_bivariate.variants.ensure_variant` starts a variant within it in any process;
-    the command line also loads its pipeline within it, in a process of its own
-    (:func:`mi_bivariate.cli.main`).
+    restored when the last open block ends (blocks may nest or overlap, in any thread; meanwhile a
+    decoration in another thread is deferred too). Measured on this project's 2-core VM (three fresh
+    processes each): the start of ``llvm_ad_rgb`` took 0.13-0.18 s eagerly and 0.03 s so; ``import
+    mitsuba`` 0.04-0.06 s and 0.03 s. :func:`mi_bivariate.variants.ensure_variant` starts a variant
+    within it in any process; the command line also loads its pipeline within it, in a process of its
+    own (:func:`mi_bivariate.cli.main`).
     """
+    global _syntax_depth, _syntax_rewrite
     dr = importlib.import_module("drjit")  # the pipeline loads it anyway
-    rewrite = dr.syntax
+    with _SYNTAX_LOCK:  # blocks of several threads, or nested ones, replace it once and restore it last
+        if _syntax_depth == 0:
+            _syntax_rewrite = dr.syntax
+            dr.syntax = _deferred_syntax(_syntax_rewrite)
+        _syntax_depth += 1
+    try:
+        yield
+    finally:
+        with _SYNTAX_LOCK:
+            _syntax_depth -= 1
+            if _syntax_depth == 0:
+                dr.syntax = _syntax_rewrite
 
+
+def _deferred_syntax(rewrite: Callable) -> Callable:
+    """A stand-in for ``drjit.syntax`` (:func:`syntax_on_first_call`) whose wrappers call ``rewrite`` once."""
     def deferred(f: Optional[types.FunctionType] = None, **options) -> Callable:
         if f is None:  # @dr.syntax(recursive=True)
             return lambda g: deferred(g, **options)
@@ -228,11 +250,7 @@ def syntax_on_first_call() -> Iterator[None]:
 
         return on_first_call
 
-    dr.syntax = deferred
-    try:
-        yield
-    finally:
-        dr.syntax = rewrite
+    return deferred
 
 
 def usable_cores() -> int:

@@ -278,11 +278,12 @@ def segment_sphere(image: np.ndarray, mask: Optional[np.ndarray] = None, source:
 
     A photo larger than :data:`SEARCH_SIDE_PX` on its longer side is searched first in its
     log-luminance box-averaged by an integer factor (:func:`_coarse_region`,
-    :func:`~mi_bivariate.images.block_mean`); a threshold
-    component that wins there is cut again at full resolution, with the same threshold, in
-    the circle's bounding box, and kept if its outline passes the same circle checks at full
-    resolution. Otherwise (a RANSAC circle, a sphere under :data:`MIN_RADIUS_PX` coarse pixels,
-    a region that does not hold up) the full-resolution search runs as for a small image.
+    :func:`~mi_bivariate.images.block_mean`); where a threshold component wins there, the
+    region is cut again at full resolution in the circle's bounding box, at the radiance midway
+    between the photo's just inside and just outside the circle, and kept if its outline passes
+    the same circle checks at full resolution. Otherwise (a RANSAC circle, a sphere under
+    :data:`MIN_RADIUS_PX` coarse pixels, no clear step across the circle, a region that does not
+    hold up) the full-resolution search runs as for a small image.
 
     Raises:
         InputError: no finite pixel, empty mask, or no circular region found.
@@ -341,7 +342,14 @@ def _search(log_lum: np.ndarray, source: str, seed: int) -> Tuple[Tuple[float, f
 
 def _coarse_region(log_lum: np.ndarray, factor: int, seed: int) -> Optional[np.ndarray]:
     """:func:`segment_sphere`'s region found in ``log_lum`` box-averaged by ``factor``, cut again at full
-    resolution (its docstring), or ``None`` where the full-resolution search must decide."""
+    resolution, or ``None`` where the full-resolution search must decide.
+
+    The coarse search places the circle; the full-resolution cut takes its own threshold, midway
+    (in radiance) between the medians just inside and just outside that circle (``2 factor + 2``
+    pixels either side): the coarse winner's threshold is one of several that tie at the coarse scale,
+    and the first of them lies near the background's level, whose contour sits pixels outside a soft
+    edge or bleeds into a noisy background. The region that covers most of the coarse disc, holes
+    filled, is kept if its outline passes :func:`_region_circle` at full resolution."""
     from scipy import ndimage
 
     try:
@@ -350,14 +358,25 @@ def _coarse_region(log_lum: np.ndarray, factor: int, seed: int) -> Optional[np.n
         return None
     if cut is None:  # a RANSAC circle: the coarse pixels cannot place its edge well enough
         return None
-    threshold, above = cut
     cx, cy, r = cx * factor, cy * factor, r * factor
-    height, width = log_lum.shape
     margin = 2 * factor + 2
+    if r <= 2 * margin:
+        return None
+    phi = np.linspace(0.0, 2.0 * math.pi, max(64, int(2.0 * math.pi * r)), endpoint=False)
+    inside, outside = (_sample(log_lum, cx + (r + d) * np.cos(phi), cy + (r + d) * np.sin(phi))
+                       for d in (-margin, margin))
+    inside, outside = inside[np.isfinite(inside)], outside[np.isfinite(outside)]
+    if inside.size < 16 or outside.size < 16:
+        return None
+    level_in, level_out = float(np.median(inside)), float(np.median(outside))
+    if abs(level_in - level_out) < 0.1:  # no clear step across the circle (edge_support's contrast)
+        return None
+    # Midway in radiance: a blurred step's contour there is its edge (midway in log-luminance, the
+    # contour of a 10:1 step blurred by 2 px lay 1.3 px outside it).
+    threshold, above = float(np.logaddexp(level_in, level_out) - math.log(2.0)), level_in > level_out
+    height, width = log_lum.shape
     y0, y1 = max(0, math.floor(cy - r - margin)), min(height, math.ceil(cy + r + margin))
     x0, x1 = max(0, math.floor(cx - r - margin)), min(width, math.ceil(cx + r + margin))
-    if y1 - y0 < 3 or x1 - x0 < 3:
-        return None
     box = log_lum[y0:y1, x0:x1]
     with np.errstate(invalid="ignore"):
         binary = box > threshold if above else box <= threshold

@@ -572,3 +572,24 @@ print("fitted", round(fit.radius), result.brdf.table.shape, "optimize:", "scipy.
     out = _fresh_python(code, tmp_path)
     assert out.returncode == 0, out.stderr[-2000:]
     assert "optimize: False" in out.stdout, out.stdout
+
+
+def test_syntax_blocks_that_nest_or_overlap_restore_drjits_own_decorator_once_all_end():
+    """``process.syntax_on_first_call`` entered twice and left in either order (two threads' blocks may
+    overlap so): ``drjit.syntax`` is the deferring stand-in while any block is open, one level deep (not
+    a stand-in of the stand-in), and Dr.Jit's own once the last ends (a helper's review found it left
+    replaced when the first block entered left last)."""
+    import drjit as dr
+    import drjit.ast
+
+    for order in ((0, 1), (1, 0)):
+        blocks = [process.syntax_on_first_call(), process.syntax_on_first_call()]
+        blocks[0].__enter__()
+        stand_in = dr.syntax
+        assert stand_in is not drjit.ast.syntax
+        blocks[1].__enter__()
+        assert dr.syntax is stand_in
+        blocks[order[0]].__exit__(None, None, None)
+        assert dr.syntax is stand_in
+        blocks[order[1]].__exit__(None, None, None)
+        assert dr.syntax is drjit.ast.syntax
