@@ -279,11 +279,11 @@ def segment_sphere(image: np.ndarray, mask: Optional[np.ndarray] = None, source:
     A photo larger than :data:`SEARCH_SIDE_PX` on its longer side is searched first in its
     log-luminance box-averaged by an integer factor (:func:`_coarse_region`,
     :func:`~mi_bivariate.images.block_mean`); where a threshold component wins there, the
-    region is cut again at full resolution in the circle's bounding box, at the radiance midway
-    between the photo's just inside and just outside the circle, and kept if its outline passes
-    the same circle checks at full resolution. Otherwise (a RANSAC circle, a sphere under
-    :data:`MIN_RADIUS_PX` coarse pixels, no clear step across the circle, a region that does not
-    hold up) the full-resolution search runs as for a small image.
+    region is cut again at full resolution in the circle's bounding box, at that threshold and at
+    the radiance midway across the circle, and the cut whose outline passes the same circle checks
+    at full resolution with the longer edge support is kept. Otherwise (a RANSAC circle, a sphere
+    under :data:`MIN_RADIUS_PX` coarse pixels, no cut that holds up) the full-resolution search runs
+    as for a small image.
 
     Raises:
         InputError: no finite pixel, empty mask, or no circular region found.
@@ -344,12 +344,15 @@ def _coarse_region(log_lum: np.ndarray, factor: int, seed: int) -> Optional[np.n
     """:func:`segment_sphere`'s region found in ``log_lum`` box-averaged by ``factor``, cut again at full
     resolution, or ``None`` where the full-resolution search must decide.
 
-    The coarse search places the circle; the full-resolution cut takes its own threshold, midway
-    (in radiance) between the medians just inside and just outside that circle (``2 factor + 2``
-    pixels either side): the coarse winner's threshold is one of several that tie at the coarse scale,
-    and the first of them lies near the background's level, whose contour sits pixels outside a soft
-    edge or bleeds into a noisy background. The region that covers most of the coarse disc, holes
-    filled, is kept if its outline passes :func:`_region_circle` at full resolution."""
+    The coarse search places the circle. At full resolution, in the circle's bounding box, two
+    thresholds are cut: the coarse winner's, and the radiance midway between the medians just inside
+    and just outside the circle (``2 factor + 2`` pixels either side; where they differ by at least
+    ``edge_support``'s contrast). The coarse winner's is one of several that tie at the coarse scale;
+    the first of them lies near the background's level, and its contour sits pixels outside a soft edge
+    or bleeds into a noisy background, while the midpoint can notch a dark rim on a black background.
+    Of the cuts whose region (the component covering most of the coarse disc, holes filled) passes
+    :func:`_region_circle` at full resolution, the one whose circle has the longer
+    :func:`edge_support` wins, as in the full search."""
     from scipy import ndimage
 
     try:
@@ -360,37 +363,42 @@ def _coarse_region(log_lum: np.ndarray, factor: int, seed: int) -> Optional[np.n
         return None
     cx, cy, r = cx * factor, cy * factor, r * factor
     margin = 2 * factor + 2
-    if r <= 2 * margin:
-        return None
-    phi = np.linspace(0.0, 2.0 * math.pi, max(64, int(2.0 * math.pi * r)), endpoint=False)
-    inside, outside = (_sample(log_lum, cx + (r + d) * np.cos(phi), cy + (r + d) * np.sin(phi))
-                       for d in (-margin, margin))
-    inside, outside = inside[np.isfinite(inside)], outside[np.isfinite(outside)]
-    if inside.size < 16 or outside.size < 16:
-        return None
-    level_in, level_out = float(np.median(inside)), float(np.median(outside))
-    if abs(level_in - level_out) < 0.1:  # no clear step across the circle (edge_support's contrast)
-        return None
-    # Midway in radiance: a blurred step's contour there is its edge (midway in log-luminance, the
-    # contour of a 10:1 step blurred by 2 px lay 1.3 px outside it).
-    threshold, above = float(np.logaddexp(level_in, level_out) - math.log(2.0)), level_in > level_out
     height, width = log_lum.shape
     y0, y1 = max(0, math.floor(cy - r - margin)), min(height, math.ceil(cy + r + margin))
     x0, x1 = max(0, math.floor(cx - r - margin)), min(width, math.ceil(cx + r + margin))
+    if y1 - y0 < 3 or x1 - x0 < 3:
+        return None
     box = log_lum[y0:y1, x0:x1]
-    with np.errstate(invalid="ignore"):
-        binary = box > threshold if above else box <= threshold
-    labels, n = ndimage.label(binary)
-    if n == 0:
-        return None
-    # The component that covers most of the coarse circle's disc.
-    overlap = np.bincount(labels[disc_mask(box.shape, cx - x0, cy - y0, r)], minlength=n + 1)
-    overlap[0] = 0
-    if not overlap.any():
-        return None
-    region = np.zeros(log_lum.shape, bool)
-    region[y0:y1, x0:x1] = ndimage.binary_fill_holes(labels == int(np.argmax(overlap)))
-    return region if _region_circle(region) is not None else None
+    cuts = [cut]
+    if r > 2 * margin:
+        phi = np.linspace(0.0, 2.0 * math.pi, max(64, int(2.0 * math.pi * r)), endpoint=False)
+        inside, outside = (_sample(log_lum, cx + (r + d) * np.cos(phi), cy + (r + d) * np.sin(phi))
+                           for d in (-margin, margin))
+        inside, outside = inside[np.isfinite(inside)], outside[np.isfinite(outside)]
+        if inside.size >= 16 and outside.size >= 16:
+            level_in, level_out = float(np.median(inside)), float(np.median(outside))
+            if abs(level_in - level_out) >= 0.1:
+                # Midway in radiance: a blurred step's contour there is its edge (midway in log-luminance,
+                # the contour of a 10:1 step blurred by 2 px lay 1.3 px outside it).
+                cuts.insert(0, (float(np.logaddexp(level_in, level_out) - math.log(2.0)), level_in > level_out))
+    disc = disc_mask(box.shape, cx - x0, cy - y0, r)
+    smooth = _smoothed(box)
+    best: Optional[Tuple[int, np.ndarray]] = None
+    for threshold, above in cuts:
+        with np.errstate(invalid="ignore"):
+            labels, n = ndimage.label(box > threshold if above else box <= threshold)
+        overlap = np.bincount(labels[disc], minlength=n + 1)  # the component covering most of the coarse disc
+        overlap[0] = 0
+        if not overlap.any():
+            continue
+        region = np.zeros(log_lum.shape, bool)
+        region[y0:y1, x0:x1] = ndimage.binary_fill_holes(labels == int(np.argmax(overlap)))
+        circle = _region_circle(region)
+        if circle is not None:
+            support = edge_support(smooth, circle[0] - x0, circle[1] - y0, circle[2])
+            if best is None or support > best[0]:
+                best = (support, region)
+    return None if best is None else best[1]
 
 
 # ---------------------------------------------------------------- boundary
