@@ -779,14 +779,16 @@ def test_a_large_photo_is_searched_coarse_and_cut_at_full_resolution(monkeypatch
     assert len(found) == 2
 
 
-@pytest.mark.parametrize("case", ["blurred edge", "flat noisy background", "halo"])
+@pytest.mark.parametrize("case", ["blurred edge", "flat noisy background", "halo", "dark rim on black"])
 def test_a_large_photos_coarse_search_cuts_its_region_at_the_edge(case, monkeypatch):
     """The coarse search ties between thresholds (the first near the background's level): the full-resolution
     cut takes its own, midway in radiance across the circle. A helper's review measured the coarse winner's
     threshold 2.7 px outside an edge blurred by 1.5 px (a confident fit of radius 702.85 for 700.2) and
     inside a flat background's noise (the region bled into it: the slower full search ran every time).
     Now each case takes the coarse path and lands within 0.1 px of the disc (the full search's 0.3 px
-    under a halo)."""
+    under a halo). The midpoint alone notches a sphere whose rim is dark in places on a black background
+    (a metal reflecting a dark part of the probe: the bench's photo), where the coarse winner's threshold
+    holds: the cut with the longer edge support is kept."""
     from scipy import ndimage
 
     from mi_bivariate import silhouette
@@ -801,10 +803,16 @@ def test_a_large_photos_coarse_search_cuts_its_region_at_the_edge(case, monkeypa
     elif case == "flat noisy background":
         clean = disc_coverage(shape, cx, cy, r, ss=4)
         image = (0.3 * clean + 0.03 * (1.0 - clean)) * (1.0 + 0.01 * np.random.default_rng(4).standard_normal(shape))
-    else:
+    elif case == "halo":
         y, x = np.mgrid[0:1100, 0:1100] + 0.5
         d = np.hypot(x - cx, y - cy) - r
         image = image + np.where(d > 0, 0.15 * np.exp(-d / 15.0), 0.0)
+    else:
+        y, x = np.mgrid[0:1100, 0:1100] + 0.5
+        rho, angle = np.hypot(x - cx, y - cy) / r, np.arctan2(y - cy, x - cx)
+        dark = (rho > 0.85) & ((np.abs(angle - 0.5) < 0.35) | (np.abs(angle + 2.0) < 0.35))
+        cover = disc_coverage(shape, cx, cy, r, ss=4)
+        image = cover * np.where(dark, 0.004, 0.3 + 1.5 * np.clip(1.0 - rho ** 2, 0.0, 1.0) ** 2)
     fit = spherefit.fit_sphere(image, warn=False)
     assert len(found) == 1 and found[0] is not None, case
     assert fit.confident, fit.summary()
