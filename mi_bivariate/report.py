@@ -20,6 +20,7 @@ from mi_bivariate.atomic import atomic_path
 from mi_bivariate.bivariate import BivariateBRDF
 from mi_bivariate.common import PathLike, luminance, node_extent
 from mi_bivariate.coordinates import half_diff_from_dirs
+from mi_bivariate.errors import InputError
 from mi_bivariate.images import auto_exposure, block_mean, tonemap
 
 
@@ -215,6 +216,8 @@ def predicted_image(result: Any, index: int = 0, factor: int = 1) -> Tuple[Optio
     """
     from scipy.ndimage import distance_transform_edt
 
+    if isinstance(factor, bool) or not isinstance(factor, (int, np.integer)) or factor < 1:
+        raise InputError("factor", f"must be a positive integer, got {factor!r}")
     obs = result.observations
     image = result.images[index]
     rows = np.flatnonzero((np.asarray(obs.image_index) == index) & (np.asarray(obs.pixels)[:, 0] >= 0))

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from mi_bivariate import analytic, probes, render, report
+from mi_bivariate.errors import InputError
 from mi_bivariate.metrics import image_relative_rmse
 from mi_bivariate.recover import recover
 from mi_bivariate.sources import synthetic_environment
@@ -77,6 +78,9 @@ def test_a_large_photos_panels_are_drawn_box_averaged_to_display_size(recovery, 
     assert np.all(predicted[~panels.mask] == 0.0) and np.all(predicted[panels.mask].sum(axis=1) > 0.0)
     unchanged = report.predicted_image(result)[0]
     assert unchanged.shape == (64, 64, 3)
+    for bad in (0, 1.5, True):
+        with pytest.raises(InputError, match="factor: must be a positive integer"):
+            report.predicted_image(result, factor=bad)
     # A path-traced re-render is made at the photo's size and box-averaged like it.
     traced = report.recovery_report_panels(result, path_trace=True)
     assert traced.rerender.shape == (22, 22, 3)
