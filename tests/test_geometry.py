@@ -129,8 +129,9 @@ def test_a_wide_cameras_sensor_has_the_horizontal_field_of_view():
 
 def test_sphere_normals_are_its_normals_at_each_pixel_centre_inside_the_silhouette():
     """``SphereGeometry.normals`` (computed inside the silhouette only) against ``normals_at`` over the whole
-    frame, masked: the same values bit for bit, for a rotated camera and a sphere the frame cuts; and every
-    geometry's ``object_mask`` is its ``surface_maps``' mask."""
+    frame, masked: the same values bit for bit, for a rotated camera and a sphere the frame cuts; its
+    ``object_mask`` (computed without the normals) is the pixel centres inside the circle, and a geometry
+    without its own ``object_mask`` (perspective) gets its surface maps' mask from the base class."""
     rot = rotation_matrix([17.0, -11.0, 63.0])
     for geometry, (w, h) in ((SphereGeometry(60.3, 41.7, 35.2, rot), (120, 90)),
                              (SphereGeometry(10.5, 80.25, 40.0), (97, 64))):
@@ -140,7 +141,7 @@ def test_sphere_normals_are_its_normals_at_each_pixel_centre_inside_the_silhouet
         normals, mask = geometry.normals(w, h)
         np.testing.assert_array_equal(mask, inside)
         np.testing.assert_array_equal(normals, want)
-        np.testing.assert_array_equal(geometry.object_mask(w, h), geometry.surface_maps(w, h).mask)
+        np.testing.assert_array_equal(geometry.object_mask(w, h), inside)
     perspective = PerspectiveSphereGeometry(Intrinsics(90.0, 110.0, 60.0, 45.0), [0.1, 0.2, -5.0], 0.5, rot)
     mask = perspective.object_mask(120, 90)
     assert 100 < np.count_nonzero(mask) < 120 * 90

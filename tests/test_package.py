@@ -95,6 +95,16 @@ def _fresh_python(code: str, cwd: Path, env_extra: Optional[dict] = None) -> sub
     return subprocess.run([sys.executable, "-c", code], cwd=cwd, env=env, capture_output=True, text=True, timeout=300)
 
 
+def _console_script(argv: list, before: str = "", after: str = "", env_extra: Optional[dict] = None) -> str:
+    """The console script's ``cli.run()`` on ``argv`` in a fresh interpreter (:func:`_fresh_python`), with
+    ``before`` run first and ``after`` (which sees its ``status``) last; the run's stdout, once it exited 0."""
+    code = (f"import sys\n{before}import mi_bivariate.cli as cli\n"
+            f"sys.argv = ['mi-bivariate', *{list(argv)!r}]\nstatus = cli.run()\n{after}")
+    out = _fresh_python(code, ROOT, env_extra)
+    assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-2000:]
+    return out.stdout
+
+
 def test_front_doors_select_the_variant_and_nothing_below_them_does(tmp_path):
     """In a fresh interpreter ``recover()`` and ``render_sphere()`` work without a selected variant,
     while a data-model method leaves the (unselected) variant alone and Mitsuba says what to do."""
@@ -153,20 +163,16 @@ def test_console_script_runs_no_collection_while_the_pipeline_loads():
     """In its own process (``run``) the command line turns the cyclic garbage collector off while the
     pipeline's modules load (``mi_bivariate.commands`` initialising), then freezes them and turns it back
     on: no collection (the old code ran ~170, one of them full) and the collector enabled afterwards."""
-    code = ("import gc, sys\n"
-            "during = []\n"
-            "def seen(phase, info):\n"
-            "    module = sys.modules.get('mi_bivariate.commands')\n"
-            "    if phase == 'start' and module is not None and getattr(module.__spec__, '_initializing', False):\n"
-            "        during.append(info['generation'])\n"
-            "gc.callbacks.append(seen)\n"
-            "import mi_bivariate.cli as cli\n"
-            "sys.argv = ['mi-bivariate', 'info']\n"
-            "assert cli.run() == 0\n"
-            "print('collections while loading:', len(during), 'enabled:', gc.isenabled())\n")
-    out = _fresh_python(code, ROOT)
-    assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-2000:]
-    assert "collections while loading: 0 enabled: True" in out.stdout, out.stdout[-2000:]
+    before = ("import gc\n"
+              "during = []\n"
+              "def seen(phase, info):\n"
+              "    module = sys.modules.get('mi_bivariate.commands')\n"
+              "    if phase == 'start' and module is not None and getattr(module.__spec__, '_initializing', False):\n"
+              "        during.append(info['generation'])\n"
+              "gc.callbacks.append(seen)\n")
+    out = _console_script(["info"], before, "print('status', status, 'collections while loading:', len(during), "
+                                            "'enabled:', gc.isenabled())\n")
+    assert "status 0 collections while loading: 0 enabled: True" in out, out[-2000:]
 
 
 def _run_stand_in(*argv: str) -> str:
@@ -258,15 +264,10 @@ def test_recover_runs_no_code_of_scipy_special(tmp_path):
     ndimage operations, noise estimate and report do not need it, so the ~0.04 s its loading costs is
     saved; the table is the one ``main`` called from Python (scipy loaded as scipy loads) recovers."""
     argv = _small_recover_argv(tmp_path) + ["--threads", "1"]
-    code = ("import sys\n"
-            "import mi_bivariate.cli as cli\n"
-            f"sys.argv = ['mi-bivariate', *{argv!r}, '--out', {str(tmp_path / 'run.npz')!r}]\n"
-            "status = cli.run()\n"
-            "print('status', status, 'special ran:', 'scipy.special._ufuncs' in sys.modules, "
-            "'report drawn here:', 'matplotlib.backends.backend_agg' in sys.modules)\n")
-    out = _fresh_python(code, ROOT)
-    assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-2000:]
-    assert "status 0 special ran: False report drawn here: True" in out.stdout, out.stdout[-2000:]
+    out = _console_script(argv + ["--out", str(tmp_path / "run.npz")], after=(
+        "print('status', status, 'special ran:', 'scipy.special._ufuncs' in sys.modules, "
+        "'report drawn here:', 'matplotlib.backends.backend_agg' in sys.modules)\n"))
+    assert "status 0 special ran: False report drawn here: True" in out, out[-2000:]
     assert (tmp_path / "run_report.png").is_file()
     control = _fresh_python("import mi_bivariate.cli as cli\n"
                             f"assert cli.main({argv!r} + ['--out', {str(tmp_path / 'main.npz')!r}]) == 0\n", ROOT)
@@ -280,22 +281,18 @@ def test_recover_imports_nothing_off_its_main_thread(tmp_path):
     CPython's fix (gh-114763; three threads asking for ``scipy.special.erf`` at once fail): a ``recover``
     with its solve on three worker threads (and its report worker) imports nothing off its main thread,
     so none of them is first loaded on a worker. Every import is recorded with its thread."""
-    argv = _small_recover_argv(tmp_path)
-    code = ("import sys, threading\n"
-            "off_main = []\n"
-            "class Record:\n"
-            "    def find_spec(self, name, path, target=None):\n"
-            "        if threading.current_thread() is not threading.main_thread():\n"
-            "            off_main.append((threading.current_thread().name, name))\n"
-            "        return None\n"
-            "sys.meta_path.insert(0, Record())\n"
-            "import mi_bivariate.cli as cli\n"
-            f"sys.argv = ['mi-bivariate', *{argv!r}, '--out', {str(tmp_path / 'run.npz')!r}]\n"
-            "status = cli.run()\n"
-            "print('status', status, 'imports off the main thread:', off_main)\n")
-    out = _fresh_python(code, ROOT, {"MI_BIVARIATE_SOLVE_THREADS": "3"})
-    assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-2000:]
-    assert "status 0 imports off the main thread: []" in out.stdout, out.stdout[-2000:]
+    before = ("import threading\n"
+              "off_main = []\n"
+              "class Record:\n"
+              "    def find_spec(self, name, path, target=None):\n"
+              "        if threading.current_thread() is not threading.main_thread():\n"
+              "            off_main.append((threading.current_thread().name, name))\n"
+              "        return None\n"
+              "sys.meta_path.insert(0, Record())\n")
+    out = _console_script(_small_recover_argv(tmp_path) + ["--out", str(tmp_path / "run.npz")], before,
+                          "print('status', status, 'imports off the main thread:', off_main)\n",
+                          {"MI_BIVARIATE_SOLVE_THREADS": "3"})
+    assert "status 0 imports off the main thread: []" in out, out[-2000:]
 
 
 def test_recover_in_its_own_process_leaves_mitsubas_syntax_rewrites_to_their_first_call(tmp_path):
@@ -304,18 +301,13 @@ def test_recover_in_its_own_process_leaves_mitsubas_syntax_rewrites_to_their_fir
     before their first call, and ``drjit.syntax`` is Dr.Jit's own again once the pipeline is loaded (a
     rendering notebook or evaluation worker started from it decorates as Dr.Jit does)."""
     argv = _small_recover_argv(tmp_path) + ["--no-report", "--out", str(tmp_path / "run.npz")]
-    code = ("import sys\n"
-            "import mi_bivariate.cli as cli\n"
-            f"sys.argv = ['mi-bivariate', *{argv!r}]\n"
-            "status = cli.run()\n"
-            "import drjit, drjit.ast\n"
-            "from mitsuba.python.ad.projective import ProjectiveDetail\n"
-            "from mitsuba.python.ad.integrators.prb import PRBIntegrator\n"
-            "print('status', status, hasattr(ProjectiveDetail.init_indirect_silhouette_grid_unif, '__wrapped__'),\n"
-            "      hasattr(PRBIntegrator.sample, '__wrapped__'), drjit.syntax is drjit.ast.syntax)\n")
-    out = _fresh_python(code, ROOT)
-    assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-2000:]
-    assert "status 0 True True True" in out.stdout, out.stdout[-2000:]
+    out = _console_script(argv, after=(
+        "import drjit, drjit.ast\n"
+        "from mitsuba.python.ad.projective import ProjectiveDetail\n"
+        "from mitsuba.python.ad.integrators.prb import PRBIntegrator\n"
+        "print('status', status, hasattr(ProjectiveDetail.init_indirect_silhouette_grid_unif, '__wrapped__'),\n"
+        "      hasattr(PRBIntegrator.sample, '__wrapped__'), drjit.syntax is drjit.ast.syntax)\n"))
+    assert "status 0 True True True" in out, out[-2000:]
 
 
 def test_recover_into_a_pipe_whose_reader_has_gone_ends_quietly_with_its_outputs(tmp_path):
