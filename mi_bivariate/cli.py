@@ -364,7 +364,9 @@ def main(argv: Optional[Sequence[str]] = None, *, own_process: bool = False) -> 
     ``polynomial``; ``scipy.special``) are deferred to their first use
     (:func:`mi_bivariate.process.defer_unused_modules`: ~0.09 s and ~0.04 s), as is Dr.Jit's rewrite of
     the functions Mitsuba's import decorates with ``@dr.syntax`` (:func:`~mi_bivariate.process.syntax_on_first_call`,
-    ~0.02 s; a variant's start, ~0.1 s more, defers it in any process), memory the command frees is
+    ~0.02 s; a variant's start, ~0.1 s more, defers it in any process); scipy's parse of the docstrings
+    it extends at import is skipped for the whole command (:func:`~mi_bivariate.process.plain_scipy_docstrings`,
+    ~0.05 s of a ``recover``, ``scipy.ndimage``'s included); memory the command frees is
     kept for its next arrays instead of going back to the system
     (:func:`~mi_bivariate.process.keep_freed_memory`, for :data:`KEEP_FREED_MEMORY_COMMANDS`), and
     the process's memory is not put on transparent huge pages
@@ -383,29 +385,31 @@ def main(argv: Optional[Sequence[str]] = None, *, own_process: bool = False) -> 
     replaced: Dict[int, object] = {}
     worker: Optional[ReportWorker] = None
     try:
-        if own_process:
-            if args.command in KEEP_FREED_MEMORY_COMMANDS:
-                process.keep_freed_memory()  # first: before any thread allocates (see its notes)
-            process.no_huge_pages()
-            replaced = _stop_on_signals()
-            gc.disable()  # until the freeze: no collection walks what the imports build (see above)
-            if _report_worker_pays(args):
-                args.report_worker = worker = ReportWorker()  # loads matplotlib while the pipeline loads
-        try:
+        with contextlib.ExitStack() as blocks:
             if own_process:
-                process.defer_unused_modules()
-            # A stop raised inside Dr.Jit's or Mitsuba's start aborted or crashed the process.
-            with signals_deferred(), process.syntax_on_first_call() if own_process else contextlib.nullcontext():
-                commands = importlib.import_module("mi_bivariate.commands")  # the pipeline, loaded only to run
-        finally:
-            if own_process:
-                gc.freeze()
-                gc.enable()
-        try:
-            return int(commands.COMMANDS[args.command](args) or 0)
-        finally:
-            if worker is not None:  # here, so that a stop while it ends is said as any other
-                worker.close()
+                if args.command in KEEP_FREED_MEMORY_COMMANDS:
+                    process.keep_freed_memory()  # first: before any thread allocates (see its notes)
+                process.no_huge_pages()
+                replaced = _stop_on_signals()
+                gc.disable()  # until the freeze: no collection walks what the imports build (see above)
+                if _report_worker_pays(args):
+                    args.report_worker = worker = ReportWorker()  # loads matplotlib while the pipeline loads
+            try:
+                if own_process:
+                    process.defer_unused_modules()
+                    blocks.enter_context(process.plain_scipy_docstrings())  # the command's own imports too
+                # A stop raised inside Dr.Jit's or Mitsuba's start aborted or crashed the process.
+                with signals_deferred(), process.syntax_on_first_call() if own_process else contextlib.nullcontext():
+                    commands = importlib.import_module("mi_bivariate.commands")  # the pipeline, loaded only to run
+            finally:
+                if own_process:
+                    gc.freeze()
+                    gc.enable()
+            try:
+                return int(commands.COMMANDS[args.command](args) or 0)
+            finally:
+                if worker is not None:  # here, so that a stop while it ends is said as any other
+                    worker.close()
     except InputError as exc:
         # The library's own parameter ("noise", "basis_prior") named as the user gave it; a file the
         # user named so (a photo called "noise") is left alone. Messages without a source may begin

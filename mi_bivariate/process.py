@@ -3,7 +3,8 @@
 modules that scipy's import loads for nothing run on first use (:func:`defer_unused_modules`);
 and a worker process ends with the process that started it (:func:`die_with_parent`). Likewise
 Dr.Jit's rewrite of Mitsuba's ``@dr.syntax`` functions, on their first call
-(:func:`syntax_on_first_call`, a block: also where any process selects a variant).
+(:func:`syntax_on_first_call`, a block: also where any process selects a variant), and scipy's docstrings
+extended without parsing them (:func:`plain_scipy_docstrings`, a block).
 
 Each changes the whole process and is measured on the 2-core VM the project runs on (docs/recovery.md
 Rounds 35 and 36). The command line calls them in a process of its own (:func:`mi_bivariate.cli.main`);
@@ -22,6 +23,7 @@ import contextlib
 import ctypes
 import functools
 import importlib.util
+import inspect
 import os
 import signal
 import sys
@@ -251,6 +253,67 @@ def _deferred_syntax(rewrite: Callable) -> Callable:
         return on_first_call
 
     return deferred
+
+
+#: :func:`plain_scipy_docstrings`'s open blocks, and ``FunctionDoc``'s own methods while they are open.
+_DOCSTRING_LOCK = threading.Lock()
+_docstring_depth = 0
+_docstring_methods: dict = {}
+
+
+@contextlib.contextmanager
+def plain_scipy_docstrings() -> Iterator[None]:
+    """Within the block, the decorators with which scipy extends its functions' docstrings at import append
+    their notes to the docstring as plain text, instead of parsing and re-rendering each whole docstring.
+
+    scipy 1.17 decorates many functions as their module is imported (``xp_capabilities`` on each of
+    ``scipy.ndimage``'s ~75 functions, ``_apply_over_batch`` on ~70 of ``scipy.linalg``'s) with a note that
+    it inserts by parsing the function's numpydoc docstring (``scipy._lib._docscrape.FunctionDoc``, a
+    pure-Python parser) and rendering it again: ~0.05 s for the ~150 functions that a ``recover`` decorates
+    so (measured: ``import scipy.linalg, scipy.ndimage`` after :func:`defer_unused_modules`, six fresh
+    processes each, 0.13-0.21 s (median 0.154) with the parse and 0.09-0.12 s (median 0.102) without,
+    2026-12-07, this project's 2-core VM; ``recover --no-report`` end to end 2.210 -> 2.164 s, 12 rounds
+    of ``benchmarks/ab_revision.py``). Here ``FunctionDoc`` keeps the docstring as written and appends what the decorators add to its
+    summary and notes; what they change in its parameter list (``rng``'s text) is dropped. The functions,
+    their names and signatures are scipy's own; only the text of those docstrings differs, in a process
+    where nothing reads them. ``FunctionDoc``'s own methods are restored when the last open block ends, so
+    what scipy loads later (``scipy.special``, deferred by :func:`defer_unused_modules`) is documented as
+    scipy documents it. Where scipy has no such parser (another version), the block changes nothing.
+    The command line loads its pipeline within it, in a process of its own (:func:`mi_bivariate.cli.main`).
+    """
+    global _docstring_depth
+    try:
+        function_doc = importlib.import_module("scipy._lib._docscrape").FunctionDoc
+        sections = dict(function_doc.sections)
+    except (ImportError, AttributeError, TypeError):  # not the scipy this was measured on: leave it be
+        function_doc = None
+    if function_doc is None:
+        yield
+        return
+
+    def __init__(self, func, role="func", doc=None, config=None):  # noqa: N807 (FunctionDoc's signature)
+        self._f, self._role = func, role
+        self._plain_text = (inspect.getdoc(func) if doc is None else doc) or ""
+        self._parsed_data = {key: type(value)() for key, value in sections.items()}
+
+    def __str__(self):  # noqa: N807
+        added = [str(text) for key in ("Extended Summary", "Notes") for text in self._parsed_data[key]]
+        return "\n" + "\n\n".join([self._plain_text, *added])  # the decorators drop the first line (a signature)
+
+    with _DOCSTRING_LOCK:
+        if _docstring_depth == 0:
+            _docstring_methods.update(__init__=vars(function_doc)["__init__"], __str__=vars(function_doc)["__str__"])
+            function_doc.__init__, function_doc.__str__ = __init__, __str__
+        _docstring_depth += 1
+    try:
+        yield
+    finally:
+        with _DOCSTRING_LOCK:
+            _docstring_depth -= 1
+            if _docstring_depth == 0:
+                for name, method in _docstring_methods.items():
+                    setattr(function_doc, name, method)
+                _docstring_methods.clear()
 
 
 def usable_cores() -> int:
