@@ -273,13 +273,15 @@ def plain_scipy_docstrings() -> Iterator[None]:
     so (measured: ``import scipy.linalg, scipy.ndimage`` after :func:`defer_unused_modules`, six fresh
     processes each, 0.13-0.21 s (median 0.154) with the parse and 0.09-0.12 s (median 0.102) without,
     2026-12-07, this project's 2-core VM; ``recover --no-report`` end to end 2.210 -> 2.164 s, 12 rounds
-    of ``benchmarks/ab_revision.py``). Here ``FunctionDoc`` keeps the docstring as written and appends what the decorators add to its
-    summary and notes; what they change in its parameter list (``rng``'s text) is dropped. The functions,
-    their names and signatures are scipy's own; only the text of those docstrings differs, in a process
-    where nothing reads them. ``FunctionDoc``'s own methods are restored when the last open block ends, so
-    what scipy loads later (``scipy.special``, deferred by :func:`defer_unused_modules`) is documented as
-    scipy documents it. Where scipy has no such parser (another version), the block changes nothing.
-    The command line loads its pipeline within it, in a process of its own (:func:`mi_bivariate.cli.main`).
+    of ``benchmarks/ab_revision.py``). Here ``FunctionDoc`` keeps the docstring as written and appends what
+    the decorators add to its summary and notes; what they change in its parameter list (``rng``'s text)
+    is dropped. The functions, their names and signatures are scipy's own; only the text of those
+    docstrings differs, in a process where nothing reads them. ``FunctionDoc``'s own methods are restored
+    when the last open block ends (blocks may nest or overlap), so what is loaded after it is documented
+    as scipy documents it. Where scipy has no such parser (another version), the block changes nothing.
+    The command line runs a whole command within it, in a process of its own
+    (:func:`mi_bivariate.cli.main`): what the command loads on first use (the sphere fit's
+    ``scipy.ndimage``, ``scipy.special``, ``scipy.optimize``) is extended so too.
     """
     global _docstring_depth
     try:
