@@ -202,8 +202,11 @@ def check_image(image: np.ndarray, source: str = "image") -> np.ndarray:
         warnings.warn(f"{source}: the image holds integers ({image.dtype}), read as linear radiance as they are; "
                       "an 8- or 16-bit photo is usually gamma-encoded and clipped (give a linear HDR image, "
                       "e.g. an EXR merged from several exposures)", InputWarning, stacklevel=3)
-    else:
-        check_brightest(float(np.max(np.abs(image), initial=0.0, where=np.isfinite(image))), source)  # no copy
+    else:  # the brightest finite magnitude: two passes and no copy where every value is finite
+        brightest = max(abs(float(np.max(image))), abs(float(np.min(image))))
+        if not math.isfinite(brightest):
+            brightest = float(np.max(np.abs(image), initial=0.0, where=np.isfinite(image)))
+        check_brightest(brightest, source)
     return image.astype(np.float32, copy=False)
 
 
@@ -219,16 +222,24 @@ def check_mask(mask: Optional[np.ndarray], shape: Tuple[int, int], source: str) 
     return mask.astype(bool)
 
 
-def _plateau_warning(values: np.ndarray, source: str) -> None:
-    """Warn when many pixels sit exactly at the image maximum (a clipped image)."""
-    finite = values[np.all(np.isfinite(values), axis=1)]
-    if len(finite) == 0:
+def _plateau_warning(image: np.ndarray, mask: np.ndarray, source: str) -> None:
+    """Warn when many of the ``mask``'s pixels (``(h, w) bool``, of the ``(h, w, 3)`` ``image``) sit exactly at
+    their maximum (a clipped image). Pixels with a non-finite channel are left out."""
+    channels = [image[..., c] for c in range(3)]
+    finite = mask.copy()
+    for channel in channels:
+        finite &= np.isfinite(channel)
+    n_finite = int(np.count_nonzero(finite))
+    if n_finite == 0:
         return
-    peak = float(finite.max())
+    peak = max(float(np.max(channel, initial=-np.inf, where=finite)) for channel in channels)
     if peak <= 0.0:
         return
-    at_peak = int(np.count_nonzero(np.any(finite == peak, axis=1)))
-    if at_peak >= max(16, int(0.002 * len(finite))):
+    at_peak = np.zeros_like(finite)
+    for channel in channels:
+        at_peak |= channel == peak
+    at_peak = int(np.count_nonzero(at_peak & finite))
+    if at_peak >= max(16, int(0.002 * n_finite)):
         warnings.warn(f"{source}: {at_peak} sphere pixels sit exactly at the maximum value {peak:g}; "
                       f"the image looks clipped (drop them with --saturation {peak:g}, or saturation={peak:g} "
                       "in Python)",
@@ -378,7 +389,8 @@ def observations_from_sphere(image: np.ndarray, geometry: SphereGeometry, n_norm
     views = np.broadcast_to(view, normals.shape).copy()
 
     if saturation is None:
-        _plateau_warning(image[geometry.object_mask(width, height)], source)
+        box = geometry.object_box(width, height)
+        _plateau_warning(image[box], geometry.object_mask(width, height)[box], source)
     obs = _finish(image, rows, cols, normals, views, dropped, saturation, source, probe_index)
     if footprint is not None:
         obs.footprint_normals, obs.footprint_rows = _sphere_footprints(obs.pixels, cx, cy, radius, rot, footprint)

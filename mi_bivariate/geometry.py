@@ -31,6 +31,7 @@ import mitsuba as mi
 import numpy as np
 
 from mi_bivariate.errors import InputError
+from mi_bivariate.images import bounding_box
 from mi_bivariate.limits import finite_number
 
 #: Distance of the orthographic render camera from the sphere's centre (any value > 1 works).
@@ -102,6 +103,13 @@ class Geometry(abc.ABC):
         """``(H, W) bool``: :meth:`surface_maps`'s ``mask`` alone (a subclass may find it without the maps)."""
         return self.surface_maps(width, height, source).mask
 
+    def object_box(self, width: int, height: int, source: str = "image") -> Tuple[slice, slice]:
+        """``(rows, cols)``: slices of a box of the image that holds every pixel of :meth:`object_mask` (here
+        the smallest; a subclass may give one a little larger, found without the mask). Work on the object
+        alone (the noise estimate, the clipping check) is done in it: a photo's frame may be mostly background.
+        Empty slices when the object has no pixel."""
+        return bounding_box(self.object_mask(width, height, source))
+
     def occluder(self) -> Optional[Any]:
         """The shape that casts shadows on itself (``lighting_matrix(occluder=...)``), or ``None``."""
         return None
@@ -159,9 +167,27 @@ class SphereGeometry(Geometry):
         return normals, mask
 
     def object_mask(self, width: int, height: int, source: str = "image") -> np.ndarray:
-        """``(H, W) bool``: the pixels whose centre lies inside the sphere's silhouette (:meth:`normals`' mask)."""
-        x, y = np.arange(width) + 0.5, np.arange(height) + 0.5
-        return ((x[None, :] - self.cx) / self.radius) ** 2 + ((y[:, None] - self.cy) / self.radius) ** 2 < 1.0
+        """``(H, W) bool``: the pixels whose centre lies inside the sphere's silhouette (:meth:`normals`' mask),
+        computed in :meth:`object_box` only."""
+        rows, cols = self.object_box(width, height, source)
+        x2 = (((np.arange(cols.start, cols.stop) + 0.5)[None, :] - self.cx) / self.radius) ** 2
+        y2 = (((np.arange(rows.start, rows.stop) + 0.5)[:, None] - self.cy) / self.radius) ** 2
+        mask = np.zeros((height, width), dtype=bool)
+        for start in range(0, y2.shape[0], 256):  # by rows: the float64 sums stay small
+            part = x2 + y2[start:start + 256] < 1.0
+            mask[rows.start + start:rows.start + start + len(part), cols] = part
+        return mask
+
+    def object_box(self, width: int, height: int, source: str = "image") -> Tuple[slice, slice]:
+        """The circle's bounding box within the frame, a pixel wider on each side than the pixel centres inside
+        it need (rounding): a pixel's centre ``k + 0.5`` lies inside when ``|k + 0.5 - c| < radius``."""
+        def span(centre: float, size: int) -> slice:
+            lo, hi = centre - self.radius - 0.5, centre + self.radius - 0.5
+            if not (math.isfinite(lo) and math.isfinite(hi)):
+                return slice(0, size)
+            start, stop = min(max(math.floor(lo), 0), size), min(max(math.ceil(hi) + 1, 0), size)
+            return slice(start, max(start, stop))
+        return span(float(self.cy), height), span(float(self.cx), width)
 
     def normals_at(self, x: np.ndarray, y: np.ndarray, onto_sphere: bool = False) -> np.ndarray:
         """World normals ``(..., 3) float64`` at image positions ``x, y`` (pixels, x right, y down).

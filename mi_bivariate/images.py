@@ -613,6 +613,15 @@ def write_exr(path: PathLike, image: np.ndarray, units: str = RADIANCE_UNITS,
     return path
 
 
+def bounding_box(mask: np.ndarray) -> Tuple[slice, slice]:
+    """``(rows, cols)``: the slices of the smallest box holding every True pixel of an ``(H, W) bool`` mask
+    (empty slices when it has none)."""
+    rows, cols = np.flatnonzero(np.any(mask, axis=1)), np.flatnonzero(np.any(mask, axis=0))
+    if rows.size == 0:
+        return slice(0, 0), slice(0, 0)
+    return slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1)
+
+
 def block_mean(values: np.ndarray, factor: int) -> np.ndarray:
     """``(ceil(H / factor), ceil(W / factor), ...) float64``: the mean of each ``factor x factor`` block of
     ``(H, W)`` or ``(H, W, C)`` values over its finite ones, per channel (NaN where a block has none; the
@@ -624,10 +633,17 @@ def block_mean(values: np.ndarray, factor: int) -> np.ndarray:
     pad = ((0, rows * factor - height), (0, cols * factor - width)) + ((0, 0),) * (values.ndim - 2)
     blocks = (rows, factor, cols, factor) + values.shape[2:]
     finite = np.isfinite(values)
+    all_finite = bool(finite.all())
+    # Copies only where needed: the non-finite values zeroed, the frame padded to whole blocks.
+    kept = values if all_finite else np.where(finite, values, np.zeros((), values.dtype))
+    if any(after for _, after in pad):
+        kept, finite = np.pad(kept, pad), np.pad(finite, pad)
     # Summed along each block's rows, then its columns (3x faster than both axes at once for RGB).
-    total = np.pad(np.where(finite, values, np.zeros((), values.dtype)), pad).reshape(blocks).sum(
-        axis=3, dtype=np.float64).sum(axis=1)
-    count = np.pad(finite, pad).reshape(blocks).sum(axis=3).sum(axis=1)
+    total = kept.reshape(blocks).sum(axis=3, dtype=np.float64).sum(axis=1)
+    if all_finite and not any(after for _, after in pad):
+        count = np.full(total.shape, factor * factor, dtype=np.int64)
+    else:
+        count = finite.reshape(blocks).sum(axis=3).sum(axis=1)
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(count > 0, total / np.maximum(count, 1), np.nan)
 

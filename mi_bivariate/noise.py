@@ -37,6 +37,7 @@ from typing import Optional, Tuple, Union
 import numpy as np
 
 from mi_bivariate.errors import InputError
+from mi_bivariate.images import bounding_box
 
 #: Intensity bins of the estimate (quantiles of the masked image).
 BINS = 12
@@ -60,14 +61,16 @@ MAX_SECOND_DIFFERENCES = 2**19
 
 
 def _second_differences(image: np.ndarray, mask: np.ndarray, step: int = 1) -> Tuple[np.ndarray, np.ndarray]:
-    """``(level, d)``: centre value and second difference where all three pixels are in the mask, along
-    every ``step``-th column (differences down the columns) and row (along the rows)."""
+    """``(level, d)`` in float64: centre value and second difference where all three pixels are in the mask,
+    along every ``step``-th column (differences down the columns) and row (along the rows) of the ``(H, W)``
+    image (converted there only)."""
     levels, diffs = [], []
     for axis in (0, 1):
-        a = np.moveaxis(image, axis, 0)[:, ::step]
+        a = np.asarray(np.moveaxis(image, axis, 0)[:, ::step], np.float64)  # the sampled lines only
         m = np.moveaxis(mask, axis, 0)[:, ::step]
         ok = m[:-2] & m[1:-1] & m[2:]
-        d = a[:-2] - 2.0 * a[1:-1] + a[2:]
+        with np.errstate(invalid="ignore", over="ignore"):  # pixels outside the mask may be anything
+            d = a[:-2] - 2.0 * a[1:-1] + a[2:]
         levels.append(a[1:-1][ok])
         diffs.append(d[ok])
     return np.concatenate(levels), np.concatenate(diffs)
@@ -81,23 +84,34 @@ def estimate_camera_noise(image: np.ndarray, mask: Optional[np.ndarray] = None,
         image: ``(H, W)`` or ``(H, W, 3)`` linear values (channels are averaged).
         mask: ``(H, W) bool`` pixels of the object (default: every finite pixel); non-finite pixels in it
             are left out. An object of more than :data:`MAX_SECOND_DIFFERENCES` / 2 pixels is sampled along
-            every ``k``-th row and column, ``k`` odd.
+            every ``k``-th row and column, ``k`` odd, counted from the mask's first row and column (so that
+            the estimate does not depend on where the object sits in the frame). The work is done within
+            the mask's box.
 
     Raises:
         InputError: another shape, or too few usable pixels: fewer than 100 second differences, or fewer
             than :data:`MIN_BIN_PIXELS` in each intensity bin.
     """
-    img = np.asarray(image, dtype=np.float64)
-    if img.ndim == 3 and img.shape[2] == 3:
-        img = img.mean(axis=2)
-    if img.ndim != 2:
+    img = np.asarray(image)
+    if not (img.ndim == 2 or (img.ndim == 3 and img.shape[2] == 3)):
         raise InputError(source, f"expected an (H, W) or (H, W, 3) image, got shape {np.shape(image)}")
-    m = np.isfinite(img) if mask is None else (np.asarray(mask, bool) & np.isfinite(img))
+    if mask is not None:
+        mask = np.asarray(mask, bool)
+        if mask.shape != img.shape[:2]:
+            raise InputError(source, f"the noise estimate's mask has shape {mask.shape}, the image {img.shape}",
+                             "give an (H, W) boolean mask of the image's size")
+        rows, cols = bounding_box(mask)
+        img, mask = img[rows, cols], mask[rows, cols]
+    if img.ndim == 3:
+        img = np.asarray(img, dtype=np.float64).mean(axis=2)
+    elif not np.issubdtype(img.dtype, np.floating):
+        img = np.asarray(img, dtype=np.float64)
+    m = np.isfinite(img) if mask is None else (mask & np.isfinite(img))
     # Each pixel inside the object gives up to two differences; a large object's are thinned evenly, by an
     # odd step: an even one keeps one phase of a noise that alternates with the Bayer pattern of a
     # demosaiced photo (measured: 0.56x the full estimate with step 2).
     step = max(1, -(-2 * int(np.count_nonzero(m)) // MAX_SECOND_DIFFERENCES)) | 1
-    level, d = _second_differences(np.where(m, img, 0.0), m, step)
+    level, d = _second_differences(img, m, step)
     if level.size < 100:
         raise InputError(source, f"only {level.size} usable pixels to estimate the noise from",
                          "give the noise model (a, b) explicitly")

@@ -423,6 +423,8 @@ def _basis_prior(value: Union[BasisPrior, None, str], n_t: int, n_s: int) -> Opt
 #: How far (4-neighbour pixel steps) the noise estimate reaches beyond the pixels on the object: its
 #: antialiased rim (a render's pixel filter spreads it ~1-2 px), not the background.
 NOISE_MARGIN_PX = 2
+#: ... and the estimate's region eroded by this many pixels (see :func:`_estimate_noise`).
+NOISE_EROSION_PX = 2
 
 #: The largest median ratio of a row's noise to its value that a recovery accepts: beyond it the
 #: image says nothing the priors do not (and the normal equations lose the data term).
@@ -559,16 +561,27 @@ def _estimate_noise(image: np.ndarray, geometry: Geometry, source: str,
     highlight)."""
     from scipy import ndimage  # as the sphere fit, which a recovery from a photo has run already
 
-    lit = np.all(np.isfinite(image), axis=2) & np.all(image > 0, axis=2)
-    on_object = geometry.object_mask(image.shape[1], image.shape[0], source)
+    # All of it within the object's box, widened by what the dilation and the erosion reach (and a pixel):
+    # beyond it the region is empty, and a photo's frame may be mostly background.
+    height, width = image.shape[:2]
+    reach = NOISE_MARGIN_PX + NOISE_EROSION_PX + 1
+    rows, cols = geometry.object_box(width, height, source)
+    rows = slice(max(rows.start - reach, 0), min(rows.stop + reach, height))
+    cols = slice(max(cols.start - reach, 0), min(cols.stop + reach, width))
+    crop = image[rows, cols]
+    lit = np.ones(crop.shape[:2], dtype=bool)
+    with np.errstate(invalid="ignore"):
+        for c in range(3):  # finite and positive in every channel
+            lit &= (crop[..., c] > 0) & (crop[..., c] < np.inf)
+    on_object = geometry.object_mask(width, height, source)[rows, cols]
     near = ndimage.binary_dilation(on_object, iterations=NOISE_MARGIN_PX)  # 4-neighbour steps
     # The frame's own rows and columns are left as they are: there the object is cut, not mixed.
     interior = np.zeros_like(lit)
-    interior[1:-1, 1:-1] = True
-    region = lit & near if mask is None else lit & near & mask
-    inner = ndimage.binary_erosion(region, iterations=2, border_value=1, mask=interior)
+    interior[max(1 - rows.start, 0):height - 1 - rows.start, max(1 - cols.start, 0):width - 1 - cols.start] = True
+    region = lit & near if mask is None else lit & near & mask[rows, cols]
+    inner = ndimage.binary_erosion(region, iterations=NOISE_EROSION_PX, border_value=1, mask=interior)
     try:
-        pairs = [estimate_camera_noise(image[..., c], inner, source) for c in range(3)]
+        pairs = [estimate_camera_noise(crop[..., c], inner, source) for c in range(3)]
     except InputError as exc:
         warnings.warn(f"{source}: {exc.problem}; assuming a clean image (only the model error)",
                       InputWarning, stacklevel=3)

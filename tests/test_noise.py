@@ -397,3 +397,56 @@ def test_thinning_keeps_every_phase_of_a_bayer_patterned_noise():
     finally:
         noise.MAX_SECOND_DIFFERENCES = saved
     assert thinned[0] * 0.6 + thinned[1] == pytest.approx(full[0] * 0.6 + full[1], rel=0.05)
+
+
+def test_the_estimate_does_not_depend_on_where_the_object_sits_in_the_frame():
+    """The estimate works in its mask's box, and a large object's thinned rows and columns are counted from
+    the mask's first row and column: the same object placed elsewhere in a larger frame (offsets that are
+    not multiples of the step, a lit background around it) gives the same ``(a, b)``, bit for bit, thinned
+    (step 7) or not, float32 or float64; a mask of another shape than the image is refused."""
+    for n, dtype in ((1600, np.float32), (256, np.float64)):
+        clean, mask = _sphere_like(n)
+        noisy = add_camera_noise(clean, 0.01, 1e-4, seed=3)[..., 0].astype(dtype)
+        alone = estimate_camera_noise(noisy, mask)
+        for dy, dx in ((3, 5), (11, 2)):
+            frame = np.full((n + 20, n + 30), 7.0, dtype)
+            frame[dy:dy + n, dx:dx + n] = noisy
+            placed = np.zeros(frame.shape, bool)
+            placed[dy:dy + n, dx:dx + n] = mask
+            assert estimate_camera_noise(frame, placed) == alone
+    with pytest.raises(InputError, match="mask has shape"):
+        estimate_camera_noise(noisy, mask[:-1])
+
+
+def test_the_noise_estimate_in_the_objects_box_is_the_whole_frames():
+    """``recover``'s noise estimate (``_estimate_noise``: the lit pixels near the object, within the user's
+    mask, eroded; each channel's estimate) is found in the object's box, widened by what the dilation and
+    erosion reach: the same ``(a, b)``, bit for bit, as the whole frame's computation written out here, for a
+    sphere inside the frame and one the frame cuts (its edge rows are left uneroded), with and without a
+    user's mask, and a black hole and a NaN on the object."""
+    from scipy import ndimage
+
+    def whole_frame(image, geometry, mask):
+        lit = np.all(np.isfinite(image), axis=2) & np.all(image > 0, axis=2)
+        near = ndimage.binary_dilation(geometry.object_mask(image.shape[1], image.shape[0]), iterations=2)
+        interior = np.zeros_like(lit)
+        interior[1:-1, 1:-1] = True
+        region = lit & near if mask is None else lit & near & mask
+        inner = ndimage.binary_erosion(region, iterations=2, border_value=1, mask=interior)
+        pairs = [estimate_camera_noise(image[..., c], inner) for c in range(3)]
+        return np.array([p[0] for p in pairs]), np.array([p[1] for p in pairs])
+
+    clean, _ = _sphere_like(200)
+    image = np.full((240, 260, 3), 0.3)
+    image[20:220, 30:230] = clean
+    image = add_camera_noise(image, 0.01, 1e-4, seed=4).astype(np.float32)
+    image[100:104, 100:110] = 0.0
+    image[60, 140, 1] = np.nan
+    user = np.ones(image.shape[:2], bool)
+    user[:, 150:] = False
+    for geometry in (SphereGeometry(130.2, 120.4, 90.0), SphereGeometry(10.3, 120.4, 90.0),
+                     SphereGeometry(130.2, 236.0, 90.0)):
+        for mask in (None, user):
+            got, want = _estimate_noise(image, geometry, "image", mask), whole_frame(image, geometry, mask)
+            np.testing.assert_array_equal(got[0], want[0])
+            np.testing.assert_array_equal(got[1], want[1])

@@ -13,7 +13,7 @@ import warnings
 import numpy as np
 import pytest
 
-from mi_bivariate import render, spherefit
+from mi_bivariate import render, silhouette, spherefit
 from mi_bivariate.errors import InputError, InputWarning
 from mi_bivariate.geometry import Intrinsics, PerspectiveSphereGeometry, SphereCamera, SphereGeometry
 from mi_bivariate.probes import Probe, rotation_matrix
@@ -847,3 +847,57 @@ def test_block_mean_averages_the_finite_values_of_each_block():
     np.testing.assert_allclose(got_rgb[..., 0], got, rtol=1e-6)
     np.testing.assert_allclose(got_rgb[..., 1], 2.0 * got, rtol=1e-6)
     np.testing.assert_array_equal(got_rgb[..., 2], 1.0)  # finite everywhere: each block its own count
+
+
+def test_fill_holes_crack_points_and_disc_mask_are_the_whole_frames():
+    """``silhouette.filled`` (one labelling of the background) is ``scipy.ndimage.binary_fill_holes``;
+    ``crack_points`` (found in the region's box) and ``disc_mask`` (computed in the circle's box, by rows)
+    are their whole-frame formulas, bit for bit and in the same order: random regions, discs inside, cut by
+    or beyond the frame, of radius 0 to a million pixels."""
+    from scipy import ndimage
+
+    from mi_bivariate.silhouette import disc_mask, filled
+
+    def cracks(region):
+        jh, ih = np.nonzero(region[:, :-1] != region[:, 1:])
+        jv, iv = np.nonzero(region[:-1, :] != region[1:, :])
+        points = np.concatenate([np.stack([ih + 1.0, jh + 0.5], axis=1), np.stack([iv + 0.5, jv + 1.0], axis=1)])
+        outward = np.concatenate([np.where(region[jh, ih], 1, -1), np.where(region[jv, iv], 1, -1)])
+        return points, np.concatenate([np.zeros(len(jh), int), np.ones(len(jv), int)]), outward
+
+    rng = np.random.default_rng(8)
+    for k in range(600):
+        height, width = (int(v) for v in rng.integers(1, 40 if k % 3 else 600, 2))
+        cx, cy = rng.uniform(-30, width + 30), rng.uniform(-30, height + 30)
+        r = float(rng.choice([rng.uniform(0, 300), 0.0, 0.5, 1e6]))
+        x, y = np.arange(width) + 0.5 - cx, np.arange(height) + 0.5 - cy
+        disc = disc_mask((height, width), cx, cy, r)
+        np.testing.assert_array_equal(disc, x[None, :] ** 2 + y[:, None] ** 2 < r * r)
+        region = rng.random((height, width)) < rng.uniform(0.0, 0.6) if k % 2 else disc
+        np.testing.assert_array_equal(filled(region), ndimage.binary_fill_holes(region))
+        for got, want in zip(silhouette.crack_points(region), cracks(region)):
+            np.testing.assert_array_equal(got, want)
+
+
+def test_luminance_by_rows_is_the_whole_images_and_block_means_fast_path_the_loops():
+    """``luminance_map`` of an RGB(A) photo converted 256 rows at a time: the whole image's product with the
+    luminance weights, bit for bit, NaN where not finite; a grey image is copied, not aliased. ``block_mean``
+    of finite values on whole blocks (no copies): each block's mean."""
+    from mi_bivariate.common import LUMINANCE_WEIGHTS
+    from mi_bivariate.images import block_mean
+
+    rng = np.random.default_rng(9)
+    image = rng.random((600, 37, 4)).astype(np.float32)
+    image[5, 5, 1] = np.inf
+    image[300, 2, 0] = np.nan
+    want = image[..., :3].astype(np.float64) @ LUMINANCE_WEIGHTS
+    want[~np.isfinite(want)] = np.nan
+    np.testing.assert_array_equal(silhouette.luminance_map(image), want)
+    np.testing.assert_array_equal(silhouette.luminance_map(image[..., :3]), want)
+    grey = rng.random((8, 9))
+    lum = silhouette.luminance_map(grey)
+    np.testing.assert_array_equal(lum, grey)
+    assert not np.shares_memory(lum, grey)
+    values = rng.random((12, 9, 3))
+    got = block_mean(values, 3)
+    np.testing.assert_allclose(got, values.reshape(4, 3, 3, 3, 3).mean(axis=(1, 3)), rtol=1e-14)
