@@ -10,7 +10,7 @@ circle or cone fit and the confidence checks are :mod:`mi_bivariate.spherefit`'s
 from __future__ import annotations
 
 import math
-from typing import Any, Optional, Tuple
+from typing import Any, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -230,11 +230,51 @@ def edge_support(log_lum: np.ndarray, cx: float, cy: float, r: float, contrast: 
     n = max(16, int(2 * math.pi * r))
     phi = np.linspace(0.0, 2.0 * math.pi, n, endpoint=False)
     c, s = np.cos(phi), np.sin(phi)
-    level = [_sample(log_lum, cx + (r + d) * c, cy + (r + d) * s) for d in (-4.5, -1.5, 1.5, 4.5)]
+    level = [_sample(log_lum, cx + (r + d) * c, cy + (r + d) * s) for d in EDGE_RINGS_PX]
     step = np.abs(level[1] - level[2])
     with np.errstate(invalid="ignore"):
         ok = (step > contrast) & (step > np.abs(level[0] - level[1])) & (step > np.abs(level[2] - level[3]))
     return int(np.count_nonzero(ok))
+
+
+#: The rings :func:`edge_support` samples, at these distances (pixels) from the circle.
+EDGE_RINGS_PX = (-4.5, -1.5, 1.5, 4.5)
+#: Tile side (pixels) of :func:`_smoothed_near`.
+SMOOTHED_TILE_PX = 64
+
+
+def _smoothed_near(log_lum: np.ndarray, circles: Sequence[Tuple[float, float, float]],
+                   sigma: float = EDGE_SIGMA_PX) -> np.ndarray:
+    """:func:`_smoothed` where :func:`edge_support` reads it for each of the ``circles`` ``(cx, cy, r)``, NaN
+    elsewhere: the tiles of :data:`SMOOTHED_TILE_PX` that come within its rings and their bilinear
+    neighbours of an outline, each filtered with the kernel's reach of pixels around it (the image's own
+    edge where it is there), so the values are the whole image's bit for bit. A large sphere's box is
+    mostly inside its outline: 0.42 s for a 3600 px box, here ~0.05 s."""
+    from scipy import ndimage
+
+    height, width = log_lum.shape
+    finite = np.isfinite(log_lum)
+    fill = None if finite.all() else (np.median(log_lum[finite]) if finite.any() else 0.0)
+    kernel = int(4.0 * sigma + 0.5)  # scipy's radius at gaussian_filter's default truncate (4 sigma)
+    reach = max(abs(d) for d in EDGE_RINGS_PX) + 2.0  # a sample's bilinear neighbours lie within sqrt(2) px
+    tile = SMOOTHED_TILE_PX
+    y0, x0 = np.arange(0, height, tile), np.arange(0, width, tile)
+    y1, x1 = np.minimum(y0 + tile, height), np.minimum(x0 + tile, width)
+    need = np.zeros((len(y0), len(x0)), dtype=bool)
+    for cx, cy, r in circles:  # each tile's nearest and farthest pixel centre from the circle's centre
+        near = np.hypot((np.clip(cy, y0 + 0.5, y1 - 0.5) - cy)[:, None],
+                        (np.clip(cx, x0 + 0.5, x1 - 0.5) - cx)[None, :])
+        far = np.hypot(np.maximum(np.abs(y0 + 0.5 - cy), np.abs(y1 - 0.5 - cy))[:, None],
+                       np.maximum(np.abs(x0 + 0.5 - cx), np.abs(x1 - 0.5 - cx))[None, :])
+        need |= (near <= r + reach) & (far >= r - reach)
+    out = np.full(log_lum.shape, np.nan)
+    for i, j in zip(*np.nonzero(need)):
+        rows = slice(max(y0[i] - kernel, 0), min(y1[i] + kernel, height))
+        cols = slice(max(x0[j] - kernel, 0), min(x1[j] + kernel, width))
+        part = log_lum[rows, cols] if fill is None else np.where(finite[rows, cols], log_lum[rows, cols], fill)
+        out[y0[i]:y1[i], x0[j]:x1[j]] = ndimage.gaussian_filter(part, sigma)[
+            y0[i] - rows.start:y1[i] - rows.start, x0[j] - cols.start:x1[j] - cols.start]
+    return out
 
 
 def _smoothed(log_lum: np.ndarray, sigma: float = EDGE_SIGMA_PX) -> np.ndarray:
@@ -442,8 +482,7 @@ def _coarse_region(log_lum: np.ndarray, factor: int, seed: int) -> Optional[np.n
                 # the contour of a 10:1 step blurred by 2 px lay 1.3 px outside it).
                 cuts.insert(0, (float(np.logaddexp(level_in, level_out) - math.log(2.0)), level_in > level_out))
     disc = disc_mask(box.shape, cx - x0, cy - y0, r)
-    smooth = _smoothed(box)
-    best: Optional[Tuple[int, np.ndarray]] = None
+    found = []  # (circle in the box, region) of each cut that holds up
     for threshold, above in cuts:
         with np.errstate(invalid="ignore"):
             labels, n = ndimage.label(box > threshold if above else box <= threshold)
@@ -455,10 +494,12 @@ def _coarse_region(log_lum: np.ndarray, factor: int, seed: int) -> Optional[np.n
         region[y0:y1, x0:x1] = filled(labels == int(np.argmax(overlap)))
         circle = _region_circle(region)
         if circle is not None:
-            support = edge_support(smooth, circle[0] - x0, circle[1] - y0, circle[2])
-            if best is None or support > best[0]:
-                best = (support, region)
-    return None if best is None else best[1]
+            found.append(((circle[0] - x0, circle[1] - y0, circle[2]), region))
+    if not found:
+        return None
+    smooth = _smoothed_near(box, [circle for circle, _ in found])
+    support = [edge_support(smooth, *circle) for circle, _ in found]
+    return found[int(np.argmax(support))][1]  # the first of the longest, as the cuts' order
 
 
 # ---------------------------------------------------------------- boundary

@@ -901,3 +901,23 @@ def test_luminance_by_rows_is_the_whole_images_and_block_means_fast_path_the_loo
     values = rng.random((12, 9, 3))
     got = block_mean(values, 3)
     np.testing.assert_allclose(got, values.reshape(4, 3, 3, 3, 3).mean(axis=(1, 3)), rtol=1e-14)
+
+
+def test_smoothing_near_circles_is_the_whole_images_where_edge_support_reads_it():
+    """``silhouette._smoothed_near`` (the Gaussian smoothing of the tiles near each circle's outline, as the
+    large-photo path computes it) equals ``_smoothed`` of the whole image, bit for bit, wherever it computed
+    a value, and ``edge_support`` reads only those: the same support for each circle, on random images with
+    NaN pixels (filled with the whole image's median), circles inside, cut by or beyond the frame."""
+    rng = np.random.default_rng(3)
+    for k in range(120):
+        height, width = (int(v) for v in rng.integers(5, 300, 2))
+        image = 3.0 * rng.random((height, width))
+        if k % 3 == 0:
+            image[rng.random(image.shape) < 0.05] = np.nan
+        circles = [(rng.uniform(-20, width + 20), rng.uniform(-20, height + 20), rng.uniform(0.5, 200))
+                   for _ in range(int(rng.integers(1, 3)))]
+        whole, near = silhouette._smoothed(image), silhouette._smoothed_near(image, circles)
+        computed = ~np.isnan(near)
+        np.testing.assert_array_equal(near[computed], whole[computed])
+        for circle in circles:
+            assert silhouette.edge_support(near, *circle) == silhouette.edge_support(whole, *circle), (k, circle)
