@@ -42,6 +42,7 @@ import numpy as np
 
 from mi_bivariate.errors import InputError, InputWarning, array_from
 from mi_bivariate.geometry import Geometry, SphereGeometry, check_rotation, check_sphere
+from mi_bivariate.images import bounding_box
 from mi_bivariate.limits import check_brightest
 
 DROP_REASONS: Tuple[str, ...] = ("view_angle", "outside_image", "silhouette", "outside_mask",
@@ -389,8 +390,9 @@ def observations_from_sphere(image: np.ndarray, geometry: SphereGeometry, n_norm
     views = np.broadcast_to(view, normals.shape).copy()
 
     if saturation is None:
-        box = geometry.object_box(width, height)
-        _plateau_warning(image[box], geometry.object_mask(width, height)[box], source)
+        on_object = geometry.object_mask(width, height)
+        box = bounding_box(on_object)
+        _plateau_warning(image[box], on_object[box], source)
     obs = _finish(image, rows, cols, normals, views, dropped, saturation, source, probe_index)
     if footprint is not None:
         obs.footprint_normals, obs.footprint_rows = _sphere_footprints(obs.pixels, cx, cy, radius, rot, footprint)

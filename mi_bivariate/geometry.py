@@ -31,7 +31,6 @@ import mitsuba as mi
 import numpy as np
 
 from mi_bivariate.errors import InputError
-from mi_bivariate.images import bounding_box
 from mi_bivariate.limits import finite_number
 
 #: Distance of the orthographic render camera from the sphere's centre (any value > 1 works).
@@ -103,13 +102,6 @@ class Geometry(abc.ABC):
         """``(H, W) bool``: :meth:`surface_maps`'s ``mask`` alone (a subclass may find it without the maps)."""
         return self.surface_maps(width, height, source).mask
 
-    def object_box(self, width: int, height: int, source: str = "image") -> Tuple[slice, slice]:
-        """``(rows, cols)``: slices of a box of the image that holds every pixel of :meth:`object_mask` (here
-        the smallest; a subclass may give one a little larger, found without the mask). Work on the object
-        alone (the noise estimate, the clipping check) is done in it: a photo's frame may be mostly background.
-        Empty slices when the object has no pixel."""
-        return bounding_box(self.object_mask(width, height, source))
-
     def occluder(self) -> Optional[Any]:
         """The shape that casts shadows on itself (``lighting_matrix(occluder=...)``), or ``None``."""
         return None
@@ -168,8 +160,8 @@ class SphereGeometry(Geometry):
 
     def object_mask(self, width: int, height: int, source: str = "image") -> np.ndarray:
         """``(H, W) bool``: the pixels whose centre lies inside the sphere's silhouette (:meth:`normals`' mask),
-        computed in :meth:`object_box` only."""
-        rows, cols = self.object_box(width, height, source)
+        computed in the circle's box only (:meth:`circle_box`)."""
+        rows, cols = self.circle_box(width, height)
         x2 = (((np.arange(cols.start, cols.stop) + 0.5)[None, :] - self.cx) / self.radius) ** 2
         y2 = (((np.arange(rows.start, rows.stop) + 0.5)[:, None] - self.cy) / self.radius) ** 2
         mask = np.zeros((height, width), dtype=bool)
@@ -178,11 +170,12 @@ class SphereGeometry(Geometry):
             mask[rows.start + start:rows.start + start + len(part), cols] = part
         return mask
 
-    def object_box(self, width: int, height: int, source: str = "image") -> Tuple[slice, slice]:
-        """The circle's bounding box within the frame, a pixel wider on each side than the pixel centres inside
-        it need (rounding): a pixel's centre ``k + 0.5`` lies inside when ``|k + 0.5 - c| < radius``."""
+    def circle_box(self, width: int, height: int) -> Tuple[slice, slice]:
+        """``(rows, cols)``: the silhouette's bounding box within the ``width x height`` frame, a pixel wider on
+        each side than the pixel centres inside it need (rounding): a pixel's centre ``k + 0.5`` may lie
+        inside when ``|k + 0.5 - c| < |radius|``. The whole frame for a circle that is not finite."""
         def span(centre: float, size: int) -> slice:
-            lo, hi = centre - self.radius - 0.5, centre + self.radius - 0.5
+            lo, hi = centre - abs(self.radius) - 0.5, centre + abs(self.radius) - 0.5
             if not (math.isfinite(lo) and math.isfinite(hi)):
                 return slice(0, size)
             start, stop = min(max(math.floor(lo), 0), size), min(max(math.ceil(hi) + 1, 0), size)

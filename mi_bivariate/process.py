@@ -297,8 +297,11 @@ def plain_scipy_docstrings() -> Iterator[None]:
         self._f, self._role = func, role
         self._plain_text = (inspect.getdoc(func) if doc is None else doc) or ""
         self._parsed_data = {key: type(value)() for key, value in sections.items()}
+        self._parsed_data["Summary"] = self._plain_text.split("\n")  # what scipy's own __str__ would show of it
 
     def __str__(self):  # noqa: N807
+        if not hasattr(self, "_plain_text"):  # parsed before the block began (another thread's)
+            return _docstring_methods.get("__str__", type(self).__str__)(self)
         added = [str(text) for key in ("Extended Summary", "Notes") for text in self._parsed_data[key]]
         return "\n" + "\n\n".join([self._plain_text, *added])  # the decorators drop the first line (a signature)
 

@@ -29,6 +29,7 @@ from mi_bivariate.basis_prior import BasisPrior, default_basis_prior
 from mi_bivariate.bivariate import BivariateBRDF
 from mi_bivariate.errors import InputError, InputWarning
 from mi_bivariate.geometry import Geometry, PerspectiveSphereGeometry, SphereGeometry, check_sphere
+from mi_bivariate.images import bounding_box
 from mi_bivariate.noise import check_noise_model, estimate_camera_noise
 from mi_bivariate.probes import Probe, check_lit, check_probe
 from mi_bivariate.solve import IMAGE_WEIGHTS, cross_image_factors, solve_stages
@@ -564,16 +565,16 @@ def _estimate_noise(image: np.ndarray, geometry: Geometry, source: str,
     # All of it within the object's box, widened by what the dilation and the erosion reach (and a pixel):
     # beyond it the region is empty, and a photo's frame may be mostly background.
     height, width = image.shape[:2]
+    on_object = geometry.object_mask(width, height, source)
     reach = NOISE_MARGIN_PX + NOISE_EROSION_PX + 1
-    rows, cols = geometry.object_box(width, height, source)
+    rows, cols = bounding_box(on_object)
     rows = slice(max(rows.start - reach, 0), min(rows.stop + reach, height))
     cols = slice(max(cols.start - reach, 0), min(cols.stop + reach, width))
-    crop = image[rows, cols]
+    crop, on_object = image[rows, cols], on_object[rows, cols]
     lit = np.ones(crop.shape[:2], dtype=bool)
     with np.errstate(invalid="ignore"):
         for c in range(3):  # finite and positive in every channel
             lit &= (crop[..., c] > 0) & (crop[..., c] < np.inf)
-    on_object = geometry.object_mask(width, height, source)[rows, cols]
     near = ndimage.binary_dilation(on_object, iterations=NOISE_MARGIN_PX)  # 4-neighbour steps
     # The frame's own rows and columns are left as they are: there the object is cut, not mixed.
     interior = np.zeros_like(lit)

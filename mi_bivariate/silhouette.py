@@ -186,7 +186,7 @@ def disc_box(shape: Tuple[int, int], cx: float, cy: float, r: float) -> Tuple[sl
     """``(rows, cols)`` within the ``(H, W)`` frame that hold every pixel centre inside the circle, with a
     pixel to spare on each side (rounding); the whole frame for a circle that is not finite."""
     def span(centre: float, size: int) -> slice:
-        lo, hi = centre - r - 0.5, centre + r - 0.5  # a centre k + 0.5 inside: lo < k < hi
+        lo, hi = centre - abs(r) - 0.5, centre + abs(r) - 0.5  # a centre k + 0.5 inside: lo < k < hi
         if not (math.isfinite(lo) and math.isfinite(hi)):
             return slice(0, size)
         start = min(max(math.floor(lo), 0), size)

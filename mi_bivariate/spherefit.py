@@ -319,7 +319,9 @@ def fit_sphere(image: Optional[np.ndarray] = None, mask: Optional[np.ndarray] = 
 
     if lum is not None and mask is None and not np.isfinite(lum).any():
         raise InputError(source, "has no finite pixel", "check the file: every value is NaN or infinite")
-    region = segment_luminance(lum if lum is not None else np.zeros(shape), mask, source, seed=seed)
+    # Without an image, the mask's own size is checked as an image's would be.
+    region = segment_luminance(lum if lum is not None else luminance_map(np.zeros(shape), source), mask, source,
+                               seed=seed)
     points, _, _ = crack_points(region)
     if len(points) < 8:
         raise InputError(source, f"the sphere's outline has only {len(points)} boundary points",

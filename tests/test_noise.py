@@ -450,3 +450,20 @@ def test_the_noise_estimate_in_the_objects_box_is_the_whole_frames():
             got, want = _estimate_noise(image, geometry, "image", mask), whole_frame(image, geometry, mask)
             np.testing.assert_array_equal(got[0], want[0])
             np.testing.assert_array_equal(got[1], want[1])
+
+
+def test_the_noise_estimate_asks_a_perspective_sphere_for_its_pixels_once(monkeypatch):
+    """A geometry whose mask costs its surface maps (a perspective sphere: normals and views of the whole
+    frame) is asked once by ``recover``'s noise estimate (a helper's review found the first box version
+    asking twice: 2.4 -> 4.1 s on a 2048 px photo)."""
+    from mi_bivariate.geometry import Intrinsics, PerspectiveSphereGeometry
+
+    geometry = PerspectiveSphereGeometry(Intrinsics(300.0, 300.0, 100.0, 90.0), [0.0, 0.0, -5.0], 1.0)
+    calls = []
+    maps = PerspectiveSphereGeometry.surface_maps
+    monkeypatch.setattr(PerspectiveSphereGeometry, "surface_maps",
+                        lambda self, *args, **kwargs: calls.append(1) or maps(self, *args, **kwargs))
+    clean, _ = _sphere_like(200)
+    image = add_camera_noise(np.pad(clean, ((0, 0), (0, 0), (0, 0))), 0.01, 1e-4, seed=5).astype(np.float32)
+    a, b = _estimate_noise(image, geometry, "image")
+    assert len(calls) == 1 and np.all(np.isfinite(a)) and np.all(np.isfinite(b))

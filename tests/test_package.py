@@ -651,3 +651,11 @@ def test_plain_scipy_docstrings_keep_the_text_and_notes_and_restore_scipys_parse
         np.testing.assert_array_equal(plain(np.eye(2), np.ones(2)), np.eye(2))
     again = _util._apply_over_batch(("a", 2), ("b", 1))(solve_like)
     assert again.__doc__ == parsed.__doc__  # scipy's own rendering, as before any block
+    # Begun on one side of a block's edge and rendered on the other (another thread's import meanwhile; a
+    # helper's review found the first failing with an AttributeError and the second losing the text).
+    before = _docscrape.FunctionDoc(solve_like)
+    rendered = str(before)
+    with process.plain_scipy_docstrings():
+        assert str(before) == rendered  # parsed, and rendered by scipy's own
+        within = _docscrape.FunctionDoc(solve_like)
+    assert "Solve something." in str(within) and "The right-hand side." in str(within)

@@ -853,7 +853,7 @@ def test_fill_holes_crack_points_and_disc_mask_are_the_whole_frames():
     """``silhouette.filled`` (one labelling of the background) is ``scipy.ndimage.binary_fill_holes``;
     ``crack_points`` (found in the region's box) and ``disc_mask`` (computed in the circle's box, by rows)
     are their whole-frame formulas, bit for bit and in the same order: random regions, discs inside, cut by
-    or beyond the frame, of radius 0 to a million pixels."""
+    or beyond the frame, of radius 0 to a million pixels (and negative: the disc of its magnitude)."""
     from scipy import ndimage
 
     from mi_bivariate.silhouette import disc_mask, filled
@@ -869,7 +869,7 @@ def test_fill_holes_crack_points_and_disc_mask_are_the_whole_frames():
     for k in range(600):
         height, width = (int(v) for v in rng.integers(1, 40 if k % 3 else 600, 2))
         cx, cy = rng.uniform(-30, width + 30), rng.uniform(-30, height + 30)
-        r = float(rng.choice([rng.uniform(0, 300), 0.0, 0.5, 1e6]))
+        r = float(rng.choice([rng.uniform(0, 300), 0.0, 0.5, 1e6, -rng.uniform(0, 300)]))
         x, y = np.arange(width) + 0.5 - cx, np.arange(height) + 0.5 - cy
         disc = disc_mask((height, width), cx, cy, r)
         np.testing.assert_array_equal(disc, x[None, :] ** 2 + y[:, None] ** 2 < r * r)
@@ -921,3 +921,13 @@ def test_smoothing_near_circles_is_the_whole_images_where_edge_support_reads_it(
         np.testing.assert_array_equal(near[computed], whole[computed])
         for circle in circles:
             assert silhouette.edge_support(near, *circle) == silhouette.edge_support(whole, *circle), (k, circle)
+
+
+@pytest.mark.parametrize("mask, problem", [(np.ones(5, bool), "expected an \\(H, W\\)"),
+                                           (np.array(True), "expected an \\(H, W\\)"),
+                                           (np.ones((1, 60, 80), bool), "too small to hold a sphere")])
+def test_a_mask_alone_of_no_image_shape_is_refused_as_an_image_would_be(mask, problem):
+    """``fit_sphere(mask=...)`` without an image: the mask's shape is checked as an image's (a helper's
+    review found a 1-D mask ending in a ValueError, and a 1 x 60 x 80 one in a self-contradicting message)."""
+    with pytest.raises(InputError, match=problem):
+        spherefit.fit_sphere(mask=mask)
