@@ -638,12 +638,15 @@ def block_mean(values: np.ndarray, factor: int) -> np.ndarray:
     kept = values if all_finite else np.where(finite, values, np.zeros((), values.dtype))
     if any(after for _, after in pad):
         kept, finite = np.pad(kept, pad), np.pad(finite, pad)
-    # Summed along each block's rows, then its columns (3x faster than both axes at once for RGB).
-    total = kept.reshape(blocks).sum(axis=3, dtype=np.float64).sum(axis=1)
+    # Two one-axis sums, each 3x faster than both axes at once for RGB: an (H, W) image's along each block's
+    # rows first; an (H, W, C) image's down its columns first, adding whole rows (there 4.5x faster than
+    # along the rows first: 0.12 s against 0.53 s for a 4096 px RGB photo by 8).
+    first, second = (3, 1) if values.ndim == 2 else (1, 2)
+    total = kept.reshape(blocks).sum(axis=first, dtype=np.float64).sum(axis=second)
     if all_finite and not any(after for _, after in pad):
         count = np.full(total.shape, factor * factor, dtype=np.int64)
     else:
-        count = finite.reshape(blocks).sum(axis=3).sum(axis=1)
+        count = finite.reshape(blocks).sum(axis=first).sum(axis=second)
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(count > 0, total / np.maximum(count, 1), np.nan)
 
