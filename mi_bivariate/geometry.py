@@ -31,6 +31,7 @@ import mitsuba as mi
 import numpy as np
 
 from mi_bivariate.errors import InputError
+from mi_bivariate.images import CHUNK_ROWS
 from mi_bivariate.limits import finite_number
 
 #: Distance of the orthographic render camera from the sphere's centre (any value > 1 works).
@@ -165,8 +166,8 @@ class SphereGeometry(Geometry):
         x2 = (((np.arange(cols.start, cols.stop) + 0.5)[None, :] - self.cx) / self.radius) ** 2
         y2 = (((np.arange(rows.start, rows.stop) + 0.5)[:, None] - self.cy) / self.radius) ** 2
         mask = np.zeros((height, width), dtype=bool)
-        for start in range(0, y2.shape[0], 256):  # by rows: the float64 sums stay small
-            part = x2 + y2[start:start + 256] < 1.0
+        for start in range(0, y2.shape[0], CHUNK_ROWS):  # by rows: the float64 sums stay small
+            part = x2 + y2[start:start + CHUNK_ROWS] < 1.0
             mask[rows.start + start:rows.start + start + len(part), cols] = part
         return mask
 

@@ -16,7 +16,7 @@ import numpy as np
 
 from mi_bivariate.common import LUMINANCE_WEIGHTS
 from mi_bivariate.errors import InputError, array_from
-from mi_bivariate.images import block_mean, bounding_box
+from mi_bivariate.images import CHUNK_ROWS, block_mean, bounding_box
 
 #: The smallest sphere radius (pixels) looked for, and trusted.
 MIN_RADIUS_PX = 8.0
@@ -49,8 +49,8 @@ def luminance_map(image: np.ndarray, source: str = "image") -> np.ndarray:
     if image.ndim == 3 and image.shape[2] in (3, 4):
         lum = np.empty(image.shape[:2])
         # By rows: the float64 copy of the colours stays small (a 4096 px photo's would take 400 MB).
-        for start in range(0, lum.shape[0], LUMINANCE_ROWS):
-            rows = slice(start, start + LUMINANCE_ROWS)
+        for start in range(0, lum.shape[0], CHUNK_ROWS):
+            rows = slice(start, start + CHUNK_ROWS)
             lum[rows] = image[rows, :, :3].astype(np.float64) @ LUMINANCE_WEIGHTS
     elif image.ndim == 3 and image.shape[2] == 1 or image.ndim == 2:
         lum = np.array(image[..., 0] if image.ndim == 3 else image, dtype=np.float64)  # a copy: written below
@@ -61,10 +61,6 @@ def luminance_map(image: np.ndarray, source: str = "image") -> np.ndarray:
                          "give a photo with the sphere at least a few pixels across")
     lum[~np.isfinite(lum)] = np.nan
     return lum
-
-
-#: Rows of an RGB image :func:`luminance_map` converts at a time (and :func:`disc_mask` computes).
-LUMINANCE_ROWS = 256
 
 
 def _check_mask(mask: Any, shape: Tuple[int, int], source: str) -> np.ndarray:
@@ -176,8 +172,8 @@ def disc_mask(shape: Tuple[int, int], cx: float, cy: float, r: float) -> np.ndar
     rows, cols = disc_box(shape, cx, cy, r)
     x2 = (np.arange(cols.start, cols.stop) + 0.5 - cx)[None, :] ** 2
     y2 = (np.arange(rows.start, rows.stop) + 0.5 - cy)[:, None] ** 2
-    for start in range(0, y2.shape[0], LUMINANCE_ROWS):  # by rows: the float64 sums stay small
-        part = x2 + y2[start:start + LUMINANCE_ROWS] < r * r
+    for start in range(0, y2.shape[0], CHUNK_ROWS):  # by rows: the float64 sums stay small
+        part = x2 + y2[start:start + CHUNK_ROWS] < r * r
         mask[rows.start + start:rows.start + start + len(part), cols] = part
     return mask
 
