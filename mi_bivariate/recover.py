@@ -580,7 +580,8 @@ def _estimate_noise(image: np.ndarray, geometry: Geometry, source: str,
     interior = np.zeros_like(lit)
     interior[max(1 - rows.start, 0):height - 1 - rows.start, max(1 - cols.start, 0):width - 1 - cols.start] = True
     region = lit & near if mask is None else lit & near & mask[rows, cols]
-    inner = ndimage.binary_erosion(region, iterations=NOISE_EROSION_PX, border_value=1, mask=interior)
+    inner = ndimage.binary_erosion(region, iterations=NOISE_EROSION_PX, border_value=1,
+                                   mask=None if interior.all() else interior)  # (the masked erosion is 1.7x slower)
     try:
         pairs = [estimate_camera_noise(crop[..., c], inner, source) for c in range(3)]
     except InputError as exc:
