@@ -31,7 +31,7 @@ import mitsuba as mi
 import numpy as np
 
 from mi_bivariate.errors import InputError
-from mi_bivariate.images import CHUNK_ROWS
+from mi_bivariate.images import CHUNK_ROWS, circle_box
 from mi_bivariate.limits import finite_number
 
 #: Distance of the orthographic render camera from the sphere's centre (any value > 1 works).
@@ -161,8 +161,8 @@ class SphereGeometry(Geometry):
 
     def object_mask(self, width: int, height: int, source: str = "image") -> np.ndarray:
         """``(H, W) bool``: the pixels whose centre lies inside the sphere's silhouette (:meth:`normals`' mask),
-        computed in the circle's box only (:meth:`circle_box`)."""
-        rows, cols = self.circle_box(width, height)
+        computed in the circle's box only (:func:`~mi_bivariate.images.circle_box`)."""
+        rows, cols = circle_box((height, width), self.cx, self.cy, self.radius)
         x2 = (((np.arange(cols.start, cols.stop) + 0.5)[None, :] - self.cx) / self.radius) ** 2
         y2 = (((np.arange(rows.start, rows.stop) + 0.5)[:, None] - self.cy) / self.radius) ** 2
         mask = np.zeros((height, width), dtype=bool)
@@ -170,18 +170,6 @@ class SphereGeometry(Geometry):
             part = x2 + y2[start:start + CHUNK_ROWS] < 1.0
             mask[rows.start + start:rows.start + start + len(part), cols] = part
         return mask
-
-    def circle_box(self, width: int, height: int) -> Tuple[slice, slice]:
-        """``(rows, cols)``: the silhouette's bounding box within the ``width x height`` frame, a pixel wider on
-        each side than the pixel centres inside it need (rounding): a pixel's centre ``k + 0.5`` may lie
-        inside when ``|k + 0.5 - c| < |radius|``. The whole frame for a circle that is not finite."""
-        def span(centre: float, size: int) -> slice:
-            lo, hi = centre - abs(self.radius) - 0.5, centre + abs(self.radius) - 0.5
-            if not (math.isfinite(lo) and math.isfinite(hi)):
-                return slice(0, size)
-            start, stop = min(max(math.floor(lo), 0), size), min(max(math.ceil(hi) + 1, 0), size)
-            return slice(start, max(start, stop))
-        return span(float(self.cy), height), span(float(self.cx), width)
 
     def normals_at(self, x: np.ndarray, y: np.ndarray, onto_sphere: bool = False) -> np.ndarray:
         """World normals ``(..., 3) float64`` at image positions ``x, y`` (pixels, x right, y down).

@@ -21,6 +21,7 @@ carry provenance (tool version, command line, units) in their header.
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import shlex
 import sys
@@ -626,6 +627,19 @@ def bounding_box(mask: np.ndarray) -> Tuple[slice, slice]:
     if rows.size == 0:
         return slice(0, 0), slice(0, 0)
     return slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1)
+
+
+def circle_box(shape: Tuple[int, int], cx: float, cy: float, r: float) -> Tuple[slice, slice]:
+    """``(rows, cols)`` within the ``(H, W)`` frame that hold every pixel whose centre ``k + 0.5`` lies inside the
+    circle (``|k + 0.5 - c| < |r|`` along each axis), with a pixel to spare on each side (rounding); the whole
+    frame for a circle that is not finite."""
+    def span(centre: float, size: int) -> slice:
+        lo, hi = centre - abs(r) - 0.5, centre + abs(r) - 0.5  # a centre k + 0.5 inside: lo < k < hi
+        if not (math.isfinite(lo) and math.isfinite(hi)):
+            return slice(0, size)
+        start = min(max(math.floor(lo), 0), size)
+        return slice(start, max(start, min(math.ceil(hi) + 1, size)))
+    return span(float(cy), shape[0]), span(float(cx), shape[1])
 
 
 def block_mean(values: np.ndarray, factor: int) -> np.ndarray:

@@ -16,7 +16,7 @@ import numpy as np
 
 from mi_bivariate.common import LUMINANCE_WEIGHTS
 from mi_bivariate.errors import InputError, array_from
-from mi_bivariate.images import CHUNK_ROWS, block_mean, bounding_box
+from mi_bivariate.images import CHUNK_ROWS, block_mean, bounding_box, circle_box
 
 #: The smallest sphere radius (pixels) looked for, and trusted.
 MIN_RADIUS_PX = 8.0
@@ -169,25 +169,13 @@ def filled(binary: np.ndarray) -> np.ndarray:
 def disc_mask(shape: Tuple[int, int], cx: float, cy: float, r: float) -> np.ndarray:
     """``(H, W) bool``: pixel centres inside the circle (computed in the circle's box only)."""
     mask = np.zeros(shape, dtype=bool)
-    rows, cols = disc_box(shape, cx, cy, r)
+    rows, cols = circle_box(shape, cx, cy, r)
     x2 = (np.arange(cols.start, cols.stop) + 0.5 - cx)[None, :] ** 2
     y2 = (np.arange(rows.start, rows.stop) + 0.5 - cy)[:, None] ** 2
     for start in range(0, y2.shape[0], CHUNK_ROWS):  # by rows: the float64 sums stay small
         part = x2 + y2[start:start + CHUNK_ROWS] < r * r
         mask[rows.start + start:rows.start + start + len(part), cols] = part
     return mask
-
-
-def disc_box(shape: Tuple[int, int], cx: float, cy: float, r: float) -> Tuple[slice, slice]:
-    """``(rows, cols)`` within the ``(H, W)`` frame that hold every pixel centre inside the circle, with a
-    pixel to spare on each side (rounding); the whole frame for a circle that is not finite."""
-    def span(centre: float, size: int) -> slice:
-        lo, hi = centre - abs(r) - 0.5, centre + abs(r) - 0.5  # a centre k + 0.5 inside: lo < k < hi
-        if not (math.isfinite(lo) and math.isfinite(hi)):
-            return slice(0, size)
-        start = min(max(math.floor(lo), 0), size)
-        return slice(start, max(start, min(math.ceil(hi) + 1, size)))
-    return span(float(cy), shape[0]), span(float(cx), shape[1])
 
 
 def _region_circle(region: np.ndarray) -> Optional[Tuple[float, float, float]]:

@@ -149,11 +149,11 @@ def test_sphere_normals_are_its_normals_at_each_pixel_centre_inside_the_silhouet
 
 
 def test_a_spheres_box_holds_every_pixel_of_its_mask():
-    """``SphereGeometry.circle_box`` (found from the circle, without the mask) holds every pixel of
+    """``images.circle_box`` of a sphere (found from the circle, without the mask) holds every pixel of
     ``object_mask``, within the frame, for spheres inside, cut by or beyond the frame, of either sign of
     radius, and is at most two pixels wider on each side than their bounding box where the centre lies in the
     frame. ``object_mask``, computed in that box by rows, is the whole frame's formula."""
-    from mi_bivariate.images import bounding_box
+    from mi_bivariate.images import bounding_box, circle_box
 
     rng = np.random.default_rng(4)
     for k in range(500):
@@ -163,7 +163,7 @@ def test_a_spheres_box_holds_every_pixel_of_its_mask():
         xx, yy = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
         inside = ((xx - geometry.cx) / geometry.radius) ** 2 + ((yy - geometry.cy) / geometry.radius) ** 2 < 1.0
         np.testing.assert_array_equal(geometry.object_mask(width, height), inside)
-        rows, cols = geometry.circle_box(width, height)
+        rows, cols = circle_box((height, width), geometry.cx, geometry.cy, geometry.radius)
         assert 0 <= rows.start <= rows.stop <= height and 0 <= cols.start <= cols.stop <= width
         assert np.count_nonzero(inside[rows, cols]) == np.count_nonzero(inside)
         if 0 <= geometry.cx <= width and 0 <= geometry.cy <= height and inside.any():  # else the circle's box is
