@@ -192,10 +192,30 @@ def defer_unused_modules() -> None:
         setattr(parent, name, module)  # the package's own __getattr__ (which imports) is not asked
 
 
-#: :func:`syntax_on_first_call`'s blocks now open, and Dr.Jit's own ``drjit.syntax`` while they are.
-_SYNTAX_LOCK = threading.Lock()
-_syntax_depth = 0
-_syntax_rewrite: Optional[Callable] = None
+#: The process-wide changes of :func:`syntax_on_first_call` and :func:`plain_scipy_docstrings` now made:
+#: ``name -> [open blocks, what undoes the change]``.
+_PATCH_LOCK = threading.Lock()
+_patches: dict = {}
+
+
+@contextlib.contextmanager
+def _shared_change(name: str, make: Callable[[], Callable[[], None]]) -> Iterator[None]:
+    """A block within which a process-wide change stays made: ``make`` makes it and returns what undoes it.
+    Blocks of one ``name`` may nest or overlap, in any thread: the first to open makes the change (once, not a
+    change of the change), the last to end undoes it."""
+    with _PATCH_LOCK:
+        entry = _patches.setdefault(name, [0, None])
+        if entry[0] == 0:
+            entry[1] = make()
+        entry[0] += 1
+    try:
+        yield
+    finally:
+        with _PATCH_LOCK:
+            entry[0] -= 1
+            if entry[0] == 0:
+                del _patches[name]
+                entry[1]()
 
 
 @contextlib.contextmanager
@@ -218,20 +238,15 @@ def syntax_on_first_call() -> Iterator[None]:
     within it in any process; the command line also loads its pipeline within it, in a process of its
     own (:func:`mi_bivariate.cli.main`).
     """
-    global _syntax_depth, _syntax_rewrite
     dr = importlib.import_module("drjit")  # the pipeline loads it anyway
-    with _SYNTAX_LOCK:  # blocks of several threads, or nested ones, replace it once and restore it last
-        if _syntax_depth == 0:
-            _syntax_rewrite = dr.syntax
-            dr.syntax = _deferred_syntax(_syntax_rewrite)
-        _syntax_depth += 1
-    try:
+
+    def make() -> Callable[[], None]:
+        rewrite = dr.syntax
+        dr.syntax = _deferred_syntax(rewrite)
+        return lambda: setattr(dr, "syntax", rewrite)
+
+    with _shared_change("drjit.syntax", make):
         yield
-    finally:
-        with _SYNTAX_LOCK:
-            _syntax_depth -= 1
-            if _syntax_depth == 0:
-                dr.syntax = _syntax_rewrite
 
 
 def _deferred_syntax(rewrite: Callable) -> Callable:
@@ -253,12 +268,6 @@ def _deferred_syntax(rewrite: Callable) -> Callable:
         return on_first_call
 
     return deferred
-
-
-#: :func:`plain_scipy_docstrings`'s open blocks, and ``FunctionDoc``'s own methods while they are open.
-_DOCSTRING_LOCK = threading.Lock()
-_docstring_depth = 0
-_docstring_methods: dict = {}
 
 
 @contextlib.contextmanager
@@ -283,7 +292,6 @@ def plain_scipy_docstrings() -> Iterator[None]:
     (:func:`mi_bivariate.cli.main`): what the command loads on first use (the sphere fit's
     ``scipy.ndimage``, ``scipy.special``, ``scipy.optimize``) is extended so too.
     """
-    global _docstring_depth
     try:
         function_doc = importlib.import_module("scipy._lib._docscrape").FunctionDoc
         sections = dict(function_doc.sections)
@@ -299,26 +307,25 @@ def plain_scipy_docstrings() -> Iterator[None]:
         self._parsed_data = {key: type(value)() for key, value in sections.items()}
         self._parsed_data["Summary"] = self._plain_text.split("\n")  # what scipy's own __str__ would show of it
 
+    own: dict = {}  # FunctionDoc's own methods, once this block's are the ones installed
+
     def __str__(self):  # noqa: N807
         if not hasattr(self, "_plain_text"):  # parsed before the block began (another thread's)
-            return _docstring_methods.get("__str__", type(self).__str__)(self)
+            return own["__str__"](self)
         added = [str(text) for key in ("Extended Summary", "Notes") for text in self._parsed_data[key]]
         return "\n" + "\n\n".join([self._plain_text, *added])  # the decorators drop the first line (a signature)
 
-    with _DOCSTRING_LOCK:
-        if _docstring_depth == 0:
-            _docstring_methods.update(__init__=vars(function_doc)["__init__"], __str__=vars(function_doc)["__str__"])
-            function_doc.__init__, function_doc.__str__ = __init__, __str__
-        _docstring_depth += 1
-    try:
+    def make() -> Callable[[], None]:
+        own.update(__init__=vars(function_doc)["__init__"], __str__=vars(function_doc)["__str__"])
+        function_doc.__init__, function_doc.__str__ = __init__, __str__
+
+        def undo() -> None:
+            for name, method in own.items():
+                setattr(function_doc, name, method)
+        return undo
+
+    with _shared_change("scipy FunctionDoc", make):
         yield
-    finally:
-        with _DOCSTRING_LOCK:
-            _docstring_depth -= 1
-            if _docstring_depth == 0:
-                for name, method in _docstring_methods.items():
-                    setattr(function_doc, name, method)
-                _docstring_methods.clear()
 
 
 def usable_cores() -> int:
