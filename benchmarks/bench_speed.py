@@ -341,14 +341,15 @@ def peers(args: argparse.Namespace) -> None:
     import drjit as dr
 
     from mi_bivariate import lighting
+    from mi_bivariate.process import configured_blas_threads
     from mi_bivariate.recover import recover
-    from mi_bivariate.threads import blas_threads, configured_threads
+    from mi_bivariate.threads import blas_threads
     from mi_bivariate.variants import ensure_variant
 
     variant = ensure_variant()
     print(f"Machine: {machine()}; transparent huge pages {args.thp_state}")
     print(f"Variant {variant}, Dr.Jit threads {dr.thread_count()}, BLAS threads in heavy stages "
-          f"{configured_threads() or 'library default'}.\n")
+          f"{configured_blas_threads() or 'library default'}.\n")
     _, probe, shot = load_inputs()
     compile_bytecode()
     rows = []

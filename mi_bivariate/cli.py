@@ -22,6 +22,11 @@ import sys
 import warnings
 from typing import Dict, Optional, Sequence, Tuple
 
+if __name__ == "__main__":  # ``python -m mi_bivariate.cli``: the console script's own start, before numpy loads
+    from mi_bivariate.__main__ import main as _console_main  # imports this module again, by its name, and runs
+
+    sys.exit(_console_main())
+
 from mi_bivariate import __version__, process
 from mi_bivariate.atomic import signals_deferred, stop_on_signal
 from mi_bivariate.errors import InputError, Terminated, renamed
@@ -537,9 +542,9 @@ def _stop_on_signals() -> Dict[int, object]:
 
 
 def run() -> int:
-    """What the console script ``mi-bivariate`` runs (behind :func:`mi_bivariate.__main__.main`'s guard for
-    a Ctrl-C while this module loads), and ``python -m mi_bivariate.cli``: :func:`main` with ``sys.argv``
-    in a process of its own.
+    """What the console script ``mi-bivariate``, ``python -m mi_bivariate`` and ``python -m mi_bivariate.cli``
+    run (behind :func:`mi_bivariate.__main__.main`'s guard for a Ctrl-C while this module loads, and after its
+    BLAS setting): :func:`main` with ``sys.argv`` in a process of its own.
 
     While the command runs, SIGTERM stops it as Ctrl-C does (:class:`~mi_bivariate.errors.Terminated`; exit
     status 143) instead of ending the process where it stands, which left an output's temporary file
@@ -552,7 +557,3 @@ def run() -> int:
     status = main(own_process=True)
     gc.freeze()
     return status
-
-
-if __name__ == "__main__":
-    sys.exit(run())

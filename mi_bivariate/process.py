@@ -1,4 +1,5 @@
-"""What a process that exists for the toolkit's work sets for itself: glibc keeps freed memory
+"""What a process that exists for the toolkit's work sets for itself: its BLAS libraries start with the one
+thread its linear algebra uses (:func:`one_blas_thread_at_load`), glibc keeps freed memory
 (:func:`keep_freed_memory`), the kernel's transparent huge pages off (:func:`no_huge_pages`), the
 modules that scipy's import loads for nothing run on first use (:func:`defer_unused_modules`);
 and a worker process ends with the process that started it (:func:`die_with_parent`). Likewise
@@ -13,9 +14,9 @@ a program importing the toolkit is left as it is, unless it calls them itself, e
     from mi_bivariate import process
     process.no_huge_pages()       # before the first large array: its first recover ~2x faster here
 
-The first two return whether they changed anything, and leave the process alone where the user set
-the matching variable (``MALLOC_*``, ``NUMPY_MADVISE_HUGEPAGE``) or the platform lacks the switch; the
-third leaves a module alone that is already loaded.
+The first three return whether they changed anything, and leave the process alone where the user set
+the matching variable (``OPENBLAS_NUM_THREADS``, ``MALLOC_*``, ``NUMPY_MADVISE_HUGEPAGE``) or the platform
+lacks the switch; :func:`defer_unused_modules` leaves a module alone that is already loaded.
 """
 from __future__ import annotations
 
@@ -31,6 +32,60 @@ import threading
 import time
 import types
 from typing import Callable, Iterator, Optional
+
+#: BLAS threads in the toolkit's linear algebra (:func:`mi_bivariate.threads.blas_threads`) when
+#: :data:`BLAS_THREADS_ENV_VAR` does not say otherwise.
+DEFAULT_BLAS_THREADS = 1
+#: Environment variable overriding :data:`DEFAULT_BLAS_THREADS`: a positive integer, or ``0`` /
+#: ``default`` / ``none`` to leave the libraries' own setting alone.
+BLAS_THREADS_ENV_VAR = "MI_BIVARIATE_BLAS_THREADS"
+#: The variables by which BLAS libraries size their thread pools as they load (OpenBLAS's, MKL's).
+BLAS_LOAD_ENV_VARS = ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def configured_blas_threads() -> Optional[int]:
+    """BLAS threads to use: :data:`BLAS_THREADS_ENV_VAR` or :data:`DEFAULT_BLAS_THREADS`; ``None``: leave
+    the libraries alone (also for ``0`` or a negative number; text that is not a number reads as the default)."""
+    text = os.environ.get(BLAS_THREADS_ENV_VAR, "").strip().lower()
+    if not text:
+        return DEFAULT_BLAS_THREADS
+    if text in ("0", "default", "none"):
+        return None
+    try:
+        n = int(text)
+    except ValueError:
+        return DEFAULT_BLAS_THREADS
+    return n if n > 0 else None
+
+
+def one_blas_thread_at_load() -> bool:
+    """Have the BLAS libraries start with one thread (:data:`BLAS_LOAD_ENV_VARS` set to ``1``) where the
+    toolkit's own BLAS setting is one thread (:func:`configured_blas_threads`, the default). Returns
+    whether it set anything. Call it before numpy loads (afterwards it changes nothing and returns False).
+
+    The command line runs its linear algebra with one BLAS thread (:func:`mi_bivariate.threads.blas_threads`:
+    threads of its own run the solve's channels). OpenBLAS, loaded by numpy and again by scipy (each has
+    its own copy), starts a thread per core anyway, and those threads busy-wait for work for a while
+    after they start and after every change of their number, which each ``blas_threads`` block makes
+    twice, so they took CPU from the command's own threads and did no work. Sampled with ``perf`` in a
+    ``recover --no-report`` (256 px, 2026-12-08, this 2-core AMD EPYC VM): 0.26 s of its ~4 s of CPU
+    were spent in OpenBLAS's idle loop, most of it while the pipeline loaded. With one thread from the
+    start, eight alternating fresh processes: CPU 3.97 -> 3.52 s, wall 2.41 -> 2.25 s (medians); the
+    tables the same bit for bit.
+
+    A variable the user set is left as it is, as is every variable where :data:`BLAS_THREADS_ENV_VAR`
+    asks for more threads or for the libraries' own. The processes this one starts inherit it (the
+    report's worker, an evaluation's workers), and they too run their linear algebra single-threaded.
+    The console script and ``python -m mi_bivariate.cli`` call this first (:mod:`mi_bivariate.__main__`);
+    a program importing the toolkit keeps the libraries' default.
+    """
+    if "numpy" in sys.modules or configured_blas_threads() != 1:
+        return False
+    unset = [name for name in BLAS_LOAD_ENV_VARS if name not in os.environ]
+    for name in unset:
+        os.environ[name] = "1"
+    return bool(unset)
+
 
 #: glibc's ``mallopt`` parameters (``<malloc.h>``) and the values :func:`keep_freed_memory` sets.
 M_TRIM_THRESHOLD, M_MMAP_THRESHOLD, M_ARENA_MAX = -1, -3, -8
@@ -60,8 +115,8 @@ def keep_freed_memory() -> bool:
     measured on (:data:`mi_bivariate.cli.KEEP_FREED_MEMORY_COMMANDS`), and not where the user set the allocator
     (:data:`MALLOC_ENV_VARS`) or on a 32-bit build (whose largest mmap threshold is 512 KiB).
     Called before any other thread has allocated: ``M_ARENA_MAX`` binds the threads that allocate
-    afterwards, but a new thread first takes the arena of one that has ended. (numpy's OpenBLAS
-    threads exist by then, idle, and have not allocated.)
+    afterwards, but a new thread first takes the arena of one that has ended. (OpenBLAS's threads,
+    where they exist (:func:`one_blas_thread_at_load`), are idle by then and have not allocated.)
     """
     tunables = os.environ.get("GLIBC_TUNABLES", "")
     if any(name in os.environ for name in MALLOC_ENV_VARS) or "glibc.malloc." in tunables:

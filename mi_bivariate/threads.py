@@ -8,9 +8,11 @@ threads against 0.78 s single-threaded on the shared 2-core machine
 for the duration of a block, with :mod:`threadpoolctl`, and restores them
 afterwards. Dr.Jit's own thread pool is not affected.
 
-The default is :data:`DEFAULT_BLAS_THREADS` (1), overridable with the
+The default is :data:`~mi_bivariate.process.DEFAULT_BLAS_THREADS` (1), overridable with the
 environment variable ``MI_BIVARIATE_BLAS_THREADS`` (a positive integer, or
-``0``/``default`` to leave the libraries' own setting alone).
+``0``/``default`` to leave the libraries' own setting alone;
+:func:`~mi_bivariate.process.configured_blas_threads`). The command line's own process
+also starts the libraries with that one thread (:func:`~mi_bivariate.process.one_blas_thread_at_load`).
 
 The solve's channels are independent, and its LAPACK calls release the GIL
 (:mod:`mi_bivariate.solve.lapack`), so they run on Python worker threads instead:
@@ -30,12 +32,7 @@ from typing import Any, Callable, Iterable, Iterator, List, Optional, TypeVar
 
 import drjit as dr
 
-from mi_bivariate.process import usable_cores
-
-#: BLAS threads inside :func:`blas_threads` when neither the argument nor the environment says.
-DEFAULT_BLAS_THREADS = 1
-#: Environment variable overriding :data:`DEFAULT_BLAS_THREADS`.
-ENV_VAR = "MI_BIVARIATE_BLAS_THREADS"
+from mi_bivariate.process import configured_blas_threads, usable_cores
 
 #: Environment variable setting :func:`solve_threads`.
 SOLVE_ENV_VAR = "MI_BIVARIATE_SOLVE_THREADS"
@@ -64,32 +61,18 @@ def _controller() -> Any:
     return ThreadpoolController()
 
 
-def configured_threads() -> Optional[int]:
-    """BLAS threads to use: ``MI_BIVARIATE_BLAS_THREADS`` or the default; ``None`` = leave alone."""
-    text = os.environ.get(ENV_VAR, "").strip().lower()
-    if not text:
-        return DEFAULT_BLAS_THREADS
-    if text in ("0", "default", "none"):
-        return None
-    try:
-        n = int(text)
-    except ValueError:
-        return DEFAULT_BLAS_THREADS
-    return n if n > 0 else None
-
-
 @contextlib.contextmanager
 def blas_threads(n: Optional[int] = -1) -> Iterator[None]:
     """Limit the BLAS thread pools of numpy/scipy to ``n`` threads inside the block.
 
     Args:
-        n: threads; ``-1`` (default): :func:`configured_threads`; ``None``: no limit
+        n: threads; ``-1`` (default): :func:`~mi_bivariate.process.configured_blas_threads`; ``None``: no limit
             (the block runs with whatever is in force).
 
     Nested blocks are fine: each restores what it found.
     """
     if n == -1:
-        n = configured_threads()
+        n = configured_blas_threads()
     if n is None:
         yield
         return

@@ -437,9 +437,11 @@ def test_console_script_exit_status_on_bad_input(tmp_path):
     assert str(missing) in lines[0] and not (tmp_path / "o.npz").exists()
 
 
-def test_ctrl_c_while_the_command_line_loads_ends_in_one_line():
+@pytest.mark.parametrize("module", ["mi_bivariate", "mi_bivariate.cli"])
+def test_ctrl_c_while_the_command_line_loads_ends_in_one_line(module):
     """A Ctrl-C while the command loads numpy (before the command sets up its own stop) ends as a later
-    one does: ``mi-bivariate: interrupted``, status 130, no traceback. The process sends itself SIGINT
+    one does: ``mi-bivariate: interrupted``, status 130, no traceback; through ``python -m mi_bivariate``
+    (the console script's ``main``) and ``python -m mi_bivariate.cli`` alike. The process sends itself SIGINT
     from inside the import of numpy's core library (an import hook): the same signal at the same
     moment on a busy machine or an idle one (polling ``/proc/PID/maps`` from outside for that moment
     raced the command under load and could miss it)."""
@@ -455,13 +457,55 @@ class CtrlC(importlib.abc.MetaPathFinder):
 
 sys.meta_path.insert(0, CtrlC())
 sys.argv = ["mi-bivariate", "info"]
-runpy.run_module("mi_bivariate", run_name="__main__", alter_sys=True)  # python -m mi_bivariate info
-"""
+runpy.run_module(MODULE, run_name="__main__", alter_sys=True)  # python -m MODULE info
+""".replace("MODULE", repr(module))
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=120,
                          env=dict(os.environ, PYTHONPATH=str(ROOT)))
     assert out.returncode == 130 and out.stderr.strip() == "mi-bivariate: interrupted", \
         (out.returncode, out.stderr[-2000:])
     assert "numpy" not in out.stdout and not out.stdout.strip(), out.stdout[-2000:]  # it never ran the command
+
+
+_BLAS_AT_EXIT = """
+import atexit, os, sys
+def _report():
+    import threadpoolctl
+    pools = sorted(pool["num_threads"] for pool in threadpoolctl.threadpool_info() if pool["user_api"] == "blas")
+    print("BLAS", pools, os.environ.get("OPENBLAS_NUM_THREADS"), file=sys.stderr)
+atexit.register(_report)
+"""
+
+
+def test_command_line_starts_blas_with_one_thread(tmp_path):
+    """The command line's own process (the console script's ``main``: ``python -m mi_bivariate`` and
+    ``python -m mi_bivariate.cli``) has numpy's and scipy's OpenBLAS start with the one thread its linear
+    algebra uses (``process.one_blas_thread_at_load``): no idle threads busy-waiting beside its own. Left as
+    the libraries have it: where the user set ``OPENBLAS_NUM_THREADS``, where ``MI_BIVARIATE_BLAS_THREADS``
+    asks for more threads or for the libraries' own, and in a program that imports the toolkit. Read at
+    exit by a ``sitecustomize`` (threadpoolctl), after a ``recover`` that loaded the pipeline and refused its
+    missing photo."""
+    (tmp_path / "sitecustomize.py").write_text(_BLAS_AT_EXIT)
+    missing = str(tmp_path / "missing.exr")
+    argv = ["recover", missing, "--probe", missing, "--out", str(tmp_path / "o.npz")]
+    base = {k: v for k, v in os.environ.items() if k not in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
+                                                              process.BLAS_THREADS_ENV_VAR)}
+
+    def pools(command: list, **env: str) -> str:
+        out = subprocess.run([sys.executable, *command], capture_output=True, text=True, cwd=ROOT, timeout=300,
+                             env=dict(base, PYTHONPATH=f"{tmp_path}{os.pathsep}{ROOT}", **env))
+        found = re.findall(r"^BLAS (.*)$", out.stderr, re.M)
+        assert len(found) == 1, out.stderr[-2000:]
+        return found[0]
+
+    plain = pools(["-c", "import numpy, scipy.linalg"])  # the libraries' own: a thread per core
+    assert plain.endswith("None") and plain.count(",") == 1, plain  # numpy's and scipy's libraries, loaded
+    for module in ("mi_bivariate", "mi_bivariate.cli"):
+        assert pools(["-m", module, *argv]) == "[1, 1] 1", module
+        assert pools(["-m", module, *argv], OPENBLAS_NUM_THREADS="2") == "[2, 2] 2", module
+        for setting in ("2", "default"):
+            assert pools(["-m", module, *argv], MI_BIVARIATE_BLAS_THREADS=setting) == plain, (module, setting)
+    imported = pools(["-c", f"import mi_bivariate.cli as cli; cli.main({argv!r})"])
+    assert imported == plain
 
 
 def test_python_dash_m_package_runs_the_command():

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from threadpoolctl import threadpool_info
 
-from mi_bivariate import threads
+from mi_bivariate import process, threads
 
 
 def _blas_threads() -> list:
@@ -18,26 +18,26 @@ def _blas_threads() -> list:
 
 
 def test_blas_threads_limits_and_restores(monkeypatch):
-    monkeypatch.delenv(threads.ENV_VAR, raising=False)
+    monkeypatch.delenv(process.BLAS_THREADS_ENV_VAR, raising=False)
     before = _blas_threads()
     assert before
     with threads.blas_threads():
-        assert _blas_threads() == [threads.DEFAULT_BLAS_THREADS] * len(before)
+        assert _blas_threads() == [process.DEFAULT_BLAS_THREADS] * len(before)
         with threads.blas_threads(None):  # "leave alone" inside a limit keeps the limit
-            assert _blas_threads() == [threads.DEFAULT_BLAS_THREADS] * len(before)
+            assert _blas_threads() == [process.DEFAULT_BLAS_THREADS] * len(before)
     assert _blas_threads() == before
 
 
 def test_environment_variable(monkeypatch):
-    monkeypatch.setenv(threads.ENV_VAR, "2")
-    assert threads.configured_threads() == 2
-    monkeypatch.setenv(threads.ENV_VAR, "default")
-    assert threads.configured_threads() is None
+    monkeypatch.setenv(process.BLAS_THREADS_ENV_VAR, "2")
+    assert process.configured_blas_threads() == 2
+    monkeypatch.setenv(process.BLAS_THREADS_ENV_VAR, "default")
+    assert process.configured_blas_threads() is None
     before = _blas_threads()
     with threads.blas_threads():
         assert _blas_threads() == before
-    monkeypatch.setenv(threads.ENV_VAR, "nonsense")
-    assert threads.configured_threads() == threads.DEFAULT_BLAS_THREADS
+    monkeypatch.setenv(process.BLAS_THREADS_ENV_VAR, "nonsense")
+    assert process.configured_blas_threads() == process.DEFAULT_BLAS_THREADS
 
 
 def test_thread_map_runs_items_at_once():
