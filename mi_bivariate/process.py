@@ -67,11 +67,14 @@ def one_blas_thread_at_load() -> bool:
     threads of its own run the solve's channels). OpenBLAS, loaded by numpy and again by scipy (each has
     its own copy), starts a thread per core anyway, and those threads busy-wait for work for a while
     after they start and after every change of their number, which each ``blas_threads`` block makes
-    twice, so they took CPU from the command's own threads and did no work. Sampled with ``perf`` in a
-    ``recover --no-report`` (256 px, 2026-12-08, this 2-core AMD EPYC VM): 0.26 s of its ~4 s of CPU
-    were spent in OpenBLAS's idle loop, most of it while the pipeline loaded. With one thread from the
-    start, eight alternating fresh processes: CPU 3.97 -> 3.52 s, wall 2.41 -> 2.25 s (medians); the
-    tables the same bit for bit.
+    twice: CPU spent on no work. Sampled with ``perf`` in a ``recover --no-report`` (256 px, 2026-12-08,
+    this 2-core AMD EPYC VM): 0.26 s of its ~4 s of CPU were OpenBLAS's idle loop, most of it while the
+    pipeline loaded, when the second core is idle anyway. Measured with one thread from the start
+    (docs/recovery.md Round 41): ``recover --no-report``'s CPU 3.97 -> 3.52 s and 3.73 -> 3.61 s
+    (medians of two sets of eight alternating processes) and the same tables bit for bit, but no change
+    in its wall time (A/B 0.99x and 1.03x, 12 rounds each; with the report 1.00x); ``learn-prior`` of
+    the 73 shared materials the same wall time with half the CPU (user 5.0 -> 2.5 s); ``evaluate
+    --quick`` 35.3 -> 33.6 s (one pair).
 
     A variable the user set is left as it is, as is every variable where :data:`BLAS_THREADS_ENV_VAR`
     asks for more threads or for the libraries' own. The processes this one starts inherit it (the

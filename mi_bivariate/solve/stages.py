@@ -19,9 +19,10 @@ def solve_stages(data: DataTerm, prior: Prior, alpha: Any = None,
     Stage 1 chooses alpha (``alpha``) and, per channel, the weight pair (``pair_rule``; both
     as :func:`mi_bivariate.solve.solve`). Stage 2, with a basis prior, adds its per-node
     Gaussian, predicted from the first table and its confidence, and solves again with the
-    first stage's alphas and pairs (the result keeps the first stage's rule names).
+    first stage's alphas and pairs (the result keeps the first stage's rule names). The first stage's
+    residuals, which only its result would report, are not computed when a second stage follows.
     """
-    first = solve_prepared(data, prior, alpha, pair_rule=pair_rule)
+    first = solve_prepared(data, prior, alpha, pair_rule=pair_rule, residuals=basis is None)
     if basis is None:
         return first
     mean, std = basis.predict(first.table, first.resolution, first.posterior_std)
