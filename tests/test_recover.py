@@ -671,6 +671,9 @@ def test_the_provenance_and_summary_say_what_was_computed(two_photos):
     assert provenance["probes"] == ["grey", "warm"]
     predicted = np.einsum("mnc,nc->mc", result.lighting_matrix.astype(np.float64),
                           result.brdf.table.reshape(-1, 3).astype(np.float64))
+    # The recovery's prediction is the solve's own (each channel's winner), L f to float32 rounding.
+    np.testing.assert_array_equal(result.predicted, result.solution.predicted)
+    np.testing.assert_allclose(result.predicted, predicted, rtol=0, atol=1e-6 * np.abs(predicted).max())
     values = np.asarray(obs.values, np.float64)
     overall = np.linalg.norm(values - predicted) / np.linalg.norm(values)
     summary = result.summary()

@@ -1138,3 +1138,79 @@ def test_inverse_diagonals_of_a_singular_system_are_the_pseudo_inverses():
     np.testing.assert_allclose(var, np.diag(pinv), rtol=0, atol=1e-12)
     np.testing.assert_allclose(resolution, np.diag(pinv @ gram), rtol=0, atol=1e-12)
     assert resolution[4] == pytest.approx(0.0, abs=1e-12) and np.all(resolution[[0, 1, 2, 3, 5]] < 1 - 1e-3)
+
+
+@pytest.mark.parametrize("layout", ["contiguous", "strided", "float64"])
+def test_channel_prediction_is_the_product_with_each_channel(layout):
+    """``channel_prediction`` (BLAS on L's ``(M, 3N)`` rows, the table in every third entry) is ``L_k f`` to
+    float32 rounding, as the strided product of the channel's view was; for a non-contiguous L (read through
+    its view) and a float64 one alike, and for a single row."""
+    from mi_bivariate.solve.regularised import channel_prediction
+
+    L = _lighting(200, 11)
+    if layout == "strided":
+        L = np.ascontiguousarray(np.concatenate([L, L], axis=1))[:, ::2]  # the same values, not C-contiguous
+        assert not L.flags.c_contiguous
+    elif layout == "float64":
+        L = L.astype(np.float64)
+    I = np.einsum("mnk,nk->mk", L.astype(np.float64), _truth(12).reshape(N, 3))
+    f = np.random.default_rng(13).random(N)
+    for rows in (slice(None), slice(0, 1)):
+        data = prepare_data_term(L[rows], I[rows])
+        for k in range(3):
+            got = channel_prediction(data, k, f)
+            exact = L[rows][:, :, k].astype(np.float64) @ f.astype(L.dtype).astype(np.float64)
+            assert got.dtype == L.dtype and got.shape == exact.shape
+            tol = 1e-6 if L.dtype == np.float32 else 1e-14
+            np.testing.assert_allclose(got, exact, rtol=0, atol=tol * np.abs(exact).max())
+            np.testing.assert_allclose(got, L[rows][:, :, k] @ f.astype(L.dtype), rtol=0,
+                                       atol=2 * tol * np.abs(exact).max())
+
+
+def test_solve_keeps_its_prediction_and_skips_residuals_only_when_asked():
+    """Each pair's ``predicted`` is ``L f`` of its table (to float32 rounding) and its residual is that
+    prediction's; the result's ``predicted`` takes each channel from its winner. ``residuals=False`` leaves
+    the residuals NaN and no prediction, with the same tables, alphas and winners."""
+    L = _lighting(150, 21)
+    I = np.einsum("mnk,nk->mk", L.astype(np.float64), _truth(22).reshape(N, 3))
+    I *= 1 + 0.05 * np.random.default_rng(23).standard_normal(I.shape)
+    data = prepare_data_term(L, I)
+    full = solve_prepared(data, _prior(), n_t=N_T, n_s=N_S)
+    bare = solve_prepared(data, _prior(), n_t=N_T, n_s=N_S, residuals=False)
+    for pair, sol in full.pairs.items():
+        exact = np.einsum("mnk,nk->mk", L.astype(np.float64), sol.table.reshape(N, 3).astype(np.float64))
+        np.testing.assert_allclose(sol.predicted, exact, rtol=0, atol=1e-6 * np.abs(exact).max())
+        np.testing.assert_allclose(sol.relative_residual, np.linalg.norm(I - exact, axis=0) / np.linalg.norm(I, axis=0),
+                                   rtol=1e-5)
+        np.testing.assert_array_equal(bare.pairs[pair].table, sol.table)
+        assert bare.pairs[pair].predicted is None and np.all(np.isnan(bare.pairs[pair].relative_residual))
+    assert bare.winner == full.winner and np.array_equal(bare.alphas, full.alphas)
+    assert bare.predicted is None and np.all(np.isnan(bare.relative_residual))
+    for k, w in enumerate(full.winner):
+        np.testing.assert_array_equal(full.predicted[:, k], full.pairs[w].predicted[:, k])
+
+
+def test_solve_stages_skip_only_the_first_stages_residuals(monkeypatch):
+    """With a basis prior the first stage's residuals (which nothing reads) are not computed, and the second
+    stage's are; without one the only stage computes them."""
+    from mi_bivariate.basis_prior import BasisPrior
+    from mi_bivariate.solve import regularised, stages
+
+    calls = []
+    real = regularised.solve_prepared
+
+    def spy(*args, **kwargs):
+        calls.append(kwargs.get("residuals", True))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(stages, "solve_prepared", spy)
+    L = _lighting(150, 31)
+    I = np.einsum("mnk,nk->mk", L.astype(np.float64), _truth(32).reshape(N, 3))
+    data = prepare_data_term(L, I)
+    rng = np.random.default_rng(33)
+    basis = BasisPrior.learn({f"m{i}": rng.random((N_T, N_S, 3)) + 0.1 for i in range(12)}, components=3)
+    result = stages.solve_stages(data, _prior(), None, basis)
+    assert calls == [False, True] and result.predicted is not None and np.all(np.isfinite(result.relative_residual))
+    calls.clear()
+    alone = stages.solve_stages(data, _prior(), None, None)
+    assert calls == [True] and alone.predicted is not None

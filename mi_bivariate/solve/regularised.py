@@ -69,6 +69,9 @@ class PairSolution:
     #: (3,) log evidence of the image under this pair (:mod:`~mi_bivariate.solve.evidence`,
     #: up to a constant shared by the pairs); NaN where the pair rule did not need it
     log_evidence: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
+    #: ``(M, 3)`` in L's dtype: ``L f`` per channel (:func:`channel_prediction`; ``None`` after
+    #: ``solve_prepared(residuals=False)``)
+    predicted: Optional[np.ndarray] = field(default=None, repr=False)
 
     @property
     def resolution(self) -> np.ndarray:
@@ -116,6 +119,15 @@ class SolveResult:
                          for k, w in enumerate(self.winner)], axis=-1)
 
     @property
+    def predicted(self) -> Optional[np.ndarray]:
+        """``(M, 3)`` in L's dtype: ``L f`` of the kept table (each channel from its winner), as the solve
+        computed it for the residuals; ``None`` where it did not (``solve_prepared(residuals=False)``)."""
+        columns = [self.pairs[w].predicted for w in self.winner]
+        if any(c is None for c in columns):
+            return None
+        return np.stack([c[:, k] for k, c in enumerate(columns)], axis=-1)
+
+    @property
     def resolution(self) -> np.ndarray:
         """(n_t, n_s, 3) per-node share of the data in the estimate (see :class:`PairSolution`)."""
         return self._of_winner("resolution")
@@ -158,16 +170,16 @@ class _ChannelSolve:
     lam: float
     data_term: float
     objective: float  #: Phi: the data term plus every prior term at the solution
-    residual: float   #: ||I - L f||, unweighted (float32 products, as the tables are stored)
+    residual: float   #: ||I - L f||, unweighted (float32 products, as the tables are stored); NaN if not computed
+    predicted: Optional[np.ndarray] = None  #: (M,) L f in L's dtype, where the residual was computed
 
     def log_det(self) -> float:
         """``log det`` of the system (from the NNLS solve's own factorisation when it had one)."""
         return self.result.log_det if self.result.log_det is not None else log_det_spd(self.system)
 
 
-def channel_residual(data: DataTerm, k: int, f: np.ndarray) -> float:
-    """``||I_k - L_k f||`` of channel ``k``: the table in ``L``'s dtype (float32 products, as tables are
-    stored), the norm in float64.
+def channel_prediction(data: DataTerm, k: int, f: np.ndarray) -> np.ndarray:
+    """``(M,)`` ``L_k f`` of channel ``k`` in L's dtype (float32 products, as tables are stored).
 
     Channel ``k`` of a C-contiguous ``(M, N, 3)`` L is read as BLAS reads a matrix: L's ``(M, 3N)`` rows
     times a vector holding ``f`` in every third entry (products with exact zeros change no sum). numpy's
@@ -177,14 +189,12 @@ def channel_residual(data: DataTerm, k: int, f: np.ndarray) -> float:
     """
     lighting = data.lighting
     f = np.asarray(f).astype(lighting.dtype)
-    if lighting.flags.c_contiguous:
-        m, n, c = lighting.shape
-        spread = np.zeros(n * c, lighting.dtype)
-        spread[k::c] = f
-        predicted = lighting.reshape(m, n * c) @ spread
-    else:
-        predicted = lighting[:, :, k] @ f
-    return float(np.linalg.norm(data.observations[:, k].astype(np.float64) - predicted))
+    if not lighting.flags.c_contiguous:
+        return lighting[:, :, k] @ f
+    m, n, c = lighting.shape
+    spread = np.zeros(n * c, lighting.dtype)
+    spread[k::c] = f
+    return lighting.reshape(m, n * c) @ spread
 
 
 def _solve_channel(data: DataTerm, penalty: np.ndarray, alpha: Optional[float], k: int, start: np.ndarray,
@@ -195,7 +205,7 @@ def _solve_channel(data: DataTerm, penalty: np.ndarray, alpha: Optional[float], 
     ``entries``: ``penalty``'s non-zero entries (:func:`~mi_bivariate.solve.common.sparse_entries`).
     ``factor``: the Cholesky factor of this very system if the caller has it (the discrepancy
     principle's at the alpha it chose, built by the same operations).
-    ``residual``: compute ``||I - L f||`` (:func:`channel_residual`); else it is NaN.
+    ``residual``: compute ``L f`` (:func:`channel_prediction`) and ``||I - L f||``; else the residual is NaN.
 
     ``precision``, ``mean`` ``(N, 3)``: the diagonal Gaussian table prior (the basis prior),
     added as ``(1/M) sum_n ((f_n - mean_n) / mean_std_n)^2`` with ``precision = 1 / (M std^2)``.
@@ -219,8 +229,10 @@ def _solve_channel(data: DataTerm, penalty: np.ndarray, alpha: Optional[float], 
     if extra is not None:
         objective += float(np.sum(extra[0] * (f - mean[:, k]) ** 2))
     # The residual, here on the channel's worker thread (the products release the GIL).
-    norm = channel_residual(data, k, f) if residual else np.nan
-    return _ChannelSolve(res, x, float(alpha), float(score), lam, data_term, objective, norm)
+    predicted = channel_prediction(data, k, f) if residual else None
+    norm = np.nan if predicted is None else float(np.linalg.norm(data.observations[:, k].astype(np.float64)
+                                                                   - predicted))
+    return _ChannelSolve(res, x, float(alpha), float(score), lam, data_term, objective, norm, predicted)
 
 
 def _pair_solution(data: DataTerm, regulariser, channels: List[_ChannelSolve], confidence: Confidence,
@@ -241,7 +253,9 @@ def _pair_solution(data: DataTerm, regulariser, channels: List[_ChannelSolve], c
         relative_residual=rel, iterations=np.array([c.result.iterations for c in channels]),
         kkt_violation=np.array([c.result.kkt_violation for c in channels]),
         method=tuple(c.result.method for c in channels), time_s=seconds, confidence=confidence,
-        log_evidence=np.array([np.nan if e is None else e for e in evidence]))
+        log_evidence=np.array([np.nan if e is None else e for e in evidence]),
+        predicted=None if any(c.predicted is None for c in channels) else np.stack([c.predicted for c in channels],
+                                                                                   axis=-1))
 
 
 def solve_prepared(data: DataTerm, prior: Optional[Prior] = None, alpha=None, *,
