@@ -78,13 +78,17 @@ def one_blas_thread_at_load() -> bool:
 
     A variable the user set is left as it is, as is every variable where :data:`BLAS_THREADS_ENV_VAR`
     asks for more threads or for the libraries' own. The processes this one starts inherit it (the
-    report's worker, an evaluation's workers), and they too run their linear algebra single-threaded.
+    report's worker, an evaluation's workers) and start single-threaded too (an evaluation's worker then
+    takes its job's share of the cores, :func:`mi_bivariate.threads.pin_process_threads`). OpenBLAS reads
+    ``OPENBLAS_NUM_THREADS`` before ``GOTO_NUM_THREADS`` and ``OMP_NUM_THREADS``, so a count given only
+    through those two is overridden here; set ``OPENBLAS_NUM_THREADS`` (or ``MI_BIVARIATE_BLAS_THREADS``)
+    to keep one.
     The console script and ``python -m mi_bivariate.cli`` call this first (:mod:`mi_bivariate.__main__`);
     a program importing the toolkit keeps the libraries' default.
     """
     if "numpy" in sys.modules or configured_blas_threads() != 1:
         return False
-    unset = [name for name in BLAS_LOAD_ENV_VARS if name not in os.environ]
+    unset = [name for name in BLAS_LOAD_ENV_VARS if not os.environ.get(name, "").strip()]  # blank: as unset
     for name in unset:
         os.environ[name] = "1"
     return bool(unset)

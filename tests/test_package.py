@@ -502,6 +502,7 @@ def test_command_line_starts_blas_with_one_thread(tmp_path):
     for module in ("mi_bivariate", "mi_bivariate.cli"):
         assert pools(["-m", module, *argv]) == "[1, 1] 1", module
         assert pools(["-m", module, *argv], OPENBLAS_NUM_THREADS="2") == "[2, 2] 2", module
+        assert pools(["-m", module, *argv], OPENBLAS_NUM_THREADS=" ") == "[1, 1] 1", module  # blank: as unset
         for setting in ("2", "default"):
             assert pools(["-m", module, *argv], MI_BIVARIATE_BLAS_THREADS=setting) == plain, (module, setting)
     imported = pools(["-c", f"import mi_bivariate.cli as cli; cli.main({argv!r})"])

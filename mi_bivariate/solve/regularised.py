@@ -245,7 +245,8 @@ def _pair_solution(data: DataTerm, regulariser, channels: List[_ChannelSolve], c
     norm_i = np.linalg.norm(data.observations.astype(np.float64), axis=0)
     r = np.array([c.residual for c in channels])
     with np.errstate(divide="ignore", invalid="ignore"):
-        rel = np.where(norm_i > 0, r / np.where(norm_i > 0, norm_i, 1.0), np.where(r == 0, 0.0, np.inf))
+        rel = np.where(np.isnan(r), np.nan, np.where(norm_i > 0, r / np.where(norm_i > 0, norm_i, 1.0),
+                                                        np.where(r == 0, 0.0, np.inf)))
     return PairSolution(
         table=f.reshape(*grid, 3).astype(np.float32), alpha=np.array([c.alpha for c in channels]),
         gcv=np.array([c.gcv for c in channels]),
