@@ -372,9 +372,7 @@ def recover(images: Union[np.ndarray, Sequence[np.ndarray]],
         solution = solve_stages(data, prior, alpha, basis, pair_rule)
         timings["solve"] = time.perf_counter() - t0 - timings["normal equations"]
         table = solution.table
-        predicted = solution.predicted  # L f, as the solve computed it for its residuals
-        if predicted is None:
-            predicted = np.einsum("mnc,nc->mc", L, table.reshape(n_t * n_s, 3), optimize=True)
+        predicted = solution.predicted  # L f, as the solve computed it for its residuals (its last stage's)
     _check_explained(observations.values, predicted, row_noise, observations.image_index, n)
     level = np.where(data.level > 0, data.level, 1.0)
     confidence = {
